@@ -1,0 +1,39 @@
+import numpy as np
+import pytest
+
+from xvoe import store
+from xvoe.generate import GenerateConfig, generate
+
+
+@pytest.fixture(scope="session")
+def test_file(tmp_path_factory):
+    path = tmp_path_factory.mktemp("data") / "test.h5"
+    return generate(GenerateConfig("test", pairs=8, seed=3), path, workers=2, progress=False)
+
+
+@pytest.fixture(scope="session")
+def train_file(tmp_path_factory):
+    path = tmp_path_factory.mktemp("data") / "train.h5"
+    return generate(GenerateConfig("train", videos=96, seed=5), path, workers=1, progress=False)
+
+
+@pytest.fixture(scope="session")
+def test_data(test_file):
+    """Everything of the small test split, in memory."""
+    with store.open_dataset(test_file) as f:
+        data = {name: f[name][:] for name in ("rgbd", "ids", "states", "kind", "color", "pair",
+                                               "member", "possible", "event_frame")}
+        data["scenario"] = store.strings(f, "scenario")
+        data["setting"] = store.strings(f, "setting")
+        data["columns"] = list(f["states"].attrs["state_columns"])
+        data["kind_names"] = list(f.attrs["kind_names"])
+    return data
+
+
+def column(data, name):
+    return data["states"][..., data["columns"].index(name)]
+
+
+def videos_of(data, scenario, setting, member):
+    mask = (data["scenario"] == scenario) & (data["setting"] == setting) & (data["member"] == member)
+    return np.flatnonzero(mask)

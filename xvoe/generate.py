@@ -1,0 +1,156 @@
+"""Generates a split of the benchmark into an HDF5 file, in parallel and reproducibly.
+
+The work is cut into units (a training video, or a test pair of two videos); each unit
+draws every random choice from its own generator, seeded by (seed, split, unit), so the
+output does not depend on the number of workers or on how the run is sharded.
+"""
+from __future__ import annotations
+
+import multiprocessing
+from dataclasses import asdict, dataclass
+from functools import partial
+from pathlib import Path
+
+import numpy as np
+from tqdm.auto import tqdm
+
+from . import store
+from .errors import XvoeError
+from .render import render
+from .scenes import SCENARIOS, TEST_SETTINGS, TRAINING_GROUPS
+
+TRAINING_VARIANTS = tuple((group, with_wall) for group in TRAINING_GROUPS for with_wall in (True, False))
+_SPLIT_CODE = {"train": 0, "test": 1}
+
+
+@dataclass(frozen=True)
+class GenerateConfig:
+    split: str = "train"
+    videos: int = 10_000      # training videos
+    pairs: int = 1_000        # test pairs per setting
+    size: int = 64
+    frames: int = 15
+    seed: int = 0
+
+    def __post_init__(self) -> None:
+        if self.split not in store.SPLITS:
+            raise XvoeError(f"split must be one of {store.SPLITS}, not {self.split!r}")
+        if not 16 <= self.size <= 512:
+            raise XvoeError(f"size must be between 16 and 512 pixels, not {self.size}")
+        if not 10 <= self.frames <= 200:
+            raise XvoeError(f"frames must be between 10 and 200, not {self.frames}")
+        if self.videos < 1 or self.pairs < 1:
+            raise XvoeError("videos and pairs must be at least 1")
+        if self.seed < 0:
+            raise XvoeError(f"seed must be a non-negative integer, not {self.seed}")
+
+    @property
+    def units(self) -> int:
+        return self.videos if self.split == "train" else self.pairs * len(TEST_SETTINGS)
+
+    @property
+    def videos_per_unit(self) -> int:
+        return 1 if self.split == "train" else 2
+
+    def to_dict(self) -> dict:
+        data = asdict(self)
+        data.pop(data["split"] == "train" and "pairs" or "videos")
+        return data
+
+
+def unit_rng(config: GenerateConfig, unit: int) -> np.random.Generator:
+    return np.random.default_rng(np.random.SeedSequence([config.seed, _SPLIT_CODE[config.split], unit]))
+
+
+def make_unit(config: GenerateConfig, unit: int) -> list[store.EncodedVideo]:
+    """Simulate, render and compress the video(s) of one unit."""
+    rng = unit_rng(config, unit)
+    if config.split == "train":
+        group, with_wall = TRAINING_VARIANTS[rng.integers(len(TRAINING_VARIANTS))]
+        take = TRAINING_GROUPS[group](rng, with_wall, config.frames)
+        labels = {"group": group, "has_wall": with_wall, "event_frame": take.event_frame}
+        return [store.encode(render(take.scene, take.trajectory, config.size), labels)]
+    setting_index, pair = divmod(unit, config.pairs)
+    scenario, setting = TEST_SETTINGS[setting_index]
+    takes = SCENARIOS[scenario].test_pair(rng, setting, config.frames)
+    return [store.encode(render(take.scene, take.trajectory, config.size),
+                         {"scenario": scenario, "setting": setting, "pair": pair, "member": member,
+                          "possible": take.possible, "event_frame": take.event_frame})
+            for member, take in enumerate(takes)]
+
+
+def shard_units(config: GenerateConfig, shard: tuple[int, int]) -> range:
+    index, count = shard
+    if not (count >= 1 and 0 <= index < count):
+        raise XvoeError(f"shard must be I/N with 0 <= I < N, not {index}/{count}")
+    if count > config.units:
+        raise XvoeError(f"cannot cut {config.units} units into {count} shards")
+    return range(index * config.units // count, (index + 1) * config.units // count)
+
+
+def generate(config: GenerateConfig, out: str | Path, workers: int = 1, shard: tuple[int, int] = (0, 1),
+             overwrite: bool = False, progress: bool = True) -> Path:
+    """Write the split (or one shard of it) to `out`; returns the path."""
+    if workers < 1:
+        raise XvoeError(f"workers must be at least 1, not {workers}")
+    units = shard_units(config, shard)
+    count = len(units) * config.videos_per_unit
+    with store.atomic_file(out, overwrite) as file:
+        store.write_attributes(file, config.split, config.to_dict(), config.seed)
+        if shard != (0, 1):
+            file.attrs["shard"] = f"{shard[0]}/{shard[1]}"
+            file.attrs["first_unit"] = units.start
+        writer = store.Writer(file, config.split, count, config.frames, config.size)
+        bar = tqdm(total=count, unit="video", desc=f"generate {config.split}", disable=not progress)
+        for videos in _map(partial(make_unit, config), units, workers):
+            for video in videos:
+                writer.add(video)
+            bar.update(len(videos))
+        bar.close()
+        writer.finish()
+    return Path(out)
+
+
+def _map(function, items: range, workers: int):
+    if workers == 1:
+        yield from map(function, items)
+        return
+    chunk = max(1, min(64, len(items) // (workers * 8)))
+    with multiprocessing.get_context("fork").Pool(workers) as pool:
+        yield from pool.imap(function, items, chunksize=chunk)
+
+
+def merge(parts: list[str | Path], out: str | Path, overwrite: bool = False, progress: bool = True) -> Path:
+    """Join the shards of one run into the file an unsharded run would have written."""
+    if not parts:
+        raise XvoeError("merge needs at least one shard file")
+    files = [store.open_dataset(p) for p in parts]
+    try:
+        shards = sorted((_shard_of(path, file), str(path), file) for path, file in zip(parts, files))
+        first = shards[0][2]
+        count = shards[0][0][1]
+        for (_, shard_count), path, file in shards:
+            if file.attrs["config"] != first.attrs["config"] or shard_count != count:
+                raise XvoeError(f"{path} belongs to another run (its config or shard count differs)")
+        found = [index for (index, _), _, _ in shards]
+        if found != list(range(count)):
+            raise XvoeError(f"shards {found} do not make up 0..{count - 1} exactly once")
+        config = GenerateConfig(split=str(first.attrs["split"]), **store.config_of(first))
+        total = sum(file["rgbd"].shape[0] for _, _, file in shards)
+        with store.atomic_file(out, overwrite) as target:
+            store.write_attributes(target, config.split, config.to_dict(), config.seed)
+            writer = store.Writer(target, config.split, total, config.frames, config.size)
+            for _, _, file in tqdm(shards, desc="merge", unit="shard", disable=not progress):
+                store.copy_videos(file, writer)
+            writer.finish()
+    finally:
+        for file in files:
+            file.close()
+    return Path(out)
+
+
+def _shard_of(path, file) -> tuple[int, int]:
+    if "shard" not in file.attrs:
+        raise XvoeError(f"{path} is not a shard (it was not written with --shard)")
+    index, count = (int(v) for v in str(file.attrs["shard"]).split("/"))
+    return index, count

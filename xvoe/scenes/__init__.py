@@ -1,0 +1,32 @@
+"""Scenario templates and the registries that name them.
+
+Each scenario module samples every parameter from one seeded generator and offers
+`test_pair(rng, setting, frames)` (its test settings in `SETTINGS`) and/or
+`training(rng, with_wall, frames)`.
+"""
+from __future__ import annotations
+
+from ..physics import Take
+from . import blocking, collision, continuity, control, pass_behind, permanence
+
+SCENARIOS = {
+    "collision": collision,
+    "blocking": blocking,
+    "permanence": permanence,
+    "continuity": continuity,
+}
+
+# The 11 test settings, in storage order.
+TEST_SETTINGS: tuple[tuple[str, str], ...] = tuple(
+    (name, setting) for name, module in SCENARIOS.items() for setting in module.SETTINGS)
+
+TRAINING_GROUPS = {
+    "control": control.training,
+    "collision": collision.training,
+    "blocking": blocking.training,
+    "pass_behind": pass_behind.training,
+    "permanence": permanence.training,
+    "continuity": continuity.training,
+}
+
+__all__ = ["SCENARIOS", "TEST_SETTINGS", "TRAINING_GROUPS", "Take"]
