@@ -126,7 +126,8 @@ def merge(parts: list[str | Path], out: str | Path, overwrite: bool = False, pro
         raise XvoeError("merge needs at least one shard file")
     files = [store.open_dataset(p) for p in parts]
     try:
-        shards = sorted((_shard_of(path, file), str(path), file) for path, file in zip(parts, files))
+        shards = sorted(((_shard_of(path, file), str(path), file) for path, file in zip(parts, files)),
+                        key=lambda shard: shard[0])
         first = shards[0][2]
         count = shards[0][0][1]
         for (_, shard_count), path, file in shards:
@@ -135,7 +136,7 @@ def merge(parts: list[str | Path], out: str | Path, overwrite: bool = False, pro
         found = [index for (index, _), _, _ in shards]
         if found != list(range(count)):
             raise XvoeError(f"shards {found} do not make up 0..{count - 1} exactly once")
-        config = GenerateConfig(split=str(first.attrs["split"]), **store.config_of(first))
+        config = GenerateConfig(**store.config_of(first))
         total = sum(file["rgbd"].shape[0] for _, _, file in shards)
         with store.atomic_file(out, overwrite) as target:
             store.write_attributes(target, config.split, config.to_dict(), config.seed)

@@ -33,8 +33,8 @@ _LIFT_AT = DURATION - 0.2 - _MOVE   # the wall is gone at DURATION - 0.2
 
 def wall_fraction(schedule: str, time: float) -> float:
     """How far the wall is lowered at `time` under a timetable."""
-    lowered = float(np.clip((time - _LOWER_AT) / _MOVE, 0.0, 1.0))
-    not_lifted = float(np.clip((_LIFT_AT + _MOVE - time) / _MOVE, 0.0, 1.0))
+    lowered = float(np.clip(round((time - _LOWER_AT) / _MOVE, 9), 0.0, 1.0))
+    not_lifted = float(np.clip(round((_LIFT_AT + _MOVE - time) / _MOVE, 9), 0.0, 1.0))
     if schedule == "away_start_end":
         return min(lowered, not_lifted)
     if schedule == "stays":
@@ -42,11 +42,6 @@ def wall_fraction(schedule: str, time: float) -> float:
     if schedule == "away_end":
         return not_lifted
     raise ValueError(f"unknown wall schedule {schedule!r}; expected one of {WALL_SCHEDULES}")
-
-
-def wall_is_down(time: float) -> tuple[float, float]:
-    """The time interval in which a wall under any timetable stands on the floor."""
-    return _LOWER_AT + _MOVE, _LIFT_AT
 
 
 @dataclass(frozen=True)

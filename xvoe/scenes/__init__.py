@@ -1,8 +1,8 @@
 """Scenario templates and the registries that name them.
 
-Each scenario module samples every parameter from one seeded generator and offers
-`test_pair(rng, setting, frames)` (its test settings in `SETTINGS`) and/or
-`training(rng, with_wall, frames)`.
+Each test scenario module samples every parameter from one seeded generator with
+`sample(rng)` and offers `test_pair(rng, setting, frames)` (its settings in `SETTINGS`) and
+`training(rng, with_wall, frames)`; the training-only groups offer `training` alone.
 """
 from __future__ import annotations
 

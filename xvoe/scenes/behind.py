@@ -16,13 +16,14 @@ SCHEDULES = {"S1": "away_start_end", "S2": "stays", "S3": "away_end"}
 
 def sample(rng: np.random.Generator, make_hidden: Callable[[float], Thing]) -> Scene:
     """Incoming ball, the hidden thing (fully covered by the wall) and the wall."""
-    wall_x = rng.uniform(28.0, 36.0)
+    wall_x = rng.uniform(30.0, 36.0)
     half_width = rng.uniform(11.0, 14.0)
     height = rng.uniform(14.0, 22.0)
     # The hidden thing and the incoming ball at the moment they meet both stay behind the wall.
     hidden_x = rng.uniform(wall_x - half_width + 3 * R + 1, wall_x + half_width - R - 1)
     speed = rolling_speed(rng)
-    meet_time = rng.uniform(0.35, 0.5)
+    # They meet once the wall is down (0.3 s), and the incoming ball starts in view.
+    meet_time = rng.uniform(0.35, min(0.5, (hidden_x - 2 * R) / speed))
     start_x = hidden_x - 2 * R - speed * meet_time
     things = [ball(start_x, speed), make_hidden(hidden_x), wall(wall_x, half_width, height)]
     return make_scene(rng, things)

@@ -8,7 +8,7 @@ from __future__ import annotations
 import numpy as np
 
 from ..physics import Take
-from ..world import cube
+from ..world import Scene, cube
 from . import behind
 
 SETTINGS = ("S1", "S2", "S3")
@@ -16,6 +16,10 @@ SETTINGS = ("S1", "S2", "S3")
 
 def fixed_cube(x: float):
     return cube(x, fixed=True)
+
+
+def sample(rng: np.random.Generator) -> Scene:
+    return behind.sample(rng, fixed_cube)
 
 
 def test_pair(rng: np.random.Generator, setting: str, frames: int) -> tuple[Take, Take]:

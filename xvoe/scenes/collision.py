@@ -9,10 +9,14 @@ from __future__ import annotations
 import numpy as np
 
 from ..physics import Take
-from ..world import ball
+from ..world import Scene, ball
 from . import behind
 
 SETTINGS = ("S1", "S2", "S3")
+
+
+def sample(rng: np.random.Generator) -> Scene:
+    return behind.sample(rng, ball)
 
 
 def test_pair(rng: np.random.Generator, setting: str, frames: int) -> tuple[Take, Take]:

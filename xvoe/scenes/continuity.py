@@ -25,8 +25,9 @@ def sample(rng: np.random.Generator) -> Scene:
     height = rng.uniform(24.0, 30.0)
     window_height = rng.uniform(2 * R + 2, min(height / 2, 12.0))
     speed = rng.uniform(48.0, 56.0)
-    enter_time = rng.uniform(0.32, 0.45)
-    start_x = wall_x - window_half - R - speed * enter_time
+    entry_x = wall_x - window_half - R       # where the ball starts to show in the window
+    enter_time = rng.uniform(0.32, min(0.45, entry_x / speed))   # wall down, ball starts in view
+    start_x = entry_x - speed * enter_time
     things = [ball(start_x, speed), wall(wall_x, half_width, height, window=(window_half, window_height))]
     return make_scene(rng, things)
 

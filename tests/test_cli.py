@@ -1,0 +1,71 @@
+"""The command line: generate and show, and one-line errors with exit code 2."""
+import subprocess
+import sys
+
+import pytest
+
+from xvoe.cli import main
+
+
+def run_cli(*args):
+    """Run `python -m xvoe` as a user would; returns (code, stdout, stderr)."""
+    done = subprocess.run([sys.executable, "-m", "xvoe", *args], capture_output=True, text=True)
+    return done.returncode, done.stdout, done.stderr
+
+
+def test_generate_then_show(tmp_path):
+    out = tmp_path / "t.h5"
+    code, stdout, _ = run_cli("generate", "--split", "test", "--pairs", "1", "--out", str(out), "--quiet")
+    assert code == 0 and stdout.strip() == str(out)
+    png, gif = tmp_path / "sheet.png", tmp_path / "anim.gif"
+    assert main(["show", str(out), "--index", "3", "--out", str(png)]) == 0
+    assert main(["show", str(out), "--index", "3", "--out", str(gif)]) == 0
+    assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    assert gif.read_bytes()[:6] == b"GIF89a"
+
+
+@pytest.mark.parametrize("args,needle", [
+    (["generate", "--split", "test", "--size", "abc", "--out", "x.h5"], "--size"),
+    (["generate", "--split", "val", "--out", "x.h5"], "invalid choice"),
+    (["generate", "--split", "test", "--shard", "1of2", "--out", "x.h5"], "I/N"),
+    (["generate", "--out", "x.h5"], "--split is required"),
+    (["generate", "--split", "test", "--pairs", "0", "--out", "x.h5"], ">= 1"),
+    (["generate", "--split", "test", "--frames", "3", "--out", "x.h5"], "frames"),
+    (["show", "missing.h5"], "no such file"),
+])
+def test_bad_input_gives_one_line_and_exit_2(tmp_path, args, needle):
+    args = [str(tmp_path / a) if a.endswith(".h5") else a for a in args]
+    code, stdout, stderr = run_cli(*args)
+    assert code == 2
+    assert len(stderr.strip().splitlines()) == 1 and needle in stderr
+    assert not (tmp_path / "x.h5").exists()
+
+
+def test_show_errors(tmp_path, capsys):
+    out = tmp_path / "t.h5"
+    assert main(["generate", "--split", "train", "--videos", "2", "--out", str(out), "--quiet"]) == 0
+    assert main(["show", str(out), "--index", "5"]) == 2
+    assert "out of range" in capsys.readouterr().err
+    assert main(["show", str(out), "--out", str(tmp_path / "fig.jpg")]) == 2
+    assert ".png or .gif" in capsys.readouterr().err
+    assert not (tmp_path / "fig.jpg").exists()
+
+
+def test_existing_output_needs_overwrite(tmp_path, capsys):
+    out = tmp_path / "t.h5"
+    args = ["generate", "--split", "train", "--videos", "2", "--out", str(out), "--quiet"]
+    assert main(args) == 0
+    before = out.read_bytes()
+    assert main(args + ["--seed", "9"]) == 2
+    assert "--overwrite" in capsys.readouterr().err
+    assert out.read_bytes() == before
+    assert main(args + ["--seed", "9", "--overwrite"]) == 0
+    assert out.read_bytes() != before
+
+
+@pytest.mark.parametrize("verb", ["generate", "show", "train", "score", "metrics", "pipeline", "explain"])
+def test_every_verb_has_help(verb, capsys):
+    with pytest.raises(SystemExit) as exit_:
+        main([verb, "--help"])
+    assert exit_.value.code == 0
+    assert "usage: xvoe " + verb in capsys.readouterr().out
