@@ -67,11 +67,11 @@ def test_continuity_window_shows_a_ball_and_sides_hide_it(seed):
     assert 0 <= rolling.x < wall.x - wall.half_width and rolling.vx > 0
 
 
-@settings(max_examples=25, deadline=None)
+@settings(max_examples=60, deadline=None)
 @given(seeds, frame_counts, st.sampled_from(TEST_SETTINGS))
 def test_events_happen_behind_a_standing_wall(seed, frames, scenario_setting):
-    """The event frame exists, and the wall stands on the floor from just before it to just
-    after it, so an edit there is out of sight; impossible members differ from there on."""
+    """The event frame exists and the wall stands on the floor at it, so the edit made in the
+    step into it is out of sight; before it, both members are the same simulation."""
     scenario, setting = scenario_setting
     expected, other = SCENARIOS[scenario].test_pair(np.random.default_rng(seed), setting, frames)
     event = expected.event_frame
@@ -79,8 +79,7 @@ def test_events_happen_behind_a_standing_wall(seed, frames, scenario_setting):
         assert event == -1 and other.possible
         return
     assert 1 <= event < frames and other.event_frame == event
-    for t in (event - 1, event):
-        assert wall_fraction(expected.scene.wall_schedule, frame_time(t, frames)) == 1.0
+    assert wall_fraction(expected.scene.wall_schedule, frame_time(event, frames)) == 1.0
     assert other.possible == (setting == "S2")
     both = [i for i, thing in enumerate(other.scene.things) if thing.exists]
     np.testing.assert_array_equal(expected.trajectory.position[:event, both], other.trajectory.position[:event, both])
@@ -94,7 +93,8 @@ def test_training_videos_render_with_every_slot_in_range(seed, group, with_wall)
     assert video.rgbd.shape == (15, 32, 32, 4) and video.ids.max() <= MAX_SLOTS
     kinds = {int(k) for k in video.kind if k}
     has_wall = bool(kinds & {3, 4})
-    assert has_wall == with_wall or group == "control" and not with_wall
+    assert has_wall == with_wall
     visible = video.states[..., 6]
     assert visible.min() >= 0 and visible.max() <= 1
-    assert (visible[0][video.kind > 0] > 0).any()        # something is seen at the start
+    # training shows no hidden objects: the wall is away at the start and the end
+    assert (visible.max(axis=0)[video.kind > 0] > 0).all()
