@@ -7,6 +7,7 @@ the floor recedes from near at the bottom of the picture to the background at it
 """
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -79,9 +80,9 @@ def render(scene: Scene, trajectory: Trajectory, size: int = 64) -> Video:
                       (thing.height if thing.kind in WALL_KINDS else 2 * thing.size) * scale,
                       thing.lane, 1.0, 0.0, sign * vx, -vy, sign * trajectory.angle[t, index])
 
-    visible_pixels = np.stack([(ids == k + 1).sum(axis=(1, 2)) for k in range(MAX_SLOTS)], axis=1)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        visible = np.where(silhouette_area > 0, visible_pixels / np.maximum(silhouette_area, 1), 0.0)
+    labels = ids.reshape(frames, -1).astype(np.int64) + (MAX_SLOTS + 1) * np.arange(frames)[:, None]
+    pixel_counts = np.bincount(labels.ravel(), minlength=frames * (MAX_SLOTS + 1)).reshape(frames, -1)
+    visible = pixel_counts[:, 1:] / np.maximum(silhouette_area, 1)
     states[..., STATE_COLUMNS.index("visible")] = visible
     depth_u8 = np.clip(np.rint(depth * (255.0 / DEPTH_FAR)), 0, 255).astype(np.uint8)
     rgbd = np.concatenate([rgb, depth_u8[..., None]], axis=-1)
@@ -132,5 +133,8 @@ def _draw(thing, x: float, y: float, xs: np.ndarray, ys_down: np.ndarray, rgb: n
 
 
 def _span(centers: np.ndarray, low: float, high: float) -> slice:
-    """Index range of the pixel centres inside [low, high]."""
-    return slice(int(np.searchsorted(centers, low, "left")), int(np.searchsorted(centers, high, "right")))
+    """Index range of the pixel centres inside [low, high] (centres are (i + 0.5) / scale)."""
+    scale = len(centers) / WORLD
+    first = max(0, math.ceil(low * scale - 0.5))
+    last = min(len(centers) - 1, math.floor(high * scale - 0.5))
+    return slice(first, max(first, last + 1))
