@@ -1,0 +1,142 @@
+"""The reasoning Transformers and the dynamics: masking, causality, slot order, learning."""
+import torch
+
+from xvoe.models.dynamics import DynamicsConfig, InteractionLSTM
+from xvoe.models.reasoning import (
+    ReasoningConfig,
+    ReasoningTransformer,
+    gaussian_nll,
+    hide_slot,
+    never_seen,
+    occlusion_keep,
+)
+from xvoe.models.xpl import XPL, XPLConfig, permute_slots
+
+D, K, T = 6, 4, 8
+SMALL_REASONING = ReasoningConfig(latent_dim=D, slots=K, frames=T, width=32, layers=2, heads=4, mlp=64)
+SMALL_DYNAMICS = DynamicsConfig(latent_dim=D, hidden=32, lstm=48, buffer_heads=2)
+
+
+def test_observed_entries_pass_through_unchanged():
+    torch.manual_seed(0)
+    model = ReasoningTransformer(SMALL_REASONING)
+    z = torch.randn(3, T, K, D)
+    keep = torch.rand(3, T, K) > 0.4
+    mean, scale = model(z, keep)
+    assert torch.equal(mean[keep], z[keep])
+    assert torch.all(scale[keep] == 0) and torch.all(scale[~keep] > 0)
+    # the hidden entries' values never reach the model: changing them changes nothing
+    z2 = z.clone()
+    z2[~keep] = torch.randn(int((~keep).sum()), D) * 100
+    mean2, _ = model(z2, keep)
+    torch.testing.assert_close(mean2, mean)
+
+
+def test_masks():
+    visible = torch.zeros(1, 3, 3, dtype=torch.bool)
+    visible[0, :, 0] = True               # slot 0 seen throughout
+    visible[0, 1, 1] = True               # slot 1 seen at frame 1 only
+    keep = occlusion_keep(visible)
+    assert keep[0, :, 0].all() and keep[0, :, 2].all()    # slot 2 never seen: passed through
+    assert keep[0, :, 1].tolist() == [False, True, False]
+    assert never_seen(visible).tolist() == [[False, False, True]]
+    hidden = hide_slot((2, 3, 3), torch.tensor([2, 0]))
+    assert (~hidden[0, :, 2]).all() and hidden[0, :, :2].all() and (~hidden[1, :, 0]).all()
+
+
+def test_gaussian_nll_matches_torch():
+    mean, target = torch.randn(2, T, K, D), torch.randn(2, T, K, D)
+    scale = torch.rand(2, T, K, D) + 0.1
+    where = torch.ones(2, T, K, dtype=torch.bool)
+    expected = -torch.distributions.Normal(mean, scale).log_prob(target).sum(-1).mean()
+    torch.testing.assert_close(gaussian_nll(mean, scale, target, where), expected)
+
+
+def test_dynamics_is_causal():
+    """The prediction of frame t+1 depends on frames <= t only."""
+    torch.manual_seed(1)
+    for residual in (True, False):
+        model = InteractionLSTM(DynamicsConfig(**{**SMALL_DYNAMICS.__dict__, "residual": residual}))
+        torch.nn.init.normal_(model.out[-1].weight, std=0.1)
+        z = torch.randn(2, T, K, D)
+        base = model(z)
+        for t in range(T - 1):
+            changed = z.clone()
+            changed[:, t + 1:] += torch.randn_like(changed[:, t + 1:])
+            after = model(changed)
+            torch.testing.assert_close(after[:, : t + 1], base[:, : t + 1])
+            assert not torch.allclose(after[:, t + 1:], base[:, t + 1:])
+
+
+def test_residual_starts_from_no_change():
+    model = InteractionLSTM(SMALL_DYNAMICS)
+    z = torch.randn(2, T, K, D)
+    torch.testing.assert_close(model(z), z)
+
+
+def test_dynamics_treats_slots_alike():
+    """Permuting the slots permutes the predictions: no slot is special to the dynamics."""
+    torch.manual_seed(2)
+    model = InteractionLSTM(SMALL_DYNAMICS)
+    torch.nn.init.normal_(model.out[-1].weight, std=0.1)
+    z = torch.randn(2, T, K, D)
+    order = torch.tensor([2, 0, 3, 1])
+    torch.testing.assert_close(model(z[:, :, order]), model(z)[:, :, order], atol=1e-5, rtol=1e-4)
+
+
+def test_permute_slots_moves_everything_together():
+    torch.manual_seed(3)
+    z = torch.arange(2 * T * K, dtype=torch.float).reshape(2, T, K, 1).expand(-1, -1, -1, D)
+    visible = z[..., 0] % 3 == 0
+    pz, pv = permute_slots(z, visible)
+    assert torch.equal(pv, pz[..., 0] % 3 == 0)
+    for b in range(2):   # the same order in every frame
+        order = [int(v) % K for v in pz[b, 0, :, 0]]
+        assert sorted(order) == list(range(K))
+        assert torch.equal(pz[b, :, :, 0] % K, torch.tensor(order).expand(T, -1).float())
+
+
+def toy_latents(videos=64, seed=0):
+    """Objects moving at constant velocity, occluded for a stretch of frames."""
+    g = torch.Generator().manual_seed(seed)
+    start, velocity = torch.randn(videos, 1, K, D, generator=g), 0.3 * torch.randn(videos, 1, K, D, generator=g)
+    z = start + velocity * torch.arange(T).view(1, T, 1, 1)
+    visible = torch.ones(videos, T, K, dtype=torch.bool)
+    visible[:, 3:5, 1] = False
+    return z, visible
+
+
+def test_xpl_training_lowers_both_losses():
+    torch.manual_seed(4)
+    model = XPL(XPLConfig(reasoning=SMALL_REASONING, dynamics=SMALL_DYNAMICS))
+    optimiser = torch.optim.Adam(model.parameters(), lr=3e-3)
+    z, visible = toy_latents()
+    model.train()
+    first = model.losses(z, visible)
+    for _ in range(60):
+        losses = model.losses(z, visible)
+        optimiser.zero_grad()
+        losses["loss"].backward()
+        optimiser.step()
+    assert losses["dynamics"] < 0.3 * first["dynamics"]
+    assert losses["mae"] < first["mae"] - 1.0
+
+
+def test_plato_has_no_reasoning_and_predicts_directly():
+    model = XPL(XPLConfig(dynamics=DynamicsConfig(latent_dim=D, hidden=16, lstm=16, buffer_heads=2, residual=False),
+                          use_reasoning=False))
+    assert not hasattr(model, "transformer1")
+    z, visible = toy_latents(4)
+    assert torch.equal(model.refine(z, visible), z)
+    assert set(model.losses(z, visible)) == {"dynamics", "loss"}
+
+
+def test_explain_hides_a_never_seen_slot():
+    model = XPL(XPLConfig(reasoning=SMALL_REASONING, dynamics=SMALL_DYNAMICS)).eval()
+    z, visible = toy_latents(2)
+    visible[0, :, 3] = False          # video 0: slot 3 never seen; video 1: everything seen somewhere
+    mean, scale, slot = model.explain(z, visible)
+    assert slot.tolist() == [3, -1]
+    assert torch.equal(mean[1], z[1]) and torch.all(scale[1] == 0)
+    assert not torch.equal(mean[0, :, 3], z[0, :, 3]) and torch.all(scale[0, :, 3] > 0)
+    assert torch.equal(mean[0, :, :3], z[0, :, :3])

@@ -1,0 +1,79 @@
+"""PLATO's InteractionLSTM: predicts every slot's latent at frame t+1 from frames <= t.
+
+Each slot keeps an object buffer of all its past latents, read by attention from its
+current state; slot states interact pairwise through an MLP summed over the other slots; a
+slot-wise LSTM (shared across slots) carries the history. XPL's form is residual:
+z(t+1) = z(t) + f(z(<=t)); PLATO's predicts z(t+1) directly.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+from torch import Tensor, nn
+
+
+@dataclass(frozen=True)
+class DynamicsConfig:
+    latent_dim: int = 16       # D
+    hidden: int = 128          # width of the object, buffer and interaction MLPs (paper: 512)
+    mlp_layers: int = 2        # layers of each MLP (paper: 3)
+    lstm: int = 256            # slot-wise LSTM size (paper: 2056)
+    buffer_heads: int = 4      # attention heads that read the object buffer
+    residual: bool = True      # XPL: predict the change; PLATO: predict the next latent
+
+
+def mlp(inputs: int, width: int, layers: int, outputs: int | None = None) -> nn.Sequential:
+    sizes = [inputs] + [width] * layers
+    modules: list[nn.Module] = []
+    for a, b in zip(sizes[:-1], sizes[1:]):
+        modules += [nn.Linear(a, b), nn.ReLU()]
+    if outputs is not None:
+        modules.append(nn.Linear(width, outputs))
+    return nn.Sequential(*modules)
+
+
+class InteractionLSTM(nn.Module):
+    def __init__(self, config: DynamicsConfig):
+        super().__init__()
+        self.config = config
+        h = config.hidden
+        self.object = mlp(config.latent_dim, h, config.mlp_layers)
+        self.buffer = nn.MultiheadAttention(h, config.buffer_heads, batch_first=True)
+        self.interaction = mlp(2 * h, h, config.mlp_layers)
+        self.cell = nn.LSTMCell(3 * h, config.lstm)
+        self.out = mlp(config.lstm, h, 1, config.latent_dim)
+        nn.init.zeros_(self.out[-1].weight)     # start from "nothing changes" (residual) / zero
+        nn.init.zeros_(self.out[-1].bias)
+
+    def forward(self, z: Tensor) -> Tensor:
+        """z: (B, T, K, D). Returns (B, T, K, D): entry t is the prediction of frame t+1
+        made from frames 0..t (teacher forcing)."""
+        batch, frames, slots, _ = z.shape
+        state = self.object(z)                                              # (B, T, K, H)
+        # object buffer: slot k at frame t attends over its own frames 0..t
+        per_slot = state.permute(0, 2, 1, 3).reshape(batch * slots, frames, -1)
+        future = torch.triu(torch.ones(frames, frames, dtype=torch.bool, device=z.device), diagonal=1)
+        memory, _ = self.buffer(per_slot, per_slot, per_slot, attn_mask=future, need_weights=False)
+        memory = memory.reshape(batch, slots, frames, -1).permute(0, 2, 1, 3)
+        # pairwise interactions at frame t, summed over the other slots
+        receiver = state.unsqueeze(3).expand(-1, -1, -1, slots, -1)
+        sender = state.unsqueeze(2).expand(-1, -1, slots, -1, -1)
+        effects = self.interaction(torch.cat([receiver, sender], dim=-1))
+        others = 1.0 - torch.eye(slots, device=z.device, dtype=z.dtype)
+        effect = (effects * others[:, :, None]).sum(dim=3)
+        inputs = torch.cat([state, memory, effect], dim=-1).reshape(batch, frames, slots, -1)
+        hidden = cell = z.new_zeros(batch * slots, self.config.lstm)
+        outputs = []
+        for t in range(frames):
+            hidden, cell = self.cell(inputs[:, t].reshape(batch * slots, -1), (hidden, cell))
+            outputs.append(hidden)
+        change = self.out(torch.stack(outputs, dim=1)).reshape(batch, slots, frames, -1).permute(0, 2, 1, 3)
+        return z + change if self.config.residual else change
+
+    def rollout(self, z: Tensor, start: int, steps: int) -> Tensor:
+        """Predict `steps` frames after frame `start - 1` feeding predictions back in (no teacher)."""
+        history = z[:, :start]
+        for _ in range(steps):
+            history = torch.cat([history, self(history)[:, -1:]], dim=1)
+        return history[:, start:]

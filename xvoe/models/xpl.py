@@ -1,0 +1,83 @@
+"""XPL on object latents: two reasoning Transformers and the dynamics, and their losses.
+
+Training reads the latent cache (posterior means and per-frame visibility), never pixels:
+Transformer 1 and the dynamics are trained jointly on the dynamics loss over frames 1..T-1
+with visible entries fixed to the cached means; Transformer 2 learns, MAE-style, to rebuild a
+slot hidden in every frame from Transformer 1's refined latents. PLATO is the same model
+without reasoning and without the residual.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import torch
+from torch import Tensor, nn
+
+from .dynamics import DynamicsConfig, InteractionLSTM
+from .reasoning import ReasoningConfig, ReasoningTransformer, gaussian_nll, hide_slot, never_seen, occlusion_keep
+
+
+@dataclass(frozen=True)
+class XPLConfig:
+    reasoning: ReasoningConfig = field(default_factory=ReasoningConfig)
+    dynamics: DynamicsConfig = field(default_factory=DynamicsConfig)
+    use_reasoning: bool = True      # False: PLATO (dynamics on the raw means)
+    stop_target_gradient: bool = True   # the dynamics target is a constant for Transformer 1
+    mae_weight: float = 1.0
+    permute_slots: bool = True      # slot order carries no meaning: shuffle it in training
+
+
+class XPL(nn.Module):
+    def __init__(self, config: XPLConfig):
+        super().__init__()
+        self.config = config
+        self.dynamics = InteractionLSTM(config.dynamics)
+        if config.use_reasoning:
+            self.transformer1 = ReasoningTransformer(config.reasoning)
+            self.transformer2 = ReasoningTransformer(config.reasoning)
+
+    def refine(self, z: Tensor, visible: Tensor) -> Tensor:
+        """Fill the frames in which a seen object is occluded (Transformer 1)."""
+        if not self.config.use_reasoning:
+            return z
+        return self.transformer1(z, occlusion_keep(visible))[0]
+
+    def explain(self, refined: Tensor, visible: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+        """Transformer 2's proposal for an object seen in no frame.
+
+        The first never-seen slot of each video is hidden in all frames (slot order has no
+        meaning, so any such slot will do). Returns the completed latents, the predicted
+        scales and the slot used, -1 where every slot was seen (latents then unchanged).
+        """
+        unseen = never_seen(visible)
+        slot = torch.where(unseen.any(1), unseen.float().argmax(1), torch.full_like(unseen[:, 0], -1, dtype=torch.long))
+        keep = hide_slot(visible.shape, slot.clamp_min(0))
+        keep[slot < 0] = True
+        mean, scale = self.transformer2(refined, keep)
+        return mean, scale, slot
+
+    def losses(self, z: Tensor, visible: Tensor) -> dict[str, Tensor]:
+        """z: (B, T, K, D) cached means; visible: (B, T, K) bool."""
+        if self.config.permute_slots and self.training:
+            z, visible = permute_slots(z, visible)
+        refined = self.refine(z, visible)
+        prediction = self.dynamics(refined[:, :-1])
+        target = refined[:, 1:].detach() if self.config.stop_target_gradient else refined[:, 1:]
+        dynamics = ((prediction - target) ** 2).sum(-1).mean()
+        out = {"dynamics": dynamics}
+        if self.config.use_reasoning:
+            slot = torch.randint(z.shape[2], (z.shape[0],), device=z.device)
+            keep = hide_slot(visible.shape, slot)
+            mean, scale = self.transformer2(refined.detach(), keep)
+            out["mae"] = gaussian_nll(mean, scale.clamp_min(self.config.reasoning.min_scale), refined.detach(), ~keep)
+            out["mae_mse"] = (((mean - refined.detach()) ** 2).sum(-1) * (~keep)).sum() / (~keep).sum()
+        out["loss"] = dynamics + self.config.mae_weight * out.get("mae", torch.zeros(()))
+        return out
+
+
+def permute_slots(*tensors: Tensor) -> tuple[Tensor, ...]:
+    """Apply one random slot order per video to tensors shaped (B, T, K, ...)."""
+    batch, _, slots = tensors[0].shape[:3]
+    order = torch.argsort(torch.rand(batch, slots, device=tensors[0].device), dim=1)
+    return tuple(torch.gather(t, 2, order[:, None, :].reshape(batch, 1, slots, *[1] * (t.dim() - 3))
+                              .expand(-1, t.shape[1], -1, *t.shape[3:])) for t in tensors)
