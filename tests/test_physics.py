@@ -162,3 +162,20 @@ def test_hidden_thing_in_s2_is_unseen_until_it_moves(test_data):
                 assert visible[:, hidden[0]].max() == 0.0
             else:
                 assert visible[event:, hidden[0]].max() > 0.5
+
+
+def test_settings_of_one_pair_index_share_the_scene(test_data):
+    """S2 and S3 pairs of one index differ only in the wall's timetable: until it is lifted
+    their objects move identically."""
+    columns = test_data["columns"]
+    for scenario in ("collision", "blocking", "continuity"):
+        for member in (0, 1):
+            s2, s3 = videos_of(test_data, scenario, "S2", member), videos_of(test_data, scenario, "S3", member)
+            for a, b in zip(s2, s3):
+                assert test_data["pair"][a] == test_data["pair"][b]
+                shown = test_data["kind"][a] > 0        # S2 member 1 may leave the hidden slot empty
+                assert np.array_equal(test_data["color"][a][shown], test_data["color"][b][shown])
+                np.testing.assert_array_equal(test_data["rgbd"][a, :12], test_data["rgbd"][b, :12])
+                moving = [columns.index(c) for c in ("x", "vx", "present")]
+                np.testing.assert_array_equal(test_data["states"][a][:, shown][..., moving],
+                                              test_data["states"][b][:, shown][..., moving])

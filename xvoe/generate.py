@@ -1,8 +1,11 @@
 """Generates a split of the benchmark into an HDF5 file, in parallel and reproducibly.
 
 The work is cut into units (a training video, or a test pair of two videos); each unit
-draws every random choice from its own generator, seeded by (seed, split, unit), so the
-output does not depend on the number of workers or on how the run is sharded.
+draws every random choice from its own generator, so the output does not depend on the
+number of workers or on how the run is sharded. A training video is seeded by (seed, video);
+a test pair by (seed, scenario, pair index), the same for every setting of its scenario: the
+S1, S2 and S3 pairs of one index show the same scene under different wall timetables, so
+settings can be compared pair by pair.
 """
 from __future__ import annotations
 
@@ -59,7 +62,12 @@ class GenerateConfig:
 
 
 def unit_rng(config: GenerateConfig, unit: int) -> np.random.Generator:
-    return np.random.default_rng(np.random.SeedSequence([config.seed, _SPLIT_CODE[config.split], unit]))
+    if config.split == "train":
+        key = [config.seed, _SPLIT_CODE["train"], unit]
+    else:
+        setting_index, pair = divmod(unit, config.pairs)
+        key = [config.seed, _SPLIT_CODE["test"], list(SCENARIOS).index(TEST_SETTINGS[setting_index][0]), pair]
+    return np.random.default_rng(np.random.SeedSequence(key))
 
 
 def make_unit(config: GenerateConfig, unit: int) -> list[store.EncodedVideo]:
