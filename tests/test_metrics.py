@@ -1,0 +1,103 @@
+"""The metrics on hand-worked cases; AUC against a brute-force count; seeded bootstrap."""
+import csv
+import itertools
+
+import numpy as np
+import pytest
+from hypothesis import given
+from hypothesis import strategies as st
+
+from xvoe.errors import XvoeError
+from xvoe.metrics import auc, comparative, holistic, read_scores, relative
+
+
+def table(rows):
+    """rows: (scenario, setting, pair, member, possible, score)."""
+    columns = list(zip(*rows))
+    return {"scenario": np.array(columns[0]), "setting": np.array(columns[1]), "pair": np.array(columns[2]),
+            "member": np.array(columns[3]), "possible": np.array(columns[4], dtype=bool),
+            "score": np.array(columns[5], dtype=float), "index": np.arange(len(rows))}
+
+
+HAND = table([
+    # collision S1: pair 0 right, pair 1 tie, pair 2 wrong, pair 3 right  -> (1 + .5 + 0 + 1) / 4
+    ("collision", "S1", 0, 0, True, 1.0), ("collision", "S1", 0, 1, False, 3.0),
+    ("collision", "S1", 1, 0, True, 2.0), ("collision", "S1", 1, 1, False, 2.0),
+    ("collision", "S1", 2, 0, True, 5.0), ("collision", "S1", 2, 1, False, 4.0),
+    ("collision", "S1", 3, 0, True, 0.0), ("collision", "S1", 3, 1, False, 9.0),
+    # collision S2: both possible; member 1 higher in 1 of 2 pairs -> 0.5
+    ("collision", "S2", 0, 0, True, 1.0), ("collision", "S2", 0, 1, True, 2.0),
+    ("collision", "S2", 1, 0, True, 2.0), ("collision", "S2", 1, 1, True, 1.0),
+])
+
+
+def test_comparative_hand_case():
+    result = comparative(HAND, rounds=50)
+    assert result["collision", "S1"].value == pytest.approx(2.5 / 4)
+    assert result["collision", "S2"].value == pytest.approx(0.5)
+
+
+def test_holistic_hand_case():
+    # impossible: 3, 2, 4, 9; possible: 1, 2, 5, 0, 1, 2, 2, 1
+    positive, negative = [3, 2, 4, 9], [1, 2, 5, 0, 1, 2, 2, 1]
+    wins = sum((p > n) + 0.5 * (p == n) for p in positive for n in negative)
+    assert holistic(HAND, rounds=50)["collision"].value == pytest.approx(wins / 32)
+
+
+def test_relative_hand_case():
+    # thresholds = S1 pair means: pair 0: 2, pair 1: 2, pair 2: 4.5, pair 3: 4.5
+    result = relative(HAND, rounds=50)
+    # S1 videos: p0 (1<2 ok, 3>2 ok), p1 (2=2 half, 2=2 half), p2 (5>4.5 wrong, 4<4.5 wrong), p3 (ok, ok)
+    assert result["collision", "S1"].value == pytest.approx((2 + 1 + 0 + 2) / 8)
+    # S2 videos (possible): p0: 1<2 ok, 2=2 half; p1: 2=2 half, 1<2 ok
+    assert result["collision", "S2"].value == pytest.approx(3 / 4)
+
+
+@given(st.lists(st.integers(0, 5), min_size=1, max_size=12), st.lists(st.integers(0, 5), min_size=1, max_size=12))
+def test_auc_equals_brute_force_with_half_ties(positive, negative):
+    brute = np.mean([(p > n) + 0.5 * (p == n) for p, n in itertools.product(positive, negative)])
+    assert auc(np.array(positive), np.array(negative)) == pytest.approx(brute)
+
+
+def random_scores(pairs=40, seed=0, signal=1.0):
+    rng = np.random.default_rng(seed)
+    rows = []
+    for scenario, setting in (("blocking", "S1"), ("blocking", "S2"), ("blocking", "S3")):
+        for pair in range(pairs):
+            for member in (0, 1):
+                possible = member == 0 or setting == "S2"
+                rows.append((scenario, setting, pair, member, possible, rng.normal() + signal * (not possible)))
+    return table(rows)
+
+
+def test_bootstrap_is_reproducible_and_brackets_the_estimate():
+    scores = random_scores()
+    a = comparative(scores, seed=3)["blocking", "S1"]
+    b = comparative(scores, seed=3)["blocking", "S1"]
+    assert (a.low, a.high) == (b.low, b.high) and a.low < a.high
+    for estimate in [a, holistic(scores, seed=3)["blocking"], relative(scores, seed=3)["blocking", "S3"]]:
+        assert estimate.low <= estimate.value <= estimate.high and estimate.high - estimate.low < 0.5
+
+
+def test_chance_scores_sit_at_one_half():
+    scores = random_scores(pairs=400, signal=0.0)
+    assert abs(holistic(scores, rounds=200)["blocking"].value - 0.5) < 0.05
+    result = comparative(scores, rounds=200)["blocking", "S1"]
+    assert result.low < 0.5 < result.high
+
+
+def test_read_scores_round_trip_and_errors(tmp_path):
+    path = tmp_path / "scores.csv"
+    with open(path, "w", newline="") as handle:
+        writer = csv.writer(handle)
+        writer.writerow(["index", "scenario", "setting", "pair", "member", "possible", "score"])
+        writer.writerow([0, "collision", "S1", 0, 0, True, 1.5])
+        writer.writerow([1, "collision", "S1", 0, 1, False, 2.5])
+    scores = read_scores(path)
+    assert scores["possible"].tolist() == [True, False] and scores["score"].tolist() == [1.5, 2.5]
+    assert comparative(scores, rounds=10)["collision", "S1"].value == 1.0
+    (tmp_path / "bad.csv").write_text("a,b\n1,2\n")
+    with pytest.raises(XvoeError, match="not a scores file"):
+        read_scores(tmp_path / "bad.csv")
+    with pytest.raises(XvoeError, match="no such file"):
+        read_scores(tmp_path / "missing.csv")

@@ -1,0 +1,179 @@
+"""The paper's metrics over surprise scores, with bootstrap 95% intervals.
+
+Scores are one row per test video (`index, scenario, setting, pair, member, possible` and
+one or more score columns: `score`, `s_img`, `s_dyn`, ...). A higher score means more
+surprise. s+ is an impossible video's score, s- a possible one's; a tie counts one half.
+
+- comparative, per setting: over pairs, 1[s(member 1) > s(member 0)]. Ideal: 1 for S1 and
+  S3 (member 1 is the impossible one), 0.5 for S2 (both possible).
+- holistic, per scenario: over all (impossible, possible) pairs of videos of the scenario,
+  1[s+ > s-]: the ROC AUC of the score as a detector of impossible videos.
+- relative: each video against the mean score of the S1 pair of its scenario and pair index
+  (the same scene in every setting): judged impossible when above it. Accuracy per setting.
+
+Intervals resample pair indices with replacement (the unit that the settings of a scenario
+share), from a seeded generator.
+"""
+from __future__ import annotations
+
+import csv
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from .errors import XvoeError
+
+REQUIRED = ("index", "scenario", "setting", "pair", "member", "possible")
+IDEAL_COMPARATIVE = {"S1": 1.0, "S2": 0.5, "S3": 1.0}
+
+
+@dataclass
+class Estimate:
+    value: float
+    low: float
+    high: float
+
+
+def read_scores(path: str | Path) -> dict[str, np.ndarray]:
+    """A scores CSV as columns of numpy arrays; refuses a file without the label columns."""
+    path = Path(path)
+    if not path.is_file():
+        raise XvoeError(f"{path}: no such file")
+    with open(path, newline="") as handle:
+        rows = list(csv.DictReader(handle))
+    if not rows:
+        raise XvoeError(f"{path} holds no scores")
+    missing = [c for c in REQUIRED if c not in rows[0]]
+    if missing:
+        raise XvoeError(f"{path} is not a scores file: no column(s) {', '.join(missing)}")
+    columns: dict[str, np.ndarray] = {}
+    for name in rows[0]:
+        values = [row[name] for row in rows]
+        if name in ("scenario", "setting", "model"):
+            columns[name] = np.array(values)
+        elif name == "possible":
+            columns[name] = np.array([v.strip().lower() in ("1", "true") for v in values])
+        else:
+            try:
+                columns[name] = np.array(values, dtype=float)
+            except ValueError:
+                columns[name] = np.array(values)
+    return columns
+
+
+def pairwise_win(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """1 where a > b, 0.5 where equal, 0 where below."""
+    return (a > b) + 0.5 * (a == b)
+
+
+def auc(positive: np.ndarray, negative: np.ndarray) -> float:
+    """P(s+ > s-) + P(s+ = s-)/2 from ranks (Mann-Whitney U, ties given average ranks)."""
+    positive, negative = np.asarray(positive, float), np.asarray(negative, float)
+    if len(positive) == 0 or len(negative) == 0:
+        return float("nan")
+    values = np.concatenate([positive, negative])
+    order = np.argsort(values, kind="mergesort")
+    ranks = np.empty(len(values))
+    sorted_values = values[order]
+    # average rank of each run of equal values
+    starts = np.flatnonzero(np.r_[True, sorted_values[1:] != sorted_values[:-1]])
+    ends = np.r_[starts[1:], len(values)]
+    for start, end in zip(starts, ends):
+        ranks[order[start:end]] = (start + end + 1) / 2.0
+    u = ranks[: len(positive)].sum() - len(positive) * (len(positive) + 1) / 2.0
+    return float(u / (len(positive) * len(negative)))
+
+
+def _pairs_table(scores: dict[str, np.ndarray], scenario: str, setting: str, column: str):
+    """Scores of member 0 and member 1 by pair index, for one setting."""
+    mask = (scores["scenario"] == scenario) & (scores["setting"] == setting)
+    pair, member, value = scores["pair"][mask].astype(int), scores["member"][mask].astype(int), scores[column][mask]
+    first = {p: v for p, m, v in zip(pair, member, value) if m == 0}
+    second = {p: v for p, m, v in zip(pair, member, value) if m == 1}
+    common = sorted(set(first) & set(second))
+    return np.array(common), np.array([first[p] for p in common]), np.array([second[p] for p in common])
+
+
+def comparative(scores: dict[str, np.ndarray], column: str = "score", rounds: int = 1000,
+                seed: int = 0) -> dict[tuple[str, str], Estimate]:
+    """Per setting: the share of pairs whose member 1 is more surprising than member 0."""
+    out = {}
+    for scenario, setting in _settings(scores):
+        _, first, second = _pairs_table(scores, scenario, setting, column)
+        out[scenario, setting] = _mean_by_unit(pairwise_win(second, first), np.arange(len(first)), rounds, seed)
+    return out
+
+
+def holistic(scores: dict[str, np.ndarray], column: str = "score", rounds: int = 1000,
+             seed: int = 0) -> dict[str, Estimate]:
+    """Per scenario: the AUC of impossible against possible videos, resampling pair indices."""
+    out = {}
+    for scenario in _unique(scores["scenario"]):
+        mask = scores["scenario"] == scenario
+        out[scenario] = _auc_by_unit(scores[column][mask], scores["possible"][mask], scores["pair"][mask],
+                                     rounds, seed)
+    return out
+
+
+def relative(scores: dict[str, np.ndarray], column: str = "score", rounds: int = 1000,
+             seed: int = 0) -> dict[tuple[str, str], Estimate]:
+    """Per setting: videos judged impossible when their score is above the mean of the S1 pair
+    of the same scenario and pair index; the share judged rightly."""
+    out = {}
+    for scenario, setting in _settings(scores):
+        pairs_s1, first, second = _pairs_table(scores, scenario, "S1", column)
+        threshold = dict(zip(pairs_s1, (first + second) / 2))
+        mask = (scores["scenario"] == scenario) & (scores["setting"] == setting)
+        pair = scores["pair"][mask].astype(int)
+        known = np.array([p in threshold for p in pair], dtype=bool)
+        value, possible, pair = scores[column][mask][known], scores["possible"][mask][known], pair[known]
+        limit = np.array([threshold[p] for p in pair])
+        right = np.where(possible, pairwise_win(limit, value), pairwise_win(value, limit))
+        out[scenario, setting] = _mean_by_unit(right, pair, rounds, seed)
+    return out
+
+
+def _mean_by_unit(values: np.ndarray, unit: np.ndarray, rounds: int, seed: int) -> Estimate:
+    """Mean of `values`, with an interval from resampling the units they belong to."""
+    if len(values) == 0:
+        return Estimate(float("nan"), float("nan"), float("nan"))
+    units, slot = np.unique(unit, return_inverse=True)
+    total, count = np.bincount(slot, values, len(units)), np.bincount(slot, minlength=len(units))
+    low, high = _bootstrap(lambda chosen: total[chosen].sum() / count[chosen].sum(), len(units), rounds, seed)
+    return Estimate(float(values.mean()), low, high)
+
+
+def _auc_by_unit(values: np.ndarray, possible: np.ndarray, unit: np.ndarray, rounds: int, seed: int) -> Estimate:
+    """AUC of impossible against possible videos, with an interval from resampling units."""
+    units, slot = np.unique(unit, return_inverse=True)
+    by_unit = np.argsort(slot, kind="stable")
+    bounds = np.searchsorted(slot[by_unit], np.arange(len(units) + 1))
+
+    def statistic(chosen: np.ndarray) -> float:
+        rows = np.concatenate([by_unit[bounds[u]:bounds[u + 1]] for u in chosen])
+        return auc(values[rows][~possible[rows]], values[rows][possible[rows]])
+
+    return Estimate(auc(values[~possible], values[possible]), *_bootstrap(statistic, len(units), rounds, seed))
+
+
+def _bootstrap(statistic, units: int, rounds: int, seed: int) -> tuple[float, float]:
+    """95% percentile interval of statistic(a resample of range(units) with replacement)."""
+    rng = np.random.default_rng(seed)
+    draws = [statistic(rng.integers(0, units, units)) for _ in range(rounds)]
+    low, high = np.nanpercentile(draws, [2.5, 97.5])
+    return float(low), float(high)
+
+
+def _unique(values: np.ndarray) -> list[str]:
+    """Distinct values in order of first appearance."""
+    seen: dict[str, None] = {}
+    for v in values:
+        seen.setdefault(str(v), None)
+    return list(seen)
+
+
+def _settings(scores: dict[str, np.ndarray]) -> list[tuple[str, str]]:
+    """(scenario, setting) keys in order of first appearance."""
+    keys = _unique(np.array([f"{a}/{b}" for a, b in zip(scores["scenario"], scores["setting"])]))
+    return [tuple(key.split("/")) for key in keys]
