@@ -1,0 +1,115 @@
+"""The analysis-by-synthesis model of a video with possibly one fully hidden object.
+
+Generative story: the latents of the objects that are seen are given (they live inside the
+`Scene`); a hidden object exists with prior probability p (site `exists`); if it does, its
+latent trajectory starts from the latent prior and follows the scene's dynamics with
+Gaussian transitions (sites `z_0` ... `z_{T-1}`); every frame is rendered from all latents
+and observed under a Gaussian pixel likelihood (site `frames`).
+
+The guide proposes `exists` from its own amortised probability and the trajectory from a
+per-frame Gaussian (in XPL: Transformer 2's mean and scale). The trajectory sites are masked
+by `exists` in both model and guide, so a particle without a hidden object is weighted by
+p(no object) p(x | no object) / q(no object) alone: an exact trans-dimensional importance
+sampler. Every site lives in a `particles` plate, for `inference.importance`.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Protocol
+
+import pyro
+import pyro.distributions as dist
+import torch
+from pyro import poutine
+from torch import Tensor, nn
+
+
+class Scene(Protocol):
+    """What the model needs from a scene (the learned XPL one, or a linear one in tests)."""
+
+    frames: int
+
+    def initial(self, particles: int) -> tuple[Tensor, Tensor]:
+        """Mean and scale (N, D) of the hidden object's first latent."""
+
+    def transition(self, history: Tensor) -> Tensor:
+        """Mean (N, D) of the next latent given the hidden object's latents so far (N, t, D)."""
+
+    def render(self, trajectory: Tensor, exists: Tensor) -> Tensor:
+        """Expected frames (N, T, ...) given the hidden trajectory (N, T, D) and exists (N,)."""
+
+
+@dataclass(frozen=True)
+class InferenceConfig:
+    prior_hidden: float = 0.5       # p: prior probability that a hidden object exists
+    pixel_sigma: float = 0.1        # standard deviation of the pixel likelihood
+    transition_sigma: float = 0.1   # standard deviation of the hidden object's dynamics
+    particles: int = 64
+
+
+@dataclass
+class Proposal:
+    """The guide's parameters for one video."""
+
+    p_exists: Tensor                # scalar
+    loc: Tensor                     # (T, D)
+    scale: Tensor                   # (T, D)
+
+
+class HiddenObjectModel(nn.Module):
+    def __init__(self, scene: Scene, config: InferenceConfig):
+        super().__init__()
+        self.scene, self.config = scene, config
+
+    def model(self, frames: Tensor, proposal: Proposal | None = None, particles: int = 1) -> Tensor:
+        if isinstance(self.scene, nn.Module):
+            pyro.module("scene", self.scene)
+        with pyro.plate("particles", particles, dim=-1):
+            exists = pyro.sample("exists", dist.Bernoulli(torch.tensor(self.config.prior_hidden)))
+            with poutine.mask(mask=exists.bool()):
+                loc, scale = self.scene.initial(particles)
+                trajectory = [pyro.sample("z_0", dist.Normal(loc, scale).to_event(1))]
+                for t in range(1, self.scene.frames):
+                    loc = self.scene.transition(torch.stack(trajectory, dim=1))
+                    step = dist.Normal(loc, self.config.transition_sigma).to_event(1)
+                    trajectory.append(pyro.sample(f"z_{t}", step))
+            expected = self.scene.render(torch.stack(trajectory, dim=1), exists)
+            observed = frames.expand(particles, *frames.shape)
+            pyro.sample("frames", dist.Normal(expected, self.config.pixel_sigma).to_event(frames.dim()),
+                        obs=observed)
+        return exists
+
+    def guide(self, frames: Tensor, proposal: Proposal, particles: int = 1) -> Tensor:
+        with pyro.plate("particles", particles, dim=-1):
+            exists = pyro.sample("exists", dist.Bernoulli(proposal.p_exists))
+            with poutine.mask(mask=exists.bool()):
+                for t in range(self.scene.frames):
+                    pyro.sample(f"z_{t}", dist.Normal(proposal.loc[t], proposal.scale[t]).to_event(1))
+        return exists
+
+
+class LinearGaussianScene(nn.Module):
+    """A scene whose hidden object moves linearly and is seen through a linear camera:
+    z_0 ~ N(m0, s0), z_t = A z_{t-1} + N(0, q), frame_t = background + exists * H z_t.
+    Its evidence has a closed form (a Kalman filter), so it checks the estimator end to end."""
+
+    def __init__(self, frames: int, initial_mean: Tensor, initial_scale: float, transition: Tensor,
+                 camera: Tensor, background: Tensor):
+        super().__init__()
+        self.frames = frames
+        self.register_buffer("initial_mean", initial_mean)
+        self.initial_scale = initial_scale
+        self.register_buffer("A", transition)
+        self.register_buffer("H", camera)
+        self.register_buffer("background", background)
+
+    def initial(self, particles: int) -> tuple[Tensor, Tensor]:
+        mean = self.initial_mean.expand(particles, -1)
+        return mean, torch.full_like(mean, self.initial_scale)
+
+    def transition(self, history: Tensor) -> Tensor:
+        return history[:, -1] @ self.A.T
+
+    def render(self, trajectory: Tensor, exists: Tensor) -> Tensor:
+        seen = trajectory @ self.H.T                                  # (N, T, obs)
+        return self.background + exists[:, None, None] * seen
