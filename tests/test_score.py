@@ -1,0 +1,94 @@
+"""The MSE surprise on hand-made cases, with tiny untrained networks."""
+import pytest
+import torch
+
+from xvoe.models.config import PerceptionConfig
+from xvoe.models.dynamics import DynamicsConfig
+from xvoe.models.perception import ComponentVAE
+from xvoe.models.reasoning import ReasoningConfig
+from xvoe.models.xpl import XPL, XPLConfig
+from xvoe.score import aggregate, composite, decode_slots, mse_surprise
+
+B, T, K, D = 2, 5, 4, 6
+
+
+@pytest.fixture(scope="module")
+def models():
+    torch.manual_seed(0)
+    vae = ComponentVAE(PerceptionConfig(image_size=16, latent_dim=D, cnn_channels=(8, 8), cnn_hidden=16,
+                                        decoder_channels=8)).eval()
+    with torch.no_grad():   # a decoder that draws something: objects in front of the background
+        vae.decoder.out.weight.normal_(0, 0.5)
+        vae.decoder.out.bias.copy_(torch.tensor([0.0, 0.0, 0.0, -0.5]))
+    xpl = XPL(XPLConfig(reasoning=ReasoningConfig(latent_dim=D, slots=K, frames=T, width=16, layers=1, heads=2, mlp=16),
+                        dynamics=DynamicsConfig(latent_dim=D, hidden=16, lstm=16, buffer_heads=2))).eval()
+    return vae, xpl
+
+
+def scene(moving: bool):
+    torch.manual_seed(1)
+    mean = torch.randn(B, 1, K, D).expand(B, T, K, D).clone()
+    if moving:
+        mean += 0.5 * torch.arange(T).view(1, T, 1, 1) * torch.randn(B, 1, K, D)
+    visible = torch.ones(B, T, K, dtype=torch.bool)
+    background = torch.randn(B, 1, D).expand(B, T, D).clone()
+    occluder = torch.zeros(B, K, dtype=torch.bool)
+    occluder[:, 0] = True
+    return mean, visible, background, occluder
+
+
+def rendered(vae, mean, visible, background):
+    """The frames these latents draw: the case where the model explains the video exactly."""
+    pictures = vae.decode(background.flatten(0, 1)).reshape(B, T, 4, 16, 16)
+    layers = decode_slots(vae, mean, visible.any(1))
+    return composite(vae, pictures, layers, visible.any(1))
+
+
+def test_a_video_drawn_by_its_own_static_latents_is_no_surprise(models):
+    vae, xpl = models
+    mean, visible, background, occluder = scene(moving=False)
+    with torch.no_grad():
+        frames = rendered(vae, mean, visible, background)
+    surprise = mse_surprise(vae, xpl, frames, mean, visible, background, occluder)
+    assert surprise.s_img.shape == (B, T) and surprise.s_dyn.shape == (B, T)
+    torch.testing.assert_close(surprise.s_img, torch.zeros(B, T), atol=1e-6, rtol=0)
+    # untrained residual dynamics predict "no change", which is right for a static scene
+    torch.testing.assert_close(surprise.s_dyn, torch.zeros(B, T), atol=1e-6, rtol=0)
+
+
+def test_motion_the_dynamics_did_not_predict_is_surprising(models):
+    vae, xpl = models
+    mean, visible, background, occluder = scene(moving=True)
+    with torch.no_grad():
+        frames = rendered(vae, mean, visible, background)
+    surprise = mse_surprise(vae, xpl, frames, mean, visible, background, occluder)
+    assert torch.all(surprise.s_dyn[:, 0] == 0) and torch.all(surprise.s_dyn[:, 1:] > 0)
+    torch.testing.assert_close(surprise.s_img, torch.zeros(B, T), atol=1e-6, rtol=0)
+
+
+def test_the_occluder_is_left_out_of_the_dynamics_term(models):
+    vae, xpl = models
+    mean, visible, background, occluder = scene(moving=False)
+    with torch.no_grad():
+        frames = rendered(vae, mean, visible, background)
+    moved = mean.clone()
+    moved[:, :, 0] += torch.randn(B, T, D)          # the wall jumps about: not physics
+    surprise = mse_surprise(vae, xpl, frames, moved, visible, background, occluder)
+    torch.testing.assert_close(surprise.s_dyn, torch.zeros(B, T), atol=1e-6, rtol=0)
+    assert torch.all(surprise.s_img.sum(1) > 0)     # but the picture no longer matches
+
+
+def test_transformer2_explains_a_never_seen_slot(models):
+    vae, xpl = models
+    mean, visible, background, occluder = scene(moving=False)
+    visible[0, :, 3] = False
+    surprise = mse_surprise(vae, xpl, rendered(vae, mean, visible, background), mean, visible, background, occluder)
+    assert surprise.explained_slot.tolist() == [3, -1]
+
+
+def test_aggregate():
+    per_frame = torch.tensor([[1.0, 3.0, 2.0], [0.0, 0.0, 5.0]])
+    assert aggregate(per_frame, "sum").tolist() == [6.0, 5.0]
+    assert aggregate(per_frame, "max").tolist() == [3.0, 5.0]
+    with pytest.raises(ValueError, match="sum"):
+        aggregate(per_frame, "mean")
