@@ -101,3 +101,29 @@ def test_read_scores_round_trip_and_errors(tmp_path):
         read_scores(tmp_path / "bad.csv")
     with pytest.raises(XvoeError, match="no such file"):
         read_scores(tmp_path / "missing.csv")
+
+
+def write_scores(path, scores, model):
+    with open(path, "w", newline="") as handle:
+        writer = csv.writer(handle)
+        writer.writerow(["index", "model", "scenario", "setting", "pair", "member", "possible", "score", "s_img",
+                         "s_dyn"])
+        for i in range(len(scores["score"])):
+            writer.writerow([i, model, scores["scenario"][i], scores["setting"][i], scores["pair"][i],
+                             scores["member"][i], scores["possible"][i], scores["score"][i],
+                             0.3 * scores["score"][i], 0.7 * scores["score"][i]])
+
+
+def test_report_writes_table_and_figures(tmp_path):
+    from xvoe.metrics import report
+
+    write_scores(tmp_path / "a.csv", random_scores(seed=1, signal=2.0), "strong")
+    write_scores(tmp_path / "b.csv", random_scores(seed=2, signal=0.0), "chance")
+    written = report([tmp_path / "a.csv", tmp_path / "b.csv"], tmp_path / "report", rounds=50)
+    names = {p.name for p in written}
+    assert {"metrics.csv", "metrics.json", "holistic.png", "comparative.png", "components-strong.png"} <= names
+    rows = list(csv.DictReader(open(tmp_path / "report" / "metrics.csv")))
+    strong = [r for r in rows if r["model"] == "strong" and r["metric"] == "holistic" and r["column"] == "score"]
+    assert float(strong[0]["value"]) > 0.8
+    with pytest.raises(XvoeError, match="two scores files"):
+        report([tmp_path / "a.csv", tmp_path / "a.csv"], tmp_path / "again", rounds=5)

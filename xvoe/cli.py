@@ -60,10 +60,77 @@ def cmd_show(args: argparse.Namespace) -> None:
     print(show(args.file, args.index, out))
 
 
+def cmd_metrics(args: argparse.Namespace) -> None:
+    from .metrics import report
+
+    for path in report(args.scores, args.out, rounds=args.rounds, seed=args.seed):
+        print(path)
+
+
 def _not_built(verb: str):
     def run(args: argparse.Namespace) -> None:
         raise XvoeError(f"'xvoe {verb}' is not built yet in this version of xvoe")
     return run
+
+
+def _positive_float(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a number, not {text!r}") from None
+    if value <= 0:
+        raise argparse.ArgumentTypeError(f"expected a number > 0, not {value}")
+    return value
+
+
+def cmd_train(args: argparse.Namespace) -> None:
+    if args.stage == "perception":
+        from .train import train_perception
+
+        if args.data is None and not args.resume:
+            raise XvoeError("--data is required (the training split file)")
+        data = args.data
+        if data is None:
+            from .train import checkpoint_path, load_checkpoint
+
+            data = load_checkpoint(checkpoint_path(args.out, "perception"))["meta"]["data"]
+        overrides = {"steps": args.steps, "max_minutes": args.minutes, "batch_size": args.batch_size,
+                     "seed": args.seed, "max_videos": args.max_videos}
+        print(train_perception(data, args.out, preset_name=args.preset, resume=args.resume,
+                               overwrite=args.overwrite, progress=not args.quiet, **overrides))
+    elif args.stage == "encode":
+        from .latents import encode_split
+
+        if args.data is None:
+            raise XvoeError("--data is required (the split file to encode)")
+        cache = args.cache or Path(args.out) / f"latents-{Path(args.data).stem}.h5"
+        print(encode_split(args.model or args.out, args.data, cache, overwrite=args.overwrite,
+                           progress=not args.quiet))
+    else:
+        raise XvoeError(f"'xvoe train --stage {args.stage}' is not built yet in this version of xvoe")
+
+
+def add_train_parser(verbs) -> None:
+    train = verbs.add_parser(
+        "train", help="train a stage of the XPL model (perception, encode, xpl, plato)",
+        description="Train one stage into a run directory (STAGE.pt checkpoint and STAGE.csv losses). "
+                    "Runs unchanged under torchrun --nproc_per_node N. The encode stage writes the latent "
+                    "cache of a split with a trained perception module.")
+    train.add_argument("--stage", required=True, choices=("perception", "encode", "xpl", "plato"))
+    train.add_argument("--data", help="the split file (HDF5) to train on or to encode")
+    train.add_argument("--out", required=True, help="the run directory")
+    train.add_argument("--preset", default="cpu", help="model and training sizes: cpu (default) or paper")
+    train.add_argument("--steps", type=_positive, help="training steps (default: the preset's)")
+    train.add_argument("--minutes", type=_positive_float, help="stop after this many minutes of training")
+    train.add_argument("--batch-size", type=_positive, help="frames per step over all processes")
+    train.add_argument("--max-videos", type=_positive, help="use only the first N videos of --data")
+    train.add_argument("--seed", type=int, help="the seed of initialisation and batches (default 0)")
+    train.add_argument("--resume", action="store_true", help="continue the run in --out where it stopped")
+    train.add_argument("--overwrite", action="store_true", help="start again over an existing run or cache")
+    train.add_argument("--model", help="encode: perception run or checkpoint (default: --out)")
+    train.add_argument("--cache", help="encode: the latent cache to write (default: OUT/latents-DATA.h5)")
+    train.add_argument("--quiet", action="store_true", help="no progress bar")
+    train.set_defaults(run=cmd_train)
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -96,10 +163,20 @@ def build_parser() -> argparse.ArgumentParser:
     show.add_argument("--out", help="fig.png or anim.gif (default: FILE.INDEX.png here)")
     show.set_defaults(run=cmd_show)
 
+    add_train_parser(verbs)
+
+    metrics = verbs.add_parser("metrics", help="comparative, holistic and relative metrics with figures",
+                               description="The paper's metrics with bootstrap 95%% intervals, for the total "
+                                           "score and each component, of one or more models' scores files: "
+                                           "metrics.csv, metrics.json and the figures in --out.")
+    metrics.add_argument("scores", nargs="+", help="scores CSV files (one per model)")
+    metrics.add_argument("--out", required=True, help="the report directory")
+    metrics.add_argument("--rounds", type=_positive, default=1000, help="bootstrap resamples (default 1000)")
+    metrics.add_argument("--seed", type=int, default=0, help="seed of the bootstrap")
+    metrics.set_defaults(run=cmd_metrics)
+
     later = {
-        "train": "train a stage of the XPL model (perception, encode, xpl, plato)",
         "score": "score test videos with a trained model (surprise per video)",
-        "metrics": "comparative, holistic and relative metrics with figures",
         "pipeline": "generate, train, score and report, end to end",
         "explain": "draw the model's explanation of what is behind the wall",
     }
@@ -112,7 +189,7 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     args, extra = parser.parse_known_args(argv)
-    if extra and args.verb in ("generate", "show"):
+    if extra and args.verb in ("generate", "show", "train"):
         parser.error(f"unrecognized arguments: {' '.join(extra)}")
     try:
         args.run(args)

@@ -177,3 +177,76 @@ def _settings(scores: dict[str, np.ndarray]) -> list[tuple[str, str]]:
     """(scenario, setting) keys in order of first appearance."""
     keys = _unique(np.array([f"{a}/{b}" for a, b in zip(scores["scenario"], scores["setting"])]))
     return [tuple(key.split("/")) for key in keys]
+
+
+METRICS = ("comparative", "holistic", "relative")
+COMPONENTS = ("score", "s_img", "s_dyn")
+
+
+def metric_rows(scores: dict[str, np.ndarray], model: str, columns: tuple[str, ...] = COMPONENTS,
+                rounds: int = 1000, seed: int = 0) -> list[dict]:
+    """Every metric of one model's scores as flat rows (one per metric, column and group)."""
+    rows = []
+    for column in (c for c in columns if c in scores):
+        for (scenario, setting), estimate in comparative(scores, column, rounds, seed).items():
+            rows.append(_row(model, "comparative", column, scenario, setting, estimate, IDEAL_COMPARATIVE[setting]))
+        for scenario, estimate in holistic(scores, column, rounds, seed).items():
+            rows.append(_row(model, "holistic", column, scenario, "", estimate, 1.0))
+        for (scenario, setting), estimate in relative(scores, column, rounds, seed).items():
+            rows.append(_row(model, "relative", column, scenario, setting, estimate, 1.0))
+    return rows
+
+
+def _row(model, metric, column, scenario, setting, estimate: Estimate, ideal: float) -> dict:
+    return {"model": model, "metric": metric, "column": column, "scenario": scenario, "setting": setting,
+            "value": estimate.value, "low": estimate.low, "high": estimate.high, "ideal": ideal}
+
+
+def model_name(path: str | Path, scores: dict[str, np.ndarray]) -> str:
+    """The `model` column of a scores file if it has one, else the file's name."""
+    if "model" in scores and len(scores["model"]):
+        return str(scores["model"][0])
+    return Path(path).stem
+
+
+def report(paths: list[str | Path], out_dir: str | Path, rounds: int = 1000, seed: int = 0) -> list[Path]:
+    """What `xvoe metrics` does: the table (CSV and JSON) and the figures, for one or more
+    models' scores files."""
+    import matplotlib.pyplot as plt
+
+    from . import viz
+
+    rows = []
+    names = []
+    for path in paths:
+        scores = read_scores(path)
+        name = model_name(path, scores)
+        if name in names:
+            raise XvoeError(f"two scores files name the model {name!r}; give each model its own name")
+        names.append(name)
+        rows += metric_rows(scores, name, rounds=rounds, seed=seed)
+    written = list(write_table(rows, out_dir))
+    figures = {"holistic.png": viz.plot_holistic(rows), "comparative.png": viz.plot_comparative(rows)}
+    for name in names:
+        if any(r["model"] == name and r["column"] != "score" for r in rows):
+            figures[f"components-{name}.png"] = viz.plot_components(rows, name)
+    for filename, figure in figures.items():
+        figure.savefig(Path(out_dir) / filename, dpi=90)
+        plt.close(figure)
+        written.append(Path(out_dir) / filename)
+    return written
+
+
+def write_table(rows: list[dict], out_dir: str | Path) -> tuple[Path, Path]:
+    """metrics.csv and metrics.json in out_dir."""
+    import json
+
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    csv_path, json_path = out_dir / "metrics.csv", out_dir / "metrics.json"
+    with open(csv_path, "w", newline="") as handle:
+        writer = csv.DictWriter(handle, list(rows[0]))
+        writer.writeheader()
+        writer.writerows(rows)
+    json_path.write_text(json.dumps(rows, indent=1))
+    return csv_path, json_path

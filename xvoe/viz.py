@@ -128,3 +128,156 @@ def show(path: str | Path, index: int, out: str | Path | None = None) -> Path | 
     fig.savefig(out, dpi=100, bbox_inches="tight")
     plt.close(fig)
     return Path(out)
+
+
+def reconstruction_sheet(frames: np.ndarray, composite: np.ndarray, inputs: np.ndarray, decoded: np.ndarray,
+                         slot_names: list[list[str]]) -> plt.Figure:
+    """Originals against reconstructions, one frame per row: the frame and its composite (RGB and
+    depth), then each component's input (masked frame) beside its decoding.
+
+    frames, composite: (F,H,W,4) uint8; inputs, decoded: (F,C,H,W,4) uint8 for the C components
+    shown in each row, named by slot_names[f] (rows with fewer components leave cells empty).
+    """
+    rows, columns = len(frames), 4 + 2 * inputs.shape[1]
+    fig, axes = plt.subplots(rows, columns, figsize=(0.85 * columns, 0.95 * rows + 0.3), squeeze=False)
+    for r in range(rows):
+        cells = [(frames[r, ..., :3], "frame"), (composite[r, ..., :3], "composite"),
+                 (depth_to_rgb(frames[r, ..., 3]), "depth"), (depth_to_rgb(composite[r, ..., 3]), "comp. depth")]
+        for c, name in enumerate(slot_names[r]):
+            cells += [(inputs[r, c, ..., :3], f"{name} in"), (decoded[r, c, ..., :3], f"{name} out")]
+        for c, ax in enumerate(axes[r]):
+            ax.set_axis_off()
+            if c < len(cells):
+                ax.imshow(cells[c][0], interpolation="nearest")
+                ax.set_title(cells[c][1], fontsize=6, pad=2)
+    fig.tight_layout(pad=0.2)
+    return fig
+
+
+def save_reconstructions(model, rgbd: np.ndarray, ids: np.ndarray, out: str | Path, rows: int = 4,
+                         seed: int = 0) -> Path:
+    """Draw `reconstruction_sheet` for a few frames of (V,T,H,W,4) videos with the most objects."""
+    import torch
+
+    from .data import perception_batch
+    from .models.perception import to_uint8
+
+    size, slots = rgbd.shape[2], max(1, int(ids.max(initial=0)))
+    flat_rgbd, flat_ids = rgbd.reshape(-1, size, size, 4), ids.reshape(-1, size, size)
+    objects = np.array([len(np.unique(m)) - 1 for m in flat_ids])
+    most = np.flatnonzero(objects == objects.max())
+    rng = np.random.default_rng(seed)
+    chosen = np.sort(rng.choice(most, rows, replace=False) if len(most) >= rows
+                     else np.argsort(-objects, kind="stable")[:rows])
+    noise = np.zeros((len(chosen), slots + 1, model.config.latent_dim), np.float32)
+    batch = perception_batch(flat_rgbd[chosen], flat_ids[chosen], slots, noise, noise[:1, 0])
+    with torch.no_grad():
+        result = model.forward_batch(batch, sample=False)
+    shown = int(objects[chosen].max()) + 1
+    inputs = np.full((len(chosen), shown, size, size, 4), 255, np.uint8)
+    outputs = inputs.copy()
+    names = [["bg"] for _ in chosen]
+    inputs[:, 0], outputs[:, 0] = to_uint8(batch.background).numpy(), to_uint8(result["background"]).numpy()
+    for i, (f, k) in enumerate(zip(batch.object_frame.tolist(), batch.object_slot.tolist())):
+        c = len(names[f])
+        inputs[f, c], outputs[f, c] = to_uint8(batch.objects[i]).numpy(), to_uint8(result["objects"][i]).numpy()
+        names[f].append(f"slot {k}")
+    fig = reconstruction_sheet(flat_rgbd[chosen], to_uint8(result["composite"]).numpy(), inputs, outputs, names)
+    fig.savefig(out, dpi=110)
+    plt.close(fig)
+    return Path(out)
+
+
+# --- the paper's metric figures -----------------------------------------------------------
+
+def _select(rows: list[dict], metric: str, column: str) -> list[dict]:
+    return [r for r in rows if r["metric"] == metric and r["column"] == column]
+
+
+def _models(rows: list[dict]) -> list[str]:
+    return list(dict.fromkeys(r["model"] for r in rows))
+
+
+def _bars(ax, groups: list[str], models: list[str], lookup, width: float = 0.8) -> None:
+    """Grouped bars with 95% intervals: lookup(model, group) -> row or None."""
+    step = width / max(1, len(models))
+    for m, model in enumerate(models):
+        xs, values, errors = [], [], [[], []]
+        for g, group in enumerate(groups):
+            row = lookup(model, group)
+            if row is None:
+                continue
+            xs.append(g - width / 2 + step * (m + 0.5))
+            values.append(100 * row["value"])
+            errors[0].append(100 * (row["value"] - row["low"]))
+            errors[1].append(100 * (row["high"] - row["value"]))
+        ax.bar(xs, values, step * 0.95, yerr=errors, capsize=2, label=model)
+    ax.set_xticks(range(len(groups)), groups)
+
+
+def plot_holistic(rows: list[dict], column: str = "score") -> plt.Figure:
+    """Fig. 5a: holistic accuracy (AUC) per scenario, models side by side, ideal and chance."""
+    chosen = _select(rows, "holistic", column)
+    scenarios = list(dict.fromkeys(r["scenario"] for r in chosen))
+    index = {(r["model"], r["scenario"]): r for r in chosen}
+    fig, ax = plt.subplots(figsize=(1.6 + 1.3 * len(scenarios), 3.2))
+    _bars(ax, scenarios, _models(chosen), lambda m, s: index.get((m, s)))
+    ax.axhline(100, color="black", linestyle="--", linewidth=1, label="ideal")
+    ax.axhline(50, color="grey", linestyle=":", linewidth=1, label="chance")
+    ax.set_ylim(0, 105)
+    ax.set_ylabel("holistic accuracy (%)")
+    ax.set_title(f"Holistic metric ({column})")
+    ax.legend(fontsize=7, ncol=2, loc="lower right")
+    fig.tight_layout()
+    return fig
+
+
+def plot_comparative(rows: list[dict], column: str = "score") -> plt.Figure:
+    """Fig. 6: comparative accuracy per setting against the ideal (100/50/100), and the
+    difference from the ideal below."""
+    chosen = _select(rows, "comparative", column)
+    settings = list(dict.fromkeys(f"{r['scenario']} {r['setting']}" for r in chosen))
+    index = {(r["model"], f"{r['scenario']} {r['setting']}"): r for r in chosen}
+    ideal = {f"{r['scenario']} {r['setting']}": r["ideal"] for r in chosen}
+    models = _models(chosen)
+    fig, (top, bottom) = plt.subplots(2, 1, figsize=(1.5 + 0.75 * len(settings), 5.2), sharex=True,
+                                      gridspec_kw={"height_ratios": [2, 1]})
+    _bars(top, settings, models, lambda m, s: index.get((m, s)))
+    top.scatter(range(len(settings)), [100 * ideal[s] for s in settings], marker="_", s=300, color="black",
+                zorder=3, label="ideal")
+    top.set_ylim(0, 105)
+    top.set_ylabel("comparative accuracy (%)")
+    top.set_title(f"Comparative metric ({column})")
+    top.legend(fontsize=7, ncol=3, loc="lower right")
+
+    def difference(model, setting):
+        row = index.get((model, setting))
+        if row is None:
+            return None
+        return {**row, "value": row["value"] - row["ideal"], "low": row["low"] - row["ideal"],
+                "high": row["high"] - row["ideal"]}
+
+    _bars(bottom, settings, models, difference)
+    bottom.axhline(0, color="black", linewidth=1)
+    bottom.set_ylabel("minus ideal (points)")
+    bottom.tick_params(axis="x", labelrotation=45, labelsize=8)
+    fig.tight_layout()
+    return fig
+
+
+def plot_components(rows: list[dict], model: str, metric: str = "comparative") -> plt.Figure:
+    """Fig. 5c: the metric of the whole score against s_img alone and s_dyn alone."""
+    chosen = [r for r in rows if r["model"] == model and r["metric"] == metric]
+    key = (lambda r: r["scenario"]) if metric == "holistic" else (lambda r: f"{r['scenario']} {r['setting']}")
+    groups = list(dict.fromkeys(key(r) for r in chosen))
+    index = {(r["column"], key(r)): r for r in chosen}
+    columns = list(dict.fromkeys(r["column"] for r in chosen))
+    fig, ax = plt.subplots(figsize=(1.5 + 0.75 * len(groups), 3.2))
+    _bars(ax, groups, columns, lambda c, g: index.get((c, g)))
+    ax.set_ylim(0, 105)
+    ax.set_ylabel(f"{metric} accuracy (%)")
+    ax.set_title(f"Score components: {model}")
+    ax.tick_params(axis="x", labelrotation=45, labelsize=8)
+    ax.legend(fontsize=7)
+    fig.tight_layout()
+    return fig
