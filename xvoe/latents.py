@@ -1,0 +1,150 @@
+"""The latent cache: a split encoded once by a trained perception module.
+
+Later stages (reasoning, dynamics, scoring) read these posterior means and stds instead of
+pixels. Schema (an interface; version in the attribute `xvoe_latents`):
+
+- `mean`, `std` float32 (N, T, K, D): the posterior of each slot in each frame. Slots with no
+  pixels hold the posterior of the blank input (the same for all of them).
+- `visible` bool (N, T, K): the slot has more than `visible_threshold` mask pixels
+  (4 at 128 px, scaled by area).
+- `present` bool (N, T, K): the slot holds an object of the video in that frame (from states).
+- extras: `pixels` int32 (N, T, K) mask pixel counts; `background_mean`, `background_std`
+  float32 (N, T, D): the background component (floor and sky) that the composite needs.
+- attributes: `perception_checkpoint` (path), `perception_sha256`, `source` (data file),
+  `source_split`, `config` (JSON: preset, perception config, threshold, the data's config).
+"""
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import h5py
+import numpy as np
+import torch
+from tqdm.auto import tqdm
+
+from . import store
+from .errors import XvoeError
+
+LATENTS_VERSION = 1
+ARRAYS = ("mean", "std", "visible", "present", "pixels", "background_mean", "background_std")
+
+
+@dataclass
+class Latents:
+    """A latent cache in memory."""
+
+    mean: np.ndarray
+    std: np.ndarray
+    visible: np.ndarray
+    present: np.ndarray
+    pixels: np.ndarray
+    background_mean: np.ndarray
+    background_std: np.ndarray
+    attrs: dict = field(default_factory=dict)
+
+    @property
+    def config(self) -> dict:
+        return json.loads(self.attrs["config"])
+
+
+def sha256_of(path: str | os.PathLike) -> str:
+    digest = hashlib.sha256()
+    with open(path, "rb") as handle:
+        for block in iter(lambda: handle.read(1 << 20), b""):
+            digest.update(block)
+    return digest.hexdigest()
+
+
+def write_latents(path: str | os.PathLike, latents: Latents, overwrite: bool = False) -> Path:
+    """Write a cache atomically (temporary name, then rename)."""
+    with store.atomic_file(path, overwrite=overwrite) as file:
+        for name in ARRAYS:
+            file.create_dataset(name, data=getattr(latents, name), track_times=False)
+        file.attrs["xvoe_latents"] = LATENTS_VERSION
+        for name, value in latents.attrs.items():
+            if name != "xvoe_latents":
+                file.attrs[name] = value
+    return Path(path)
+
+
+def open_latents(path: str | os.PathLike) -> h5py.File:
+    """Open a latent cache for reading, or say in one line why it is not one."""
+    path = Path(path)
+    if not path.is_file():
+        raise XvoeError(f"{path}: no such file")
+    try:
+        file = h5py.File(path, "r")
+    except OSError:
+        raise XvoeError(f"{path} is not an HDF5 file") from None
+    version = file.attrs.get("xvoe_latents")
+    if version is None or int(version) != LATENTS_VERSION:
+        file.close()
+        raise XvoeError(f"{path} is not an xvoe latent cache of version {LATENTS_VERSION}")
+    return file
+
+
+def read_latents(path: str | os.PathLike) -> Latents:
+    with open_latents(path) as file:
+        arrays = {name: file[name][:] for name in ARRAYS}
+        attrs = {name: (value.item() if isinstance(value, np.generic) else value)
+                 for name, value in file.attrs.items()}
+    return Latents(**arrays, attrs=attrs)
+
+
+@torch.no_grad()
+def encode_frames(model, rgbd: np.ndarray, ids: np.ndarray, slots: int) -> dict[str, np.ndarray]:
+    """Posteriors of every slot and of the background for frames (B,H,W,4), ids (B,H,W)."""
+    from .data import masked_inputs
+    from .models.perception import normalise
+
+    device = model.theta.device
+    frames = normalise(torch.as_tensor(rgbd)).to(device)
+    parts = masked_inputs(frames, torch.as_tensor(ids).to(device), slots)
+    count, objects = len(frames), len(parts["objects"])
+    mean, std = model.posterior(torch.cat([parts["objects"], parts["background"], model.blank()]))
+    slot_mean = mean[-1:].expand(count, slots, -1).clone()
+    slot_std = std[-1:].expand(count, slots, -1).clone()
+    slot_mean[parts["object_frame"], parts["object_slot"]] = mean[:objects]
+    slot_std[parts["object_frame"], parts["object_slot"]] = std[:objects]
+    return {"mean": slot_mean.cpu().numpy(), "std": slot_std.cpu().numpy(),
+            "background_mean": mean[objects:objects + count].cpu().numpy(),
+            "background_std": std[objects:objects + count].cpu().numpy(),
+            "pixels": parts["pixels"].cpu().numpy().astype(np.int32)}
+
+
+def encode_split(model_ref: str | os.PathLike, data: str | os.PathLike, out: str | os.PathLike, *,
+                 videos_per_batch: int = 16, overwrite: bool = False, progress: bool = True,
+                 device: str | torch.device | None = None) -> Path:
+    """What `xvoe train --stage encode` does: encode every frame of a split into a latent cache."""
+    from .data import check_size, visible_threshold
+    from .train import load_perception
+
+    device = device or ("cuda" if torch.cuda.is_available() else "cpu")
+    model, state = load_perception(model_ref, device)
+    with store.open_dataset(data) as file:
+        check_size(file, model.config.image_size, f"the checkpoint {state['path']}")
+        count, frames, size = file["rgbd"].shape[:3]
+        slots = int(file["states"].shape[2])
+        present_column = list(file["states"].attrs["state_columns"]).index("present")
+        parts: dict[str, list[np.ndarray]] = {}
+        for start in tqdm(range(0, count, videos_per_batch), desc="encode", disable=not progress,
+                          unit_scale=videos_per_batch, unit="video"):
+            stop = min(count, start + videos_per_batch)
+            rgbd, ids = file["rgbd"][start:stop], file["ids"][start:stop]
+            encoded = encode_frames(model, rgbd.reshape(-1, size, size, 4), ids.reshape(-1, size, size), slots)
+            for name, value in encoded.items():
+                parts.setdefault(name, []).append(value.reshape(stop - start, frames, *value.shape[1:]))
+        arrays = {name: np.concatenate(values) for name, values in parts.items()}
+        present = file["states"][..., present_column] > 0.5
+        threshold = visible_threshold(size)
+        config = {"preset": state["config"]["preset"], "perception": state["config"]["perception"],
+                  "visible_threshold": threshold, "data": store.config_of(file)}
+        attrs = {"perception_checkpoint": str(Path(state["path"]).resolve()),
+                 "perception_sha256": sha256_of(state["path"]), "source": str(Path(data).resolve()),
+                 "source_split": str(file.attrs["split"]), "config": json.dumps(config, sort_keys=True)}
+    latents = Latents(visible=arrays["pixels"] > threshold, present=present, attrs=attrs, **arrays)
+    return write_latents(out, latents, overwrite=overwrite)

@@ -1,0 +1,154 @@
+"""Sizes of every network and training run, grouped into named presets.
+
+A `Preset` holds one config per stage; the perception stage is here now and the later
+stages add their own fields to the same `Preset`. Every size a network uses is a field of
+one of these dataclasses, so a checkpoint that stores its config can rebuild its model.
+"""
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass, field, fields, is_dataclass, replace
+from typing import Any
+
+from ..errors import XvoeError
+from .dynamics import DynamicsConfig
+from .reasoning import ReasoningConfig
+from .xpl import XPLConfig
+
+__all__ = ["DynamicsConfig", "ReasoningConfig", "XPLConfig"]   # nested configs that from_dict rebuilds
+
+
+@dataclass(frozen=True)
+class PerceptionConfig:
+    """The Component VAE: per-object encoder, spatial broadcast decoder, depth compositor."""
+
+    image_size: int = 32            # frames are image_size x image_size RGBD
+    latent_dim: int = 16            # D: size of each object's latent
+    encoder: str = "cnn"            # "cnn" (small, for CPUs) or "vit" (the paper's)
+    # small CNN encoder: channels of its stride-2 5x5 convolutions, then an MLP
+    cnn_channels: tuple[int, ...] = (32, 32, 64, 64)
+    cnn_hidden: int = 128
+    # ViT encoder (paper: 8-pixel patches at 128 px, width 256, 6 layers, 8 heads, MLP 1024, head 512)
+    vit_patch: int = 8
+    vit_width: int = 256
+    vit_layers: int = 6
+    vit_heads: int = 8
+    vit_mlp: int = 1024
+    vit_head_hidden: int = 512
+    # spatial broadcast decoder: broadcast grid, then stride-2 transposed convs up to image_size
+    broadcast_size: int = 8
+    decoder_channels: int = 32
+    decoder_kernel: int = 5
+    decoder_extra_convs: int = 0    # stride-1 convs after the upsampling (paper: 1)
+    # likelihood and prior
+    sigma: float = 0.05             # pixel standard deviation of the Gaussian likelihood
+    beta: float = 0.5               # weight of the KL to N(0, I)
+    object_loss_weight: float = 1.0  # per-object masked reconstruction, next to the composite
+    theta_init: float = 1.0         # compositing temperature |theta|, learned
+
+    def __post_init__(self) -> None:
+        if self.encoder not in ("cnn", "vit"):
+            raise XvoeError(f"encoder must be 'cnn' or 'vit', not {self.encoder!r}")
+        ratio = self.image_size // self.broadcast_size
+        if self.image_size % self.broadcast_size or ratio & (ratio - 1):
+            raise XvoeError(f"image_size {self.image_size} must be broadcast_size {self.broadcast_size} "
+                            "times a power of two")
+        if self.encoder == "vit" and self.image_size % self.vit_patch:
+            raise XvoeError(f"image_size {self.image_size} is not a multiple of vit_patch {self.vit_patch}")
+        if self.encoder == "vit" and self.vit_width % self.vit_heads:
+            raise XvoeError(f"vit_width {self.vit_width} is not a multiple of vit_heads {self.vit_heads}")
+
+
+@dataclass(frozen=True)
+class TrainConfig:
+    """One training run of one stage: the shared loop reads only these fields."""
+
+    steps: int = 6000
+    batch_size: int = 32            # frames per step, summed over all processes
+    lr: float = 1e-3
+    warmup_steps: int = 200         # linear warm-up of the learning rate
+    decay_steps: int = 5000         # the learning rate halves every decay_steps after warm-up
+    grad_clip: float = 0.0          # clip the gradient norm to this (0 = no clipping)
+    seed: int = 0
+    checkpoint_minutes: float = 3.0  # a checkpoint is written at least this often
+    log_every: int = 10             # steps between rows of the loss CSV
+    max_minutes: float = 0.0        # stop early after this much training time (0 = no limit)
+    max_videos: int = 0             # videos of the data file to load (0 = all)
+    data_shards: int = 0            # slices of the file that each feed batch_size/data_shards frames
+                                    # per step; 0 = the number of processes of the first launch
+    threads: int = 0                # torch threads per process (0 = cores / processes)
+
+
+@dataclass(frozen=True)
+class Preset:
+    """Everything needed to build and train the model at one scale."""
+
+    name: str
+    perception: PerceptionConfig = field(default_factory=PerceptionConfig)
+    perception_train: TrainConfig = field(default_factory=TrainConfig)
+    xpl: XPLConfig = field(default_factory=XPLConfig)
+    xpl_train: TrainConfig = field(default_factory=lambda: TrainConfig(steps=3000, batch_size=64, warmup_steps=100,
+                                                                       decay_steps=2000))
+
+
+PRESETS: dict[str, Preset] = {
+    # 2 CPU cores: 32x32 frames, a small CNN encoder and a light decoder.
+    "cpu": Preset(
+        name="cpu",
+        perception=PerceptionConfig(),
+        perception_train=TrainConfig(),
+    ),
+    # The paper's sizes (appendix tables): 128x128, ViT encoder, D=32, 64-channel decoder; for GPUs.
+    "paper": Preset(
+        name="paper",
+        perception=PerceptionConfig(image_size=128, latent_dim=32, encoder="vit", decoder_channels=64,
+                                    decoder_extra_convs=1),
+        xpl=XPLConfig(reasoning=ReasoningConfig(latent_dim=32, width=256, layers=6, heads=8, mlp=256),
+                      dynamics=DynamicsConfig(latent_dim=32, hidden=512, mlp_layers=3, lstm=2056, buffer_heads=8)),
+        xpl_train=TrainConfig(steps=32_000, batch_size=500, warmup_steps=1000, decay_steps=10_000,
+                              checkpoint_minutes=10.0, log_every=100),
+        perception_train=TrainConfig(steps=472_000, batch_size=300 // 8, lr=4e-4, warmup_steps=2000,
+                                     decay_steps=100_000, checkpoint_minutes=10.0, log_every=100),
+    ),
+}
+
+
+def preset(name: str) -> Preset:
+    """The named preset, or a one-line error listing the known ones."""
+    if name not in PRESETS:
+        raise XvoeError(f"unknown preset {name!r}; choose one of {', '.join(PRESETS)}")
+    return PRESETS[name]
+
+
+def to_dict(config: Any) -> dict:
+    """A dataclass config as plain JSON-able data (tuples become lists)."""
+    return asdict(config)
+
+
+def from_dict(cls: type, data: dict) -> Any:
+    """Rebuild a (possibly nested) config dataclass from `to_dict` output; unknown keys are an error."""
+    known = {f.name: f for f in fields(cls)}
+    unknown = set(data) - set(known)
+    if unknown:
+        raise XvoeError(f"{cls.__name__} has no field(s) {', '.join(sorted(unknown))}")
+    values = {}
+    for name, value in data.items():
+        kind = known[name].type
+        target = _dataclass_named(cls, kind)
+        if target is not None and isinstance(value, dict):
+            value = from_dict(target, value)
+        elif isinstance(value, list):
+            value = tuple(value)
+        values[name] = value
+    return cls(**values)
+
+
+def _dataclass_named(owner: type, annotation: Any) -> type | None:
+    """The config dataclass an annotation (a string under postponed evaluation) refers to."""
+    name = annotation if isinstance(annotation, str) else getattr(annotation, "__name__", "")
+    candidate = globals().get(name)
+    return candidate if is_dataclass(candidate) else None
+
+
+def override(config: Any, **changes: Any) -> Any:
+    """A copy of `config` with the given fields changed; None values are ignored."""
+    return replace(config, **{k: v for k, v in changes.items() if v is not None})

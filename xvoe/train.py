@@ -1,0 +1,320 @@
+"""The one training loop every stage of XPL uses.
+
+A stage hands over a `Job`: its model, a function from step to the local batch, and its
+config as JSON. The loop owns the rest: the optimiser and learning-rate schedule, the
+progress bar, a CSV of losses beside the checkpoint, atomic checkpoints (config, step,
+model, optimiser and RNG states) every few minutes, exact resumption, and running under
+`torchrun --nproc_per_node N` with DistributedDataParallel (gloo on CPU, nccl on GPU).
+
+Batches are drawn from generators seeded by (seed, step, shard), so a resumed run repeats
+no batch and skips none, and N processes compute the gradient of the same global batch as
+one process that holds all the shards.
+"""
+from __future__ import annotations
+
+import csv
+import os
+import random
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+import torch.distributed as dist
+from torch import nn
+from tqdm.auto import tqdm
+
+from .errors import XvoeError
+from .models.config import TrainConfig, to_dict
+
+CHECKPOINT_FORMAT = 1
+
+
+@dataclass
+class Job:
+    """What a stage gives the loop."""
+
+    stage: str                                    # names the files: STAGE.pt and STAGE.csv
+    model: nn.Module                              # forward(batch) returns a dict with "loss"
+    batches: Callable[[int], Any]                 # step -> this process's part of the batch
+    config: dict                                  # the stage's model config, stored in the checkpoint
+    items: Callable[[Any], int] = len             # images (or videos) in a local batch, for throughput
+    meta: dict = field(default_factory=dict)      # e.g. the data file, stored in the checkpoint
+
+
+@dataclass
+class Dist:
+    """Where this process sits in a torchrun launch (rank 0 of 1 when run alone)."""
+
+    rank: int = 0
+    world: int = 1
+    local_rank: int = 0
+    device: torch.device = field(default_factory=lambda: torch.device("cpu"))
+
+    @property
+    def main(self) -> bool:
+        return self.rank == 0
+
+
+def setup_distributed() -> Dist:
+    """Join the process group torchrun set up, if any; pick the device (CUDA when present)."""
+    world = int(os.environ.get("WORLD_SIZE", "1"))
+    rank, local_rank = int(os.environ.get("RANK", "0")), int(os.environ.get("LOCAL_RANK", "0"))
+    cuda = torch.cuda.is_available()
+    device = torch.device(f"cuda:{local_rank}" if cuda else "cpu")
+    if cuda:
+        torch.cuda.set_device(device)
+    if world > 1 and not dist.is_initialized():
+        dist.init_process_group("nccl" if cuda else "gloo")
+    return Dist(rank, world, local_rank, device)
+
+
+def set_threads(config: TrainConfig, local_world: int) -> None:
+    """Share the cores between the processes of this machine (torch defaults to all per process)."""
+    cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
+    torch.set_num_threads(config.threads or max(1, cores // max(1, local_world)))
+
+
+def learning_rate(config: TrainConfig, step: int) -> float:
+    """Linear warm-up, then halving every decay_steps."""
+    warm = min(1.0, (step + 1) / max(1, config.warmup_steps))
+    return config.lr * warm * 0.5 ** (max(0, step - config.warmup_steps) / config.decay_steps)
+
+
+def checkpoint_path(run_dir: str | os.PathLike, stage: str) -> Path:
+    return Path(run_dir) / f"{stage}.pt"
+
+
+def log_path(run_dir: str | os.PathLike, stage: str) -> Path:
+    return Path(run_dir) / f"{stage}.csv"
+
+
+def rng_state() -> dict:
+    return {"python": random.getstate(), "numpy": np.random.get_state(), "torch": torch.get_rng_state(),
+            "cuda": torch.cuda.get_rng_state_all() if torch.cuda.is_available() else []}
+
+
+def set_rng_state(state: dict) -> None:
+    random.setstate(state["python"])
+    np.random.set_state(state["numpy"])
+    torch.set_rng_state(state["torch"])
+    if state.get("cuda") and torch.cuda.is_available():
+        torch.cuda.set_rng_state_all(state["cuda"])
+
+
+def seed_everything(seed: int) -> None:
+    random.seed(seed)
+    np.random.seed(seed)
+    torch.manual_seed(seed)
+
+
+def save_checkpoint(path: Path, state: dict) -> None:
+    """Write to a temporary name and rename: an interrupted save never leaves a broken checkpoint."""
+    tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
+    try:
+        torch.save(state, tmp)
+        os.replace(tmp, path)
+    finally:
+        if tmp.exists():
+            tmp.unlink()
+
+
+def load_checkpoint(path: str | os.PathLike) -> dict:
+    """A checkpoint written by this loop, or a one-line error."""
+    path = Path(path)
+    if not path.is_file():
+        raise XvoeError(f"{path}: no such checkpoint")
+    try:
+        state = torch.load(path, map_location="cpu", weights_only=False)
+    except Exception as error:  # noqa: BLE001 - any unreadable file gets the same one-line message
+        raise XvoeError(f"{path} is not a readable xvoe checkpoint ({type(error).__name__})") from None
+    if not isinstance(state, dict) or state.get("format") != CHECKPOINT_FORMAT:
+        raise XvoeError(f"{path} is not an xvoe checkpoint of format {CHECKPOINT_FORMAT}")
+    return state
+
+
+class CsvLog:
+    """Loss rows beside the checkpoint; on resume, rows after the checkpoint's step are dropped."""
+
+    def __init__(self, path: Path, columns: list[str], resume_step: int | None):
+        self.path, self.columns = path, columns
+        rows = []
+        if resume_step is not None and path.exists():
+            with open(path, newline="") as handle:
+                rows = [row for row in csv.DictReader(handle) if int(row["step"]) <= resume_step]
+        with open(path, "w", newline="") as handle:
+            writer = csv.DictWriter(handle, columns, extrasaction="ignore")
+            writer.writeheader()
+            writer.writerows(rows)
+
+    def write(self, row: dict) -> None:
+        with open(self.path, "a", newline="") as handle:
+            csv.DictWriter(handle, self.columns, extrasaction="ignore").writerow(row)
+
+
+class _Meter:
+    """Running means of the loss terms between two CSV rows."""
+
+    def __init__(self) -> None:
+        self.sums: dict[str, float] = {}
+        self.count = 0
+
+    def add(self, values: dict[str, torch.Tensor]) -> None:
+        for name, value in values.items():
+            self.sums[name] = self.sums.get(name, 0.0) + float(value)
+        self.count += 1
+
+    def take(self) -> dict[str, float]:
+        means = {name: total / max(1, self.count) for name, total in self.sums.items()}
+        self.sums, self.count = {}, 0
+        return means
+
+
+def fit(job: Job, config: TrainConfig, run_dir: str | os.PathLike, *, place: Dist | None = None,
+        resume: bool = False, overwrite: bool = False, progress: bool = True) -> Path:
+    """Train `job.model` for config.steps steps (or config.max_minutes), checkpointing as it goes.
+
+    Returns the checkpoint path. With `resume`, the model, optimiser, step, RNG states and the
+    loss CSV continue from the checkpoint in run_dir, as if the run had never stopped.
+    """
+    place = place or Dist()
+    run_dir = Path(run_dir)
+    ckpt, log = checkpoint_path(run_dir, job.stage), log_path(run_dir, job.stage)
+    if ckpt.exists() and not (resume or overwrite):
+        raise XvoeError(f"{ckpt} exists; pass --resume to continue it or --overwrite to start again")
+    model = job.model.to(place.device)
+    optimiser = torch.optim.Adam(model.parameters(), lr=config.lr)
+    start, elapsed = 0, 0.0
+    if resume and ckpt.exists():
+        state = load_checkpoint(ckpt)
+        model.load_state_dict(state["model"])
+        optimiser.load_state_dict(state["optimizer"])
+        start, elapsed = state["step"], state.get("elapsed", 0.0)
+        set_rng_state(state["rng"])
+    wrapped = model
+    if place.world > 1:
+        wrapped = nn.parallel.DistributedDataParallel(model, device_ids=[place.device] if place.device.type == "cuda"
+                                                      else None)
+    if place.main:
+        run_dir.mkdir(parents=True, exist_ok=True)
+
+    def checkpoint(step: int) -> None:
+        if place.main:
+            save_checkpoint(ckpt, {"format": CHECKPOINT_FORMAT, "stage": job.stage, "config": job.config,
+                                   "train": to_dict(config), "step": step, "elapsed": elapsed,
+                                   "model": model.state_dict(), "optimizer": optimiser.state_dict(),
+                                   "rng": rng_state(), "meta": job.meta, "world": place.world})
+
+    meter, table = _Meter(), None
+    bar = tqdm(total=config.steps, initial=start, desc=job.stage, disable=not (progress and place.main),
+               dynamic_ncols=True)
+    session = last_save = time.monotonic()
+    items, began = 0, session - elapsed
+    step = start
+    while step < config.steps:
+        if config.max_minutes and elapsed >= 60 * config.max_minutes:
+            break
+        for group in optimiser.param_groups:
+            group["lr"] = learning_rate(config, step)
+        batch = job.batches(step)
+        items += job.items(batch)
+        batch = batch.to(place.device) if hasattr(batch, "to") else batch
+        terms = wrapped(batch)
+        optimiser.zero_grad(set_to_none=True)
+        terms["loss"].backward()
+        if config.grad_clip:
+            nn.utils.clip_grad_norm_(model.parameters(), config.grad_clip)
+        optimiser.step()
+        step += 1
+        elapsed = time.monotonic() - began
+        meter.add({name: value.detach() for name, value in terms.items() if value.dim() == 0})
+        if step % config.log_every == 0 or step == config.steps:
+            rate = items * place.world / max(1e-9, time.monotonic() - session)
+            row = {"step": step, "minutes": round(elapsed / 60, 4), "lr": learning_rate(config, step - 1),
+                   "items_per_second": round(rate, 1)}
+            means = meter.take()
+            row.update({name: round(value, 5) for name, value in means.items()})
+            if place.main:
+                if table is None:
+                    table = CsvLog(log, list(row), start if resume else None)
+                table.write(row)
+            bar.set_postfix({name: f"{value:.4g}" for name, value in means.items() if name in ("loss", "psnr")})
+        bar.update(1)
+        if place.main and time.monotonic() - last_save >= 60 * config.checkpoint_minutes:
+            checkpoint(step)
+            last_save = time.monotonic()
+    bar.close()
+    checkpoint(step)
+    if place.world > 1:
+        dist.barrier()
+    return ckpt
+
+
+# --- the perception stage -------------------------------------------------------------
+
+def resolve_run(model: str | os.PathLike, stage: str = "perception") -> Path:
+    """A checkpoint from a file, a run directory holding STAGE.pt, or a run name under runs/."""
+    path = Path(model)
+    candidates = [path, path / f"{stage}.pt", Path("runs") / path / f"{stage}.pt"]
+    for candidate in candidates:
+        if candidate.is_file():
+            return candidate
+    raise XvoeError(f"no {stage} checkpoint at {model} (tried {', '.join(map(str, candidates))})")
+
+
+def load_perception(model: str | os.PathLike, device: str | torch.device = "cpu"):
+    """The trained ComponentVAE of a checkpoint (in eval mode) and the checkpoint's contents."""
+    from .models.config import PerceptionConfig, from_dict
+    from .models.perception import ComponentVAE
+
+    path = resolve_run(model)
+    state = load_checkpoint(path)
+    if state["stage"] != "perception":
+        raise XvoeError(f"{path} is a {state['stage']} checkpoint, not a perception one")
+    vae = ComponentVAE(from_dict(PerceptionConfig, state["config"]["perception"]))
+    vae.load_state_dict(state["model"])
+    state["path"] = str(path)
+    return vae.to(device).eval(), state
+
+
+def perception_configs(preset_name: str, run_dir: Path, resume: bool, **train_overrides: Any):
+    """Model and training configs: the checkpoint's when resuming, else the preset's, with overrides."""
+    from .models.config import PerceptionConfig, from_dict, override, preset
+
+    ckpt = checkpoint_path(run_dir, "perception")
+    if resume and ckpt.exists():
+        state = load_checkpoint(ckpt)
+        model_config = from_dict(PerceptionConfig, state["config"]["perception"])
+        train_config, preset_name = from_dict(TrainConfig, state["train"]), state["config"]["preset"]
+    else:
+        chosen = preset(preset_name)
+        model_config, train_config = chosen.perception, chosen.perception_train
+    return preset_name, model_config, override(train_config, **train_overrides)
+
+
+def train_perception(data: str | os.PathLike, run_dir: str | os.PathLike, *, preset_name: str = "cpu",
+                     resume: bool = False, overwrite: bool = False, progress: bool = True,
+                     model_overrides: dict | None = None, **train_overrides: Any) -> Path:
+    """What `xvoe train --stage perception` does; also works under torchrun."""
+    from .data import ShardedFrames
+    from .models.config import override
+    from .models.perception import ComponentVAE
+
+    place = setup_distributed()
+    run_dir = Path(run_dir)
+    preset_name, model_config, config = perception_configs(preset_name, run_dir, resume, **train_overrides)
+    if model_overrides and not (resume and checkpoint_path(run_dir, "perception").exists()):
+        model_config = override(model_config, **model_overrides)
+    config = override(config, data_shards=config.data_shards or place.world)
+    set_threads(config, int(os.environ.get("LOCAL_WORLD_SIZE", "1")))
+    seed_everything(config.seed)
+    model = ComponentVAE(model_config)
+    frames = ShardedFrames(str(data), image_size=model_config.image_size, latent_dim=model_config.latent_dim,
+                           batch_size=config.batch_size, shards=config.data_shards, rank=place.rank,
+                           world=place.world, max_videos=config.max_videos, seed=config.seed)
+    job = Job("perception", model, frames.batch, {"preset": preset_name, "perception": to_dict(model_config)},
+              items=lambda batch: batch.images, meta={"data": str(Path(data).resolve())})
+    return fit(job, config, run_dir, place=place, resume=resume, overwrite=overwrite, progress=progress)
