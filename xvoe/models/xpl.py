@@ -36,6 +36,10 @@ class XPL(nn.Module):
             self.transformer1 = ReasoningTransformer(config.reasoning)
             self.transformer2 = ReasoningTransformer(config.reasoning)
 
+    def forward(self, batch) -> dict[str, Tensor]:
+        """The training objective of a LatentBatch (what the training loop calls)."""
+        return self.losses(batch.mean, batch.visible, batch.order, batch.hidden)
+
     def refine(self, z: Tensor, visible: Tensor) -> Tensor:
         """Fill the frames in which a seen object is occluded (Transformer 1)."""
         if not self.config.use_reasoning:
@@ -56,17 +60,20 @@ class XPL(nn.Module):
         mean, scale = self.transformer2(refined, keep)
         return mean, scale, slot
 
-    def losses(self, z: Tensor, visible: Tensor) -> dict[str, Tensor]:
-        """z: (B, T, K, D) cached means; visible: (B, T, K) bool."""
+    def losses(self, z: Tensor, visible: Tensor, order: Tensor | None = None,
+               hidden: Tensor | None = None) -> dict[str, Tensor]:
+        """z: (B, T, K, D) cached means; visible: (B, T, K) bool. `order` (B, K), a slot
+        order per video, and `hidden` (B,), the slot Transformer 2 must rebuild, are drawn
+        here unless given (the training data give them, so that batches are reproducible)."""
         if self.config.permute_slots and self.training:
-            z, visible = permute_slots(z, visible)
+            z, visible = permute_slots(z, visible, order=order)
         refined = self.refine(z, visible)
         prediction = self.dynamics(refined[:, :-1])
         target = refined[:, 1:].detach() if self.config.stop_target_gradient else refined[:, 1:]
         dynamics = ((prediction - target) ** 2).sum(-1).mean()
         out = {"dynamics": dynamics}
         if self.config.use_reasoning:
-            slot = torch.randint(z.shape[2], (z.shape[0],), device=z.device)
+            slot = hidden if hidden is not None else torch.randint(z.shape[2], (z.shape[0],), device=z.device)
             keep = hide_slot(visible.shape, slot)
             mean, scale = self.transformer2(refined.detach(), keep)
             out["mae"] = gaussian_nll(mean, scale.clamp_min(self.config.reasoning.min_scale), refined.detach(), ~keep)
@@ -75,9 +82,10 @@ class XPL(nn.Module):
         return out
 
 
-def permute_slots(*tensors: Tensor) -> tuple[Tensor, ...]:
-    """Apply one random slot order per video to tensors shaped (B, T, K, ...)."""
+def permute_slots(*tensors: Tensor, order: Tensor | None = None) -> tuple[Tensor, ...]:
+    """Apply one slot order per video (B, K), random unless given, to tensors (B, T, K, ...)."""
     batch, _, slots = tensors[0].shape[:3]
-    order = torch.argsort(torch.rand(batch, slots, device=tensors[0].device), dim=1)
+    if order is None:
+        order = torch.argsort(torch.rand(batch, slots, device=tensors[0].device), dim=1)
     return tuple(torch.gather(t, 2, order[:, None, :].reshape(batch, 1, slots, *[1] * (t.dim() - 3))
                               .expand(-1, t.shape[1], -1, *t.shape[3:])) for t in tensors)

@@ -1,0 +1,88 @@
+"""The XPL and PLATO stages through the shared training loop: learning, resume, loading."""
+import numpy as np
+import pytest
+import torch
+
+from xvoe.errors import XvoeError
+from xvoe.latents import Latents, write_latents
+from xvoe.train_xpl import LatentBatches, load_xpl, train_xpl
+
+N, T, K, D = 32, 8, 4, 6
+TINY = {"steps": 60, "batch_size": 32, "lr": 3e-3, "warmup_steps": 1, "log_every": 5}
+
+
+@pytest.fixture(scope="module")
+def cache(tmp_path_factory):
+    """Objects moving at constant velocity; slot 1 hidden for two frames in every video."""
+    rng = np.random.default_rng(0)
+    start, velocity = rng.normal(size=(N, 1, K, D)), 0.3 * rng.normal(size=(N, 1, K, D))
+    mean = (start + velocity * np.arange(T)[None, :, None, None]).astype(np.float32)
+    visible = np.ones((N, T, K), bool)
+    visible[:, 3:5, 1] = False
+    zeros = np.zeros((N, T, D), np.float32)
+    latents = Latents(mean=mean, std=np.full_like(mean, 0.01), visible=visible, present=np.ones_like(visible),
+                      pixels=visible.astype(np.int32) * 10, background_mean=zeros, background_std=zeros,
+                      attrs={"config": "{}"})
+    return write_latents(tmp_path_factory.mktemp("cache") / "latents.h5", latents)
+
+
+def losses(run_dir, stage):
+    import csv
+    return list(csv.DictReader(open(run_dir / f"{stage}.csv")))
+
+
+@pytest.fixture(autouse=True)
+def tiny_preset(monkeypatch):
+    """Shrink the cpu preset's networks so that a stage trains in a second."""
+    from dataclasses import replace
+
+    import xvoe.train_xpl as stage
+    from xvoe.models.config import PRESETS
+
+    cpu = PRESETS["cpu"]
+    small = replace(cpu, xpl=replace(cpu.xpl, reasoning=replace(cpu.xpl.reasoning, width=16, layers=1, heads=2, mlp=16),
+                                     dynamics=replace(cpu.xpl.dynamics, hidden=32, lstm=32, buffer_heads=2)))
+    monkeypatch.setattr(stage, "preset", lambda name: small)
+
+
+def test_xpl_stage_learns_and_resumes_exactly(cache, tmp_path):
+    straight = train_xpl(cache, tmp_path / "a", progress=False, **TINY)
+    rows = losses(tmp_path / "a", "xpl")
+    assert float(rows[-1]["dynamics"]) < 0.6 * float(rows[0]["dynamics"])
+    assert "mae" in rows[0]
+    # interrupted after 12 steps, then resumed: the same weights as the straight run
+    train_xpl(cache, tmp_path / "b", progress=False, **{**TINY, "steps": 12})
+    resumed = train_xpl(cache, tmp_path / "b", progress=False, resume=True, **TINY)
+    a, b = torch.load(straight, weights_only=False), torch.load(resumed, weights_only=False)
+    assert a["step"] == b["step"] == 60
+    for name, value in a["model"].items():
+        torch.testing.assert_close(value, b["model"][name], msg=name)
+    model, state = load_xpl(tmp_path / "a")
+    assert state["config"]["xpl"]["reasoning"]["latent_dim"] == D and not model.training
+
+
+def test_plato_and_the_no_residual_ablation(cache, tmp_path):
+    plato = train_xpl(cache, tmp_path, stage="plato", progress=False, **TINY)
+    ablation = train_xpl(cache, tmp_path, residual=False, progress=False, **TINY)
+    assert plato.name == "plato.pt" and ablation.name == "xpl-noresidual.pt"
+    model, _ = load_xpl(tmp_path, stage="plato")
+    assert not model.config.use_reasoning and not model.config.dynamics.residual
+    model, _ = load_xpl(tmp_path, stage="xpl-noresidual")
+    assert model.config.use_reasoning and not model.config.dynamics.residual
+
+
+def test_batches_do_not_depend_on_the_process_count(cache):
+    one = LatentBatches(str(cache), batch_size=8, shards=2, seed=3).batch(7)
+    halves = [LatentBatches(str(cache), batch_size=8, shards=2, rank=r, world=2, seed=3).batch(7) for r in (0, 1)]
+    assert torch.equal(one.mean, torch.cat([h.mean for h in halves]))
+    assert torch.equal(one.order, torch.cat([h.order for h in halves]))
+
+
+def test_errors(cache, tmp_path):
+    with pytest.raises(XvoeError, match="stage"):
+        train_xpl(cache, tmp_path, stage="phydnet", progress=False)
+    with pytest.raises(XvoeError, match="no xpl checkpoint"):
+        load_xpl(tmp_path / "empty")
+    train_xpl(cache, tmp_path, progress=False, **{**TINY, "steps": 2})
+    with pytest.raises(XvoeError, match="exists"):
+        train_xpl(cache, tmp_path, progress=False, **TINY)

@@ -1,0 +1,158 @@
+"""The XPL and PLATO training stages, on the latent cache, through the shared loop.
+
+`xvoe train --stage xpl` trains Transformer 1 and the dynamics jointly on the dynamics loss
+and Transformer 2 on Transformer 1's refined latents; `--stage plato` trains the dynamics
+alone (no residual) on the raw means; `--no-residual` gives the paper's ablation (Fig. 5a).
+Every random choice of a step (which videos, the slot order, the slot Transformer 2 must
+rebuild) is drawn from a generator seeded by (seed, step, shard), as for perception, so a
+resumed or multi-process run sees the same batches.
+"""
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass, replace
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from .data import shard_bounds
+from .errors import XvoeError
+from .latents import open_latents
+from .models.config import TrainConfig, from_dict, override, preset, to_dict
+from .models.xpl import XPL, XPLConfig
+from .train import (
+    Job,
+    checkpoint_path,
+    fit,
+    load_checkpoint,
+    resolve_run,
+    seed_everything,
+    set_threads,
+    setup_distributed,
+)
+
+STAGES = ("xpl", "plato")
+
+
+@dataclass
+class LatentBatch:
+    mean: Tensor        # (B, T, K, D)
+    visible: Tensor     # (B, T, K) bool
+    order: Tensor       # (B, K) slot order
+    hidden: Tensor      # (B,) the slot Transformer 2 must rebuild
+
+    def to(self, device) -> LatentBatch:
+        return LatentBatch(*(t.to(device) for t in (self.mean, self.visible, self.order, self.hidden)))
+
+    def __len__(self) -> int:
+        return len(self.mean)
+
+
+class LatentBatches:
+    """The shards of a latent cache that one process owns, and its batches of videos."""
+
+    def __init__(self, path: str, *, batch_size: int, shards: int, rank: int = 0, world: int = 1,
+                 max_videos: int = 0, seed: int = 0):
+        if shards % world or batch_size % shards:
+            raise XvoeError(f"batch_size {batch_size} and {world} processes must divide data_shards {shards}")
+        with open_latents(path) as file:
+            videos = file["mean"].shape[0]
+            videos = min(videos, max_videos) if max_videos else videos
+            if videos < shards:
+                raise XvoeError(f"{path} holds {videos} videos, fewer than the {shards} data shards")
+            per_rank = shards // world
+            self.shards = list(range(rank * per_rank, (rank + 1) * per_rank))
+            self.bounds = [shard_bounds(videos, shards)[s] for s in self.shards]
+            start, stop = self.bounds[0][0], self.bounds[-1][1]
+            self.mean = torch.from_numpy(file["mean"][start:stop])
+            self.visible = torch.from_numpy(file["visible"][start:stop])
+        self.start, self.per_shard, self.seed = start, batch_size // shards, seed
+        self.slots = self.mean.shape[2]
+
+    def batch(self, step: int) -> LatentBatch:
+        videos, orders, hidden = [], [], []
+        for shard, (start, stop) in zip(self.shards, self.bounds):
+            rng = np.random.default_rng([self.seed, step, shard])
+            videos.append(rng.integers(start, stop, self.per_shard) - self.start)
+            orders.append(np.argsort(rng.random((self.per_shard, self.slots)), axis=1))
+            hidden.append(rng.integers(0, self.slots, self.per_shard))
+        video = torch.from_numpy(np.concatenate(videos))
+        return LatentBatch(self.mean[video], self.visible[video], torch.from_numpy(np.concatenate(orders)),
+                           torch.from_numpy(np.concatenate(hidden)))
+
+
+def stage_config(base: XPLConfig, stage: str, residual: bool, stop_gradient: bool, shape: tuple) -> XPLConfig:
+    """The preset's XPL config fitted to the cache's (T, K, D) and to the stage's variant."""
+    frames, slots, dim = shape
+    reasoning = replace(base.reasoning, latent_dim=dim, slots=slots, frames=max(frames, base.reasoning.frames))
+    dynamics = replace(base.dynamics, latent_dim=dim, residual=residual and stage == "xpl")
+    return replace(base, reasoning=reasoning, dynamics=dynamics, use_reasoning=stage == "xpl",
+                   stop_target_gradient=stop_gradient)
+
+
+def train_xpl(latents: str | os.PathLike | None, run_dir: str | os.PathLike, *, stage: str = "xpl",
+              preset_name: str = "cpu", residual: bool = True, stop_gradient: bool = True,
+              resume: bool = False, overwrite: bool = False, progress: bool = True, **train_overrides: Any) -> Path:
+    """What `xvoe train --stage xpl|plato` does (also under torchrun). The checkpoint is
+    RUN_DIR/STAGE.pt, or xpl-noresidual.pt for the ablation."""
+    if stage not in STAGES:
+        raise XvoeError(f"stage must be one of {STAGES}, not {stage!r}")
+    name = stage if residual or stage == "plato" else "xpl-noresidual"
+    place = setup_distributed()
+    run_dir = Path(run_dir)
+    ckpt = checkpoint_path(run_dir, name)
+    if resume and ckpt.exists():
+        state = load_checkpoint(ckpt)
+        model_config = from_dict(XPLConfig, state["config"]["xpl"])
+        config, preset_name = from_dict(TrainConfig, state["train"]), state["config"]["preset"]
+        latents = latents or state["meta"]["latents"]
+    elif latents is None:
+        raise XvoeError(f"nothing to resume in {run_dir}: give the latent cache to start a run")
+    else:
+        chosen = preset(preset_name)
+        with open_latents(latents) as file:
+            shape = file["mean"].shape[1:]
+        model_config = stage_config(chosen.xpl, stage, residual, stop_gradient, shape)
+        config = chosen.xpl_train
+    config = override(config, **train_overrides)
+    config = override(config, data_shards=config.data_shards or place.world)
+    set_threads(config, int(os.environ.get("LOCAL_WORLD_SIZE", "1")))
+    seed_everything(config.seed)
+    batches = LatentBatches(str(latents), batch_size=config.batch_size, shards=config.data_shards, rank=place.rank,
+                            world=place.world, max_videos=config.max_videos, seed=config.seed)
+    job = Job(name, XPL(model_config), batches.batch, {"preset": preset_name, "xpl": to_dict(model_config)},
+              meta={"latents": str(Path(latents).resolve())})
+    return fit(job, config, run_dir, place=place, resume=resume, overwrite=overwrite, progress=progress)
+
+
+def latent_cache_for(data: str | os.PathLike, run_dir: str | os.PathLike, perception: str | None = None,
+                     progress: bool = True) -> Path:
+    """The latent cache to train on: `data` itself if it is one; for a split file, the cache
+    RUN_DIR/latents-NAME.h5, encoded first with the run's perception module if missing."""
+    from .latents import encode_split
+
+    data = Path(data)
+    try:
+        open_latents(data).close()
+        return data
+    except XvoeError:
+        pass
+    cache = Path(run_dir) / f"latents-{data.stem}.h5"
+    if not cache.exists():
+        encode_split(perception or run_dir, data, cache, progress=progress)
+    return cache
+
+
+def load_xpl(model: str | os.PathLike, stage: str = "xpl", device: str | torch.device = "cpu") -> tuple[XPL, dict]:
+    """A trained XPL (or PLATO) model in eval mode, and its checkpoint's contents."""
+    path = resolve_run(model, stage)
+    state = load_checkpoint(path)
+    if state["stage"] not in ("xpl", "plato", "xpl-noresidual"):
+        raise XvoeError(f"{path} is a {state['stage']} checkpoint, not an XPL one")
+    xpl = XPL(from_dict(XPLConfig, state["config"]["xpl"]))
+    xpl.load_state_dict(state["model"])
+    state["path"] = str(path)
+    return xpl.to(device).eval(), state
