@@ -107,7 +107,16 @@ def cmd_train(args: argparse.Namespace) -> None:
         print(encode_split(args.model or args.out, args.data, cache, overwrite=args.overwrite,
                            progress=not args.quiet))
     else:
-        raise XvoeError(f"'xvoe train --stage {args.stage}' is not built yet in this version of xvoe")
+        from .train_xpl import latent_cache_for, train_xpl
+
+        if args.data is None and not args.resume:
+            raise XvoeError("--data is required (a latent cache, or the training split to encode first)")
+        cache = latent_cache_for(args.data, args.out, args.model, progress=not args.quiet) if args.data else None
+        overrides = {"steps": args.steps, "max_minutes": args.minutes, "batch_size": args.batch_size,
+                     "seed": args.seed, "max_videos": args.max_videos}
+        print(train_xpl(cache, args.out, stage=args.stage, preset_name=args.preset, residual=not args.no_residual,
+                        stop_gradient=not args.no_stop_gradient, resume=args.resume, overwrite=args.overwrite,
+                        progress=not args.quiet, **overrides))
 
 
 def add_train_parser(verbs) -> None:
@@ -129,6 +138,10 @@ def add_train_parser(verbs) -> None:
     train.add_argument("--overwrite", action="store_true", help="start again over an existing run or cache")
     train.add_argument("--model", help="encode: perception run or checkpoint (default: --out)")
     train.add_argument("--cache", help="encode: the latent cache to write (default: OUT/latents-DATA.h5)")
+    train.add_argument("--no-residual", action="store_true",
+                       help="xpl: predict the next latent, not its change (the paper's ablation)")
+    train.add_argument("--no-stop-gradient", action="store_true",
+                       help="xpl: let the dynamics loss reach Transformer 1 through the target too")
     train.add_argument("--quiet", action="store_true", help="no progress bar")
     train.set_defaults(run=cmd_train)
 
