@@ -137,14 +137,19 @@ def load_checkpoint(path: str | os.PathLike) -> dict:
 
 
 class CsvLog:
-    """Loss rows beside the checkpoint; on resume, rows after the checkpoint's step are dropped."""
+    """Loss rows beside the checkpoint, one every `every` steps and one where a session ends.
 
-    def __init__(self, path: Path, columns: list[str], resume_step: int | None):
+    On resume, rows after the checkpoint's step and the row of the session's end are dropped,
+    so the log reads as if the run had never stopped.
+    """
+
+    def __init__(self, path: Path, columns: list[str], resume_step: int | None, every: int):
         self.path, self.columns = path, columns
         rows = []
         if resume_step is not None and path.exists():
             with open(path, newline="") as handle:
-                rows = [row for row in csv.DictReader(handle) if int(row["step"]) <= resume_step]
+                rows = [row for row in csv.DictReader(handle)
+                        if int(row["step"]) <= resume_step and int(row["step"]) % every == 0]
         with open(path, "w", newline="") as handle:
             writer = csv.DictWriter(handle, columns, extrasaction="ignore")
             writer.writeheader()
@@ -167,8 +172,11 @@ class _Meter:
             self.sums[name] = self.sums.get(name, 0.0) + float(value)
         self.count += 1
 
+    def means(self) -> dict[str, float]:
+        return {name: total / max(1, self.count) for name, total in self.sums.items()}
+
     def take(self) -> dict[str, float]:
-        means = {name: total / max(1, self.count) for name, total in self.sums.items()}
+        means = self.means()
         self.sums, self.count = {}, 0
         return means
 
@@ -187,13 +195,14 @@ def fit(job: Job, config: TrainConfig, run_dir: str | os.PathLike, *, place: Dis
         raise XvoeError(f"{ckpt} exists; pass --resume to continue it or --overwrite to start again")
     model = job.model.to(place.device)
     optimiser = torch.optim.Adam(model.parameters(), lr=config.lr)
-    start, elapsed = 0, 0.0
+    start, elapsed, meter = 0, 0.0, _Meter()
     if resume and ckpt.exists():
         state = load_checkpoint(ckpt)
         model.load_state_dict(state["model"])
         optimiser.load_state_dict(state["optimizer"])
         start, elapsed = state["step"], state.get("elapsed", 0.0)
         set_rng_state(state["rng"])
+        meter.sums, meter.count = dict(state["meter"]["sums"]), state["meter"]["count"]
     wrapped = model
     if place.world > 1:
         wrapped = nn.parallel.DistributedDataParallel(model, device_ids=[place.device] if place.device.type == "cuda"
@@ -201,14 +210,25 @@ def fit(job: Job, config: TrainConfig, run_dir: str | os.PathLike, *, place: Dis
     if place.main:
         run_dir.mkdir(parents=True, exist_ok=True)
 
+    def log_row(table: CsvLog | None, step: int, means: dict[str, float]) -> CsvLog | None:
+        rate = items * place.world / max(1e-9, time.monotonic() - session)
+        row = {"step": step, "minutes": round(elapsed / 60, 4), "lr": learning_rate(config, step - 1),
+               "items_per_second": round(rate, 1), **{name: round(value, 5) for name, value in means.items()}}
+        bar.set_postfix({name: f"{value:.4g}" for name, value in means.items() if name in ("loss", "psnr")})
+        if place.main:
+            table = table or CsvLog(log, list(row), start if resume else None, config.log_every)
+            table.write(row)
+        return table
+
     def checkpoint(step: int) -> None:
         if place.main:
             save_checkpoint(ckpt, {"format": CHECKPOINT_FORMAT, "stage": job.stage, "config": job.config,
                                    "train": to_dict(config), "step": step, "elapsed": elapsed,
                                    "model": model.state_dict(), "optimizer": optimiser.state_dict(),
-                                   "rng": rng_state(), "meta": job.meta, "world": place.world})
+                                   "rng": rng_state(), "meta": job.meta, "world": place.world,
+                                   "meter": {"sums": meter.sums, "count": meter.count}})
 
-    meter, table = _Meter(), None
+    table = None
     bar = tqdm(total=config.steps, initial=start, desc=job.stage, disable=not (progress and place.main),
                dynamic_ncols=True)
     session = last_save = time.monotonic()
@@ -231,22 +251,15 @@ def fit(job: Job, config: TrainConfig, run_dir: str | os.PathLike, *, place: Dis
         step += 1
         elapsed = time.monotonic() - began
         meter.add({name: value.detach() for name, value in terms.items() if value.dim() == 0})
-        if step % config.log_every == 0 or step == config.steps:
-            rate = items * place.world / max(1e-9, time.monotonic() - session)
-            row = {"step": step, "minutes": round(elapsed / 60, 4), "lr": learning_rate(config, step - 1),
-                   "items_per_second": round(rate, 1)}
-            means = meter.take()
-            row.update({name: round(value, 5) for name, value in means.items()})
-            if place.main:
-                if table is None:
-                    table = CsvLog(log, list(row), start if resume else None)
-                table.write(row)
-            bar.set_postfix({name: f"{value:.4g}" for name, value in means.items() if name in ("loss", "psnr")})
+        if step % config.log_every == 0:
+            table = log_row(table, step, meter.take())
         bar.update(1)
         if place.main and time.monotonic() - last_save >= 60 * config.checkpoint_minutes:
             checkpoint(step)
             last_save = time.monotonic()
     bar.close()
+    if meter.count:
+        table = log_row(table, step, meter.means())
     checkpoint(step)
     if place.world > 1:
         dist.barrier()
