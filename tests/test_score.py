@@ -92,3 +92,34 @@ def test_aggregate():
     assert aggregate(per_frame, "max").tolist() == [3.0, 5.0]
     with pytest.raises(ValueError, match="sum"):
         aggregate(per_frame, "mean")
+
+
+def test_random_agent_scores_a_split(test_file, tmp_path):
+    import csv
+
+    import numpy as np
+
+    from xvoe.errors import XvoeError
+    from xvoe.score import SCORE_COLUMNS, score_split
+
+    out = score_split("random", str(test_file), str(tmp_path / "random.csv"), progress=False)
+    rows = list(csv.DictReader(open(out)))
+    assert tuple(rows[0]) == SCORE_COLUMNS and len(rows) == 176
+    assert rows[1]["member"] == "1" and rows[0]["model"] == "random"
+    curves = np.load(out.with_suffix(".curves.npz"))
+    assert curves["s_img"].shape == (176, 15)
+    np.testing.assert_allclose([float(r["score"]) for r in rows], (curves["s_img"] + curves["s_dyn"]).sum(1))
+    again = score_split("random", str(test_file), str(tmp_path / "again.csv"), progress=False)
+    assert open(out).read() == open(again).read()
+    with pytest.raises(XvoeError, match="exists"):
+        score_split("random", str(test_file), str(out), progress=False)
+    with pytest.raises(XvoeError, match="not a model"):
+        score_split(str(tmp_path / "random.csv"), str(test_file), str(tmp_path / "x.csv"), progress=False)
+
+
+def test_scores_need_a_test_split(train_file, tmp_path):
+    from xvoe.errors import XvoeError
+    from xvoe.score import score_split
+
+    with pytest.raises(XvoeError, match="test split"):
+        score_split("random", str(train_file), str(tmp_path / "x.csv"), progress=False)

@@ -60,6 +60,13 @@ def cmd_show(args: argparse.Namespace) -> None:
     print(show(args.file, args.index, out))
 
 
+def cmd_score(args: argparse.Namespace) -> None:
+    from .score import score_split
+
+    print(score_split(args.model, args.data, args.out, how=args.aggregate, videos_per_batch=args.batch,
+                      overwrite=args.overwrite, progress=not args.quiet))
+
+
 def cmd_metrics(args: argparse.Namespace) -> None:
     from .metrics import report
 
@@ -178,6 +185,21 @@ def build_parser() -> argparse.ArgumentParser:
 
     add_train_parser(verbs)
 
+    score = verbs.add_parser("score", help="score test videos with a trained model (surprise per video)",
+                             description="One CSV row per test video (index, scenario, setting, pair, member, "
+                                         "possible, score, s_img, s_dyn) and the per-frame surprise curves in "
+                                         "OUT.curves.npz. The MSE surprise is the paper's (Eq. 2-4).")
+    score.add_argument("--model", required=True,
+                       help="a run directory, a stage checkpoint (xpl.pt, plato.pt, xpl-noresidual.pt) or random")
+    score.add_argument("--data", required=True, help="a test split file")
+    score.add_argument("--out", required=True, help="the scores CSV to write")
+    score.add_argument("--surprise", choices=("mse",), default="mse", help="the surprise definition")
+    score.add_argument("--aggregate", choices=("sum", "max"), default="sum", help="over frames (default sum)")
+    score.add_argument("--batch", type=_positive, default=16, help="videos per batch")
+    score.add_argument("--overwrite", action="store_true", help="replace --out if it exists")
+    score.add_argument("--quiet", action="store_true", help="no progress bar")
+    score.set_defaults(run=cmd_score)
+
     metrics = verbs.add_parser("metrics", help="comparative, holistic and relative metrics with figures",
                                description="The paper's metrics with bootstrap 95%% intervals, for the total "
                                            "score and each component, of one or more models' scores files: "
@@ -189,7 +211,6 @@ def build_parser() -> argparse.ArgumentParser:
     metrics.set_defaults(run=cmd_metrics)
 
     later = {
-        "score": "score test videos with a trained model (surprise per video)",
         "pipeline": "generate, train, score and report, end to end",
         "explain": "draw the model's explanation of what is behind the wall",
     }

@@ -12,6 +12,7 @@ two terms, and videos are scored in batches with no Python loop over frames.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from pathlib import Path
 
 import torch
 from torch import Tensor
@@ -85,3 +86,110 @@ def aggregate(per_frame: Tensor, how: str) -> Tensor:
     if how == "max":
         return per_frame.max(dim=1).values
     raise ValueError(f"aggregate must be 'sum' or 'max', not {how!r}")
+
+
+# --- scoring a split file ---------------------------------------------------------------
+
+SCORE_COLUMNS = ("index", "model", "scenario", "setting", "pair", "member", "possible", "score", "s_img", "s_dyn")
+XPL_STAGES = ("xpl", "plato", "xpl-noresidual")
+
+
+@dataclass
+class Scorer:
+    """A trained model ready to score: the perception module and one dynamics stage."""
+
+    name: str
+    vae: ComponentVAE | None
+    xpl: XPL | None
+    seed: int = 0                 # the random agent's
+
+    @property
+    def is_random(self) -> bool:
+        return self.vae is None
+
+
+def load_scorer(model: str, device: str = "cpu") -> Scorer:
+    """`random`, a run directory (its xpl.pt), or a stage checkpoint (xpl.pt, plato.pt,
+    xpl-noresidual.pt) with perception.pt beside it."""
+    from .errors import XvoeError
+    from .train import load_perception
+    from .train_xpl import load_xpl
+
+    if model == "random":
+        return Scorer("random", None, None)
+    path = Path(model)
+    if path.is_file():
+        run_dir, stage = path.parent, path.stem
+    else:
+        run_dir, stage = path, "xpl"
+    if stage not in XPL_STAGES:
+        raise XvoeError(f"{model} is not a model to score with: give a run directory, one of "
+                        f"{', '.join(s + '.pt' for s in XPL_STAGES)}, or 'random'")
+    vae, _ = load_perception(run_dir, device)
+    xpl, _ = load_xpl(run_dir, stage, device)
+    return Scorer(stage, vae, xpl)
+
+
+def score_split(model: str | Scorer, data: str, out: str, *, how: str = "sum", videos_per_batch: int = 16,
+                overwrite: bool = False, progress: bool = True) -> Path:
+    """What `xvoe score` does: one CSV row per test video, and the per-frame surprise curves
+    (s_img, s_dyn: (N, T)) in an .npz beside it."""
+    import csv
+
+    import numpy as np
+    from tqdm.auto import tqdm
+
+    from . import store
+    from .data import check_size, visible_threshold
+    from .errors import XvoeError
+    from .latents import encode_frames
+    from .models.perception import normalise
+
+    if how not in ("sum", "max"):
+        raise XvoeError(f"--aggregate must be sum or max, not {how!r}")
+    scorer = load_scorer(model) if isinstance(model, str) else model
+    out = Path(out)
+    if out.exists() and not overwrite:
+        raise XvoeError(f"{out} exists; pass --overwrite to replace it")
+    with store.open_dataset(data) as file:
+        if file.attrs["split"] != "test":
+            raise XvoeError(f"{data} is a {file.attrs['split']} split; scores need a test split")
+        count, frames_count = file["rgbd"].shape[:2]
+        size, slots = file["rgbd"].shape[2], file["states"].shape[2]
+        labels = {name: (store.strings(file, name) if name in ("scenario", "setting") else file[name][:])
+                  for name in ("scenario", "setting", "pair", "member", "possible")}
+        curves = np.zeros((2, count, frames_count))
+        if scorer.is_random:
+            curves[:] = np.random.default_rng(scorer.seed).random((2, count, frames_count))
+        else:
+            check_size(file, scorer.vae.config.image_size, f"the model {scorer.name}")
+            walls = [list(file.attrs["kind_names"]).index(k) for k in ("wall", "window_wall")]
+            threshold = visible_threshold(size)
+            for start in tqdm(range(0, count, videos_per_batch), desc=f"score {scorer.name}", unit="batch",
+                              disable=not progress):
+                stop = min(count, start + videos_per_batch)
+                rgbd, ids = file["rgbd"][start:stop], file["ids"][start:stop]
+                encoded = encode_frames(scorer.vae, rgbd.reshape(-1, size, size, 4), ids.reshape(-1, size, size),
+                                        slots)
+                shaped = {k: torch.from_numpy(v).reshape(stop - start, frames_count, *v.shape[1:])
+                          for k, v in encoded.items()}
+                occluder = torch.from_numpy(np.isin(file["kind"][start:stop], walls))
+                with torch.no_grad():
+                    surprise = mse_surprise(scorer.vae, scorer.xpl, normalise(torch.from_numpy(rgbd)),
+                                            shaped["mean"], shaped["pixels"] > threshold,
+                                            shaped["background_mean"], occluder)
+                curves[0, start:stop] = surprise.s_img.numpy()
+                curves[1, start:stop] = surprise.s_dyn.numpy()
+    s_img, s_dyn = (aggregate(torch.from_numpy(c), how).numpy() for c in curves)
+    total = aggregate(torch.from_numpy(curves.sum(0)), how).numpy()
+    tmp = out.with_name(f".{out.name}.tmp")
+    with open(tmp, "w", newline="") as handle:
+        writer = csv.writer(handle)
+        writer.writerow(SCORE_COLUMNS)
+        for i in range(count):
+            writer.writerow([i, scorer.name, labels["scenario"][i], labels["setting"][i], int(labels["pair"][i]),
+                             int(labels["member"][i]), bool(labels["possible"][i]), float(total[i]),
+                             float(s_img[i]), float(s_dyn[i])])
+    np.savez_compressed(out.with_suffix(".curves.npz"), s_img=curves[0], s_dyn=curves[1])
+    tmp.replace(out)
+    return out
