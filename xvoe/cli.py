@@ -67,6 +67,21 @@ def cmd_score(args: argparse.Namespace) -> None:
                       overwrite=args.overwrite, progress=not args.quiet))
 
 
+def cmd_explain(args: argparse.Namespace) -> None:
+    import matplotlib.pyplot as plt
+
+    from .explain import explain
+    from .score import load_scorer
+    from .viz import plot_explanation
+
+    if Path(args.out).suffix.lower() != ".png":
+        raise XvoeError(f"--out must end in .png, not {Path(args.out).suffix or 'nothing'}")
+    figure = plot_explanation(explain(load_scorer(args.model), args.data, args.index))
+    figure.savefig(args.out, dpi=100, bbox_inches="tight")
+    plt.close(figure)
+    print(args.out)
+
+
 def cmd_metrics(args: argparse.Namespace) -> None:
     from .metrics import report
 
@@ -200,6 +215,16 @@ def build_parser() -> argparse.ArgumentParser:
     score.add_argument("--quiet", action="store_true", help="no progress bar")
     score.set_defaults(run=cmd_score)
 
+    explain = verbs.add_parser("explain", help="draw the model's explanation of what is behind the wall",
+                               description="Rows of observed frames, the decoded scene with the occluder left "
+                                           "out (what the model believes is behind the wall), and the decoded "
+                                           "explanation object alone.")
+    explain.add_argument("--model", required=True, help="a run directory or a stage checkpoint (xpl.pt, ...)")
+    explain.add_argument("--data", required=True, help="a split file")
+    explain.add_argument("--index", type=int, default=0, help="the video")
+    explain.add_argument("--out", required=True, help="the PNG to write")
+    explain.set_defaults(run=cmd_explain)
+
     metrics = verbs.add_parser("metrics", help="comparative, holistic and relative metrics with figures",
                                description="The paper's metrics with bootstrap 95%% intervals, for the total "
                                            "score and each component, of one or more models' scores files: "
@@ -212,7 +237,6 @@ def build_parser() -> argparse.ArgumentParser:
 
     later = {
         "pipeline": "generate, train, score and report, end to end",
-        "explain": "draw the model's explanation of what is behind the wall",
     }
     for verb, text in later.items():
         sub = verbs.add_parser(verb, help=f"{text} (not built yet)", description=f"{text}. Not built yet.")

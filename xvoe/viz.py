@@ -281,3 +281,29 @@ def plot_components(rows: list[dict], model: str, metric: str = "comparative") -
     ax.legend(fontsize=7)
     fig.tight_layout()
     return fig
+
+
+# --- explanations --------------------------------------------------------------------------
+
+def plot_explanation(explanation) -> plt.Figure:
+    """The paper's Fig. 7/8: observed frames, the scene behind the wall as the model believes
+    it (occluder left out), and the explanation object alone."""
+    rows = [("observed", explanation.observed), ("behind the wall", explanation.behind_wall),
+            ("explanation" if explanation.slot >= 0 else "nothing hidden", explanation.hidden_object)]
+    frames, height, width = explanation.observed.shape[:3]
+    gap = max(1, width // 16)
+    mosaic = np.full((3 * (height + gap), frames * (width + gap), 3), 255, np.uint8)
+    for r, (_, video) in enumerate(rows):
+        for t in range(frames):
+            y, x = r * (height + gap), t * (width + gap)
+            mosaic[y:y + height, x:x + width] = video[t, ..., :3]
+    fig, ax = plt.subplots(figsize=(max(4.0, frames * 0.8), 3 * 0.8 + 0.6))
+    ax.imshow(mosaic, interpolation="nearest")
+    ax.set_xticks([t * (width + gap) + width / 2 for t in range(frames)], [str(t) for t in range(frames)])
+    ax.set_yticks([r * (height + gap) + height / 2 for r in range(3)], [name for name, _ in rows])
+    ax.tick_params(length=0, labelsize=7)
+    for spine in ax.spines.values():
+        spine.set_visible(False)
+    ax.set_title(explanation.title, fontsize=8)
+    fig.tight_layout()
+    return fig

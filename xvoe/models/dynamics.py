@@ -16,9 +16,9 @@ from torch import Tensor, nn
 @dataclass(frozen=True)
 class DynamicsConfig:
     latent_dim: int = 16       # D
-    hidden: int = 128          # width of the object, buffer and interaction MLPs (paper: 512)
+    hidden: int = 64           # width of the object, buffer and interaction MLPs (paper: 512)
     mlp_layers: int = 2        # layers of each MLP (paper: 3)
-    lstm: int = 256            # slot-wise LSTM size (paper: 2056)
+    lstm: int = 128            # slot-wise LSTM size (paper: 2056)
     buffer_heads: int = 4      # attention heads that read the object buffer
     residual: bool = True      # XPL: predict the change; PLATO: predict the next latent
 
@@ -40,7 +40,11 @@ class InteractionLSTM(nn.Module):
         h = config.hidden
         self.object = mlp(config.latent_dim, h, config.mlp_layers)
         self.buffer = nn.MultiheadAttention(h, config.buffer_heads, batch_first=True)
-        self.interaction = mlp(2 * h, h, config.mlp_layers)
+        # pairwise MLP on [receiver, sender]; its first layer is split into the two halves so
+        # that it runs once per slot instead of once per pair
+        self.receiver = nn.Linear(h, h)
+        self.sender = nn.Linear(h, h, bias=False)
+        self.interaction = mlp(h, h, config.mlp_layers - 1)
         self.cell = nn.LSTMCell(3 * h, config.lstm)
         self.out = mlp(config.lstm, h, 1, config.latent_dim)
         nn.init.zeros_(self.out[-1].weight)     # start from "nothing changes" (residual) / zero
@@ -57,9 +61,8 @@ class InteractionLSTM(nn.Module):
         memory, _ = self.buffer(per_slot, per_slot, per_slot, attn_mask=future, need_weights=False)
         memory = memory.reshape(batch, slots, frames, -1).permute(0, 2, 1, 3)
         # pairwise interactions at frame t, summed over the other slots
-        receiver = state.unsqueeze(3).expand(-1, -1, -1, slots, -1)
-        sender = state.unsqueeze(2).expand(-1, -1, slots, -1, -1)
-        effects = self.interaction(torch.cat([receiver, sender], dim=-1))
+        pairs = torch.relu(self.receiver(state).unsqueeze(3) + self.sender(state).unsqueeze(2))
+        effects = self.interaction(pairs)                                   # (B, T, K, K, H)
         others = 1.0 - torch.eye(slots, device=z.device, dtype=z.dtype)
         effect = (effects * others[:, :, None]).sum(dim=3)
         inputs = torch.cat([state, memory, effect], dim=-1).reshape(batch, frames, slots, -1)

@@ -21,10 +21,10 @@ class ReasoningConfig:
     latent_dim: int = 16       # D, as the perception module's
     slots: int = 8             # K
     frames: int = 15           # T: the longest video the position table covers
-    width: int = 128           # token width (paper: 256)
+    width: int = 64            # token width (paper: 256)
     layers: int = 3            # (paper: 6)
     heads: int = 4             # (paper: 8)
-    mlp: int = 256             # (paper: 256)
+    mlp: int = 128             # (paper: 256)
     min_scale: float = 1e-3    # floor of the predicted standard deviation
 
 
