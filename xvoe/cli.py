@@ -82,17 +82,19 @@ def cmd_explain(args: argparse.Namespace) -> None:
     print(args.out)
 
 
+def cmd_pipeline(args: argparse.Namespace) -> None:
+    from .pipeline import PipelineConfig, run_pipeline
+
+    models = tuple(m.strip() for m in args.models.split(",") if m.strip())
+    print(run_pipeline(PipelineConfig(args.out, args.preset, args.train_videos, args.pairs, models, args.seed,
+                                      args.workers, not args.quiet)))
+
+
 def cmd_metrics(args: argparse.Namespace) -> None:
     from .metrics import report
 
     for path in report(args.scores, args.out, rounds=args.rounds, seed=args.seed):
         print(path)
-
-
-def _not_built(verb: str):
-    def run(args: argparse.Namespace) -> None:
-        raise XvoeError(f"'xvoe {verb}' is not built yet in this version of xvoe")
-    return run
 
 
 def _positive_float(text: str) -> float:
@@ -235,20 +237,26 @@ def build_parser() -> argparse.ArgumentParser:
     metrics.add_argument("--seed", type=int, default=0, help="seed of the bootstrap")
     metrics.set_defaults(run=cmd_metrics)
 
-    later = {
-        "pipeline": "generate, train, score and report, end to end",
-    }
-    for verb, text in later.items():
-        sub = verbs.add_parser(verb, help=f"{text} (not built yet)", description=f"{text}. Not built yet.")
-        sub.set_defaults(run=_not_built(verb))
+    pipeline = verbs.add_parser("pipeline", help="generate, train, score and report, end to end",
+                                description="Generate the benchmark, train every stage, score the test split, "
+                                            "compute the metrics and write RUN_DIR/report.md. A rerun skips "
+                                            "the stages already done and resumes an interrupted one.")
+    pipeline.add_argument("--out", required=True, help="the run directory")
+    pipeline.add_argument("--preset", default="cpu", help="model and training sizes: cpu (default) or paper")
+    pipeline.add_argument("--train-videos", type=_positive, default=10_000, help="training videos (default 10000)")
+    pipeline.add_argument("--pairs", type=_positive, default=200, help="test pairs per setting (default 200)")
+    pipeline.add_argument("--models", default="xpl,random",
+                          help="comma-separated: xpl, plato, xpl-noresidual, random (default xpl,random)")
+    pipeline.add_argument("--seed", type=int, default=0, help="training seed; the test split uses seed + 1")
+    pipeline.add_argument("--workers", type=_positive, default=_default_workers(), help="generation workers")
+    pipeline.add_argument("--quiet", action="store_true", help="no progress bars")
+    pipeline.set_defaults(run=cmd_pipeline)
     return parser
 
 
 def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
-    args, extra = parser.parse_known_args(argv)
-    if extra and args.verb in ("generate", "show", "train"):
-        parser.error(f"unrecognized arguments: {' '.join(extra)}")
+    args = parser.parse_args(argv)
     try:
         args.run(args)
     except XvoeError as error:

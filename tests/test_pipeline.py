@@ -1,0 +1,42 @@
+"""A tiny end-to-end pipeline: a dozen videos, a few steps per stage; and its resumption."""
+from dataclasses import replace
+
+import pytest
+
+from xvoe.errors import XvoeError
+from xvoe.models.config import PRESETS, PerceptionConfig, TrainConfig
+from xvoe.pipeline import PipelineConfig, run_pipeline
+
+
+@pytest.fixture
+def tiny_cpu_preset(monkeypatch):
+    cpu = PRESETS["cpu"]
+    few = TrainConfig(steps=6, batch_size=8, warmup_steps=1, log_every=2)
+    tiny = replace(cpu, perception=PerceptionConfig(image_size=32, latent_dim=8, cnn_channels=(8, 8), cnn_hidden=16,
+                                                    decoder_channels=8),
+                   perception_train=few,
+                   xpl=replace(cpu.xpl, reasoning=replace(cpu.xpl.reasoning, width=16, layers=1, heads=2, mlp=16),
+                               dynamics=replace(cpu.xpl.dynamics, hidden=16, lstm=16, buffer_heads=2)),
+                   xpl_train=replace(few, batch_size=4))
+    monkeypatch.setitem(PRESETS, "cpu", tiny)
+
+
+def test_tiny_pipeline_runs_end_to_end_and_skips_done_stages(tmp_path, tiny_cpu_preset):
+    config = PipelineConfig(str(tmp_path / "run"), train_videos=12, pairs=2, models=("xpl", "plato", "random"),
+                            workers=1, progress=False)
+    report = run_pipeline(config)
+    run = tmp_path / "run"
+    text = report.read_text()
+    assert "Holistic" in text and "| collision |" in text and "continuity S3" in text
+    for model in ("xpl", "plato", "random"):
+        assert (run / "scores" / f"{model}.csv").exists()
+    for figure in ("holistic.png", "comparative.png", "explanation-blocking-S2.png"):
+        assert (run / "report" / figure).exists()
+    stamp = (run / "xpl.pt").stat().st_mtime_ns
+    run_pipeline(config)                     # everything done: nothing is redone
+    assert (run / "xpl.pt").stat().st_mtime_ns == stamp
+
+
+def test_pipeline_refuses_unknown_models():
+    with pytest.raises(XvoeError, match="unknown model"):
+        PipelineConfig("x", models=("xpl", "phydnet2"))

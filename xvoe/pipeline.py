@@ -1,0 +1,173 @@
+"""`xvoe pipeline`: generate, train every stage, score, measure and report, in one directory.
+
+Each stage writes its output into RUN_DIR and then a marker under RUN_DIR/.done; a rerun
+skips the stages already done and resumes an interrupted training stage from its
+checkpoint, so an interrupted pipeline loses at most a few minutes of work.
+
+    RUN_DIR/data/train.h5, data/test.h5    the benchmark (test seed never used for training)
+    RUN_DIR/perception.pt, latents-train.h5
+    RUN_DIR/xpl.pt (plato.pt, xpl-noresidual.pt)
+    RUN_DIR/scores/MODEL.csv               one row per test video, and MODEL.curves.npz
+    RUN_DIR/report/                        metrics.csv, metrics.json, figures
+    RUN_DIR/report.md                      one page with the numbers and the figures
+"""
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+
+from .errors import XvoeError
+
+MODELS = ("xpl", "plato", "xpl-noresidual", "random")
+TRAINED = {"xpl": ("xpl", True), "plato": ("plato", True), "xpl-noresidual": ("xpl", False)}
+
+
+@dataclass(frozen=True)
+class PipelineConfig:
+    out: str
+    preset: str = "cpu"
+    train_videos: int = 10_000
+    pairs: int = 200
+    models: tuple[str, ...] = ("xpl", "random")
+    seed: int = 0
+    workers: int = 2
+    progress: bool = True
+
+    def __post_init__(self) -> None:
+        unknown = [m for m in self.models if m not in MODELS]
+        if unknown:
+            raise XvoeError(f"unknown model(s) {', '.join(unknown)}; choose from {', '.join(MODELS)}")
+        if self.train_videos < 1 or self.pairs < 1:
+            raise XvoeError("--train-videos and --pairs must be at least 1")
+
+
+class Stages:
+    """Runs named stages once; a stage is done when its marker exists."""
+
+    def __init__(self, run_dir: Path, progress: bool):
+        self.run_dir, self.progress = run_dir, progress
+        self.marks = run_dir / ".done"
+        self.marks.mkdir(parents=True, exist_ok=True)
+        self.timings: dict[str, float] = {}
+
+    def done(self, name: str) -> bool:
+        return (self.marks / name).exists()
+
+    def run(self, name: str, work: Callable[[], object]) -> None:
+        if self.done(name):
+            return
+        if self.progress:
+            print(f"[pipeline] {name}", flush=True)
+        start = time.monotonic()
+        work()
+        self.timings[name] = time.monotonic() - start
+        (self.marks / name).write_text(f"{self.timings[name]:.1f} s\n")
+
+
+def run_pipeline(config: PipelineConfig) -> Path:
+    """Everything, end to end; returns the path of report.md."""
+    from .generate import GenerateConfig, generate
+    from .latents import encode_split
+    from .metrics import report
+    from .models.config import preset
+    from .score import score_split
+    from .train import checkpoint_path, train_perception
+    from .train_xpl import train_xpl
+
+    size = preset(config.preset).perception.image_size
+    run_dir = Path(config.out)
+    run_dir.mkdir(parents=True, exist_ok=True)
+    (run_dir / "data").mkdir(exist_ok=True)
+    stages = Stages(run_dir, config.progress)
+    train_data, test_data = run_dir / "data" / "train.h5", run_dir / "data" / "test.h5"
+    latents = run_dir / "latents-train.h5"
+
+    stages.run("generate-train", lambda: generate(
+        GenerateConfig("train", videos=config.train_videos, size=size, seed=config.seed), train_data,
+        workers=config.workers, overwrite=True, progress=config.progress))
+    stages.run("generate-test", lambda: generate(
+        GenerateConfig("test", pairs=config.pairs, size=size, seed=config.seed + 1), test_data,
+        workers=config.workers, overwrite=True, progress=config.progress))
+    stages.run("perception", lambda: train_perception(
+        train_data, run_dir, preset_name=config.preset, progress=config.progress,
+        resume=checkpoint_path(run_dir, "perception").exists(), seed=config.seed))
+    stages.run("encode-train", lambda: encode_split(run_dir, train_data, latents, overwrite=True,
+                                                    progress=config.progress))
+    for model in config.models:
+        if model in TRAINED:
+            stage, residual = TRAINED[model]
+            stages.run(f"train-{model}", lambda stage=stage, residual=residual, model=model: train_xpl(
+                latents, run_dir, stage=stage, preset_name=config.preset, residual=residual,
+                progress=config.progress, resume=checkpoint_path(run_dir, model).exists(), seed=config.seed))
+    (run_dir / "scores").mkdir(exist_ok=True)
+    for model in config.models:
+        reference = "random" if model == "random" else str(checkpoint_path(run_dir, model))
+        stages.run(f"score-{model}", lambda reference=reference, model=model: score_split(
+            reference, str(test_data), str(run_dir / "scores" / f"{model}.csv"), overwrite=True,
+            progress=config.progress))
+    scores = [run_dir / "scores" / f"{model}.csv" for model in config.models]
+    stages.run("metrics", lambda: report(scores, run_dir / "report", seed=config.seed))
+    stages.run("explanations", lambda: _explanations(run_dir, test_data, config.models))
+    return write_report(run_dir, config)
+
+
+def _explanations(run_dir: Path, test_data: Path, models: tuple[str, ...]) -> None:
+    """The paper's Fig. 7/8 for the first pair of blocking S2 and collision S3, member 0."""
+    import matplotlib.pyplot as plt
+
+    from . import store
+    from .explain import explain
+    from .score import load_scorer
+    from .viz import plot_explanation
+
+    if "xpl" not in models:
+        return
+    scorer = load_scorer(str(run_dir / "xpl.pt"))
+    with store.open_dataset(test_data) as file:
+        scenario, setting = store.strings(file, "scenario"), store.strings(file, "setting")
+        member = file["member"][:]
+    for name, want in (("blocking-S2", ("blocking", "S2")), ("collision-S3", ("collision", "S3"))):
+        index = next(i for i in range(len(member)) if (scenario[i], setting[i]) == want and member[i] == 0)
+        figure = plot_explanation(explain(scorer, str(test_data), index))
+        figure.savefig(run_dir / "report" / f"explanation-{name}.png", dpi=90, bbox_inches="tight")
+        plt.close(figure)
+
+
+def write_report(run_dir: Path, config: PipelineConfig) -> Path:
+    """report.md: the holistic and comparative tables and the figures."""
+    import csv
+
+    rows = list(csv.DictReader(open(run_dir / "report" / "metrics.csv")))
+    lines = [f"# xvoe pipeline report: {run_dir.name}", "",
+             f"Preset `{config.preset}`, {config.train_videos} training videos, {config.pairs} test pairs per "
+             f"setting, seed {config.seed}. Values are percentages with bootstrap 95% intervals.", ""]
+    models = list(dict.fromkeys(r["model"] for r in rows))
+    total = [r for r in rows if r["column"] == "score"]
+
+    def cell(row: dict) -> str:
+        return f"{100 * float(row['value']):.1f} [{100 * float(row['low']):.0f}, {100 * float(row['high']):.0f}]"
+
+    lines += ["## Holistic (AUC) per scenario", "", "| scenario | " + " | ".join(models) + " |",
+              "|---|" + "---|" * len(models)]
+    for scenario in dict.fromkeys(r["scenario"] for r in total if r["metric"] == "holistic"):
+        found = {r["model"]: r for r in total if r["metric"] == "holistic" and r["scenario"] == scenario}
+        lines.append(f"| {scenario} | " + " | ".join(cell(found[m]) if m in found else "" for m in models) + " |")
+    lines += ["", "## Comparative per setting (ideal: S1 100, S2 50, S3 100)", "",
+              "| setting | " + " | ".join(models) + " |", "|---|" + "---|" * len(models)]
+    keys = dict.fromkeys((r["scenario"], r["setting"]) for r in total if r["metric"] == "comparative")
+    for scenario, setting in keys:
+        found = {r["model"]: r for r in total
+                 if r["metric"] == "comparative" and (r["scenario"], r["setting"]) == (scenario, setting)}
+        lines.append(f"| {scenario} {setting} | " + " | ".join(cell(found[m]) if m in found else "" for m in models)
+                     + " |")
+    lines += [""]
+    for figure in sorted((run_dir / "report").glob("*.png")):
+        lines += [f"![{figure.stem}](report/{figure.name})", ""]
+    timings = sorted((run_dir / ".done").iterdir())
+    lines += ["## Stage times", "", "| stage | time |", "|---|---|"]
+    lines += [f"| {mark.name} | {mark.read_text().strip()} |" for mark in timings]
+    out = run_dir / "report.md"
+    out.write_text("\n".join(lines) + "\n")
+    return out
