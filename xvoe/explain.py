@@ -62,3 +62,34 @@ def explain(scorer: Scorer, data: str, index: int) -> Explanation:
     else:
         alone = scorer.vae.blank()[0].expand(frames, *layers.shape[-3:])
     return Explanation(rgbd, to_uint8(behind[0]).numpy(), to_uint8(alone).numpy(), int(slot[0]), title)
+
+
+# --- measuring explanations against the ground truth --------------------------------------
+
+OBJECT_DEPTH_LIMIT = 0.75   # normalised depth: decoded objects lie near 0, the blank at 1.5
+
+
+def silhouette(states: np.ndarray, columns: list[str], kind: str, size: int) -> np.ndarray:
+    """The whole silhouette (T, H, W) of one object from its saved states (T, S), occlusion
+    ignored: a disk for a ball, a square for a cube."""
+    x, y, half = (states[:, columns.index(c)] for c in ("x", "y", "size"))
+    centres = np.arange(size) + 0.5
+    dx = centres[None, None, :] - x[:, None, None]
+    dy = centres[None, :, None] - y[:, None, None]
+    if kind == "ball":
+        mask = dx ** 2 + dy ** 2 <= half[:, None, None] ** 2
+    else:
+        mask = (np.abs(dx) <= half[:, None, None]) & (np.abs(dy) <= half[:, None, None])
+    return mask & (states[:, columns.index("present")] > 0)[:, None, None]
+
+
+def decoded_mask(pictures: np.ndarray | torch.Tensor) -> np.ndarray:
+    """Where a decoded object (..., 4, H, W), in normalised units, draws something."""
+    depth = torch.as_tensor(pictures)[..., 3, :, :]
+    return (depth < OBJECT_DEPTH_LIMIT).numpy()
+
+
+def iou(a: np.ndarray, b: np.ndarray) -> float:
+    """Intersection over union of two boolean masks; 1 when both are empty."""
+    union = np.logical_or(a, b).sum()
+    return float(np.logical_and(a, b).sum() / union) if union else 1.0
