@@ -44,6 +44,7 @@ class InferenceConfig:
     prior_hidden: float = 0.5       # p: prior probability that a hidden object exists
     pixel_sigma: float = 0.1        # standard deviation of the pixel likelihood
     transition_sigma: float = 0.1   # standard deviation of the hidden object's dynamics
+    motion_sigma: float = 0.5       # standard deviation of the seen objects' latents around the dynamics
     particles: int = 64
 
 
@@ -77,6 +78,10 @@ class HiddenObjectModel(nn.Module):
             observed = frames.expand(particles, *frames.shape)
             pyro.sample("frames", dist.Normal(expected, self.config.pixel_sigma).to_event(frames.dim()),
                         obs=observed)
+            if hasattr(self.scene, "seen_motion"):
+                predicted, seen = self.scene.seen_motion(torch.stack(trajectory, dim=1), exists)
+                pyro.sample("seen_motion", dist.Normal(predicted, self.config.motion_sigma).to_event(3),
+                            obs=seen.expand(particles, *seen.shape))
         return exists
 
     def guide(self, frames: Tensor, proposal: Proposal, particles: int = 1) -> Tensor:

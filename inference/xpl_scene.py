@@ -1,0 +1,70 @@
+"""The learned scene of one video, for the Pyro model: XPL's decoder, compositor and dynamics.
+
+The latents of what is seen are fixed (Transformer 1's refined latents); one never-seen slot
+is left free for a hidden object. Rendering decodes the hidden object's latents and
+composites them with the fixed slots and the background; its dynamics are XPL's, run with
+the particle's trajectory in the free slot so the hidden object interacts with the others.
+The seen objects' own motion is evidence too: their refined latents are observed under the
+dynamics' one-step prediction (site `seen_motion`), so a hidden object that explains a ball
+bouncing back raises the likelihood.
+"""
+from __future__ import annotations
+
+import torch
+from torch import Tensor, nn
+
+from xvoe.models.perception import ComponentVAE
+from xvoe.models.xpl import XPL
+from xvoe.score import decode_slots
+
+
+class XPLScene(nn.Module):
+    def __init__(self, vae: ComponentVAE, xpl: XPL, refined: Tensor, background: Tensor, occupied: Tensor,
+                 hidden: int, moving: Tensor):
+        """refined: (T, K, D) latents; background: (T, 4, H, W) decoded background; occupied:
+        (K,) slots that hold a seen object; hidden: the slot a hidden object would take (a
+        never-seen one); moving: (K,) seen slots whose motion is evidence (not the occluder)."""
+        super().__init__()
+        self.vae, self.xpl, self.hidden = vae, xpl, hidden
+        self.frames, self.slots, self.dim = refined.shape
+        self.register_buffer("refined", refined)
+        self.register_buffer("background", background)
+        with torch.no_grad():   # (T, K, 4, H, W); the free slot, never seen, stays blank
+            self.register_buffer("layers", decode_slots(vae, refined[None], occupied[None])[0])
+        self.register_buffer("moving", moving)
+
+    def initial(self, particles: int) -> tuple[Tensor, Tensor]:
+        """The latent prior of the perception module, N(0, I)."""
+        zeros = self.refined.new_zeros(particles, self.dim)
+        return zeros, torch.ones_like(zeros)
+
+    def with_hidden(self, trajectory: Tensor) -> Tensor:
+        """All slots' latents (N, t, K, D) with the hidden slot taken from the particles."""
+        particles, steps = trajectory.shape[:2]
+        scene = self.refined[:steps].expand(particles, steps, self.slots, self.dim).clone()
+        scene[:, :, self.hidden] = trajectory
+        return scene
+
+    def transition(self, history: Tensor) -> Tensor:
+        return self.xpl.dynamics(self.with_hidden(history))[:, -1, self.hidden]
+
+    def render(self, trajectory: Tensor, exists: Tensor) -> Tensor:
+        particles = trajectory.shape[0]
+        pictures = self.vae.decode(trajectory.reshape(-1, self.dim)).reshape(particles, self.frames,
+                                                                            *self.layers.shape[-3:])
+        layers = self.layers.expand(particles, *self.layers.shape).clone()
+        layers[:, :, self.hidden] = torch.where(exists.bool()[:, None, None, None, None], pictures,
+                                                self.layers[:, self.hidden])
+        background = self.background.expand(particles, *self.background.shape)[:, :, None]
+        return self.vae.composite(torch.cat([background, layers], dim=2))
+
+    def seen_motion(self, trajectory: Tensor, exists: Tensor) -> tuple[Tensor, Tensor]:
+        """The dynamics' prediction (N, T-1, M, D) of the moving seen slots, and what was seen.
+
+        Without a hidden object the free slot holds what the encoder made of its (empty)
+        pixels, as during training."""
+        scene = self.with_hidden(trajectory)
+        empty = self.refined[:, self.hidden].expand_as(scene[:, :, self.hidden])
+        scene[:, :, self.hidden] = torch.where(exists.bool()[:, None, None], scene[:, :, self.hidden], empty)
+        predicted = self.xpl.dynamics(scene[:, :-1])[:, :, self.moving]
+        return predicted, self.refined[1:, self.moving]
