@@ -107,6 +107,12 @@ def _positive_float(text: str) -> float:
     return value
 
 
+def _train_overrides(args: argparse.Namespace) -> dict:
+    """The TrainConfig fields the command line may change (None: keep the preset's)."""
+    return {"steps": args.steps, "max_minutes": args.minutes, "batch_size": args.batch_size, "seed": args.seed,
+            "max_videos": args.max_videos}
+
+
 def cmd_train(args: argparse.Namespace) -> None:
     if args.stage == "perception":
         from .train import train_perception
@@ -118,10 +124,17 @@ def cmd_train(args: argparse.Namespace) -> None:
             from .train import checkpoint_path, load_checkpoint
 
             data = load_checkpoint(checkpoint_path(args.out, "perception"))["meta"]["data"]
-        overrides = {"steps": args.steps, "max_minutes": args.minutes, "batch_size": args.batch_size,
-                     "seed": args.seed, "max_videos": args.max_videos}
+        overrides = _train_overrides(args)
         print(train_perception(data, args.out, preset_name=args.preset, resume=args.resume,
                                overwrite=args.overwrite, progress=not args.quiet, **overrides))
+    elif args.stage == "phydnet":
+        from .train_phydnet import train_phydnet
+
+        if args.data is None and not args.resume:
+            raise XvoeError("--data is required (the training split file)")
+        overrides = _train_overrides(args)
+        print(train_phydnet(args.data, args.out, preset_name=args.preset, resume=args.resume,
+                            overwrite=args.overwrite, progress=not args.quiet, **overrides))
     elif args.stage == "encode":
         from .latents import encode_split
 
@@ -136,8 +149,7 @@ def cmd_train(args: argparse.Namespace) -> None:
         if args.data is None and not args.resume:
             raise XvoeError("--data is required (a latent cache, or the training split to encode first)")
         cache = latent_cache_for(args.data, args.out, args.model, progress=not args.quiet) if args.data else None
-        overrides = {"steps": args.steps, "max_minutes": args.minutes, "batch_size": args.batch_size,
-                     "seed": args.seed, "max_videos": args.max_videos}
+        overrides = _train_overrides(args)
         print(train_xpl(cache, args.out, stage=args.stage, preset_name=args.preset, residual=not args.no_residual,
                         stop_gradient=not args.no_stop_gradient, resume=args.resume, overwrite=args.overwrite,
                         progress=not args.quiet, **overrides))
@@ -145,17 +157,17 @@ def cmd_train(args: argparse.Namespace) -> None:
 
 def add_train_parser(verbs) -> None:
     train = verbs.add_parser(
-        "train", help="train a stage of the XPL model (perception, encode, xpl, plato)",
+        "train", help="train a stage of the XPL model (perception, encode, xpl, plato) or PhyDNet",
         description="Train one stage into a run directory (STAGE.pt checkpoint and STAGE.csv losses). "
                     "Runs unchanged under torchrun --nproc_per_node N. The encode stage writes the latent "
                     "cache of a split with a trained perception module.")
-    train.add_argument("--stage", required=True, choices=("perception", "encode", "xpl", "plato"))
+    train.add_argument("--stage", required=True, choices=("perception", "encode", "xpl", "plato", "phydnet"))
     train.add_argument("--data", help="the split file (HDF5) to train on or to encode")
     train.add_argument("--out", required=True, help="the run directory")
     train.add_argument("--preset", default="cpu", help="model and training sizes: cpu (default) or paper")
     train.add_argument("--steps", type=_positive, help="training steps (default: the preset's)")
     train.add_argument("--minutes", type=_positive_float, help="stop after this many minutes of training")
-    train.add_argument("--batch-size", type=_positive, help="frames per step over all processes")
+    train.add_argument("--batch-size", type=_positive, help="frames (phydnet: videos) per step over all processes")
     train.add_argument("--max-videos", type=_positive, help="use only the first N videos of --data")
     train.add_argument("--seed", type=int, help="the seed of initialisation and batches (default 0)")
     train.add_argument("--resume", action="store_true", help="continue the run in --out where it stopped")
@@ -207,7 +219,8 @@ def build_parser() -> argparse.ArgumentParser:
                                          "possible, score, s_img, s_dyn) and the per-frame surprise curves in "
                                          "OUT.curves.npz. The MSE surprise is the paper's (Eq. 2-4).")
     score.add_argument("--model", required=True,
-                       help="a run directory, a stage checkpoint (xpl.pt, plato.pt, xpl-noresidual.pt) or random")
+                       help="a run directory, a stage checkpoint (xpl.pt, plato.pt, xpl-noresidual.pt, "
+                            "phydnet.pt) or random")
     score.add_argument("--data", required=True, help="a test split file")
     score.add_argument("--out", required=True, help="the scores CSV to write")
     score.add_argument("--surprise", choices=("mse",), default="mse", help="the surprise definition")
@@ -246,7 +259,7 @@ def build_parser() -> argparse.ArgumentParser:
     pipeline.add_argument("--train-videos", type=_positive, default=10_000, help="training videos (default 10000)")
     pipeline.add_argument("--pairs", type=_positive, default=200, help="test pairs per setting (default 200)")
     pipeline.add_argument("--models", default="xpl,random",
-                          help="comma-separated: xpl, plato, xpl-noresidual, random (default xpl,random)")
+                          help="comma-separated: xpl, plato, xpl-noresidual, phydnet, random (default xpl,random)")
     pipeline.add_argument("--seed", type=int, default=0, help="training seed; the test split uses seed + 1")
     pipeline.add_argument("--workers", type=_positive, default=_default_workers(), help="generation workers")
     pipeline.add_argument("--quiet", action="store_true", help="no progress bars")

@@ -6,7 +6,7 @@ checkpoint, so an interrupted pipeline loses at most a few minutes of work.
 
     RUN_DIR/data/train.h5, data/test.h5    the benchmark (test seed never used for training)
     RUN_DIR/perception.pt, latents-train.h5
-    RUN_DIR/xpl.pt (plato.pt, xpl-noresidual.pt)
+    RUN_DIR/xpl.pt (plato.pt, xpl-noresidual.pt, phydnet.pt)
     RUN_DIR/scores/MODEL.csv               one row per test video, and MODEL.curves.npz
     RUN_DIR/report/                        metrics.csv, metrics.json, figures
     RUN_DIR/report.md                      one page with the numbers and the figures
@@ -20,7 +20,7 @@ from pathlib import Path
 
 from .errors import XvoeError
 
-MODELS = ("xpl", "plato", "xpl-noresidual", "random")
+MODELS = ("xpl", "plato", "xpl-noresidual", "phydnet", "random")
 TRAINED = {"xpl": ("xpl", True), "plato": ("plato", True), "xpl-noresidual": ("xpl", False)}
 
 
@@ -74,6 +74,7 @@ def run_pipeline(config: PipelineConfig) -> Path:
     from .models.config import preset
     from .score import score_split
     from .train import checkpoint_path, train_perception
+    from .train_phydnet import train_phydnet
     from .train_xpl import train_xpl
 
     size = preset(config.preset).perception.image_size
@@ -101,6 +102,10 @@ def run_pipeline(config: PipelineConfig) -> Path:
             stages.run(f"train-{model}", lambda stage=stage, residual=residual, model=model: train_xpl(
                 latents, run_dir, stage=stage, preset_name=config.preset, residual=residual,
                 progress=config.progress, resume=checkpoint_path(run_dir, model).exists(), seed=config.seed))
+    if "phydnet" in config.models:
+        stages.run("train-phydnet", lambda: train_phydnet(
+            train_data, run_dir, preset_name=config.preset, progress=config.progress,
+            resume=checkpoint_path(run_dir, "phydnet").exists(), seed=config.seed))
     (run_dir / "scores").mkdir(exist_ok=True)
     for model in config.models:
         reference = "random" if model == "random" else str(checkpoint_path(run_dir, model))

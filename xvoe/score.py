@@ -8,6 +8,10 @@ Refined latents: Transformer 1 fills the frames in which a seen object is occlud
 Transformer 2 proposes the object seen in no frame. Decoding is the cost, so only occupied
 slots are decoded (seen at some frame, or the explained one), the decodes are shared by the
 two terms, and videos are scored in batches with no Python loop over frames.
+
+The PhyDNet baseline predicts pixels, not latents: its per-frame surprise is the squared
+error of its one-step prediction summed over pixels (0 at frame 0). It is written in the
+s_dyn column and curve; s_img is all zeros for it.
 """
 from __future__ import annotations
 
@@ -18,6 +22,7 @@ import torch
 from torch import Tensor
 
 from .models.perception import ComponentVAE
+from .models.phydnet import PhyDNet
 from .models.xpl import XPL
 
 
@@ -92,27 +97,34 @@ def aggregate(per_frame: Tensor, how: str) -> Tensor:
 
 SCORE_COLUMNS = ("index", "model", "scenario", "setting", "pair", "member", "possible", "score", "s_img", "s_dyn")
 XPL_STAGES = ("xpl", "plato", "xpl-noresidual")
+STAGES = (*XPL_STAGES, "phydnet")
 
 
 @dataclass
 class Scorer:
-    """A trained model ready to score: the perception module and one dynamics stage."""
+    """A trained model ready to score: the perception module and one dynamics stage, or PhyDNet."""
 
     name: str
     vae: ComponentVAE | None
     xpl: XPL | None
     seed: int = 0                 # the random agent's
+    phydnet: PhyDNet | None = None
 
     @property
     def is_random(self) -> bool:
-        return self.vae is None
+        return self.vae is None and self.phydnet is None
+
+    @property
+    def image_size(self) -> int:
+        return (self.phydnet or self.vae).config.image_size
 
 
 def load_scorer(model: str, device: str = "cpu") -> Scorer:
-    """`random`, a run directory (its xpl.pt), or a stage checkpoint (xpl.pt, plato.pt,
-    xpl-noresidual.pt) with perception.pt beside it."""
+    """`random`, a run directory (its xpl.pt), a stage checkpoint (xpl.pt, plato.pt,
+    xpl-noresidual.pt with perception.pt beside it; phydnet.pt), or RUN_DIR/STAGE."""
     from .errors import XvoeError
     from .train import load_perception
+    from .train_phydnet import load_phydnet
     from .train_xpl import load_xpl
 
     if model == "random":
@@ -120,11 +132,15 @@ def load_scorer(model: str, device: str = "cpu") -> Scorer:
     path = Path(model)
     if path.is_file():
         run_dir, stage = path.parent, path.stem
+    elif path.name in STAGES and (path.parent / f"{path.name}.pt").is_file():
+        run_dir, stage = path.parent, path.name
     else:
         run_dir, stage = path, "xpl"
-    if stage not in XPL_STAGES:
+    if stage not in STAGES:
         raise XvoeError(f"{model} is not a model to score with: give a run directory, one of "
-                        f"{', '.join(s + '.pt' for s in XPL_STAGES)}, or 'random'")
+                        f"{', '.join(s + '.pt' for s in STAGES)}, or 'random'")
+    if stage == "phydnet":
+        return Scorer(stage, None, None, phydnet=load_phydnet(run_dir / "phydnet.pt", device)[0])
     vae, _ = load_perception(run_dir, device)
     xpl, _ = load_xpl(run_dir, stage, device)
     return Scorer(stage, vae, xpl)
@@ -140,10 +156,8 @@ def score_split(model: str | Scorer, data: str, out: str, *, how: str = "sum", v
     from tqdm.auto import tqdm
 
     from . import store
-    from .data import check_size, visible_threshold
+    from .data import check_size
     from .errors import XvoeError
-    from .latents import encode_frames
-    from .models.perception import normalise
 
     if how not in ("sum", "max"):
         raise XvoeError(f"--aggregate must be sum or max, not {how!r}")
@@ -155,31 +169,18 @@ def score_split(model: str | Scorer, data: str, out: str, *, how: str = "sum", v
         if file.attrs["split"] != "test":
             raise XvoeError(f"{data} is a {file.attrs['split']} split; scores need a test split")
         count, frames_count = file["rgbd"].shape[:2]
-        size, slots = file["rgbd"].shape[2], file["states"].shape[2]
         labels = {name: (store.strings(file, name) if name in ("scenario", "setting") else file[name][:])
                   for name in ("scenario", "setting", "pair", "member", "possible")}
         curves = np.zeros((2, count, frames_count))
         if scorer.is_random:
             curves[:] = np.random.default_rng(scorer.seed).random((2, count, frames_count))
         else:
-            check_size(file, scorer.vae.config.image_size, f"the model {scorer.name}")
-            walls = [list(file.attrs["kind_names"]).index(k) for k in ("wall", "window_wall")]
-            threshold = visible_threshold(size)
+            check_size(file, scorer.image_size, f"the model {scorer.name}")
+            surprise_of = _phydnet_curves if scorer.phydnet is not None else _xpl_curves
             for start in tqdm(range(0, count, videos_per_batch), desc=f"score {scorer.name}", unit="batch",
                               disable=not progress):
                 stop = min(count, start + videos_per_batch)
-                rgbd, ids = file["rgbd"][start:stop], file["ids"][start:stop]
-                encoded = encode_frames(scorer.vae, rgbd.reshape(-1, size, size, 4), ids.reshape(-1, size, size),
-                                        slots)
-                shaped = {k: torch.from_numpy(v).reshape(stop - start, frames_count, *v.shape[1:])
-                          for k, v in encoded.items()}
-                occluder = torch.from_numpy(np.isin(file["kind"][start:stop], walls))
-                with torch.no_grad():
-                    surprise = mse_surprise(scorer.vae, scorer.xpl, normalise(torch.from_numpy(rgbd)),
-                                            shaped["mean"], shaped["pixels"] > threshold,
-                                            shaped["background_mean"], occluder)
-                curves[0, start:stop] = surprise.s_img.numpy()
-                curves[1, start:stop] = surprise.s_dyn.numpy()
+                curves[:, start:stop] = torch.stack(surprise_of(scorer, file, start, stop)).numpy()
     s_img, s_dyn = (aggregate(torch.from_numpy(c), how).numpy() for c in curves)
     total = aggregate(torch.from_numpy(curves.sum(0)), how).numpy()
     tmp = out.with_name(f".{out.name}.tmp")
@@ -193,3 +194,31 @@ def score_split(model: str | Scorer, data: str, out: str, *, how: str = "sum", v
     np.savez_compressed(out.with_suffix(".curves.npz"), s_img=curves[0], s_dyn=curves[1])
     tmp.replace(out)
     return out
+
+
+def _xpl_curves(scorer: Scorer, file, start: int, stop: int) -> tuple[Tensor, Tensor]:
+    """s_img and s_dyn (B, T) of videos [start, stop) of an open test split under XPL or PLATO."""
+    import numpy as np
+
+    from .data import visible_threshold
+    from .latents import encode_frames
+    from .models.perception import normalise
+
+    _, frames_count, size = file["rgbd"].shape[:3]
+    walls = [list(file.attrs["kind_names"]).index(k) for k in ("wall", "window_wall")]
+    rgbd, ids = file["rgbd"][start:stop], file["ids"][start:stop]
+    encoded = encode_frames(scorer.vae, rgbd.reshape(-1, size, size, 4), ids.reshape(-1, size, size),
+                            file["states"].shape[2])
+    shaped = {k: torch.from_numpy(v).reshape(stop - start, frames_count, *v.shape[1:]) for k, v in encoded.items()}
+    occluder = torch.from_numpy(np.isin(file["kind"][start:stop], walls))
+    surprise = mse_surprise(scorer.vae, scorer.xpl, normalise(torch.from_numpy(rgbd)), shaped["mean"],
+                            shaped["pixels"] > visible_threshold(size), shaped["background_mean"], occluder)
+    return surprise.s_img, surprise.s_dyn
+
+
+def _phydnet_curves(scorer: Scorer, file, start: int, stop: int) -> tuple[Tensor, Tensor]:
+    """Zeros and PhyDNet's one-step pixel error (B, T) of videos [start, stop) of an open test split."""
+    from .models.perception import normalise
+
+    error = scorer.phydnet.surprise(normalise(torch.from_numpy(file["rgbd"][start:stop])))
+    return torch.zeros_like(error), error

@@ -11,10 +11,11 @@ from typing import Any
 
 from ..errors import XvoeError
 from .dynamics import DynamicsConfig
+from .phydnet import PhyDNetConfig
 from .reasoning import ReasoningConfig
 from .xpl import XPLConfig
 
-__all__ = ["DynamicsConfig", "ReasoningConfig", "XPLConfig"]   # nested configs that from_dict rebuilds
+__all__ = ["DynamicsConfig", "PhyDNetConfig", "ReasoningConfig", "XPLConfig"]   # nested configs that from_dict rebuilds
 
 
 @dataclass(frozen=True)
@@ -27,6 +28,7 @@ class PerceptionConfig:
     # small CNN encoder: channels of its stride-2 5x5 convolutions, then an MLP
     cnn_channels: tuple[int, ...] = (32, 32, 64, 64)
     cnn_hidden: int = 128
+    cnn_coords: bool = True         # pixel coordinates as extra input channels (CoordConv)
     # ViT encoder (paper: 8-pixel patches at 128 px, width 256, 6 layers, 8 heads, MLP 1024, head 512)
     vit_patch: int = 8
     vit_width: int = 256
@@ -44,6 +46,7 @@ class PerceptionConfig:
     beta: float = 0.5               # weight of the KL to N(0, I)
     object_loss_weight: float = 1.0  # per-object masked reconstruction, next to the composite
     theta_init: float = 1.0         # compositing temperature |theta|, learned
+    std_init: float = 0.05          # posterior std the encoder starts from (before training)
 
     def __post_init__(self) -> None:
         if self.encoder not in ("cnn", "vit"):
@@ -88,6 +91,10 @@ class Preset:
     xpl: XPLConfig = field(default_factory=XPLConfig)
     xpl_train: TrainConfig = field(default_factory=lambda: TrainConfig(steps=3000, batch_size=64, warmup_steps=100,
                                                                        decay_steps=2000))
+    # the PhyDNet baseline: batch_size counts videos
+    phydnet: PhyDNetConfig = field(default_factory=PhyDNetConfig)
+    phydnet_train: TrainConfig = field(default_factory=lambda: TrainConfig(steps=250, batch_size=16, warmup_steps=20,
+                                                                           decay_steps=1000))
 
 
 PRESETS: dict[str, Preset] = {
@@ -108,6 +115,11 @@ PRESETS: dict[str, Preset] = {
                               checkpoint_minutes=10.0, log_every=100),
         perception_train=TrainConfig(steps=472_000, batch_size=300 // 8, lr=4e-4, warmup_steps=2000,
                                      decay_steps=100_000, checkpoint_minutes=10.0, log_every=100),
+        # the original's sizes (64x64 -> 16x16 features, ConvLSTM 128-128-64), one more halving at 128x128;
+        # the paper's training table: 100 videos per batch, 70,000 steps, Adam, lr 0.001
+        phydnet=PhyDNetConfig(image_size=128, encoder_channels=(16, 32, 64, 64), lstm_channels=(128, 128, 64)),
+        phydnet_train=TrainConfig(steps=70_000, batch_size=100, lr=1e-3, warmup_steps=0, decay_steps=10**9,
+                                  checkpoint_minutes=10.0, log_every=100),
     ),
 }
 

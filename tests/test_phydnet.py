@@ -1,0 +1,169 @@
+"""PhyDNet: moment constraint, shapes, causality, learning, the training stage and scoring."""
+import csv
+from dataclasses import replace
+
+import numpy as np
+import pytest
+import torch
+
+from xvoe.errors import XvoeError
+from xvoe.generate import GenerateConfig, generate
+from xvoe.models.phydnet import (
+    PhyDNet,
+    PhyDNetConfig,
+    derivative_targets,
+    kernel_moments,
+    kernels_with_moments,
+)
+
+TINY = PhyDNetConfig(image_size=16, encoder_channels=(8, 8, 8), phycell_kernel=5, lstm_channels=(8,))
+TRAIN = {"steps": 4, "batch_size": 2, "warmup_steps": 1, "log_every": 1, "threads": 1}
+
+
+def videos(batch: int = 2, frames: int = 5, size: int = 16, seed: int = 0) -> torch.Tensor:
+    return torch.rand(batch, frames, 4, size, size, generator=torch.Generator().manual_seed(seed)) * 2 - 1
+
+
+def test_moments_are_a_w_a_transpose_and_the_inverse_is_exact():
+    rng = torch.Generator().manual_seed(0)
+    targets = torch.randn(3, 7, 7, dtype=torch.float64, generator=rng)
+    torch.testing.assert_close(kernel_moments(kernels_with_moments(targets)), targets)
+    # by hand for k = 3 (offsets -1, 0, 1): M[1, 0] = sum_ij (i - 1) w[i, j]
+    w = torch.arange(9, dtype=torch.float64).reshape(3, 3)
+    assert kernel_moments(w)[1, 0] == -w[0].sum() + w[2].sum()
+    assert kernel_moments(w)[0, 2] == (w[:, 0].sum() + w[:, 2].sum()) / 2
+
+
+def test_a_filter_with_one_hot_moments_takes_that_derivative():
+    """Cross-correlating x^a y^b with the (p, q) stencil gives d^p/di^p d^q/dj^q exactly."""
+    k = 5
+    stencils = kernels_with_moments(derivative_targets(k).double())
+    i, j = torch.meshgrid(torch.arange(k, dtype=torch.float64) - 2.3, torch.arange(k, dtype=torch.float64) + 0.7,
+                          indexing="ij")
+    field = i ** 3 * j ** 2                                   # a patch centred on (i, j) = (-0.3, 2.7)
+    at = (-0.3, 2.7)
+    expected = {(0, 0): at[0] ** 3 * at[1] ** 2, (1, 0): 3 * at[0] ** 2 * at[1] ** 2, (0, 1): 2 * at[0] ** 3 * at[1],
+                (2, 1): 12 * at[0] * at[1], (3, 2): 12.0, (4, 0): 0.0}
+    for (p, q), value in expected.items():
+        assert float((stencils[p * k + q] * field).sum()) == pytest.approx(value, abs=1e-9)
+
+
+def test_projection_sets_the_moments_and_the_loss_includes_them():
+    net = PhyDNet(TINY)
+    targets = net.moment_targets[:, None]
+    with torch.no_grad():
+        net.filters()[0].add_(torch.randn_like(net.filters()[0]))
+    frames = videos()
+    terms = net.loss(frames)
+    assert terms["moment"] > 0.1
+    torch.testing.assert_close(terms["loss"], terms["prediction"] + TINY.moment_weight * terms["moment"])
+    terms["loss"].backward()
+    assert net.filters()[0].grad.abs().sum() > 0
+    net.project_moments()
+    torch.testing.assert_close(net.moments()[0], targets.expand_as(net.moments()[0]), atol=1e-4, rtol=0)
+    assert float(net.moment_loss().detach()) < 1e-9
+
+
+@pytest.mark.parametrize("size, widths", [(16, (8, 8, 8)), (32, (8, 8, 16, 16))])
+def test_shapes(size, widths):
+    net = PhyDNet(replace(TINY, image_size=size, encoder_channels=widths, lstm_channels=(8, 4)))
+    frames = videos(3, 6, size)
+    assert net(frames).shape == (3, 5, 4, size, size)
+    surprise = net.surprise(frames)
+    assert surprise.shape == (3, 6) and torch.all(surprise[:, 0] == 0) and torch.all(surprise[:, 1:] > 0)
+    with pytest.raises(XvoeError, match="expects frames"):
+        net(videos(1, 4, size // 2))
+
+
+def test_config_errors():
+    with pytest.raises(XvoeError, match="multiple of 4"):
+        PhyDNetConfig(image_size=18, encoder_channels=(8, 8, 8))
+    with pytest.raises(XvoeError, match="odd"):
+        PhyDNetConfig(phycell_kernel=4)
+
+
+def test_the_prediction_of_a_frame_never_sees_that_frame():
+    torch.manual_seed(0)
+    net = PhyDNet(TINY).eval()
+    frames = videos(2, 6)
+    before = net(frames)
+    for t in range(5):                  # prediction index t is frame t + 1
+        changed = frames.clone()
+        changed[:, t + 1:] = videos(2, 5 - t, seed=t + 1)
+        after = net(changed)
+        torch.testing.assert_close(after[:, :t + 1], before[:, :t + 1], atol=1e-6, rtol=0)
+        if t + 1 < 5:
+            assert not torch.allclose(after[:, t + 1:], before[:, t + 1:])
+
+
+def test_a_few_steps_lower_the_loss_on_a_tiny_batch():
+    torch.manual_seed(0)
+    net = PhyDNet(TINY)
+    frames = videos(4, 1)[:, :, :, :1, :1].expand(4, 5, 4, 16, 16)    # one colour per video: learnable
+    optimiser = torch.optim.Adam(net.parameters(), lr=3e-3)
+    first = float(net.loss(frames)["loss"].detach())
+    for _ in range(5):
+        optimiser.zero_grad()
+        net.loss(frames)["loss"].backward()
+        optimiser.step()
+    assert float(net.loss(frames)["loss"].detach()) < 0.9 * first
+
+
+# --- the training stage and scoring, on tiny generated 16x16 splits -----------------------
+
+@pytest.fixture(scope="module")
+def splits(tmp_path_factory):
+    folder = tmp_path_factory.mktemp("phydnet-data")
+    train = generate(GenerateConfig("train", videos=6, size=16, frames=10, seed=2), folder / "train.h5", workers=1,
+                     progress=False)
+    test = generate(GenerateConfig("test", pairs=1, size=16, frames=10, seed=3), folder / "test.h5", workers=1,
+                    progress=False)
+    return train, test
+
+
+@pytest.fixture
+def tiny_preset(monkeypatch):
+    from xvoe.models.config import PRESETS, TrainConfig
+
+    monkeypatch.setitem(PRESETS, "cpu", replace(PRESETS["cpu"], phydnet=TINY, phydnet_train=TrainConfig(**TRAIN)))
+
+
+def test_stage_trains_resumes_exactly_and_loads(splits, tmp_path, tiny_preset):
+    from xvoe.train_phydnet import VideoBatches, load_phydnet, train_phydnet
+
+    straight = train_phydnet(splits[0], tmp_path / "a", progress=False)
+    train_phydnet(splits[0], tmp_path / "b", progress=False, steps=2)
+    resumed = train_phydnet(None, tmp_path / "b", progress=False, resume=True, steps=4)
+    a, b = torch.load(straight, weights_only=False), torch.load(resumed, weights_only=False)
+    assert a["step"] == b["step"] == 4
+    for name, value in a["model"].items():
+        torch.testing.assert_close(value, b["model"][name], msg=name)
+    rows = [list(csv.DictReader(open(run / "phydnet.csv"))) for run in (tmp_path / "a", tmp_path / "b")]
+    assert [r["loss"] for r in rows[0]] == [r["loss"] for r in rows[1]] and "moment" in rows[0][0]
+    net, state = load_phydnet(tmp_path / "a")
+    assert net.config == TINY and not net.training and state["config"]["preset"] == "cpu"
+    one, two = VideoBatches(str(splits[0]), image_size=16, batch_size=4, shards=2, seed=1), [
+        VideoBatches(str(splits[0]), image_size=16, batch_size=4, shards=2, rank=r, world=2, seed=1) for r in (0, 1)]
+    assert torch.equal(one.batch(3), torch.cat([part.batch(3) for part in two]))
+    with pytest.raises(XvoeError, match="nothing to resume"):
+        train_phydnet(None, tmp_path / "c", progress=False)
+    with pytest.raises(XvoeError, match="16x16"):
+        train_phydnet(splits[0], tmp_path / "d", progress=False, model_overrides={"image_size": 32})
+
+
+def test_the_name_resolves_and_scores_a_tiny_test_set(splits, tmp_path, tiny_preset):
+    from xvoe.cli import main
+    from xvoe.score import SCORE_COLUMNS, load_scorer
+
+    run = tmp_path / "run"
+    assert main(["train", "--stage", "phydnet", "--data", str(splits[0]), "--out", str(run), "--quiet"]) == 0
+    assert load_scorer(str(run / "phydnet")).name == "phydnet"
+    out = tmp_path / "phydnet.csv"
+    assert main(["score", "--model", str(run / "phydnet.pt"), "--data", str(splits[1]), "--out", str(out),
+                 "--quiet"]) == 0
+    rows = list(csv.DictReader(open(out)))
+    assert tuple(rows[0]) == SCORE_COLUMNS and len(rows) == 22 and rows[0]["model"] == "phydnet"
+    curves = np.load(out.with_suffix(".curves.npz"))
+    assert curves["s_dyn"].shape == (22, 10) and np.all(curves["s_img"] == 0) and np.all(curves["s_dyn"][:, 0] == 0)
+    np.testing.assert_allclose([float(r["score"]) for r in rows], curves["s_dyn"].sum(1), rtol=1e-6)
+    assert all(float(r["s_img"]) == 0 for r in rows)

@@ -1,0 +1,240 @@
+"""PhyDNet (Le Guen & Thome, CVPR 2020): a pixel-space video predictor, the paper's baseline.
+
+A convolutional encoder maps each RGBD frame to a feature map; two recurrent branches run
+on it: the PhyCell, whose physical predictor is an Euler step of a PDE-like operator built
+from filters constrained to approximate spatial derivatives, followed by a Kalman-like
+correction with the observed features; and a ConvLSTM for what the PDE cannot say. Their
+states are decoded (each by its own head, then a shared decoder) into the next frame.
+
+Moment constraint: the moment matrix of a k x k filter w (row index i, column index j,
+centre c = (k-1)/2) is
+
+    M[p, q] = sum_ij (i-c)^p / p!  (j-c)^q / q!  w[i, j]  =  (A w A^T)[p, q],
+    A[p, i] = (i-c)^p / p!.
+
+A Taylor expansion shows that a cross-correlation with w is sum_pq M[p, q] d^(p+q)/di^p dj^q
+up to order k-1, so M = one-hot(p, q) makes w a finite-difference stencil of that
+derivative. A is a Vandermonde matrix with distinct nodes, hence invertible, so
+w = A^-1 T A^-T sets the moments to any target T exactly: that is `project_moments`. The
+k^2 filters of the PhyCell are started there and trained with the moment loss towards
+their one-hot targets, as in the paper.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import torch
+from torch import Tensor, nn
+
+from ..errors import XvoeError
+
+
+@dataclass(frozen=True)
+class PhyDNetConfig:
+    """Every size of the network. Defaults are the CPU sizes (32x32 RGBD frames)."""
+
+    image_size: int = 32
+    channels: int = 4                               # RGBD
+    # encoder: a stride-1 conv to the first width, then one stride-2 conv per further width;
+    # the decoder mirrors it. The last width is the feature map the two branches work on.
+    encoder_channels: tuple[int, ...] = (16, 32, 32)
+    phycell_kernel: int = 7                         # k: k^2 derivative filters up to order k-1
+    phycell_layers: int = 1
+    gain_kernel: int = 3                            # the correction gain's convolution
+    lstm_channels: tuple[int, ...] = (32,)          # ConvLSTM layers (the original: 128, 128, 64)
+    lstm_kernel: int = 3
+    moment_weight: float = 1.0                      # weight of the moment loss
+
+    def __post_init__(self) -> None:
+        scale = 2 ** (len(self.encoder_channels) - 1)
+        if not self.encoder_channels or self.image_size % scale:
+            raise XvoeError(f"image_size {self.image_size} must be a multiple of {scale} "
+                            f"(one halving per encoder width after the first: {self.encoder_channels})")
+        if self.phycell_kernel < 1 or self.phycell_kernel % 2 == 0:
+            raise XvoeError(f"phycell_kernel must be odd, not {self.phycell_kernel}")
+        if not self.lstm_channels:
+            raise XvoeError("lstm_channels needs at least one ConvLSTM layer")
+
+    @property
+    def feature_size(self) -> int:
+        return self.image_size // 2 ** (len(self.encoder_channels) - 1)
+
+
+# --- moments ---------------------------------------------------------------------------
+
+def moment_basis(k: int, dtype: torch.dtype = torch.float64) -> Tensor:
+    """A (k, k) with A[p, i] = (i - c)^p / p!, so that the moments of w are A w A^T."""
+    offsets = torch.arange(k, dtype=dtype) - (k - 1) / 2
+    orders = torch.arange(k)
+    factorials = torch.tensor([math.factorial(int(p)) for p in orders], dtype=dtype)
+    return offsets[None, :] ** orders[:, None].to(dtype) / factorials[:, None]
+
+
+def kernel_moments(weights: Tensor) -> Tensor:
+    """Moment matrices (..., k, k) of filters (..., k, k)."""
+    basis = moment_basis(weights.shape[-1], weights.dtype).to(weights.device)
+    return basis @ weights @ basis.T
+
+
+def kernels_with_moments(moments: Tensor) -> Tensor:
+    """The filters (..., k, k) whose moment matrices are exactly `moments` (..., k, k)."""
+    inverse = torch.linalg.inv(moment_basis(moments.shape[-1], torch.float64)).to(moments.device)
+    return (inverse @ moments.double() @ inverse.T).to(moments.dtype)
+
+
+def derivative_targets(k: int) -> Tensor:
+    """(k*k, k, k): target f = p*k + q is one-hot at (p, q): filter f ~ d^(p+q)/di^p dj^q."""
+    return torch.eye(k * k).reshape(k * k, k, k)
+
+
+# --- the cells ---------------------------------------------------------------------------
+
+class PhyCellLayer(nn.Module):
+    """h~ = h + Phi(h) (physical predictor), then h = h~ + K * (x - h~) with K = sigmoid(conv[h~, x]).
+
+    A gain in (0, 1), like a Kalman gain, keeps the corrected state between the prediction and
+    the observation; a gain that may leave that range (tanh) lets the state grow from frame to
+    frame, and training then diverges.
+    """
+
+    def __init__(self, channels: int, kernel: int, gain_kernel: int):
+        super().__init__()
+        filters = kernel * kernel
+        self.derivatives = nn.Conv2d(channels, filters, kernel, padding=kernel // 2)
+        self.norm = nn.GroupNorm(kernel, filters)        # one group per derivative order along i
+        self.combine = nn.Conv2d(filters, channels, 1)    # Phi: a learned mix of the derivatives
+        self.gain = nn.Conv2d(2 * channels, channels, gain_kernel, padding=gain_kernel // 2)
+
+    def forward(self, observed: Tensor, state: Tensor) -> Tensor:
+        predicted = state + self.combine(self.norm(self.derivatives(state)))
+        gain = torch.sigmoid(self.gain(torch.cat([predicted, observed], dim=1)))
+        return predicted + gain * (observed - predicted)
+
+
+class ConvLSTMCell(nn.Module):
+    def __init__(self, inputs: int, hidden: int, kernel: int):
+        super().__init__()
+        self.hidden = hidden
+        self.gates = nn.Conv2d(inputs + hidden, 4 * hidden, kernel, padding=kernel // 2)
+
+    def forward(self, x: Tensor, state: tuple[Tensor, Tensor]) -> tuple[Tensor, Tensor]:
+        h, c = state
+        i, f, o, g = self.gates(torch.cat([x, h], dim=1)).chunk(4, dim=1)
+        c = torch.sigmoid(f) * c + torch.sigmoid(i) * torch.tanh(g)
+        return torch.sigmoid(o) * torch.tanh(c), c
+
+
+def _conv_block(inputs: int, outputs: int, stride: int) -> nn.Sequential:
+    # No normalisation in the encoder and decoder: a per-frame GroupNorm subtracts each feature
+    # map's mean, and with it the colour of the floor and sky, which differs in every video.
+    return nn.Sequential(nn.Conv2d(inputs, outputs, 3, stride=stride, padding=1), nn.LeakyReLU(0.2))
+
+
+def _up_block(inputs: int, outputs: int) -> nn.Sequential:
+    return nn.Sequential(nn.ConvTranspose2d(inputs, outputs, 4, stride=2, padding=1), nn.LeakyReLU(0.2))
+
+
+class PhyDNet(nn.Module):
+    """Encoder, PhyCell and ConvLSTM branches, decoder; next-frame prediction with teacher forcing."""
+
+    def __init__(self, config: PhyDNetConfig):
+        super().__init__()
+        self.config = config
+        widths = config.encoder_channels
+        self.encoder = nn.Sequential(_conv_block(config.channels, widths[0], 1),
+                                     *(_conv_block(a, b, 2) for a, b in zip(widths, widths[1:])))
+        features = widths[-1]
+        self.encode_physics = _conv_block(features, features, 1)
+        self.encode_residual = _conv_block(features, features, 1)
+        self.phycell = nn.ModuleList(PhyCellLayer(features, config.phycell_kernel, config.gain_kernel)
+                                     for _ in range(config.phycell_layers))
+        sizes = (features, *config.lstm_channels)
+        self.lstm = nn.ModuleList(ConvLSTMCell(a, b, config.lstm_kernel) for a, b in zip(sizes, sizes[1:]))
+        self.decode_physics = _conv_block(features, features, 1)
+        self.decode_residual = _conv_block(config.lstm_channels[-1], features, 1)
+        self.decoder = nn.Sequential(*(_up_block(a, b) for a, b in zip(widths[::-1], widths[-2::-1])),
+                                     nn.Conv2d(widths[0], config.channels, 3, padding=1))
+        self.register_buffer("moment_targets", derivative_targets(config.phycell_kernel), persistent=False)
+        self.project_moments()
+
+    # moments of the PhyCell filters
+    def filters(self) -> list[Tensor]:
+        """The derivative filters of each PhyCell layer: (k*k, channels, k, k)."""
+        return [layer.derivatives.weight for layer in self.phycell]
+
+    def moments(self) -> list[Tensor]:
+        """Their moment matrices (k*k, channels, k, k), to compare with `moment_targets`."""
+        return [kernel_moments(weight) for weight in self.filters()]
+
+    @torch.no_grad()
+    def project_moments(self) -> None:
+        """Set every PhyCell filter to the stencil whose moments are exactly its one-hot target."""
+        stencils = kernels_with_moments(self.moment_targets)
+        for weight in self.filters():
+            weight.copy_(stencils[:, None].expand_as(weight))
+
+    def moment_loss(self) -> Tensor:
+        """Mean squared distance of the filters' moment matrices to their targets."""
+        targets = self.moment_targets[:, None]
+        return torch.stack([(m - targets).pow(2).mean() for m in self.moments()]).mean()
+
+    # prediction
+    def forward(self, frames: Tensor) -> Tensor:
+        """frames (B, T, C, H, W) in [-1, 1] -> predictions (B, T-1, C, H, W) of frames 1..T-1,
+        the one of frame t+1 made from frames 0..t only."""
+        batch, steps = frames.shape[:2]
+        if frames.shape[2:] != (self.config.channels, self.config.image_size, self.config.image_size):
+            raise XvoeError(f"PhyDNet expects frames (B, T, {self.config.channels}, {self.config.image_size}, "
+                            f"{self.config.image_size}), not {tuple(frames.shape)}")
+        encoded = self.encoder(frames[:, :-1].flatten(0, 1))
+        physics_in = self.encode_physics(encoded).unflatten(0, (batch, steps - 1))
+        residual_in = self.encode_residual(encoded).unflatten(0, (batch, steps - 1))
+        physics, residual = self._recur(physics_in, residual_in)
+        mixed = self.decode_physics(physics.flatten(0, 1)) + self.decode_residual(residual.flatten(0, 1))
+        return self.decoder(mixed).unflatten(0, (batch, steps - 1))
+
+    def _recur(self, physics_in: Tensor, residual_in: Tensor) -> tuple[Tensor, Tensor]:
+        """Run both branches over time; their top states (B, T-1, ·, h, w) after each observed frame."""
+        physics_states = [torch.zeros_like(physics_in[:, 0]) for _ in self.phycell]
+        lstm_states = [(residual_in.new_zeros(len(residual_in), cell.hidden, *residual_in.shape[-2:]),) * 2
+                       for cell in self.lstm]
+        physics_out, residual_out = [], []
+        for t in range(physics_in.shape[1]):
+            x = physics_in[:, t]
+            for i, layer in enumerate(self.phycell):
+                x = physics_states[i] = layer(x, physics_states[i])
+            physics_out.append(x)
+            x = residual_in[:, t]
+            for i, cell in enumerate(self.lstm):
+                lstm_states[i] = cell(x, lstm_states[i])
+                x = lstm_states[i][0]
+            residual_out.append(x)
+        return torch.stack(physics_out, 1), torch.stack(residual_out, 1)
+
+    def loss(self, frames: Tensor) -> dict[str, Tensor]:
+        """Training terms: next-frame MSE over frames 1..T-1 plus the weighted moment loss."""
+        prediction = (self(frames) - frames[:, 1:]).pow(2).mean()
+        moment = self.moment_loss()
+        return {"loss": prediction + self.config.moment_weight * moment, "prediction": prediction,
+                "moment": moment}
+
+    @torch.no_grad()
+    def surprise(self, frames: Tensor) -> Tensor:
+        """Per-frame surprise (B, T): sum over pixels and channels of the squared one-step
+        prediction error; 0 at frame 0, which nothing predicts."""
+        error = (self(frames) - frames[:, 1:]).pow(2).flatten(2).sum(2)
+        return torch.cat([error.new_zeros(len(error), 1), error], dim=1)
+
+
+class PhyDNetObjective(nn.Module):
+    """What the training loop calls: uint8 videos (B, T, H, W, C) in, the loss terms out."""
+
+    def __init__(self, net: PhyDNet):
+        super().__init__()
+        self.net = net
+
+    def forward(self, videos: Tensor) -> dict[str, Tensor]:
+        from .perception import normalise
+
+        return self.net.loss(normalise(videos))

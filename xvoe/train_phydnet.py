@@ -1,0 +1,109 @@
+"""The PhyDNet baseline's training stage: next-frame prediction on the training split's pixels.
+
+`xvoe train --stage phydnet --data train.h5 --out RUN_DIR` writes RUN_DIR/phydnet.pt and
+phydnet.csv through the shared loop. A batch is a set of whole videos; which ones is drawn
+from a generator seeded by (seed, step, shard), so a resumed or multi-process run sees the
+same batches as one uninterrupted process.
+"""
+from __future__ import annotations
+
+import os
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from . import store
+from .data import check_size, shard_bounds
+from .errors import XvoeError
+from .models.config import TrainConfig, from_dict, override, preset, to_dict
+from .models.phydnet import PhyDNet, PhyDNetConfig, PhyDNetObjective
+from .train import (
+    Job,
+    checkpoint_path,
+    fit,
+    load_checkpoint,
+    resolve_run,
+    seed_everything,
+    set_threads,
+    setup_distributed,
+)
+
+STAGE = "phydnet"
+
+
+class VideoBatches:
+    """The shards of a split file that one process owns, in memory as uint8 RGBD, and its batches."""
+
+    def __init__(self, path: str, *, image_size: int, batch_size: int, shards: int, rank: int = 0, world: int = 1,
+                 max_videos: int = 0, seed: int = 0):
+        if shards % world or batch_size % shards:
+            raise XvoeError(f"batch_size {batch_size} and {world} processes must divide data_shards {shards}")
+        with store.open_dataset(path) as file:
+            check_size(file, image_size, "PhyDNet")
+            videos = file["rgbd"].shape[0]
+            videos = min(videos, max_videos) if max_videos else videos
+            if videos < shards:
+                raise XvoeError(f"{path} holds {videos} videos, fewer than the {shards} data shards")
+            per_rank = shards // world
+            self.shards = list(range(rank * per_rank, (rank + 1) * per_rank))
+            self.bounds = [shard_bounds(videos, shards)[s] for s in self.shards]
+            self.start = self.bounds[0][0]
+            self.rgbd = torch.from_numpy(file["rgbd"][self.start:self.bounds[-1][1]])
+        self.per_shard, self.seed = batch_size // shards, seed
+
+    def batch(self, step: int) -> Tensor:
+        """uint8 videos (B, T, H, W, 4): the local part of the global batch of `step`."""
+        picks = [np.random.default_rng([self.seed, step, shard]).integers(start, stop, self.per_shard) - self.start
+                 for shard, (start, stop) in zip(self.shards, self.bounds)]
+        return self.rgbd[torch.from_numpy(np.concatenate(picks))]
+
+
+def phydnet_configs(preset_name: str, run_dir: Path, resume: bool, data: str | os.PathLike | None
+                    ) -> tuple[str, PhyDNetConfig, TrainConfig, str]:
+    """Model and training configs and the data file: the checkpoint's when resuming, else the preset's."""
+    ckpt = checkpoint_path(run_dir, STAGE)
+    if resume and ckpt.exists():
+        state = load_checkpoint(ckpt)
+        model_config = from_dict(PhyDNetConfig, state["config"]["phydnet"])
+        train_config, preset_name = from_dict(TrainConfig, state["train"]), state["config"]["preset"]
+        return preset_name, model_config, train_config, str(data or state["meta"]["data"])
+    if data is None:
+        raise XvoeError(f"nothing to resume in {run_dir}: give the training split to start a run")
+    chosen = preset(preset_name)
+    return preset_name, chosen.phydnet, chosen.phydnet_train, str(data)
+
+
+def train_phydnet(data: str | os.PathLike | None, run_dir: str | os.PathLike, *, preset_name: str = "cpu",
+                  resume: bool = False, overwrite: bool = False, progress: bool = True,
+                  model_overrides: dict | None = None, **train_overrides: Any) -> Path:
+    """What `xvoe train --stage phydnet` does (also under torchrun); returns RUN_DIR/phydnet.pt."""
+    place = setup_distributed()
+    run_dir = Path(run_dir)
+    preset_name, model_config, config, data = phydnet_configs(preset_name, run_dir, resume, data)
+    if model_overrides and not (resume and checkpoint_path(run_dir, STAGE).exists()):
+        model_config = override(model_config, **model_overrides)
+    config = override(config, **train_overrides)
+    config = override(config, data_shards=config.data_shards or place.world)
+    set_threads(config, int(os.environ.get("LOCAL_WORLD_SIZE", "1")))
+    seed_everything(config.seed)
+    batches = VideoBatches(data, image_size=model_config.image_size, batch_size=config.batch_size,
+                           shards=config.data_shards, rank=place.rank, world=place.world,
+                           max_videos=config.max_videos, seed=config.seed)
+    job = Job(STAGE, PhyDNetObjective(PhyDNet(model_config)), batches.batch,
+              {"preset": preset_name, "phydnet": to_dict(model_config)}, meta={"data": str(Path(data).resolve())})
+    return fit(job, config, run_dir, place=place, resume=resume, overwrite=overwrite, progress=progress)
+
+
+def load_phydnet(model: str | os.PathLike, device: str | torch.device = "cpu") -> tuple[PhyDNet, dict]:
+    """A trained PhyDNet (in eval mode) from a checkpoint or run directory, and the checkpoint's contents."""
+    path = resolve_run(model, STAGE)
+    state = load_checkpoint(path)
+    if state["stage"] != STAGE:
+        raise XvoeError(f"{path} is a {state['stage']} checkpoint, not a PhyDNet one")
+    objective = PhyDNetObjective(PhyDNet(from_dict(PhyDNetConfig, state["config"]["phydnet"])))
+    objective.load_state_dict(state["model"])
+    state["path"] = str(path)
+    return objective.net.to(device).eval(), state
