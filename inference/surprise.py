@@ -28,9 +28,11 @@ class NLLSurprise:
 
 @torch.no_grad()
 def nll_surprise(vae: ComponentVAE, xpl: XPL, frames: Tensor, mean: Tensor, visible: Tensor, background: Tensor,
-                 occluder: Tensor, config: InferenceConfig, p_exists: float = 0.5) -> NLLSurprise:
+                 occluder: Tensor, config: InferenceConfig) -> NLLSurprise:
     """One video: frames (T, 4, H, W) in [-1, 1]; mean (T, K, D); visible (T, K) bool;
-    background (T, D) latents; occluder (K,) bool."""
+    background (T, D) latents; occluder (K,) bool. The guide proposes the hidden object's
+    trajectory from Transformer 2's mean and scale and its existence from XPL's amortised
+    existence probability."""
     refined = xpl.refine(mean[None], visible[None])
     explained, scale, slot = xpl.explain(refined, visible[None])
     unseen = never_seen(visible[None])[0]
@@ -40,8 +42,9 @@ def nll_surprise(vae: ComponentVAE, xpl: XPL, frames: Tensor, mean: Tensor, visi
     occupied = visible.any(0)
     scene = XPLScene(vae, xpl, refined[0], background_pictures, occupied, hidden, occupied & ~occluder)
     model = HiddenObjectModel(scene, config)
-    proposal = Proposal(torch.tensor(p_exists if free else 0.0), explained[0, :, hidden],
-                        scale[0, :, hidden].clamp_min(xpl.config.reasoning.min_scale))
+    loc, spread = explained[0, :, hidden], scale[0, :, hidden].clamp_min(xpl.config.reasoning.min_scale)
+    p_exists = torch.sigmoid(xpl.existence_logit(loc[None], spread[None]))[0] if free else torch.tensor(0.0)
+    proposal = Proposal(p_exists.clamp(0.02, 0.98) if free else p_exists, loc, spread)
     estimate = importance(model.model, model.guide, frames, proposal=proposal, particles=config.particles)
     return NLLSurprise(estimate.nll, estimate.ess, float(estimate.posterior_mean("exists")),
                        hidden if free else -1, estimate)

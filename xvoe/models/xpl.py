@@ -13,7 +13,7 @@ from dataclasses import dataclass, field
 import torch
 from torch import Tensor, nn
 
-from .dynamics import DynamicsConfig, InteractionLSTM
+from .dynamics import DynamicsConfig, InteractionLSTM, mlp
 from .reasoning import ReasoningConfig, ReasoningTransformer, gaussian_nll, hide_slot, never_seen, occlusion_keep
 
 
@@ -35,6 +35,9 @@ class XPL(nn.Module):
         if config.use_reasoning:
             self.transformer1 = ReasoningTransformer(config.reasoning)
             self.transformer2 = ReasoningTransformer(config.reasoning)
+            # q(a hidden object exists | what Transformer 2 proposes for the slot it filled):
+            # the amortised existence probability of the inference model's guide
+            self.existence = mlp(2 * config.reasoning.latent_dim * config.reasoning.frames, 64, 1, 1)
 
     def forward(self, batch) -> dict[str, Tensor]:
         """The training objective of a LatentBatch (what the training loop calls)."""
@@ -60,6 +63,14 @@ class XPL(nn.Module):
         mean, scale = self.transformer2(refined, keep)
         return mean, scale, slot
 
+    def existence_logit(self, mean: Tensor, scale: Tensor) -> Tensor:
+        """Logit (B,) that the filled slot holds a real object, from Transformer 2's mean and
+        scale for it over the frames (B, T, D); videos shorter than the model are zero-padded."""
+        features = torch.cat([mean, torch.log(scale)], dim=-1)
+        missing = self.config.reasoning.frames - features.shape[1]
+        features = nn.functional.pad(features, (0, 0, 0, missing))
+        return self.existence(features.flatten(1)).squeeze(-1)
+
     def losses(self, z: Tensor, visible: Tensor, order: Tensor | None = None,
                hidden: Tensor | None = None) -> dict[str, Tensor]:
         """z: (B, T, K, D) cached means; visible: (B, T, K) bool. `order` (B, K), a slot
@@ -76,9 +87,15 @@ class XPL(nn.Module):
             slot = hidden if hidden is not None else torch.randint(z.shape[2], (z.shape[0],), device=z.device)
             keep = hide_slot(visible.shape, slot)
             mean, scale = self.transformer2(refined.detach(), keep)
-            out["mae"] = gaussian_nll(mean, scale.clamp_min(self.config.reasoning.min_scale), refined.detach(), ~keep)
+            scale = scale.clamp_min(self.config.reasoning.min_scale)
+            out["mae"] = gaussian_nll(mean, scale, refined.detach(), ~keep)
+            rows = torch.arange(len(slot), device=z.device)
+            logit = self.existence_logit(mean[rows, :, slot].detach(), scale[rows, :, slot].detach())
+            exists = visible[rows, :, slot].any(dim=1).to(logit.dtype)
+            out["existence"] = nn.functional.binary_cross_entropy_with_logits(logit, exists)
             out["mae_mse"] = (((mean - refined.detach()) ** 2).sum(-1) * (~keep)).sum() / (~keep).sum()
-        out["loss"] = dynamics + self.config.mae_weight * out.get("mae", torch.zeros(()))
+        out["loss"] = dynamics + self.config.mae_weight * out.get("mae", torch.zeros(())) + out.get(
+            "existence", torch.zeros(()))
         return out
 
 
