@@ -36,6 +36,19 @@ def test_tiny_pipeline_runs_end_to_end_and_skips_done_stages(tmp_path, tiny_cpu_
     run_pipeline(config)                     # everything done: nothing is redone
     assert (run / "xpl.pt").stat().st_mtime_ns == stamp
 
+    # the Pyro model's surprise beside the paper's, on the same run
+    import csv
+
+    from xvoe.score import score_split
+    out = score_split(str(run / "xpl.pt"), str(run / "data" / "test.h5"), str(tmp_path / "both.csv"),
+                      surprise="both", particles=4, progress=False)
+    rows = list(csv.DictReader(open(out)))
+    assert {"nll", "ess", "p_hidden"} <= set(rows[0])
+    assert all(1.0 <= float(r["ess"]) <= 4.0 + 1e-9 and 0.0 <= float(r["p_hidden"]) <= 1.0 for r in rows)
+    with pytest.raises(XvoeError, match="NLL surprise needs"):
+        score_split(str(run / "plato.pt"), str(run / "data" / "test.h5"), str(tmp_path / "x.csv"),
+                    surprise="nll", progress=False)
+
 
 def test_pipeline_refuses_unknown_models():
     with pytest.raises(XvoeError, match="unknown model"):

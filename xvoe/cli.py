@@ -64,7 +64,8 @@ def cmd_score(args: argparse.Namespace) -> None:
     from .score import score_split
 
     print(score_split(args.model, args.data, args.out, how=args.aggregate, videos_per_batch=args.batch,
-                      overwrite=args.overwrite, progress=not args.quiet))
+                      surprise=args.surprise, particles=args.particles, overwrite=args.overwrite,
+                      progress=not args.quiet))
 
 
 def cmd_explain(args: argparse.Namespace) -> None:
@@ -223,7 +224,10 @@ def build_parser() -> argparse.ArgumentParser:
                             "phydnet.pt) or random")
     score.add_argument("--data", required=True, help="a test split file")
     score.add_argument("--out", required=True, help="the scores CSV to write")
-    score.add_argument("--surprise", choices=("mse",), default="mse", help="the surprise definition")
+    score.add_argument("--surprise", choices=("mse", "nll", "both"), default="mse",
+                       help="mse: the paper's score; nll: -log p(video) under the Pyro model (adds nll, ess, "
+                            "p_hidden); both: the MSE score with the NLL columns beside it")
+    score.add_argument("--particles", type=_positive, default=64, help="importance samples per video (nll)")
     score.add_argument("--aggregate", choices=("sum", "max"), default="sum", help="over frames (default sum)")
     score.add_argument("--batch", type=_positive, default=16, help="videos per batch")
     score.add_argument("--overwrite", action="store_true", help="replace --out if it exists")

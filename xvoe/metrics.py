@@ -180,7 +180,7 @@ def _settings(scores: dict[str, np.ndarray]) -> list[tuple[str, str]]:
 
 
 METRICS = ("comparative", "holistic", "relative")
-COMPONENTS = ("score", "s_img", "s_dyn")
+COMPONENTS = ("score", "s_img", "s_dyn", "nll")    # nll: the Pyro model's surprise, when scored
 
 
 def metric_rows(scores: dict[str, np.ndarray], model: str, columns: tuple[str, ...] = COMPONENTS,

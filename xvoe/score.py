@@ -95,6 +95,7 @@ def aggregate(per_frame: Tensor, how: str) -> Tensor:
 
 # --- scoring a split file ---------------------------------------------------------------
 
+NLL_COLUMNS = ("nll", "ess", "p_hidden")
 SCORE_COLUMNS = ("index", "model", "scenario", "setting", "pair", "member", "possible", "score", "s_img", "s_dyn")
 XPL_STAGES = ("xpl", "plato", "xpl-noresidual")
 STAGES = (*XPL_STAGES, "phydnet")
@@ -147,9 +148,11 @@ def load_scorer(model: str, device: str = "cpu") -> Scorer:
 
 
 def score_split(model: str | Scorer, data: str, out: str, *, how: str = "sum", videos_per_batch: int = 16,
-                overwrite: bool = False, progress: bool = True) -> Path:
+                surprise: str = "mse", particles: int = 64, overwrite: bool = False, progress: bool = True) -> Path:
     """What `xvoe score` does: one CSV row per test video, and the per-frame surprise curves
-    (s_img, s_dyn: (N, T)) in an .npz beside it."""
+    (s_img, s_dyn: (N, T)) in an .npz beside it. With surprise "nll" or "both", the columns
+    nll, ess and p_hidden of the Pyro model are added (XPL models only); with "nll", the
+    score column is the NLL."""
     import csv
 
     import numpy as np
@@ -161,7 +164,12 @@ def score_split(model: str | Scorer, data: str, out: str, *, how: str = "sum", v
 
     if how not in ("sum", "max"):
         raise XvoeError(f"--aggregate must be sum or max, not {how!r}")
+    if surprise not in ("mse", "nll", "both"):
+        raise XvoeError(f"--surprise must be mse, nll or both, not {surprise!r}")
     scorer = load_scorer(model) if isinstance(model, str) else model
+    with_nll = surprise != "mse"
+    if with_nll and (scorer.xpl is None or not scorer.xpl.config.use_reasoning):
+        raise XvoeError(f"the NLL surprise needs an XPL model with reasoning; {scorer.name} has none")
     out = Path(out)
     if out.exists() and not overwrite:
         raise XvoeError(f"{out} exists; pass --overwrite to replace it")
@@ -172,6 +180,7 @@ def score_split(model: str | Scorer, data: str, out: str, *, how: str = "sum", v
         labels = {name: (store.strings(file, name) if name in ("scenario", "setting") else file[name][:])
                   for name in ("scenario", "setting", "pair", "member", "possible")}
         curves = np.zeros((2, count, frames_count))
+        nll = np.zeros((count, 3))
         if scorer.is_random:
             curves[:] = np.random.default_rng(scorer.seed).random((2, count, frames_count))
         else:
@@ -181,23 +190,25 @@ def score_split(model: str | Scorer, data: str, out: str, *, how: str = "sum", v
                               disable=not progress):
                 stop = min(count, start + videos_per_batch)
                 curves[:, start:stop] = torch.stack(surprise_of(scorer, file, start, stop)).numpy()
+                if with_nll:
+                    nll[start:stop] = _xpl_nll(scorer, file, start, stop, particles)
     s_img, s_dyn = (aggregate(torch.from_numpy(c), how).numpy() for c in curves)
-    total = aggregate(torch.from_numpy(curves.sum(0)), how).numpy()
+    total = aggregate(torch.from_numpy(curves.sum(0)), how).numpy() if surprise != "nll" else nll[:, 0]
     tmp = out.with_name(f".{out.name}.tmp")
     with open(tmp, "w", newline="") as handle:
         writer = csv.writer(handle)
-        writer.writerow(SCORE_COLUMNS)
+        writer.writerow(SCORE_COLUMNS + (NLL_COLUMNS if with_nll else ()))
         for i in range(count):
             writer.writerow([i, scorer.name, labels["scenario"][i], labels["setting"][i], int(labels["pair"][i]),
                              int(labels["member"][i]), bool(labels["possible"][i]), float(total[i]),
-                             float(s_img[i]), float(s_dyn[i])])
+                             float(s_img[i]), float(s_dyn[i])] + (list(map(float, nll[i])) if with_nll else []))
     np.savez_compressed(out.with_suffix(".curves.npz"), s_img=curves[0], s_dyn=curves[1])
     tmp.replace(out)
     return out
 
 
-def _xpl_curves(scorer: Scorer, file, start: int, stop: int) -> tuple[Tensor, Tensor]:
-    """s_img and s_dyn (B, T) of videos [start, stop) of an open test split under XPL or PLATO."""
+def _xpl_batch(scorer: Scorer, file, start: int, stop: int) -> dict[str, Tensor]:
+    """Videos [start, stop) of an open test split, encoded: frames, latents, visibility, walls."""
     import numpy as np
 
     from .data import visible_threshold
@@ -210,10 +221,32 @@ def _xpl_curves(scorer: Scorer, file, start: int, stop: int) -> tuple[Tensor, Te
     encoded = encode_frames(scorer.vae, rgbd.reshape(-1, size, size, 4), ids.reshape(-1, size, size),
                             file["states"].shape[2])
     shaped = {k: torch.from_numpy(v).reshape(stop - start, frames_count, *v.shape[1:]) for k, v in encoded.items()}
-    occluder = torch.from_numpy(np.isin(file["kind"][start:stop], walls))
-    surprise = mse_surprise(scorer.vae, scorer.xpl, normalise(torch.from_numpy(rgbd)), shaped["mean"],
-                            shaped["pixels"] > visible_threshold(size), shaped["background_mean"], occluder)
+    return {"frames": normalise(torch.from_numpy(rgbd)), "mean": shaped["mean"],
+            "visible": shaped["pixels"] > visible_threshold(size), "background": shaped["background_mean"],
+            "occluder": torch.from_numpy(np.isin(file["kind"][start:stop], walls))}
+
+
+def _xpl_curves(scorer: Scorer, file, start: int, stop: int) -> tuple[Tensor, Tensor]:
+    """s_img and s_dyn (B, T) of videos [start, stop) of an open test split under XPL or PLATO."""
+    batch = _xpl_batch(scorer, file, start, stop)
+    surprise = mse_surprise(scorer.vae, scorer.xpl, batch["frames"], batch["mean"], batch["visible"],
+                            batch["background"], batch["occluder"])
     return surprise.s_img, surprise.s_dyn
+
+
+def _xpl_nll(scorer: Scorer, file, start: int, stop: int, particles: int) -> list[tuple[float, float, float]]:
+    """(nll, ess, p_hidden) of each video [start, stop) under the Pyro hidden-object model."""
+    from inference.model import InferenceConfig
+    from inference.surprise import nll_surprise
+
+    batch = _xpl_batch(scorer, file, start, stop)
+    config = InferenceConfig(particles=particles)
+    results = []
+    for i in range(stop - start):
+        found = nll_surprise(scorer.vae, scorer.xpl, batch["frames"][i], batch["mean"][i], batch["visible"][i],
+                             batch["background"][i], batch["occluder"][i], config)
+        results.append((found.nll, found.ess, found.p_hidden))
+    return results
 
 
 def _phydnet_curves(scorer: Scorer, file, start: int, stop: int) -> tuple[Tensor, Tensor]:
