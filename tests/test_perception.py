@@ -83,3 +83,13 @@ def test_loss_is_finite_with_empty_frames_and_decreases_on_a_tiny_batch():
         optimiser.step()
         losses.append(loss.item())
     assert np.mean(losses[-5:]) < 0.5 * np.mean(losses[:5])
+
+
+def test_the_paper_preset_builds_at_128_pixels():
+    config = preset("paper").perception
+    model = ComponentVAE(config)
+    with torch.no_grad():
+        mean, std = model.posterior(torch.zeros(1, 4, 128, 128))
+        assert mean.shape == std.shape == (1, 32)
+        assert model.decode(mean).shape == (1, 4, 128, 128)
+    assert len(model.decoder.convs) == 2 * 4 + 2          # 8 -> 128: four stride-2 layers, one stride-1

@@ -73,9 +73,11 @@ def setup_distributed() -> Dist:
 
 
 def set_threads(config: TrainConfig, local_world: int) -> None:
-    """Share the cores between the processes of this machine (torch defaults to all per process)."""
+    """Share the cores between the processes of this machine: config.threads, else
+    OMP_NUM_THREADS when set (torchrun sets it), else the cores divided by the processes."""
     cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
-    torch.set_num_threads(config.threads or max(1, cores // max(1, local_world)))
+    threads = config.threads or int(os.environ.get("OMP_NUM_THREADS", "0") or 0)
+    torch.set_num_threads(threads or max(1, cores // max(1, local_world)))
 
 
 def learning_rate(config: TrainConfig, step: int) -> float:

@@ -91,10 +91,10 @@ class Preset:
     xpl: XPLConfig = field(default_factory=XPLConfig)
     xpl_train: TrainConfig = field(default_factory=lambda: TrainConfig(steps=3000, batch_size=64, warmup_steps=100,
                                                                        decay_steps=2000))
-    # the PhyDNet baseline: batch_size counts videos
+    # the PhyDNet baseline: batch_size counts videos; ~4-5 minutes on one CPU thread
     phydnet: PhyDNetConfig = field(default_factory=PhyDNetConfig)
-    phydnet_train: TrainConfig = field(default_factory=lambda: TrainConfig(steps=250, batch_size=16, warmup_steps=20,
-                                                                           decay_steps=1000))
+    phydnet_train: TrainConfig = field(default_factory=lambda: TrainConfig(steps=300, batch_size=8, lr=3e-3,
+                                                                           warmup_steps=20, decay_steps=300))
 
 
 PRESETS: dict[str, Preset] = {
@@ -113,7 +113,7 @@ PRESETS: dict[str, Preset] = {
                       dynamics=DynamicsConfig(latent_dim=32, hidden=512, mlp_layers=3, lstm=2056, buffer_heads=8)),
         xpl_train=TrainConfig(steps=32_000, batch_size=500, warmup_steps=1000, decay_steps=10_000,
                               checkpoint_minutes=10.0, log_every=100),
-        perception_train=TrainConfig(steps=472_000, batch_size=300 // 8, lr=4e-4, warmup_steps=2000,
+        perception_train=TrainConfig(steps=472_000, batch_size=36, lr=4e-4, warmup_steps=2000,
                                      decay_steps=100_000, checkpoint_minutes=10.0, log_every=100),
         # the original's sizes (64x64 -> 16x16 features, ConvLSTM 128-128-64), one more halving at 128x128;
         # the paper's training table: 100 videos per batch, 70,000 steps, Adam, lr 0.001

@@ -47,7 +47,11 @@ class CNNEncoder(nn.Module):
 
     def __init__(self, config: PerceptionConfig):
         super().__init__()
-        layers, channels, size = [], 4, config.image_size
+        layers, channels, size = [], 4 + 2 * config.cnn_coords, config.image_size
+        self.coords = config.cnn_coords
+        if self.coords:     # pixel coordinates as two more input channels make position easy to read out
+            ramp = torch.linspace(-1, 1, size)
+            self.register_buffer("grid", torch.stack(torch.meshgrid(ramp, ramp, indexing="xy")), persistent=False)
         for width in config.cnn_channels:
             layers += [nn.Conv2d(channels, width, 5, stride=2, padding=2), nn.ReLU()]
             channels, size = width, (size + 1) // 2
@@ -56,6 +60,8 @@ class CNNEncoder(nn.Module):
                                   nn.Linear(config.cnn_hidden, 2 * config.latent_dim))
 
     def forward(self, images: Tensor) -> Tensor:
+        if self.coords:
+            images = torch.cat([images, self.grid.expand(len(images), -1, -1, -1)], dim=1)
         return self.head(self.convs(images))
 
 
@@ -157,6 +163,14 @@ class ComponentVAE(nn.Module):
         self.encoder = build_encoder(config)
         self.decoder = BroadcastDecoder(config)
         self.theta = nn.Parameter(torch.tensor(float(config.theta_init)))
+        self._start_with_small_std(config.std_init)
+
+    def _start_with_small_std(self, std: float) -> None:
+        """Bias the std half of the encoder's output so the posterior starts narrow: with
+        std = 3*sigmoid(0) = 1.5 the decoder first sees mostly noise and learns slowly."""
+        last = [m for m in self.encoder.head.modules() if isinstance(m, nn.Linear)][-1]
+        with torch.no_grad():
+            last.bias[self.config.latent_dim:] = math.log(std / (STD_SCALE - std))
 
     def posterior(self, images: Tensor) -> tuple[Tensor, Tensor]:
         """Mean in (-3, 3) and std in (0, 3) of q(z | masked image); images (N,4,H,W)."""
