@@ -62,8 +62,9 @@ def test_xpl_stage_learns_and_resumes_exactly(cache, tmp_path):
 
 
 def test_plato_and_the_no_residual_ablation(cache, tmp_path):
-    plato = train_xpl(cache, tmp_path, stage="plato", progress=False, **TINY)
-    ablation = train_xpl(cache, tmp_path, residual=False, progress=False, **TINY)
+    short = {**TINY, "steps": 5}
+    plato = train_xpl(cache, tmp_path, stage="plato", progress=False, **short)
+    ablation = train_xpl(cache, tmp_path, residual=False, progress=False, **short)
     assert plato.name == "plato.pt" and ablation.name == "xpl-noresidual.pt"
     model, _ = load_xpl(tmp_path, stage="plato")
     assert not model.config.use_reasoning and not model.config.dynamics.residual
