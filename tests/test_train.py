@@ -105,7 +105,12 @@ def test_two_processes_under_torchrun_match_one_process(tiny_file, tmp_path):
     single, double = load_checkpoint(one / "perception.pt"), load_checkpoint(two / "perception.pt")
     assert double["world"] == 2 and single["world"] == 1 and double["step"] == 4
     for name, weight in single["model"].items():
-        torch.testing.assert_close(double["model"][name], weight, rtol=1e-4, atol=1e-5)
+        if name == "theta":
+            # the z-buffer temperature gets a near-zero gradient (a saturated softmax), whose sign
+            # can flip with the order of float sums; Adam then moves it by up to lr per step
+            torch.testing.assert_close(double["model"][name], weight, rtol=0, atol=4 * 1e-3)
+        else:
+            torch.testing.assert_close(double["model"][name], weight, rtol=1e-4, atol=1e-5)
     # and training moved the weights away from their (seeded) initial values
     seed_everything(0)
     initial = ComponentVAE(PerceptionConfig(**TINY)).state_dict()
