@@ -20,6 +20,15 @@ TINY = PhyDNetConfig(image_size=16, encoder_channels=(8, 8, 8), phycell_kernel=5
 TRAIN = {"steps": 4, "batch_size": 2, "warmup_steps": 1, "log_every": 1, "threads": 1}
 
 
+@pytest.fixture(autouse=True, scope="module")
+def one_thread():
+    """Tiny networks run fastest on one thread (and a busy machine makes two threads wait on each other)."""
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(threads)
+
+
 def videos(batch: int = 2, frames: int = 5, size: int = 16, seed: int = 0) -> torch.Tensor:
     return torch.rand(batch, frames, 4, size, size, generator=torch.Generator().manual_seed(seed)) * 2 - 1
 
@@ -167,3 +176,18 @@ def test_the_name_resolves_and_scores_a_tiny_test_set(splits, tmp_path, tiny_pre
     assert curves["s_dyn"].shape == (22, 10) and np.all(curves["s_img"] == 0) and np.all(curves["s_dyn"][:, 0] == 0)
     np.testing.assert_allclose([float(r["score"]) for r in rows], curves["s_dyn"].sum(1), rtol=1e-6)
     assert all(float(r["s_img"]) == 0 for r in rows)
+
+
+def test_pipeline_trains_and_scores_phydnet_without_perception(tmp_path, monkeypatch):
+    from xvoe.models.config import PRESETS, TrainConfig
+    from xvoe.pipeline import PipelineConfig, run_pipeline
+
+    tiny = replace(PRESETS["cpu"], phydnet=replace(TINY, image_size=PRESETS["cpu"].perception.image_size),
+                   phydnet_train=TrainConfig(**TRAIN))
+    monkeypatch.setitem(PRESETS, "cpu", tiny)
+    config = PipelineConfig(str(tmp_path / "run"), train_videos=4, pairs=1, models=("phydnet", "random"), workers=1,
+                            progress=False)
+    report = run_pipeline(config).read_text()
+    assert "phydnet" in report and "| collision |" in report
+    assert (tmp_path / "run" / "phydnet.pt").exists() and (tmp_path / "run" / "scores" / "phydnet.csv").exists()
+    assert not (tmp_path / "run" / "perception.pt").exists()

@@ -91,11 +91,12 @@ def run_pipeline(config: PipelineConfig) -> Path:
     stages.run("generate-test", lambda: generate(
         GenerateConfig("test", pairs=config.pairs, size=size, seed=config.seed + 1), test_data,
         workers=config.workers, overwrite=True, progress=config.progress))
-    stages.run("perception", lambda: train_perception(
-        train_data, run_dir, preset_name=config.preset, progress=config.progress,
-        resume=checkpoint_path(run_dir, "perception").exists(), seed=config.seed))
-    stages.run("encode-train", lambda: encode_split(run_dir, train_data, latents, overwrite=True,
-                                                    progress=config.progress))
+    if any(model in TRAINED for model in config.models):     # PhyDNet and the random agent need no perception
+        stages.run("perception", lambda: train_perception(
+            train_data, run_dir, preset_name=config.preset, progress=config.progress,
+            resume=checkpoint_path(run_dir, "perception").exists(), seed=config.seed))
+        stages.run("encode-train", lambda: encode_split(run_dir, train_data, latents, overwrite=True,
+                                                        progress=config.progress))
     for model in config.models:
         if model in TRAINED:
             stage, residual = TRAINED[model]
