@@ -176,6 +176,9 @@ def test_the_name_resolves_and_scores_a_tiny_test_set(splits, tmp_path, tiny_pre
     assert curves["s_dyn"].shape == (22, 10) and np.all(curves["s_img"] == 0) and np.all(curves["s_dyn"][:, 0] == 0)
     np.testing.assert_allclose([float(r["score"]) for r in rows], curves["s_dyn"].sum(1), rtol=1e-6)
     assert all(float(r["s_img"]) == 0 for r in rows)
+    figure = tmp_path / "x.png"
+    explain = ["explain", "--model", str(run / "phydnet.pt"), "--data", str(splits[1]), "--out", str(figure)]
+    assert main(explain) == 2 and not figure.exists()      # no hidden object to draw
 
 
 def test_pipeline_trains_and_scores_phydnet_without_perception(tmp_path, monkeypatch):

@@ -77,7 +77,10 @@ def cmd_explain(args: argparse.Namespace) -> None:
 
     if Path(args.out).suffix.lower() != ".png":
         raise XvoeError(f"--out must end in .png, not {Path(args.out).suffix or 'nothing'}")
-    figure = plot_explanation(explain(load_scorer(args.model), args.data, args.index))
+    scorer = load_scorer(args.model)
+    if scorer.phydnet is not None:
+        raise XvoeError("PhyDNet predicts pixels and has no hidden object to draw; give an XPL run")
+    figure = plot_explanation(explain(scorer, args.data, args.index))
     figure.savefig(args.out, dpi=100, bbox_inches="tight")
     plt.close(figure)
     print(args.out)
