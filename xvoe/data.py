@@ -88,6 +88,40 @@ def shard_bounds(videos: int, shards: int) -> list[tuple[int, int]]:
     return list(zip(edges[:-1], edges[1:]))
 
 
+@dataclass
+class Ownership:
+    """Which shards of a file one process owns: their ids and video ranges, and how many
+    items each shard gives to every step's global batch."""
+
+    shards: list[int]
+    bounds: list[tuple[int, int]]
+    per_shard: int
+
+    @property
+    def start(self) -> int:
+        return self.bounds[0][0]
+
+    @property
+    def stop(self) -> int:
+        return self.bounds[-1][1]
+
+
+def owned_shards(path: str, videos: int, *, batch_size: int, shards: int, rank: int, world: int,
+                 max_videos: int = 0) -> Ownership:
+    """Cut `videos` into `shards` slices and give process `rank` of `world` its contiguous run."""
+    if shards % world:
+        raise XvoeError(f"data_shards {shards} is not a multiple of the {world} processes")
+    if batch_size % shards:
+        raise XvoeError(f"batch_size {batch_size} is not a multiple of data_shards {shards}")
+    videos = min(videos, max_videos) if max_videos else videos
+    if videos < shards:
+        raise XvoeError(f"{path} holds {videos} videos, fewer than the {shards} data shards")
+    per_rank = shards // world
+    mine = list(range(rank * per_rank, (rank + 1) * per_rank))
+    bounds = shard_bounds(videos, shards)
+    return Ownership(mine, [bounds[s] for s in mine], batch_size // shards)
+
+
 class ShardedFrames:
     """The shards of a split file that one training process owns, and its batches.
 
@@ -98,23 +132,15 @@ class ShardedFrames:
 
     def __init__(self, path: str, *, image_size: int, latent_dim: int, batch_size: int, shards: int,
                  rank: int = 0, world: int = 1, max_videos: int = 0, seed: int = 0):
-        if shards % world:
-            raise XvoeError(f"data_shards {shards} is not a multiple of the {world} processes")
-        if batch_size % shards:
-            raise XvoeError(f"batch_size {batch_size} is not a multiple of data_shards {shards}")
         with store.open_dataset(path) as file:
             check_size(file, image_size)
             videos = file["rgbd"].shape[0]
             self.slots = int(file["states"].shape[2])
-        videos = min(videos, max_videos) if max_videos else videos
-        if videos < shards:
-            raise XvoeError(f"{path} holds {videos} videos, fewer than the {shards} data shards")
-        per_rank = shards // world
-        self.shards = list(range(rank * per_rank, (rank + 1) * per_rank))
-        bounds = shard_bounds(videos, shards)
-        self.bounds = [bounds[s] for s in self.shards]
-        self.data = load_slice(path, self.bounds[0][0], self.bounds[-1][1])
-        self.per_shard, self.latent_dim, self.seed = batch_size // shards, latent_dim, seed
+        owned = owned_shards(path, videos, batch_size=batch_size, shards=shards, rank=rank, world=world,
+                             max_videos=max_videos)
+        self.shards, self.bounds, self.per_shard = owned.shards, owned.bounds, owned.per_shard
+        self.data = load_slice(path, owned.start, owned.stop)
+        self.latent_dim, self.seed = latent_dim, seed
         self.frames = self.data.rgbd.shape[1]
 
     def batch(self, step: int) -> PerceptionBatch:

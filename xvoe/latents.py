@@ -73,13 +73,7 @@ def write_latents(path: str | os.PathLike, latents: Latents, overwrite: bool = F
 
 def open_latents(path: str | os.PathLike) -> h5py.File:
     """Open a latent cache for reading, or say in one line why it is not one."""
-    path = Path(path)
-    if not path.is_file():
-        raise XvoeError(f"{path}: no such file")
-    try:
-        file = h5py.File(path, "r")
-    except OSError:
-        raise XvoeError(f"{path} is not an HDF5 file") from None
+    file = store.open_hdf5(path)
     version = file.attrs.get("xvoe_latents")
     if version is None or int(version) != LATENTS_VERSION:
         file.close()

@@ -125,15 +125,20 @@ def write_attributes(file: h5py.File, split: str, config: dict, seed: int) -> No
     file.attrs["depth_far"] = DEPTH_FAR
 
 
-def open_dataset(path: str | os.PathLike) -> h5py.File:
-    """Open an xvoe split file for reading, or say in one line why it is not one."""
+def open_hdf5(path: str | os.PathLike) -> h5py.File:
+    """An HDF5 file open for reading, or a one-line error if it is missing or not HDF5."""
     path = Path(path)
     if not path.is_file():
         raise XvoeError(f"{path}: no such file")
     try:
-        file = h5py.File(path, "r")
+        return h5py.File(path, "r")
     except OSError:
         raise XvoeError(f"{path} is not an HDF5 file") from None
+
+
+def open_dataset(path: str | os.PathLike) -> h5py.File:
+    """Open an xvoe split file for reading, or say in one line why it is not one."""
+    file = open_hdf5(path)
     version = file.attrs.get("xvoe_schema")
     if version is None:
         file.close()

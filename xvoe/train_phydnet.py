@@ -16,7 +16,7 @@ import torch
 from torch import Tensor
 
 from . import store
-from .data import check_size, shard_bounds
+from .data import check_size, owned_shards
 from .errors import XvoeError
 from .models.config import TrainConfig, from_dict, override, preset, to_dict
 from .models.phydnet import PhyDNet, PhyDNetConfig, PhyDNetObjective
@@ -39,20 +39,13 @@ class VideoBatches:
 
     def __init__(self, path: str, *, image_size: int, batch_size: int, shards: int, rank: int = 0, world: int = 1,
                  max_videos: int = 0, seed: int = 0):
-        if shards % world or batch_size % shards:
-            raise XvoeError(f"batch_size {batch_size} and {world} processes must divide data_shards {shards}")
         with store.open_dataset(path) as file:
             check_size(file, image_size, "PhyDNet")
-            videos = file["rgbd"].shape[0]
-            videos = min(videos, max_videos) if max_videos else videos
-            if videos < shards:
-                raise XvoeError(f"{path} holds {videos} videos, fewer than the {shards} data shards")
-            per_rank = shards // world
-            self.shards = list(range(rank * per_rank, (rank + 1) * per_rank))
-            self.bounds = [shard_bounds(videos, shards)[s] for s in self.shards]
-            self.start = self.bounds[0][0]
-            self.rgbd = torch.from_numpy(file["rgbd"][self.start:self.bounds[-1][1]])
-        self.per_shard, self.seed = batch_size // shards, seed
+            owned = owned_shards(path, file["rgbd"].shape[0], batch_size=batch_size, shards=shards, rank=rank,
+                                 world=world, max_videos=max_videos)
+            self.rgbd = torch.from_numpy(file["rgbd"][owned.start:owned.stop])
+        self.shards, self.bounds, self.per_shard = owned.shards, owned.bounds, owned.per_shard
+        self.start, self.seed = owned.start, seed
 
     def batch(self, step: int) -> Tensor:
         """uint8 videos (B, T, H, W, 4): the local part of the global batch of `step`."""

@@ -18,7 +18,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from .data import shard_bounds
+from .data import owned_shards
 from .errors import XvoeError
 from .latents import open_latents
 from .models.config import TrainConfig, from_dict, override, preset, to_dict
@@ -56,20 +56,13 @@ class LatentBatches:
 
     def __init__(self, path: str, *, batch_size: int, shards: int, rank: int = 0, world: int = 1,
                  max_videos: int = 0, seed: int = 0):
-        if shards % world or batch_size % shards:
-            raise XvoeError(f"batch_size {batch_size} and {world} processes must divide data_shards {shards}")
         with open_latents(path) as file:
-            videos = file["mean"].shape[0]
-            videos = min(videos, max_videos) if max_videos else videos
-            if videos < shards:
-                raise XvoeError(f"{path} holds {videos} videos, fewer than the {shards} data shards")
-            per_rank = shards // world
-            self.shards = list(range(rank * per_rank, (rank + 1) * per_rank))
-            self.bounds = [shard_bounds(videos, shards)[s] for s in self.shards]
-            start, stop = self.bounds[0][0], self.bounds[-1][1]
-            self.mean = torch.from_numpy(file["mean"][start:stop])
-            self.visible = torch.from_numpy(file["visible"][start:stop])
-        self.start, self.per_shard, self.seed = start, batch_size // shards, seed
+            owned = owned_shards(path, file["mean"].shape[0], batch_size=batch_size, shards=shards, rank=rank,
+                                 world=world, max_videos=max_videos)
+            self.mean = torch.from_numpy(file["mean"][owned.start:owned.stop])
+            self.visible = torch.from_numpy(file["visible"][owned.start:owned.stop])
+        self.shards, self.bounds, self.per_shard = owned.shards, owned.bounds, owned.per_shard
+        self.start, self.seed = owned.start, seed
         self.slots = self.mean.shape[2]
 
     def batch(self, step: int) -> LatentBatch:
