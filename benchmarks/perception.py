@@ -1,10 +1,11 @@
 """Benchmark of a trained perception module on held-out frames.
 
 Prints the composite reconstruction PSNR (RGB, depth, and RGB on object pixels only), the R^2
-of a linear probe from the latent means to each visible object's x and y (fitted on half of
-the videos, scored on the other half), the training throughput in object images per second,
+of a linear probe from the latent means to each visible object's x and y (one probe for all
+objects, fitted on half of the videos and scored on the other half; then one per kind), the
+training throughput in object images per second,
 the decoder throughput, and the training time recorded in the checkpoint. Last line:
-`psnr=NN.N probe_r2=0.NNN` (RGB PSNR; the smaller of the x and y R^2).
+`psnr=NN.N probe_r2=0.NNN` (RGB PSNR; the smaller of the x and y R^2 of the one probe).
 
     python benchmarks/perception.py --model runs/perception-cpu --data data/val32.h5
 """
@@ -54,27 +55,25 @@ def reconstruction(model: ComponentVAE, rgbd: np.ndarray, ids: np.ndarray, slots
     return {name: psnr(sums[name], counts[name]) for name in sums}
 
 
-def probe(model: ComponentVAE, rgbd: np.ndarray, ids: np.ndarray, states: np.ndarray, columns: list[str],
-          size: int) -> dict[str, float]:
-    """R^2 of least-squares x and y from the latent means of visible objects, on held-out videos."""
-    videos, frames = rgbd.shape[:2]
-    slots = states.shape[2]
-    means, pixels = [], []
-    for v in range(videos):
-        encoded = encode_frames(model, rgbd[v], ids[v], slots)
-        means.append(encoded["mean"])
-        pixels.append(encoded["pixels"])
-    means, pixels = np.stack(means), np.stack(pixels)                      # (V,T,K,D), (V,T,K)
-    visible = pixels > visible_threshold(size)
-    targets = states[..., [columns.index("x"), columns.index("y")]]
-    half = videos // 2
-    fit_rows, test_rows = visible[:half], visible[half:]
+def encode_means(model: ComponentVAE, rgbd: np.ndarray, ids: np.ndarray, slots: int) -> tuple[np.ndarray, np.ndarray]:
+    """Posterior means (V,T,K,D) and mask pixel counts (V,T,K) of every slot of every video."""
+    encoded = [encode_frames(model, rgbd[v], ids[v], slots) for v in range(len(rgbd))]
+    return np.stack([e["mean"] for e in encoded]), np.stack([e["pixels"] for e in encoded])
+
+
+def probe(means: np.ndarray, targets: np.ndarray, chosen: np.ndarray) -> list[float]:
+    """R^2 per target column of a least-squares fit on the first half of the videos, scored on
+    the second half, over the slots `chosen` (V,T,K); nan where the target does not vary."""
+    half = len(means) // 2
+    fit_rows, test_rows = chosen[:half], chosen[half:]
     x_fit = np.c_[means[:half][fit_rows], np.ones(fit_rows.sum())]
     x_test = np.c_[means[half:][test_rows], np.ones(test_rows.sum())]
     weights, *_ = np.linalg.lstsq(x_fit, targets[:half][fit_rows], rcond=None)
     truth, guess = targets[half:][test_rows], x_test @ weights
-    r2 = 1 - ((truth - guess) ** 2).sum(0) / ((truth - truth.mean(0)) ** 2).sum(0)
-    return {"x": float(r2[0]), "y": float(r2[1]), "objects": int(test_rows.sum())}
+    spread = ((truth - truth.mean(0)) ** 2).sum(0)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        r2 = np.where(spread > 1e-6 * len(truth), 1 - ((truth - guess) ** 2).sum(0) / spread, np.nan)
+    return [float(v) for v in r2]
 
 
 def train_throughput(model: ComponentVAE, data: str, config: TrainConfig, steps: int) -> float:
@@ -126,6 +125,7 @@ def main(argv: list[str] | None = None) -> int:
             count = min(args.videos, file["rgbd"].shape[0])
             rgbd, ids, states = file["rgbd"][:count], file["ids"][:count], file["states"][:count]
             columns = list(file["states"].attrs["state_columns"])
+            kind, kind_names = file["kind"][:count], list(file.attrs["kind_names"])
     except XvoeError as error:
         print(f"error: {error}", file=sys.stderr)
         return 2
@@ -140,9 +140,18 @@ def main(argv: list[str] | None = None) -> int:
     quality = reconstruction(model, rgbd.reshape(-1, size, size, 4), ids.reshape(-1, size, size), slots)
     print(f"composite PSNR: RGB {quality['rgb']:.2f} dB, depth {quality['depth']:.2f} dB, "
           f"RGB on object pixels {quality['objects']:.2f} dB")
-    fit = probe(model, rgbd, ids, states, columns, size)
-    print(f"linear probe (latent mean -> x, y) on {fit['objects']} visible objects of held-out videos: "
-          f"R^2 x {fit['x']:.4f}, y {fit['y']:.4f}")
+    means, pixels = encode_means(model, rgbd, ids, slots)
+    visible = pixels > visible_threshold(size)
+    targets = states[..., [columns.index("x"), columns.index("y")]]
+    r2_x, r2_y = probe(means, targets, visible)
+    print(f"linear probe (latent mean -> x, y), one for all {int(visible[count // 2:].sum())} visible objects "
+          f"of the held-out half of the videos: R^2 x {r2_x:.4f}, y {r2_y:.4f}")
+    kinds = np.broadcast_to(kind[:, None, :], visible.shape)
+    for code, name in enumerate(kind_names):
+        chosen = visible & (kinds == code)
+        if code and chosen[count // 2:].sum() > 10 and chosen[:count // 2].sum() > 10:
+            x, y = probe(means, targets, chosen)
+            print(f"  probe fitted to {name} alone ({int(chosen[count // 2:].sum())}): R^2 x {x:.4f}, y {y:.4f}")
     rate = train_throughput(model, args.data, train_config, args.steps)
     print(f"training throughput: {rate:.0f} object images/s ({args.threads} threads, batch "
           f"{train_config.batch_size} frames)")
@@ -151,7 +160,7 @@ def main(argv: list[str] | None = None) -> int:
         from xvoe.viz import save_reconstructions
 
         print(f"figure: {save_reconstructions(model, rgbd, ids, args.figure)}")
-    print(f"psnr={quality['rgb']:.1f} probe_r2={min(fit['x'], fit['y']):.3f}")
+    print(f"psnr={quality['rgb']:.1f} probe_r2={min(r2_x, r2_y):.3f}")
     return 0
 
 
