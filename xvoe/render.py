@@ -44,7 +44,7 @@ def render(scene: Scene, trajectory: Trajectory, size: int = 64) -> Video:
     floor_depth = _floor_depth(ys_down)
 
     rgb = np.empty((frames, size, size, 3), np.uint8)
-    depth = np.empty((frames, size, size), np.float64)
+    depth = np.empty((frames, size, size), np.float32)
     ids = np.zeros((frames, size, size), np.uint8)
     rgb[:] = scene.background
     rgb[:, floor_rows] = scene.floor
