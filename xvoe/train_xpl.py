@@ -69,12 +69,32 @@ class LatentBatches:
         videos, orders, hidden = [], [], []
         for shard, (start, stop) in zip(self.shards, self.bounds):
             rng = np.random.default_rng([self.seed, step, shard])
-            videos.append(rng.integers(start, stop, self.per_shard) - self.start)
-            orders.append(np.argsort(rng.random((self.per_shard, self.slots)), axis=1))
-            hidden.append(rng.integers(0, self.slots, self.per_shard))
+            video = rng.integers(start, stop, self.per_shard) - self.start
+            order = np.argsort(rng.random((self.per_shard, self.slots)), axis=1)
+            videos.append(video)
+            orders.append(order)
+            hidden.append(self.hidden_slots(rng, video, order))
         video = torch.from_numpy(np.concatenate(videos))
         return LatentBatch(self.mean[video], self.visible[video], torch.from_numpy(np.concatenate(orders)),
                            torch.from_numpy(np.concatenate(hidden)))
+
+
+    OBJECT_SHARE = 0.5   # of the slots Transformer 2 rebuilds, at least this share hold a seen object
+
+    def hidden_slots(self, rng: np.random.Generator, video: np.ndarray, order: np.ndarray) -> np.ndarray:
+        """The slot (in the permuted order) Transformer 2 must rebuild in each video.
+
+        Drawn uniformly, most would be empty (8 slots, 2 to 4 objects) and Transformer 2
+        learns to propose nothing; so half the time the slot is drawn among the seen objects.
+        """
+        seen = self.visible[torch.from_numpy(video)].any(dim=1).numpy()         # (B, K), original order
+        uniform = rng.integers(0, self.slots, len(video))
+        weights = rng.random(seen.shape) * seen
+        among_seen = weights.argmax(axis=1)
+        use_seen = (rng.random(len(video)) < self.OBJECT_SHARE) & seen.any(axis=1)
+        original = np.where(use_seen, among_seen, uniform)
+        inverse = np.argsort(order, axis=1)                                      # original -> permuted
+        return inverse[np.arange(len(video)), original]
 
 
 def stage_config(base: XPLConfig, stage: str, residual: bool, stop_gradient: bool, shape: tuple) -> XPLConfig:
