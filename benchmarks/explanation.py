@@ -23,12 +23,9 @@ import numpy as np
 import torch
 
 from xvoe import store
-from xvoe.data import visible_threshold
 from xvoe.explain import decoded_mask, iou, silhouette
-from xvoe.latents import encode_frames
-from xvoe.models.perception import normalise
 from xvoe.models.reasoning import hide_slot
-from xvoe.score import composite, decode_slots, load_scorer
+from xvoe.score import composite, decode_slots, encode_videos, load_scorer
 
 
 def pick(file, scenario: str, setting: str, member: int, limit: int) -> list[int]:
@@ -37,12 +34,7 @@ def pick(file, scenario: str, setting: str, member: int, limit: int) -> list[int
 
 
 def encode(scorer, file, index: int) -> dict:
-    rgbd, ids = file["rgbd"][index], file["ids"][index]
-    slots, size = file["states"].shape[2], rgbd.shape[1]
-    encoded = encode_frames(scorer.vae, rgbd, ids, slots)
-    return {"frames": normalise(torch.from_numpy(rgbd))[None], "mean": torch.from_numpy(encoded["mean"])[None],
-            "visible": torch.from_numpy(encoded["pixels"] > visible_threshold(size))[None],
-            "background": torch.from_numpy(encoded["background_mean"])[None]}
+    return encode_videos(scorer, file, index, index + 1)
 
 
 @torch.no_grad()

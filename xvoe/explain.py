@@ -12,11 +12,10 @@ import numpy as np
 import torch
 
 from . import store
-from .data import check_size, visible_threshold
+from .data import check_size
 from .errors import XvoeError
-from .latents import encode_frames
 from .models.perception import to_uint8
-from .score import Scorer, composite, decode_slots
+from .score import Scorer, composite, decode_slots, encode_videos, explained_latents
 from .viz import describe
 
 
@@ -38,24 +37,13 @@ def explain(scorer: Scorer, data: str, index: int) -> Explanation:
         if not 0 <= index < count:
             raise XvoeError(f"index {index} is out of range: the file holds videos 0..{count - 1}")
         check_size(file, scorer.vae.config.image_size, f"the model {scorer.name}")
-        rgbd, ids, kind = file["rgbd"][index], file["ids"][index], file["kind"][index]
-        frames, size, slots = rgbd.shape[0], rgbd.shape[1], file["states"].shape[2]
-        walls = [list(file.attrs["kind_names"]).index(k) for k in ("wall", "window_wall")]
+        video = encode_videos(scorer, file, index, index + 1)
+        rgbd, frames = file["rgbd"][index], file["rgbd"].shape[1]
         title = describe(file, index)
-    encoded = encode_frames(scorer.vae, rgbd, ids, slots)
-    mean = torch.from_numpy(encoded["mean"])[None]
-    visible = torch.from_numpy(encoded["pixels"] > visible_threshold(size))[None]
-    background = torch.from_numpy(encoded["background_mean"])[None]
-    refined = scorer.xpl.refine(mean, visible)
-    slot = torch.tensor([-1])
-    if scorer.xpl.config.use_reasoning:
-        refined, _, slot = scorer.xpl.explain(refined, visible)
-    occupied = visible.any(1)
-    if slot[0] >= 0:
-        occupied[0, slot[0]] = True
-    occluder = torch.from_numpy(np.isin(kind, walls))[None]
+    refined, slot, occupied = explained_latents(scorer.xpl, video["mean"], video["visible"])
+    occluder = video["occluder"]
     layers = decode_slots(scorer.vae, refined, occupied)
-    background_pictures = scorer.vae.decode(background[0])[None]
+    background_pictures = scorer.vae.decode(video["background"][0])[None]
     behind = composite(scorer.vae, background_pictures, layers, occupied & ~occluder)
     if slot[0] >= 0:
         alone = layers[0, :, slot[0]]

@@ -57,18 +57,26 @@ def composite(vae: ComponentVAE, background: Tensor, layers: Tensor, include: Te
     return vae.composite(torch.cat([background[:, :, None], kept], dim=2))
 
 
-@torch.no_grad()
-def mse_surprise(vae: ComponentVAE, xpl: XPL, frames: Tensor, mean: Tensor, visible: Tensor,
-                 background: Tensor, occluder: Tensor) -> Surprise:
-    """frames: (B, T, 4, H, W) in [-1, 1]; mean: (B, T, K, D) posterior means; visible:
-    (B, T, K) bool; background: (B, T, D) the background component's means; occluder: (B, K)
-    bool, the wall slots."""
+def explained_latents(xpl: XPL, mean: Tensor, visible: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+    """Transformer 1's refined latents with Transformer 2's explanation filled in, the slot it
+    filled (B,) (-1 if none, or without reasoning), and the occupied slots (B, K): seen at some
+    frame, or explained."""
     refined = xpl.refine(mean, visible)
     slot = torch.full(mean.shape[:1], -1, dtype=torch.long, device=mean.device)
     if xpl.config.use_reasoning:
         refined, _, slot = xpl.explain(refined, visible)
     occupied = visible.any(dim=1)
     occupied[torch.arange(len(slot))[slot >= 0], slot[slot >= 0]] = True
+    return refined, slot, occupied
+
+
+@torch.no_grad()
+def mse_surprise(vae: ComponentVAE, xpl: XPL, frames: Tensor, mean: Tensor, visible: Tensor,
+                 background: Tensor, occluder: Tensor) -> Surprise:
+    """frames: (B, T, 4, H, W) in [-1, 1]; mean: (B, T, K, D) posterior means; visible:
+    (B, T, K) bool; background: (B, T, D) the background component's means; occluder: (B, K)
+    bool, the wall slots."""
+    refined, slot, occupied = explained_latents(xpl, mean, visible)
     batch, frames_count = mean.shape[:2]
     background_pictures = vae.decode(background.flatten(0, 1)).reshape(batch, frames_count, *frames.shape[2:])
     layers = decode_slots(vae, refined, occupied)
@@ -207,7 +215,7 @@ def score_split(model: str | Scorer, data: str, out: str, *, how: str = "sum", v
     return out
 
 
-def _xpl_batch(scorer: Scorer, file, start: int, stop: int) -> dict[str, Tensor]:
+def encode_videos(scorer: Scorer, file, start: int, stop: int) -> dict[str, Tensor]:
     """Videos [start, stop) of an open test split, encoded: frames, latents, visibility, walls."""
     import numpy as np
 
@@ -228,7 +236,7 @@ def _xpl_batch(scorer: Scorer, file, start: int, stop: int) -> dict[str, Tensor]
 
 def _xpl_curves(scorer: Scorer, file, start: int, stop: int) -> tuple[Tensor, Tensor]:
     """s_img and s_dyn (B, T) of videos [start, stop) of an open test split under XPL or PLATO."""
-    batch = _xpl_batch(scorer, file, start, stop)
+    batch = encode_videos(scorer, file, start, stop)
     surprise = mse_surprise(scorer.vae, scorer.xpl, batch["frames"], batch["mean"], batch["visible"],
                             batch["background"], batch["occluder"])
     return surprise.s_img, surprise.s_dyn
@@ -239,7 +247,7 @@ def _xpl_nll(scorer: Scorer, file, start: int, stop: int, particles: int) -> lis
     from inference.model import InferenceConfig
     from inference.surprise import nll_surprise
 
-    batch = _xpl_batch(scorer, file, start, stop)
+    batch = encode_videos(scorer, file, start, stop)
     config = InferenceConfig(particles=particles)
     results = []
     for i in range(stop - start):
