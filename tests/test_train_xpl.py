@@ -8,7 +8,7 @@ from xvoe.latents import Latents, write_latents
 from xvoe.train_xpl import LatentBatches, load_xpl, train_xpl
 
 N, T, K, D = 32, 8, 4, 6
-TINY = {"steps": 60, "batch_size": 32, "lr": 3e-3, "warmup_steps": 1, "log_every": 5}
+TINY = {"steps": 100, "batch_size": 32, "lr": 3e-3, "warmup_steps": 1, "log_every": 5}
 
 
 @pytest.fixture(scope="module")
@@ -48,13 +48,14 @@ def tiny_preset(monkeypatch):
 def test_xpl_stage_learns_and_resumes_exactly(cache, tmp_path):
     straight = train_xpl(cache, tmp_path / "a", progress=False, **TINY)
     rows = losses(tmp_path / "a", "xpl")
-    assert float(rows[-1]["dynamics"]) < 0.6 * float(rows[0]["dynamics"])
+    for term, share in (("dynamics", 0.8), ("refill", 0.9), ("loss", 0.8)):
+        assert float(rows[-1][term]) < share * float(rows[0][term]), term
     assert "mae" in rows[0]
     # interrupted after 12 steps, then resumed: the same weights as the straight run
     train_xpl(cache, tmp_path / "b", progress=False, **{**TINY, "steps": 12})
     resumed = train_xpl(cache, tmp_path / "b", progress=False, resume=True, **TINY)
     a, b = torch.load(straight, weights_only=False), torch.load(resumed, weights_only=False)
-    assert a["step"] == b["step"] == 60
+    assert a["step"] == b["step"] == 100
     for name, value in a["model"].items():
         torch.testing.assert_close(value, b["model"][name], msg=name)
     model, state = load_xpl(tmp_path / "a")

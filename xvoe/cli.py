@@ -117,6 +117,13 @@ def _train_overrides(args: argparse.Namespace) -> dict:
             "max_videos": args.max_videos}
 
 
+def cmd_ship(args: argparse.Namespace) -> None:
+    from .zoo import WEIGHTS, ship
+
+    for path in ship(args.run_dir, args.out or WEIGHTS):
+        print(f"{path}  {path.stat().st_size / 2**20:.1f} MB")
+
+
 def cmd_train(args: argparse.Namespace) -> None:
     if args.stage == "perception":
         from .train import train_perception
@@ -271,6 +278,13 @@ def build_parser() -> argparse.ArgumentParser:
     pipeline.add_argument("--workers", type=_positive, default=_default_workers(), help="generation workers")
     pipeline.add_argument("--quiet", action="store_true", help="no progress bars")
     pipeline.set_defaults(run=cmd_pipeline)
+
+    ship = verbs.add_parser("ship", help="make a run's models the shipped ones (xpl, plato, ...)",
+                            description="Copy RUN_DIR's checkpoints, stripped to weights and configs, into "
+                                        "the package's weights directory, where --model xpl finds them.")
+    ship.add_argument("run_dir", help="the run directory (of xvoe pipeline)")
+    ship.add_argument("--out", help="another directory to write to (default: the package's)")
+    ship.set_defaults(run=cmd_ship)
     return parser
 
 

@@ -129,7 +129,7 @@ class Scorer:
 
 
 def load_scorer(model: str, device: str = "cpu") -> Scorer:
-    """`random`, a run directory (its xpl.pt), a stage checkpoint (xpl.pt, plato.pt,
+    """`random`, a shipped model's name (xvoe.zoo), a run directory (its xpl.pt), a stage checkpoint (xpl.pt, plato.pt,
     xpl-noresidual.pt with perception.pt beside it; phydnet.pt), or RUN_DIR/STAGE."""
     from .errors import XvoeError
     from .train import load_perception
@@ -138,8 +138,14 @@ def load_scorer(model: str, device: str = "cpu") -> Scorer:
 
     if model == "random":
         return Scorer("random", None, None)
+    from .zoo import SHIPPED, WEIGHTS
+
     path = Path(model)
-    if path.is_file():
+    if model in SHIPPED and not path.exists():
+        if not (WEIGHTS / f"{model}.pt").is_file():
+            raise XvoeError(f"the model {model} is not shipped with this copy of xvoe; train it with xvoe pipeline")
+        run_dir, stage = WEIGHTS, model
+    elif path.is_file():
         run_dir, stage = path.parent, path.stem
     elif path.name in STAGES and (path.parent / f"{path.name}.pt").is_file():
         run_dir, stage = path.parent, path.name

@@ -271,9 +271,14 @@ def fit(job: Job, config: TrainConfig, run_dir: str | os.PathLike, *, place: Dis
 # --- the perception stage -------------------------------------------------------------
 
 def resolve_run(model: str | os.PathLike, stage: str = "perception") -> Path:
-    """A checkpoint from a file, a run directory holding STAGE.pt, or a run name under runs/."""
+    """A checkpoint from a file, a run directory holding STAGE.pt, a run name under runs/, or
+    the name of a shipped model (xvoe.zoo)."""
+    from .zoo import WEIGHTS, SHIPPED
+
     path = Path(model)
     candidates = [path, path / f"{stage}.pt", Path("runs") / path / f"{stage}.pt"]
+    if str(model) in SHIPPED:
+        candidates.append(WEIGHTS / f"{stage}.pt")
     for candidate in candidates:
         if candidate.is_file():
             return candidate

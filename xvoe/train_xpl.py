@@ -43,9 +43,10 @@ class LatentBatch:
     visible: Tensor     # (B, T, K) bool
     order: Tensor       # (B, K) slot order
     hidden: Tensor      # (B,) the slot Transformer 2 must rebuild
+    refill: Tensor      # (B, T, K) bool: seen entries hidden from Transformer 1, which must rebuild them
 
     def to(self, device) -> LatentBatch:
-        return LatentBatch(*(t.to(device) for t in (self.mean, self.visible, self.order, self.hidden)))
+        return LatentBatch(*(t.to(device) for t in (self.mean, self.visible, self.order, self.hidden, self.refill)))
 
     def __len__(self) -> int:
         return len(self.mean)
@@ -66,7 +67,7 @@ class LatentBatches:
         self.slots = self.mean.shape[2]
 
     def batch(self, step: int) -> LatentBatch:
-        videos, orders, hidden = [], [], []
+        videos, orders, hidden, refill = [], [], [], []
         for shard, (start, stop) in zip(self.shards, self.bounds):
             rng = np.random.default_rng([self.seed, step, shard])
             video = rng.integers(start, stop, self.per_shard) - self.start
@@ -74,9 +75,23 @@ class LatentBatches:
             videos.append(video)
             orders.append(order)
             hidden.append(self.hidden_slots(rng, video, order))
+            refill.append(self.refill_spans(rng, len(video)))
         video = torch.from_numpy(np.concatenate(videos))
         return LatentBatch(self.mean[video], self.visible[video], torch.from_numpy(np.concatenate(orders)),
-                           torch.from_numpy(np.concatenate(hidden)))
+                           torch.from_numpy(np.concatenate(hidden)), torch.from_numpy(np.concatenate(refill)))
+
+    REFILL_SHARE = 0.5   # of the slots, this share has a span of frames hidden from Transformer 1
+
+    def refill_spans(self, rng: np.random.Generator, videos: int) -> np.ndarray:
+        """(B, T, K) bool in the original slot order: one span of frames per chosen slot,
+        from 1 frame to all but one, anywhere (touching the start or the end, as a wall
+        that stands from the start or never lifts hides them)."""
+        frames = self.mean.shape[1]
+        length = rng.integers(1, frames, (videos, self.slots))
+        start = rng.integers(0, frames, (videos, self.slots)) - length // 2
+        chosen = rng.random((videos, self.slots)) < self.REFILL_SHARE
+        t = np.arange(frames)[None, :, None]
+        return (t >= start[:, None]) & (t < (start + length)[:, None]) & chosen[:, None]
 
 
     OBJECT_SHARE = 0.5   # of the slots Transformer 2 rebuilds, at least this share hold a seen object

@@ -24,6 +24,7 @@ class XPLConfig:
     use_reasoning: bool = True      # False: PLATO (dynamics on the raw means)
     stop_target_gradient: bool = True   # the dynamics target is a constant for Transformer 1
     mae_weight: float = 1.0
+    refill_weight: float = 1.0      # Transformer 1 rebuilding hidden spans of seen frames
     permute_slots: bool = True      # slot order carries no meaning: shuffle it in training
 
 
@@ -41,7 +42,7 @@ class XPL(nn.Module):
 
     def forward(self, batch) -> dict[str, Tensor]:
         """The training objective of a LatentBatch (what the training loop calls)."""
-        return self.losses(batch.mean, batch.visible, batch.order, batch.hidden)
+        return self.losses(batch.mean, batch.visible, batch.order, batch.hidden, batch.refill)
 
     def refine(self, z: Tensor, visible: Tensor) -> Tensor:
         """Fill the frames in which a seen object is occluded (Transformer 1)."""
@@ -72,18 +73,34 @@ class XPL(nn.Module):
         return self.existence(features.flatten(1)).squeeze(-1)
 
     def losses(self, z: Tensor, visible: Tensor, order: Tensor | None = None,
-               hidden: Tensor | None = None) -> dict[str, Tensor]:
+               hidden: Tensor | None = None, refill: Tensor | None = None) -> dict[str, Tensor]:
         """z: (B, T, K, D) cached means; visible: (B, T, K) bool. `order` (B, K), a slot
-        order per video, and `hidden` (B,), the slot Transformer 2 must rebuild, are drawn
-        here unless given (the training data give them, so that batches are reproducible)."""
+        order per video, `hidden` (B,), the slot Transformer 2 must rebuild, and `refill`
+        (B, T, K) bool, seen entries Transformer 1 must rebuild, are drawn here unless given
+        (the training data give them, so that batches are reproducible).
+
+        Transformer 1 learns from two signals: the dynamics loss, and rebuilding seen entries
+        hidden from it (spans like the ones a wall hides). The second keeps its fills on the
+        latents the decoder knows; with the dynamics loss alone, fills drift to latents that
+        decode to nothing or to blots."""
+        if refill is None:
+            refill = torch.zeros_like(visible)
         if self.config.permute_slots and self.training:
-            z, visible = permute_slots(z, visible, order=order)
-        refined = self.refine(z, visible)
-        prediction = self.dynamics(refined[:, :-1])
-        target = refined[:, 1:].detach() if self.config.stop_target_gradient else refined[:, 1:]
-        dynamics = ((prediction - target) ** 2).sum(-1).mean()
-        out = {"dynamics": dynamics}
+            z, visible, refill = permute_slots(z, visible, refill, order=order)
+        refill = refill & visible
+        out = {}
         if self.config.use_reasoning:
+            refined = self.transformer1(z, occlusion_keep(visible) & ~refill)[0]
+            if refill.any():
+                out["refill"] = (((refined - z) ** 2).sum(-1) * refill).sum() / refill.sum()
+            fills = refined if not self.config.stop_target_gradient else refined.detach()
+            target = torch.where(visible.unsqueeze(-1), z, fills)[:, 1:]
+        else:
+            refined, target = z, z[:, 1:]
+        prediction = self.dynamics(refined[:, :-1])
+        out["dynamics"] = ((prediction - target) ** 2).sum(-1).mean()
+        if self.config.use_reasoning:
+            refined = torch.where(refill.unsqueeze(-1), z, refined)    # what Transformer 2 sees at test
             slot = hidden if hidden is not None else torch.randint(z.shape[2], (z.shape[0],), device=z.device)
             keep = hide_slot(visible.shape, slot)
             mean, scale = self.transformer2(refined.detach(), keep)
@@ -94,8 +111,9 @@ class XPL(nn.Module):
             exists = visible[rows, :, slot].any(dim=1).to(logit.dtype)
             out["existence"] = nn.functional.binary_cross_entropy_with_logits(logit, exists)
             out["mae_mse"] = (((mean - refined.detach()) ** 2).sum(-1) * (~keep)).sum() / (~keep).sum()
-        out["loss"] = dynamics + self.config.mae_weight * out.get("mae", torch.zeros(())) + out.get(
-            "existence", torch.zeros(()))
+        zero = torch.zeros((), device=z.device)
+        out["loss"] = (out["dynamics"] + self.config.refill_weight * out.get("refill", zero)
+                       + self.config.mae_weight * out.get("mae", zero) + out.get("existence", zero))
         return out
 
 
