@@ -53,3 +53,20 @@ def test_tiny_pipeline_runs_end_to_end_and_skips_done_stages(tmp_path, tiny_cpu_
 def test_pipeline_refuses_unknown_models():
     with pytest.raises(XvoeError, match="unknown model"):
         PipelineConfig("x", models=("xpl", "phydnet2"))
+
+
+def test_report_compares_models_with_their_numbers():
+    from xvoe.pipeline import compare_models
+
+    def row(model, scenario, setting, value, low=0.0, high=1.0):
+        return {"metric": "comparative", "model": model, "scenario": scenario, "setting": setting,
+                "value": value, "low": low, "high": high}
+
+    rows = [row("xpl", "collision", "S3", 0.9), row("plato", "collision", "S3", 0.4),
+            row("xpl", "collision", "S1", 0.97), row("plato", "collision", "S1", 0.8),
+            row("random", "collision", "S1", 0.55, 0.45, 0.62), row("random", "collision", "S3", 0.3, 0.2, 0.4)]
+    lines = compare_models(rows)
+    assert "- collision S3 (explicative): XPL 90.0% beats plato 40.0% (+50.0 points)." in lines
+    assert "- plato: lowest predictive (S1) accuracy 80.0% (collision)." in lines
+    assert "- random: 50% lies inside the 95% interval in 1 of 2 settings." in lines
+    assert compare_models([row("xpl", "collision", "S3", 0.9)]) == []

@@ -141,6 +141,42 @@ def _explanations(run_dir: Path, test_data: Path, models: tuple[str, ...]) -> No
         plt.close(figure)
 
 
+def compare_models(rows: list[dict]) -> list[str]:
+    """The report's verdict on the baselines, in sentences with the numbers: XPL's explicative
+    accuracy against each other model's (the paper: only XPL is above 50% there), the
+    predictive accuracy of every model, and whether the random agent sits at chance."""
+    def value(model: str, scenario: str, setting: str) -> dict | None:
+        return next((r for r in rows if r["metric"] == "comparative" and r["model"] == model
+                     and (r["scenario"], r["setting"]) == (scenario, setting)), None)
+
+    models = list(dict.fromkeys(r["model"] for r in rows))
+    if len(models) < 2:
+        return []
+    lines = ["## XPL against the other models", ""]
+    for scenario in ("collision", "blocking"):
+        ours = value("xpl", scenario, "S3")
+        if ours is None:
+            continue
+        for other in (m for m in models if m not in ("xpl", "random")):
+            theirs = value(other, scenario, "S3")
+            if theirs is not None:
+                gap = 100 * (float(ours["value"]) - float(theirs["value"]))
+                verdict = "beats" if gap > 0 else "does not beat"
+                lines.append(f"- {scenario} S3 (explicative): XPL {100 * float(ours['value']):.1f}% {verdict} "
+                             f"{other} {100 * float(theirs['value']):.1f}% ({gap:+.1f} points).")
+    for model in (m for m in models if m != "random"):
+        worst = min((r for r in rows if r["metric"] == "comparative" and r["model"] == model
+                     and r["setting"] == "S1"), key=lambda r: float(r["value"]), default=None)
+        if worst is not None:
+            lines.append(f"- {model}: lowest predictive (S1) accuracy {100 * float(worst['value']):.1f}% "
+                         f"({worst['scenario']}).")
+    chance = [r for r in rows if r["metric"] == "comparative" and r["model"] == "random"]
+    if chance:
+        inside = sum(float(r["low"]) <= 0.5 <= float(r["high"]) for r in chance)
+        lines.append(f"- random: 50% lies inside the 95% interval in {inside} of {len(chance)} settings.")
+    return lines
+
+
 def write_report(run_dir: Path, config: PipelineConfig) -> Path:
     """report.md: the holistic and comparative tables and the figures."""
     import csv
@@ -168,7 +204,7 @@ def write_report(run_dir: Path, config: PipelineConfig) -> Path:
                  if r["metric"] == "comparative" and (r["scenario"], r["setting"]) == (scenario, setting)}
         lines.append(f"| {scenario} {setting} | " + " | ".join(cell(found[m]) if m in found else "" for m in models)
                      + " |")
-    lines += [""]
+    lines += ["", *compare_models(total), ""]
     for figure in sorted((run_dir / "report").glob("*.png")):
         lines += [f"![{figure.stem}](report/{figure.name})", ""]
     timings = sorted((run_dir / ".done").iterdir())
