@@ -187,6 +187,7 @@ def score_split(model: str | Scorer, data: str, out: str, *, how: str = "sum", v
     out = Path(out)
     if out.exists() and not overwrite:
         raise XvoeError(f"{out} exists; pass --overwrite to replace it")
+    out.parent.mkdir(parents=True, exist_ok=True)
     with store.open_dataset(data) as file:
         if file.attrs["split"] != "test":
             raise XvoeError(f"{data} is a {file.attrs['split']} split; scores need a test split")
