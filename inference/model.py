@@ -71,7 +71,7 @@ class HiddenObjectModel(nn.Module):
                 loc, scale = self.scene.initial(particles)
                 trajectory = [pyro.sample("z_0", dist.Normal(loc, scale).to_event(1))]
                 for t in range(1, self.scene.frames):
-                    loc = self.scene.transition(torch.stack(trajectory, dim=1))
+                    loc = self._transition(torch.stack(trajectory, dim=1), exists.bool())
                     step = dist.Normal(loc, self.config.transition_sigma).to_event(1)
                     trajectory.append(pyro.sample(f"z_{t}", step))
             expected = self.scene.render(torch.stack(trajectory, dim=1), exists)
@@ -83,6 +83,15 @@ class HiddenObjectModel(nn.Module):
                 pyro.sample("seen_motion", dist.Normal(predicted, self.config.motion_sigma).to_event(3),
                             obs=seen.expand(particles, *seen.shape))
         return exists
+
+    def _transition(self, history: Tensor, alive: Tensor) -> Tensor:
+        """The dynamics' mean for the particles that hold an object (alive (N,) bool). The
+        others' trajectory sites are masked out, so their mean is never used: the dynamics,
+        the dearest step, skip them (they keep their last latent, a finite stand-in)."""
+        loc = history[:, -1].clone()
+        if alive.any():
+            loc[alive] = self.scene.transition(history[alive])
+        return loc
 
     def guide(self, frames: Tensor, proposal: Proposal, particles: int = 1) -> Tensor:
         with pyro.plate("particles", particles, dim=-1):

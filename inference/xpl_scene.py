@@ -49,22 +49,32 @@ class XPLScene(nn.Module):
         return self.xpl.dynamics(self.with_hidden(history))[:, -1, self.hidden]
 
     def render(self, trajectory: Tensor, exists: Tensor) -> Tensor:
-        particles = trajectory.shape[0]
-        pictures = self.vae.decode(trajectory.reshape(-1, self.dim)).reshape(particles, self.frames,
-                                                                            *self.layers.shape[-3:])
-        layers = self.layers.expand(particles, *self.layers.shape).clone()
-        layers[:, :, self.hidden] = torch.where(exists.bool()[:, None, None, None, None], pictures,
-                                                self.layers[:, self.hidden])
-        background = self.background.expand(particles, *self.background.shape)[:, :, None]
+        """Expected frames (N, T, 4, H, W). Particles without a hidden object all show the same
+        scene, so it is composited once, and only the others' hidden latents are decoded."""
+        alive = exists.bool()
+        frames = self._composite(self.layers[None]).expand(len(alive), -1, -1, -1, -1).clone()
+        if alive.any():
+            count = int(alive.sum())
+            pictures = self.vae.decode(trajectory[alive].reshape(-1, self.dim))
+            layers = self.layers.expand(count, *self.layers.shape).clone()
+            layers[:, :, self.hidden] = pictures.reshape(count, self.frames, *self.layers.shape[-3:])
+            frames[alive] = self._composite(layers)
+        return frames
+
+    def _composite(self, layers: Tensor) -> Tensor:
+        """Frames (B, T, 4, H, W) of slot pictures (B, T, K, 4, H, W) over the background."""
+        background = self.background.expand(len(layers), *self.background.shape)[:, :, None]
         return self.vae.composite(torch.cat([background, layers], dim=2))
 
     def seen_motion(self, trajectory: Tensor, exists: Tensor) -> tuple[Tensor, Tensor]:
         """The dynamics' prediction (N, T-1, M, D) of the moving seen slots, and what was seen.
 
         Without a hidden object the free slot holds what the encoder made of its (empty)
-        pixels, as during training."""
-        scene = self.with_hidden(trajectory)
-        empty = self.refined[:, self.hidden].expand_as(scene[:, :, self.hidden])
-        scene[:, :, self.hidden] = torch.where(exists.bool()[:, None, None], scene[:, :, self.hidden], empty)
-        predicted = self.xpl.dynamics(scene[:, :-1])[:, :, self.moving]
+        pixels, as during training; that scene is the same for every such particle, so the
+        dynamics run on it once."""
+        alive = exists.bool()
+        empty = self.xpl.dynamics(self.refined[None, :-1])[:, :, self.moving]
+        predicted = empty.expand(len(alive), *empty.shape[1:]).clone()
+        if alive.any():
+            predicted[alive] = self.xpl.dynamics(self.with_hidden(trajectory[alive])[:, :-1])[:, :, self.moving]
         return predicted, self.refined[1:, self.moving]

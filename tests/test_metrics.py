@@ -127,3 +127,70 @@ def test_report_writes_table_and_figures(tmp_path):
     assert float(strong[0]["value"]) > 0.8
     with pytest.raises(XvoeError, match="two scores files"):
         report([tmp_path / "a.csv", tmp_path / "a.csv"], tmp_path / "again", rounds=5)
+
+
+def with_nll(rows):
+    """rows: (scenario, setting, pair, member, possible, score, nll)."""
+    scores = table([r[:6] for r in rows])
+    scores["nll"] = np.array([r[6] for r in rows], dtype=float)
+    return scores
+
+
+BOTH = with_nll([
+    # blocking S1 (member 1 impossible): pair 0 both right; pair 1 only the score right; pair 2 only the NLL
+    # right; pair 3 the score ties and the NLL is wrong: neither
+    ("blocking", "S1", 0, 0, True, 1.0, 10.0), ("blocking", "S1", 0, 1, False, 2.0, 20.0),
+    ("blocking", "S1", 1, 0, True, 1.0, 30.0), ("blocking", "S1", 1, 1, False, 2.0, 20.0),
+    ("blocking", "S1", 2, 0, True, 3.0, 10.0), ("blocking", "S1", 2, 1, False, 2.0, 20.0),
+    ("blocking", "S1", 3, 0, True, 2.0, 30.0), ("blocking", "S1", 3, 1, False, 2.0, 20.0),
+    # blocking S2 (both possible): pair 0 agree, pair 1 disagree with no right answer
+    ("blocking", "S2", 0, 0, True, 1.0, 10.0), ("blocking", "S2", 0, 1, True, 2.0, 20.0),
+    ("blocking", "S2", 1, 0, True, 1.0, 30.0), ("blocking", "S2", 1, 1, True, 2.0, 20.0),
+])
+
+
+def test_disagreements_hand_case():
+    from xvoe.metrics import disagreements
+
+    rows = disagreements(BOTH)
+    found = {(r["setting"], r["pair"]): (r["score_says"], r["nll_says"], r["right"]) for r in rows}
+    assert found == {("S1", 1): ("member 1", "member 0", "score"), ("S1", 2): ("member 0", "member 1", "nll"),
+                     ("S1", 3): ("tie", "member 0", "neither"), ("S2", 1): ("member 1", "member 0", "")}
+    first = next(r for r in rows if r["setting"] == "S1" and r["pair"] == 1)
+    assert (first["index_0"], first["index_1"], first["score_1"], first["nll_0"]) == (2, 3, 2.0, 30.0)
+
+
+def test_side_by_side_table_counts_disagreeing_pairs():
+    from xvoe.metrics import has_both_surprises, metric_rows, side_by_side
+
+    assert has_both_surprises(BOTH)
+    assert not has_both_surprises({**BOTH, "nll": BOTH["score"]})     # --surprise nll: score is the NLL
+    table_rows = side_by_side(BOTH, metric_rows(BOTH, "m", rounds=20), "m")
+    s1 = next(r for r in table_rows if r["metric"] == "comparative" and r["setting"] == "S1")
+    assert s1["score"] == pytest.approx(2.5 / 4) and s1["nll"] == pytest.approx(2 / 4)
+    assert s1["difference"] == pytest.approx(-0.125) and (s1["pairs"], s1["disagreeing_pairs"]) == (4, 3)
+    assert {r["metric"] for r in table_rows} == {"comparative", "holistic", "relative"}
+
+
+def test_report_compares_the_two_surprises_and_draws_disagreements(test_data, test_file, tmp_path):
+    from xvoe.metrics import report
+
+    rng = np.random.default_rng(0)
+    count = len(test_data["pair"])
+    path = tmp_path / "both.csv"
+    with open(path, "w", newline="") as handle:
+        writer = csv.writer(handle)
+        writer.writerow(["index", "model", "scenario", "setting", "pair", "member", "possible", "score", "nll"])
+        for i, (score, nll) in enumerate(rng.random((count, 2))):
+            writer.writerow([i, "both", test_data["scenario"][i], test_data["setting"][i], test_data["pair"][i],
+                             test_data["member"][i], test_data["possible"][i], score, nll])
+    written = {p.name for p in report([path], tmp_path / "report", rounds=10, data=test_file)}
+    assert {"surprise-both.csv", "disagreements-both.csv", "disagreements-both.png"} <= written
+    rows = list(csv.DictReader(open(tmp_path / "report" / "disagreements-both.csv")))
+    assert rows and all(r["score_says"] != r["nll_says"] for r in rows)
+    other = tmp_path / "other.h5"
+    from xvoe.generate import GenerateConfig, generate
+
+    generate(GenerateConfig("test", pairs=1, size=16, seed=3), other, workers=1, progress=False)
+    with pytest.raises(XvoeError, match="does not hold the videos"):
+        report([path], tmp_path / "again", rounds=5, data=other)

@@ -1,7 +1,9 @@
 """The NLL surprise through the real model's code path, with tiny untrained networks."""
 import warnings
 
+import numpy as np
 import pyro
+import pytest
 import torch
 from pyro.util import check_model_guide_match
 
@@ -55,3 +57,112 @@ def test_without_a_free_slot_no_hidden_object_is_proposed():
     result = nll_surprise(vae, xpl, *video(hidden_free=False), InferenceConfig(particles=8))
     assert result.hidden_slot == -1 and result.p_hidden == 0.0
     assert abs(result.ess - 8.0) < 1e-6           # every particle is the same scene: equal weights
+
+
+def test_the_guide_leaves_samples_to_both_branches_of_existence():
+    from inference.surprise import BRANCH_SAMPLES, defensive
+
+    assert float(defensive(torch.tensor(0.999), 64)) == pytest.approx(1 - BRANCH_SAMPLES / 64)
+    assert float(defensive(torch.tensor(0.0001), 64)) == pytest.approx(BRANCH_SAMPLES / 64)
+    assert float(defensive(torch.tensor(0.3), 64)) == pytest.approx(0.3)
+    assert float(defensive(torch.tensor(0.9), 4)) == 0.5         # too few particles: a fair coin
+
+
+def encoded(hidden_free=True):
+    """video() as `encode_videos` gives it: a batch of one."""
+    frames, mean, visible, background, occluder = video(hidden_free)
+    return {"frames": frames[None], "mean": mean[None], "visible": visible[None], "background": background[None],
+            "occluder": occluder[None]}
+
+
+@pytest.mark.parametrize("hidden_free", [True, False])
+def test_nll_explanation_shapes_and_probabilities(hidden_free):
+    import matplotlib.pyplot as plt
+
+    from xvoe.explain import nll_explanation
+    from xvoe.viz import plot_explanation
+
+    vae, xpl = tiny_models()
+    explanation = nll_explanation(vae, xpl, encoded(hidden_free), particles=16, title="tiny")
+    for pictures in (explanation.observed, explanation.behind_wall, explanation.hidden_object):
+        assert pictures.shape == (T, 16, 16, 4) and pictures.dtype == np.uint8
+    assert 0.0 <= explanation.p_hidden <= 1.0 and 1.0 <= explanation.ess <= 16.0 + 1e-9
+    assert 0 <= explanation.holding <= 16 and "ESS" in explanation.title and "tiny" in explanation.title
+    if hidden_free:
+        assert explanation.slot == 3 and explanation.holding > 0
+        assert 1.0 <= explanation.holding_ess <= explanation.holding + 1e-9
+    else:
+        assert explanation.slot == -1 and explanation.holding == 0 and explanation.p_hidden == 0.0
+        assert (explanation.hidden_object[..., 3] == 255).all()     # the blank: nothing drawn
+    figure = plot_explanation(explanation)
+    assert len(figure.axes[0].get_yticklabels()) == 3
+    plt.close(figure)
+
+
+def test_hidden_posterior_weights_the_particles_that_hold_an_object():
+    from inference.surprise import hidden_posterior
+
+    vae, xpl = tiny_models()
+    pyro.set_rng_seed(0)
+    result = nll_surprise(vae, xpl, *video(), InferenceConfig(particles=32))
+    posterior = hidden_posterior(result)
+    nodes = result.estimate.guide_trace.nodes
+    alive = nodes["exists"]["value"].bool()
+    assert posterior.holding == int(alive.sum()) and posterior.mean.shape == (T, D)
+    weights = torch.softmax(result.estimate.log_weights[alive], 0)
+    expected = sum(w * nodes["z_2"]["value"][alive][i].double() for i, w in enumerate(weights))
+    torch.testing.assert_close(posterior.mean[2].double(), expected, rtol=1e-5, atol=1e-5)
+    assert 0.0 < posterior.best_weight <= 1.0
+
+
+@pytest.fixture(scope="module")
+def shipped(tmp_path_factory):
+    """The shipped xpl model and a small test split at its resolution, from a seed it never saw."""
+    from xvoe.generate import GenerateConfig, generate
+    from xvoe.score import load_scorer
+    from xvoe.zoo import available
+
+    if "xpl" not in available():
+        pytest.skip("no shipped xpl model in xvoe/weights")
+    scorer = load_scorer("xpl")
+    path = generate(GenerateConfig("test", pairs=5, size=scorer.image_size, seed=11),
+                    tmp_path_factory.mktemp("shipped") / "t.h5", workers=1, progress=False)
+    return scorer, path
+
+
+def test_shipped_model_ranks_the_impossible_member_above_the_expected_one_in_permanence_s1(shipped):
+    """The issue's check on generated videos. Permanence S1 (a cube taken away behind the wall):
+    the shipped model's NLL picked the impossible member in 24 of 25 pairs of the default test
+    split; collision S1 (14 of 25) and continuity S1 (16 of 25) are near chance with it."""
+    from xvoe import store
+    from xvoe.score import encode_videos
+
+    scorer, path = shipped
+    pyro.set_rng_seed(0)
+    with store.open_dataset(path) as file:
+        chosen = (store.strings(file, "scenario") == "permanence") & (store.strings(file, "setting") == "S1")
+        start, pairs = int(np.flatnonzero(chosen)[0]), int(chosen.sum()) // 2
+        batch = encode_videos(scorer, file, start, start + 2 * pairs)
+        member = file["member"][start:start + 2 * pairs]
+    nll = np.array([nll_surprise(scorer.vae, scorer.xpl, *(batch[k][i] for k in ("frames", "mean", "visible",
+                                                                              "background", "occluder")),
+                                 InferenceConfig(particles=16)).nll for i in range(2 * pairs)])
+    assert member.tolist() == [0, 1] * pairs
+    wins = nll[1::2] > nll[0::2]
+    assert wins.sum() > pairs / 2, f"the impossible member was more surprising in {wins.sum()} of {pairs} pairs"
+
+
+def test_cli_explain_with_the_nll_posterior(shipped, tmp_path, capsys):
+    from xvoe import store
+    from xvoe.cli import main
+
+    scorer, path = shipped
+    with store.open_dataset(path) as file:
+        chosen = (store.strings(file, "scenario") == "blocking") & (store.strings(file, "setting") == "S2")
+        index = int(np.flatnonzero(chosen & (file["member"][:] == 0))[0])
+    out = tmp_path / "nll.png"
+    args = ["explain", "--model", "xpl", "--data", str(path), "--index", str(index), "--surprise", "nll",
+            "--particles", "16", "--out", str(out)]
+    assert main(args) == 0 and out.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    assert main(["explain", "--model", "random", "--data", str(path), "--surprise", "nll", "--out", str(out)]) == 2
+    assert "random agent" in capsys.readouterr().err

@@ -71,7 +71,7 @@ def cmd_score(args: argparse.Namespace) -> None:
 def cmd_explain(args: argparse.Namespace) -> None:
     import matplotlib.pyplot as plt
 
-    from .explain import explain
+    from .explain import explain, explain_nll
     from .score import load_scorer
     from .viz import plot_explanation
 
@@ -80,7 +80,11 @@ def cmd_explain(args: argparse.Namespace) -> None:
     scorer = load_scorer(args.model)
     if scorer.phydnet is not None:
         raise XvoeError("PhyDNet predicts pixels and has no hidden object to draw; give an XPL run")
-    figure = plot_explanation(explain(scorer, args.data, args.index))
+    if args.surprise == "nll":
+        explanation = explain_nll(scorer, args.data, args.index, particles=args.particles, seed=args.seed)
+    else:
+        explanation = explain(scorer, args.data, args.index)
+    figure = plot_explanation(explanation)
     figure.savefig(args.out, dpi=100, bbox_inches="tight")
     plt.close(figure)
     print(args.out)
@@ -97,7 +101,7 @@ def cmd_pipeline(args: argparse.Namespace) -> None:
 def cmd_metrics(args: argparse.Namespace) -> None:
     from .metrics import report
 
-    for path in report(args.scores, args.out, rounds=args.rounds, seed=args.seed):
+    for path in report(args.scores, args.out, rounds=args.rounds, seed=args.seed, data=args.data):
         print(path)
 
 
@@ -247,21 +251,32 @@ def build_parser() -> argparse.ArgumentParser:
     explain = verbs.add_parser("explain", help="draw the model's explanation of what is behind the wall",
                                description="Rows of observed frames, the decoded scene with the occluder left "
                                            "out (what the model believes is behind the wall), and the decoded "
-                                           "explanation object alone.")
+                                           "explanation object alone. With --surprise nll the explanation is the "
+                                           "posterior mean of the importance samples that hold a hidden object.")
     explain.add_argument("--model", required=True, help="a run directory or a stage checkpoint (xpl.pt, ...)")
     explain.add_argument("--data", required=True, help="a split file")
     explain.add_argument("--index", type=int, default=0, help="the video")
     explain.add_argument("--out", required=True, help="the PNG to write")
+    explain.add_argument("--surprise", choices=("mse", "nll"), default="mse",
+                         help="mse: Transformer 2's proposal (default); nll: the Pyro model's posterior, the "
+                              "importance-weighted hidden object with p(hidden object) and the ESS")
+    explain.add_argument("--particles", type=_positive, default=64, help="importance samples (nll)")
+    explain.add_argument("--seed", type=int, default=0, help="seed of the importance samples (nll)")
     explain.set_defaults(run=cmd_explain)
 
     metrics = verbs.add_parser("metrics", help="comparative, holistic and relative metrics with figures",
                                description="The paper's metrics with bootstrap 95%% intervals, for the total "
                                            "score and each component, of one or more models' scores files: "
-                                           "metrics.csv, metrics.json and the figures in --out.")
+                                           "metrics.csv, metrics.json and the figures in --out. Scores holding "
+                                           "both the MSE score and the NLL also get them side by side "
+                                           "(surprise-MODEL.csv) and the pairs they judge differently "
+                                           "(disagreements-MODEL.csv, and with --data a figure).")
     metrics.add_argument("scores", nargs="+", help="scores CSV files (one per model)")
     metrics.add_argument("--out", required=True, help="the report directory")
     metrics.add_argument("--rounds", type=_positive, default=1000, help="bootstrap resamples (default 1000)")
     metrics.add_argument("--seed", type=int, default=0, help="seed of the bootstrap")
+    metrics.add_argument("--data", help="the test split that was scored: with scores of both surprise definitions "
+                                        "(xvoe score --surprise both), draws pairs they judge differently")
     metrics.set_defaults(run=cmd_metrics)
 
     pipeline = verbs.add_parser("pipeline", help="generate, train, score and report, end to end",

@@ -209,15 +209,20 @@ def model_name(path: str | Path, scores: dict[str, np.ndarray]) -> str:
     return Path(path).stem
 
 
-def report(paths: list[str | Path], out_dir: str | Path, rounds: int = 1000, seed: int = 0) -> list[Path]:
+def report(paths: list[str | Path], out_dir: str | Path, rounds: int = 1000, seed: int = 0,
+           data: str | Path | None = None) -> list[Path]:
     """What `xvoe metrics` does: the table (CSV and JSON) and the figures, for one or more
-    models' scores files."""
+    models' scores files. A scores file holding both surprise definitions (`xvoe score
+    --surprise both`) also gets them side by side (surprise-MODEL.csv) and the pairs they
+    judge differently (disagreements-MODEL.csv); with `data`, the test split the scores
+    came from, a figure of a few of those pairs too."""
     import matplotlib.pyplot as plt
 
     from . import viz
 
     rows = []
     names = []
+    compared = {}
     for path in paths:
         scores = read_scores(path)
         name = model_name(path, scores)
@@ -225,11 +230,19 @@ def report(paths: list[str | Path], out_dir: str | Path, rounds: int = 1000, see
             raise XvoeError(f"two scores files name the model {name!r}; give each model its own name")
         names.append(name)
         rows += metric_rows(scores, name, rounds=rounds, seed=seed)
+        if has_both_surprises(scores):
+            compared[name] = scores
     written = list(write_table(rows, out_dir))
     figures = {"holistic.png": viz.plot_holistic(rows), "comparative.png": viz.plot_comparative(rows)}
     for name in names:
         if any(r["model"] == name and r["column"] != "score" for r in rows):
             figures[f"components-{name}.png"] = viz.plot_components(rows, name)
+    for name, scores in compared.items():
+        differ = disagreements(scores)
+        written.append(write_csv(side_by_side(scores, rows, name), Path(out_dir) / f"surprise-{name}.csv"))
+        written.append(write_csv(differ, Path(out_dir) / f"disagreements-{name}.csv", DISAGREEMENT_FIELDS))
+        if data is not None and differ:
+            figures[f"disagreements-{name}.png"] = _disagreement_figure(data, scores, differ)
     for filename, figure in figures.items():
         figure.savefig(Path(out_dir) / filename, dpi=90)
         plt.close(figure)
@@ -244,9 +257,107 @@ def write_table(rows: list[dict], out_dir: str | Path) -> tuple[Path, Path]:
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     csv_path, json_path = out_dir / "metrics.csv", out_dir / "metrics.json"
-    with open(csv_path, "w", newline="") as handle:
-        writer = csv.DictWriter(handle, list(rows[0]))
-        writer.writeheader()
-        writer.writerows(rows)
+    write_csv(rows, csv_path)
     json_path.write_text(json.dumps(rows, indent=1))
     return csv_path, json_path
+
+
+def write_csv(rows: list[dict], path: Path, fields: tuple[str, ...] | None = None) -> Path:
+    """Rows of dicts as a CSV (a header alone when there are none, from `fields`)."""
+    with open(path, "w", newline="") as handle:
+        writer = csv.DictWriter(handle, list(fields or rows[0]))
+        writer.writeheader()
+        writer.writerows(rows)
+    return path
+
+
+# --- the two surprise definitions, compared -------------------------------------------------
+
+SURPRISES = ("score", "nll")     # the MSE score (`xvoe score --surprise both`) and the NLL
+DISAGREEMENT_FIELDS = ("scenario", "setting", "pair", "index_0", "index_1", "score_0", "score_1", "nll_0", "nll_1",
+                       "score_says", "nll_says", "right")
+
+
+def has_both_surprises(scores: dict[str, np.ndarray]) -> bool:
+    """True when the scores hold the MSE score and the NLL as two different columns (with
+    `--surprise nll` the score column is the NLL itself)."""
+    return all(c in scores for c in SURPRISES) and not np.array_equal(scores["score"], scores["nll"])
+
+
+def verdict(first: np.ndarray, second: np.ndarray) -> np.ndarray:
+    """Which member of each pair a score finds more surprising: 1, 0, or -1 on a tie."""
+    return np.where(second > first, 1, np.where(first > second, 0, -1))
+
+
+def disagreements(scores: dict[str, np.ndarray], columns: tuple[str, str] = SURPRISES) -> list[dict]:
+    """Per setting, the pairs whose verdict (which member is more surprising) differs between
+    two surprise columns; `right` names the column that picked the impossible member, where
+    a pair holds one (S1, S3), "neither" when both missed it (a tie), "" in S2."""
+    a, b = columns
+    rows = []
+    for scenario, setting in _settings(scores):
+        pairs, index_0, index_1 = _pairs_table(scores, scenario, setting, "index")
+        _, a_0, a_1 = _pairs_table(scores, scenario, setting, a)
+        _, b_0, b_1 = _pairs_table(scores, scenario, setting, b)
+        _, possible_0, possible_1 = _pairs_table(scores, scenario, setting, "possible")
+        says_a, says_b = verdict(a_0, a_1), verdict(b_0, b_1)
+        truth = np.where(possible_0 == possible_1, -2, np.where(possible_0, 1, 0))    # -2: no right answer
+        for i in np.flatnonzero(says_a != says_b):
+            right = "" if truth[i] == -2 else a if says_a[i] == truth[i] else b if says_b[i] == truth[i] else "neither"
+            rows.append(dict(zip(DISAGREEMENT_FIELDS, (
+                scenario, setting, int(pairs[i]), int(index_0[i]), int(index_1[i]), float(a_0[i]), float(a_1[i]),
+                float(b_0[i]), float(b_1[i]), _said(says_a[i]), _said(says_b[i]), right))))
+    return rows
+
+
+def _said(value: int) -> str:
+    return "tie" if value < 0 else f"member {value}"
+
+
+def side_by_side(scores: dict[str, np.ndarray], rows: list[dict], model: str,
+                 columns: tuple[str, str] = SURPRISES) -> list[dict]:
+    """Every metric of one model under the two surprise columns, one row per metric and group,
+    with the difference (second minus first) and, per setting, how many pairs they judge
+    differently."""
+    a, b = columns
+    index = {(r["metric"], r["scenario"], r["setting"], r["column"]): r for r in rows if r["model"] == model}
+    differ: dict[tuple[str, str], int] = {}
+    for row in disagreements(scores, columns):
+        differ[row["scenario"], row["setting"]] = differ.get((row["scenario"], row["setting"]), 0) + 1
+    table = []
+    for (metric, scenario, setting, column), first in index.items():
+        second = index.get((metric, scenario, setting, b))
+        if column != a or second is None:
+            continue
+        pairs = len(_pairs_table(scores, scenario, setting, a)[0]) if setting else ""
+        table.append({"model": model, "metric": metric, "scenario": scenario, "setting": setting,
+                      a: first["value"], f"{a}_low": first["low"], f"{a}_high": first["high"],
+                      b: second["value"], f"{b}_low": second["low"], f"{b}_high": second["high"],
+                      "difference": second["value"] - first["value"], "ideal": first["ideal"],
+                      "pairs": pairs, "disagreeing_pairs": differ.get((scenario, setting), 0) if setting else ""})
+    return table
+
+
+def _disagreement_figure(data: str | Path, scores: dict[str, np.ndarray], differ: list[dict]):
+    """The example figure of disagreeing pairs, from the test split the scores came from."""
+    from . import store, viz
+
+    with store.open_dataset(data) as file:
+        if not _same_videos(file, scores):
+            raise XvoeError(f"{data} does not hold the videos these scores were made from; give the test split "
+                            "that was scored")
+        return viz.plot_disagreements(file, differ)
+
+
+def _same_videos(file, scores: dict[str, np.ndarray]) -> bool:
+    """Whether an open test split holds, video by video, the labels of a scores table."""
+    from . import store
+
+    order = np.argsort(scores["index"])
+    if file["rgbd"].shape[0] != len(order):
+        return False
+    for name in ("scenario", "setting", "pair", "member"):
+        stored = store.strings(file, name) if name in ("scenario", "setting") else file[name][:]
+        if not np.array_equal(stored, scores[name][order].astype(stored.dtype)):
+            return False
+    return True

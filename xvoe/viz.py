@@ -283,27 +283,70 @@ def plot_components(rows: list[dict], model: str, metric: str = "comparative") -
     return fig
 
 
-# --- explanations --------------------------------------------------------------------------
+# --- rows of frames: explanations, disagreeing pairs ---------------------------------------
 
-def plot_explanation(explanation) -> plt.Figure:
-    """The paper's Fig. 7/8: observed frames, the scene behind the wall as the model believes
-    it (occluder left out), and the explanation object alone."""
-    rows = [("observed", explanation.observed), ("behind the wall", explanation.behind_wall),
-            ("explanation" if explanation.slot >= 0 else "nothing hidden", explanation.hidden_object)]
-    frames, height, width = explanation.observed.shape[:3]
+def draw_frame_rows(ax, videos: list[np.ndarray], labels: list[str], title: str) -> None:
+    """Videos (T, H, W, >=3) uint8 as rows of frames on one axis, each row labelled."""
+    frames, height, width = videos[0].shape[:3]
     gap = max(1, width // 16)
-    mosaic = np.full((3 * (height + gap), frames * (width + gap), 3), 255, np.uint8)
-    for r, (_, video) in enumerate(rows):
+    mosaic = np.full((len(videos) * (height + gap), frames * (width + gap), 3), 255, np.uint8)
+    for r, video in enumerate(videos):
         for t in range(frames):
             y, x = r * (height + gap), t * (width + gap)
             mosaic[y:y + height, x:x + width] = video[t, ..., :3]
-    fig, ax = plt.subplots(figsize=(max(4.0, frames * 0.8), 3 * 0.8 + 0.6))
     ax.imshow(mosaic, interpolation="nearest")
     ax.set_xticks([t * (width + gap) + width / 2 for t in range(frames)], [str(t) for t in range(frames)])
-    ax.set_yticks([r * (height + gap) + height / 2 for r in range(3)], [name for name, _ in rows])
+    ax.set_yticks([r * (height + gap) + height / 2 for r in range(len(videos))], labels)
     ax.tick_params(length=0, labelsize=7)
     for spine in ax.spines.values():
         spine.set_visible(False)
-    ax.set_title(explanation.title, fontsize=8)
+    ax.set_title(title, fontsize=8)
+
+
+def plot_explanation(explanation) -> plt.Figure:
+    """The paper's Fig. 7/8: observed frames, the scene behind the wall as the model believes
+    it (occluder left out), and the explanation object alone; the rows an explanation gives
+    (`Explanation.rows`), so the MSE and the NLL explanations draw alike."""
+    rows = explanation.rows()
+    frames = explanation.observed.shape[0]
+    title_lines = explanation.title.count("\n") + 1
+    fig, ax = plt.subplots(figsize=(max(4.0, frames * 0.8), len(rows) * 0.8 + 0.2 + 0.2 * title_lines))
+    draw_frame_rows(ax, [video for _, video in rows], [name for name, _ in rows], explanation.title)
+    fig.tight_layout()
+    return fig
+
+
+def pick_examples(rows: list[dict], count: int) -> list[dict]:
+    """A few rows of `metrics.disagreements`, one setting at a time in turn, the settings that
+    hold an impossible member (a right answer) first."""
+    by_setting: dict[tuple[str, str], list[dict]] = {}
+    for row in rows:
+        by_setting.setdefault((row["scenario"], row["setting"]), []).append(row)
+    queues = sorted(by_setting.values(), key=lambda queue: queue[0]["right"] == "")
+    chosen = []
+    for depth in range(max((len(q) for q in queues), default=0)):
+        chosen += [queue[depth] for queue in queues if depth < len(queue)]
+    return chosen[:count]
+
+
+def plot_disagreements(file: h5py.File, rows: list[dict], examples: int = 4) -> plt.Figure:
+    """Pairs that the MSE score and the NLL judge differently (rows of
+    `metrics.disagreements`): both members' frames, each with both scores."""
+    chosen = pick_examples(rows, examples)
+    if not chosen:
+        raise XvoeError("no pair is judged differently by the two surprise definitions: nothing to draw")
+    frames = file["rgbd"].shape[1]
+    fig, axes = plt.subplots(len(chosen), 1, figsize=(max(4.0, frames * 0.8), 2.3 * len(chosen)), squeeze=False)
+    for ax, row in zip(axes[:, 0], chosen):
+        labels = []
+        for member in (0, 1):
+            index = row[f"index_{member}"]
+            label = "possible" if file["possible"][index] else "impossible"
+            labels.append(f"member {member} ({label})\nscore {row[f'score_{member}']:.4g}\n"
+                          f"nll {row[f'nll_{member}']:.4g}")
+        right = f"; right: {row['right']}" if row["right"] else ""
+        title = (f"{row['scenario']} {row['setting']} pair {row['pair']}: the score says {row['score_says']}, "
+                 f"the NLL says {row['nll_says']}{right}")
+        draw_frame_rows(ax, [file["rgbd"][row["index_0"]], file["rgbd"][row["index_1"]]], labels, title)
     fig.tight_layout()
     return fig
