@@ -350,3 +350,160 @@ def plot_disagreements(file: h5py.File, rows: list[dict], examples: int = 4) -> 
         draw_frame_rows(ax, [file["rgbd"][row["index_0"]], file["rgbd"][row["index_1"]]], labels, title)
     fig.tight_layout()
     return fig
+
+
+# --- surprise over frames, and frames side by side ----------------------------------------
+
+def find_pair(file: h5py.File, scenario: str, setting: str, pair: int) -> tuple[int, int]:
+    """The video indices of member 0 and member 1 of a test pair, or a one-line error naming
+    what the file holds."""
+    if file.attrs["split"] != "test":
+        raise XvoeError(f"{file.filename} is a {file.attrs['split']} split; pairs live in test splits")
+    return _pair_rows(store.strings(file, "scenario"), store.strings(file, "setting"), file["pair"][:],
+                      file["member"][:], scenario, setting, pair, str(file.filename))
+
+
+def _pair_rows(scenarios, settings, pairs, members, scenario: str, setting: str, pair: int,
+               where: str) -> tuple[int, int]:
+    """Rows of member 0 and 1 of (scenario, setting, pair) among label columns."""
+    scenarios, settings = np.asarray(scenarios).astype(str), np.asarray(settings).astype(str)
+    known = list(dict.fromkeys(scenarios))
+    if scenario not in known:
+        raise XvoeError(f"{where} holds no scenario {scenario!r}; it holds {', '.join(known)}")
+    held = list(dict.fromkeys(settings[scenarios == scenario]))
+    if setting not in held:
+        raise XvoeError(f"{where} holds no setting {setting!r} of {scenario}; it holds {', '.join(held)}")
+    chosen = (scenarios == scenario) & (settings == setting)
+    pairs, members = np.asarray(pairs).astype(int), np.asarray(members).astype(int)
+    rows = [np.flatnonzero(chosen & (pairs == pair) & (members == m)) for m in (0, 1)]
+    if any(len(r) != 1 for r in rows):
+        have = np.unique(pairs[chosen])
+        raise XvoeError(f"{where} holds no pair {pair} of {scenario} {setting}; its pairs are "
+                        f"{have.min()}..{have.max()}")
+    return int(rows[0][0]), int(rows[1][0])
+
+
+def _labels_of(file: h5py.File, index: int) -> tuple[str, str, int]:
+    return file["scenario"].asstr()[index], file["setting"].asstr()[index], int(file["pair"][index])
+
+
+def wall_lowered(file: h5py.File, index: int) -> np.ndarray:
+    """How far the wall is lowered into view at each frame (T,) of video `index`, from its saved
+    states: 1 where a wall stands on the floor, 0 where it is lifted out of the picture or
+    there is none (with several walls, the lowest)."""
+    from .world import FLOOR, WORLD
+
+    names = list(file.attrs["kind_names"])
+    walls = [k for k, kind in enumerate(file["kind"][index]) if names[kind] in ("wall", "window_wall")]
+    frames, size = file["rgbd"].shape[1], file["rgbd"].shape[2]
+    if not walls:
+        return np.zeros(frames)
+    columns = list(file["states"].attrs["state_columns"])
+    states = file["states"][index][:, walls]
+    bottom = states[..., columns.index("y")] + states[..., columns.index("height")] / 2   # pixels, y down
+    raised = (size - bottom) * (WORLD / size) - FLOOR           # world units above the floor
+    lowered = np.clip(1.0 - raised / (WORLD - FLOOR), 0.0, 1.0)
+    lowered = np.where(states[..., columns.index("present")] > 0, np.round(lowered, 6), 0.0)
+    return lowered.max(axis=1)
+
+
+def plot_surprise_curves(scores: str | Path, data: str | Path | None, scenario: str, setting: str, pair: int, *,
+                         curves: str | Path | None = None, frame: int | None = None) -> plt.Figure:
+    """Per-frame surprise of the two members of a test pair: s_img, s_dyn and their sum.
+
+    scores: a CSV written by `xvoe score` (score_split); curves: its per-frame curves (default:
+    the .curves.npz beside it); data: the test split that was scored, for the event frame (red
+    line) and the frames where the wall stands (grey; lighter while it moves), or None for
+    the curves alone. frame: a frame to mark (a cursor)."""
+    from .metrics import read_scores
+
+    table = read_scores(scores)
+    curves = Path(curves) if curves is not None else Path(scores).with_suffix(".curves.npz")
+    if not curves.is_file():
+        raise XvoeError(f"{curves}: no such file; score_split (xvoe score) writes the curves beside the CSV")
+    with np.load(curves) as saved:
+        if not {"s_img", "s_dyn"} <= set(saved.files):
+            raise XvoeError(f"{curves} is not a curves file (it holds {', '.join(saved.files)})")
+        s_img, s_dyn = saved["s_img"], saved["s_dyn"]
+    if s_img.shape[0] != len(table["index"]):
+        raise XvoeError(f"{curves} holds {s_img.shape[0]} videos but {scores} {len(table['index'])}: "
+                        "they were not written together")
+    rows = _pair_rows(table["scenario"], table["setting"], table["pair"], table["member"], scenario, setting, pair,
+                      str(scores))
+    videos = [int(table["index"][r]) for r in rows]
+    frames = s_img.shape[1]
+    events, lowered = [-1, -1], np.zeros(frames)
+    if data is not None:
+        with store.open_dataset(data) as file:
+            for video in videos:
+                if not 0 <= video < file["rgbd"].shape[0] or _labels_of(file, video) != (scenario, setting, pair):
+                    raise XvoeError(f"{scores} does not match {data}: its video {video} is not {scenario} "
+                                    f"{setting} pair {pair} there")
+            if file["rgbd"].shape[1] != frames:
+                raise XvoeError(f"{data} has {file['rgbd'].shape[1]} frames a video, the curves {frames}")
+            events = [int(file["event_frame"][v]) for v in videos]
+            lowered = np.maximum(wall_lowered(file, videos[0]), wall_lowered(file, videos[1]))
+    if frame is not None and not 0 <= frame < frames:
+        raise XvoeError(f"frame {frame} is out of range: the videos have frames 0..{frames - 1}")
+
+    model = str(table["model"][0]) if "model" in table else Path(scores).stem
+    panels = [("s_img", s_img), ("s_dyn", s_dyn), ("s_img + s_dyn", s_img + s_dyn)]
+    fig, axes = plt.subplots(1, 3, figsize=(11, 3.4), sharex=True)
+    t = np.arange(frames)
+    for ax, (name, values) in zip(axes, panels):
+        for t0 in t[lowered > 0]:
+            ax.axvspan(t0 - 0.5, t0 + 0.5, color="grey", alpha=0.25 if lowered[t0] >= 1 else 0.1, linewidth=0)
+        if frame is not None:
+            ax.axvline(frame, color="black", linewidth=2, alpha=0.35)
+        for event in sorted(set(e for e in events if e >= 0)):
+            ax.axvline(event, color="red", linestyle=":", linewidth=1.5)
+        for m, (row, style) in enumerate(zip(rows, ("-o", "--s"))):
+            label = "possible" if table["possible"][row] else "impossible"
+            ax.plot(t, values[row], style, markersize=3, label=f"member {m} ({label})")
+        first, second = values[rows[0]], values[rows[1]]
+        ax.set_title(f"{name}\nsum {first.sum():.3g} vs {second.sum():.3g}, "
+                     f"max {first.max():.3g} vs {second.max():.3g}", fontsize=8)
+        ax.set_xlabel("frame")
+    axes[0].set_ylabel("surprise (squared pixel error)")
+    axes[0].set_xticks(t[:: -(-frames // 8)])
+    marks = ["red: event frame", "grey: the wall stands (lighter: it moves)"] if data is not None else []
+    marks += [f"black: frame {frame}"] if frame is not None else []
+    handles, labels = axes[0].get_legend_handles_labels()
+    fig.legend(handles, labels, loc="lower center", ncol=2, fontsize=8, frameon=False)
+    fig.suptitle(f"{model}: {scenario} {setting} pair {pair}" + (f"   ({'; '.join(marks)})" if marks else ""),
+                 fontsize=9)
+    fig.tight_layout(rect=(0, 0.07, 1, 1))
+    return fig
+
+
+def true_objects(file: h5py.File, index: int) -> np.ndarray:
+    """The ground truth without the wall: each ball and cube of video `index` drawn from its
+    saved states in its own colour on white, hidden or not (T, H, W, 4) uint8, the last
+    channel 255 (far). Objects overlapping each other are drawn in slot order."""
+    from .explain import silhouette
+
+    names = list(file.attrs["kind_names"])
+    columns = list(file["states"].attrs["state_columns"])
+    frames, size = file["rgbd"].shape[1], file["rgbd"].shape[2]
+    states, colors = file["states"][index], file["color"][index]
+    picture = np.full((frames, size, size, 4), 255, np.uint8)
+    for slot, kind in enumerate(file["kind"][index]):
+        if names[kind] in ("ball", "cube"):
+            picture[..., :3][silhouette(states[:, slot], columns, names[kind], size)] = colors[slot]
+    return picture
+
+
+def frame_rows(rows: list[tuple[str, np.ndarray]], title: str = "") -> plt.Figure:
+    """Named rows of frames side by side, each (T, H, W, C) with C >= 3 (RGB first), all of one
+    size: `Explanation.rows()` plus rows of one's own (e.g. `true_objects`) make a comparison."""
+    if not rows:
+        raise XvoeError("frame_rows needs at least one row")
+    shapes = {tuple(video.shape[:3]) for _, video in rows}
+    if len(shapes) != 1:
+        raise XvoeError(f"rows differ in shape: {sorted(shapes)}")
+    frames = shapes.pop()[0]
+    lines = title.count("\n") + 1 if title else 0
+    fig, ax = plt.subplots(figsize=(max(4.0, frames * 0.8), len(rows) * 0.8 + 0.3 + 0.2 * lines))
+    draw_frame_rows(ax, [video for _, video in rows], [name for name, _ in rows], title)
+    fig.tight_layout()
+    return fig
