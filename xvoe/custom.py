@@ -69,7 +69,8 @@ def remove(a: int, frame: int) -> Violation:
 
 
 def teleport(a: int, frame: int, dx: float) -> Violation:
-    """Thing a jumps by dx world units (to the right) at `frame`."""
+    """Thing a jumps by dx world units (to the right) at `frame`; moved into another thing, it
+    collides with it."""
     return Violation("teleport", a, frame=frame, dx=dx)
 
 
@@ -107,7 +108,8 @@ def make_pair(things: list[Thing], violation: Violation, *, wall: str = "S3", fr
     things: balls, cubes and walls made with `ball`, `cube` and `wall` (at most 8); a thing
     keeps its colour if it has one, the others (and the background and floor) get distinct
     random colours from `seed`. wall: the wall's timetable, as a setting (S1: away at the start
-    and the end, S2: stays, S3: away at the end) or by name (away_start_end, stays, away_end).
+    and the end, S2: stays, S3: away at the end) or by name (away_start_end, stays, away_end);
+    it also names the pair's setting label, with or without a wall in the scene.
     """
     schedule, setting = _schedule(wall)
     if not 10 <= frames <= 200:
