@@ -273,7 +273,7 @@ def fit(job: Job, config: TrainConfig, run_dir: str | os.PathLike, *, place: Dis
 def resolve_run(model: str | os.PathLike, stage: str = "perception") -> Path:
     """A checkpoint from a file, a run directory holding STAGE.pt, a run name under runs/, or
     the name of a shipped model (xvoe.zoo)."""
-    from .zoo import WEIGHTS, SHIPPED
+    from .zoo import SHIPPED, WEIGHTS
 
     path = Path(model)
     candidates = [path, path / f"{stage}.pt", Path("runs") / path / f"{stage}.pt"]

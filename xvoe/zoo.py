@@ -52,5 +52,6 @@ def ship(run_dir: str | os.PathLike, out: str | os.PathLike = WEIGHTS) -> list[P
         written.append(target)
     total = sum(p.stat().st_size for p in out.glob("*.pt"))
     if total > BUDGET_BYTES:
-        raise XvoeError(f"shipped checkpoints take {total / 2**20:.1f} MB, over the {BUDGET_BYTES / 2**20:.0f} MB budget")
+        raise XvoeError(f"shipped checkpoints take {total / 2**20:.1f} MB, "
+                        f"over the {BUDGET_BYTES / 2**20:.0f} MB budget")
     return written

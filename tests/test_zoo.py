@@ -1,0 +1,41 @@
+"""Shipped models: found by name, small, and re-shipped without loss."""
+import pytest
+import torch
+
+import xvoe.zoo as zoo
+from xvoe.errors import XvoeError
+from xvoe.score import load_scorer
+
+
+def test_the_default_model_is_shipped_within_budget():
+    assert "xpl" in zoo.available()
+    total = sum(p.stat().st_size for p in zoo.WEIGHTS.glob("*.pt"))
+    assert total <= zoo.BUDGET_BYTES
+    scorer = load_scorer("xpl")
+    assert scorer.vae is not None and scorer.xpl.config.use_reasoning
+
+
+def test_shipping_keeps_the_weights_and_drops_the_optimiser(tmp_path, monkeypatch):
+    run = tmp_path / "run"
+    run.mkdir()
+    for stage in ("perception", "xpl"):
+        state = torch.load(zoo.WEIGHTS / f"{stage}.pt", weights_only=False)
+        state["optimizer"] = {"big": torch.zeros(1000)}
+        torch.save(state, run / f"{stage}.pt")
+    written = zoo.ship(run, tmp_path / "weights")
+    assert [p.name for p in written] == ["perception.pt", "xpl.pt"]
+    slim = torch.load(tmp_path / "weights" / "xpl.pt", weights_only=False)
+    assert "optimizer" not in slim
+    original = torch.load(zoo.WEIGHTS / "xpl.pt", weights_only=False)
+    for name, value in original["model"].items():
+        torch.testing.assert_close(slim["model"][name], value)
+    monkeypatch.setattr(zoo, "WEIGHTS", tmp_path / "weights")
+    assert load_scorer("xpl").name == "xpl"
+
+
+def test_unshipped_names_and_runs_give_one_line_errors(tmp_path, monkeypatch):
+    monkeypatch.setattr(zoo, "WEIGHTS", tmp_path)
+    with pytest.raises(XvoeError, match="not shipped"):
+        load_scorer("plato")
+    with pytest.raises(XvoeError, match="no perception.pt and xpl.pt"):
+        zoo.ship(tmp_path)
