@@ -138,11 +138,11 @@ def load_scorer(model: str, device: str = "cpu") -> Scorer:
 
     if model == "random":
         return Scorer("random", None, None)
-    from .zoo import SHIPPED, WEIGHTS
+    from .zoo import SHIPPED, WEIGHTS, shipped_path
 
     path = Path(model)
     if model in SHIPPED and not path.exists():
-        if not (WEIGHTS / f"{model}.pt").is_file():
+        if shipped_path(model) is None:
             raise XvoeError(f"the model {model} is not shipped with this copy of xvoe; train it with xvoe pipeline")
         run_dir, stage = WEIGHTS, model
     elif path.is_file():
@@ -200,13 +200,16 @@ def score_split(model: str | Scorer, data: str, out: str, *, how: str = "sum", v
             curves[:] = np.random.default_rng(scorer.seed).random((2, count, frames_count))
         else:
             check_size(file, scorer.image_size, f"the model {scorer.name}")
-            surprise_of = _phydnet_curves if scorer.phydnet is not None else _xpl_curves
             for start in tqdm(range(0, count, videos_per_batch), desc=f"score {scorer.name}", unit="batch",
                               disable=not progress):
                 stop = min(count, start + videos_per_batch)
-                curves[:, start:stop] = torch.stack(surprise_of(scorer, file, start, stop)).numpy()
+                if scorer.phydnet is not None:
+                    curves[:, start:stop] = torch.stack(_phydnet_curves(scorer, file, start, stop)).numpy()
+                    continue
+                batch = encode_videos(scorer, file, start, stop)     # once, for both surprises
+                curves[:, start:stop] = torch.stack(_xpl_curves(scorer, batch)).numpy()
                 if with_nll:
-                    nll[start:stop] = _xpl_nll(scorer, file, start, stop, particles)
+                    nll[start:stop] = _xpl_nll(scorer, batch, particles)
     s_img, s_dyn = (aggregate(torch.from_numpy(c), how).numpy() for c in curves)
     total = aggregate(torch.from_numpy(curves.sum(0)), how).numpy() if surprise != "nll" else nll[:, 0]
     tmp = out.with_name(f".{out.name}.tmp")
@@ -241,23 +244,21 @@ def encode_videos(scorer: Scorer, file, start: int, stop: int) -> dict[str, Tens
             "occluder": torch.from_numpy(np.isin(file["kind"][start:stop], walls))}
 
 
-def _xpl_curves(scorer: Scorer, file, start: int, stop: int) -> tuple[Tensor, Tensor]:
-    """s_img and s_dyn (B, T) of videos [start, stop) of an open test split under XPL or PLATO."""
-    batch = encode_videos(scorer, file, start, stop)
+def _xpl_curves(scorer: Scorer, batch: dict[str, Tensor]) -> tuple[Tensor, Tensor]:
+    """s_img and s_dyn (B, T) of encoded videos (`encode_videos`) under XPL or PLATO."""
     surprise = mse_surprise(scorer.vae, scorer.xpl, batch["frames"], batch["mean"], batch["visible"],
                             batch["background"], batch["occluder"])
     return surprise.s_img, surprise.s_dyn
 
 
-def _xpl_nll(scorer: Scorer, file, start: int, stop: int, particles: int) -> list[tuple[float, float, float]]:
-    """(nll, ess, p_hidden) of each video [start, stop) under the Pyro hidden-object model."""
+def _xpl_nll(scorer: Scorer, batch: dict[str, Tensor], particles: int) -> list[tuple[float, float, float]]:
+    """(nll, ess, p_hidden) of each encoded video (`encode_videos`) under the Pyro hidden-object model."""
     from inference.model import InferenceConfig
     from inference.surprise import nll_surprise
 
-    batch = encode_videos(scorer, file, start, stop)
     config = InferenceConfig(particles=particles)
     results = []
-    for i in range(stop - start):
+    for i in range(len(batch["mean"])):
         found = nll_surprise(scorer.vae, scorer.xpl, batch["frames"][i], batch["mean"][i], batch["visible"][i],
                              batch["background"][i], batch["occluder"][i], config)
         results.append((found.nll, found.ess, found.p_hidden))
