@@ -167,3 +167,16 @@ def test_cli_explain_with_the_nll_posterior(shipped, tmp_path, capsys):
     assert main(args) == 0 and out.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     assert main(["explain", "--model", "random", "--data", str(path), "--surprise", "nll", "--out", str(out)]) == 2
     assert "random agent" in capsys.readouterr().err
+
+
+def test_nll_scores_are_the_same_bytes_from_the_same_seed(tmp_path):
+    """The importance samples of `xvoe score --surprise both` come from the scorer's seed."""
+    from xvoe.generate import GenerateConfig, generate
+    from xvoe.score import load_scorer, score_split
+
+    scorer = load_scorer("xpl")
+    data = generate(GenerateConfig("test", pairs=1, size=scorer.image_size, seed=5), tmp_path / "t.h5",
+                    workers=1, progress=False)
+    first, second = (score_split(scorer, str(data), str(tmp_path / name), surprise="both", particles=8,
+                                 progress=False).read_bytes() for name in ("a.csv", "b.csv"))
+    assert first == second

@@ -116,7 +116,7 @@ class Scorer:
     name: str
     vae: ComponentVAE | None
     xpl: XPL | None
-    seed: int = 0                 # the random agent's
+    seed: int = 0                 # the random agent's scores, and the NLL's importance samples
     phydnet: PhyDNet | None = None
 
     @property
@@ -200,16 +200,18 @@ def score_split(model: str | Scorer, data: str, out: str, *, how: str = "sum", v
             curves[:] = np.random.default_rng(scorer.seed).random((2, count, frames_count))
         else:
             check_size(file, scorer.image_size, f"the model {scorer.name}")
-            for start in tqdm(range(0, count, videos_per_batch), desc=f"score {scorer.name}", unit="batch",
-                              disable=not progress):
-                stop = min(count, start + videos_per_batch)
-                if scorer.phydnet is not None:
-                    curves[:, start:stop] = torch.stack(_phydnet_curves(scorer, file, start, stop)).numpy()
-                    continue
-                batch = encode_videos(scorer, file, start, stop)     # once, for both surprises
-                curves[:, start:stop] = torch.stack(_xpl_curves(scorer, batch)).numpy()
-                if with_nll:
-                    nll[start:stop] = _xpl_nll(scorer, batch, particles)
+            with torch.random.fork_rng(devices=[]):     # the NLL's particles come from the scorer's seed
+                torch.manual_seed(scorer.seed)
+                for start in tqdm(range(0, count, videos_per_batch), desc=f"score {scorer.name}", unit="batch",
+                                  disable=not progress):
+                    stop = min(count, start + videos_per_batch)
+                    if scorer.phydnet is not None:
+                        curves[:, start:stop] = torch.stack(_phydnet_curves(scorer, file, start, stop)).numpy()
+                        continue
+                    batch = encode_videos(scorer, file, start, stop)     # once, for both surprises
+                    curves[:, start:stop] = torch.stack(_xpl_curves(scorer, batch)).numpy()
+                    if with_nll:
+                        nll[start:stop] = _xpl_nll(scorer, batch, particles)
     s_img, s_dyn = (aggregate(torch.from_numpy(c), how).numpy() for c in curves)
     total = aggregate(torch.from_numpy(curves.sum(0)), how).numpy() if surprise != "nll" else nll[:, 0]
     tmp = out.with_name(f".{out.name}.tmp")
