@@ -83,9 +83,10 @@ S_0, Q, SIGMA, P = 0.8, 0.3, 0.4, 0.3
 BACKGROUND = torch.tensor([0.1, 0.2, -0.1], dtype=torch.float64)
 
 
-def linear_model():
+def linear_model(follow_dynamics: bool = True):
     scene = LinearGaussianScene(T, M_0, S_0, A, H, BACKGROUND)
-    return HiddenObjectModel(scene, InferenceConfig(prior_hidden=P, pixel_sigma=SIGMA, transition_sigma=Q))
+    return HiddenObjectModel(scene, InferenceConfig(prior_hidden=P, pixel_sigma=SIGMA, transition_sigma=Q,
+                                                    guide_follows_dynamics=follow_dynamics))
 
 
 def kalman_log_evidence(frames):
@@ -167,11 +168,12 @@ def test_linear_gaussian_exact_proposal_matches_the_kalman_evidence():
     assert estimate.ess == pytest.approx(512, rel=1e-6)
 
 
-def test_linear_gaussian_amortised_style_proposal_and_posterior_of_existence():
-    """The real guide (independent Gaussians per frame, its own existence probability) stays
-    within three standard errors; the weighted share of particles with an object is the
-    exact posterior probability that a hidden object exists."""
-    frames, model = simulate_frames(2), linear_model()
+@pytest.mark.parametrize("follow_dynamics", [True, False])
+def test_linear_gaussian_amortised_style_proposal_and_posterior_of_existence(follow_dynamics):
+    """The real guide (Gaussians per frame, fused with the dynamics' step or not, and its own
+    existence probability) stays within three standard errors; the weighted share of particles
+    with an object is the exact posterior probability that a hidden object exists."""
+    frames, model = simulate_frames(2), linear_model(follow_dynamics)
     mean, chol = trajectory_posterior(frames)
     marginal_sd = torch.sqrt((chol ** 2).sum(1)).reshape(T, D)
     proposal = Proposal(torch.tensor(0.5), mean.reshape(T, D), 1.2 * marginal_sd)
@@ -185,3 +187,13 @@ def test_linear_gaussian_amortised_style_proposal_and_posterior_of_existence():
     with warnings.catch_warnings():
         warnings.simplefilter("error")
         check_model_guide_match(estimate.model_trace, estimate.guide_trace)
+
+
+def test_fuse_is_the_product_of_two_gaussians():
+    from inference.model import fuse
+
+    loc, scale = fuse(torch.tensor([0.0, 1.0]), torch.tensor([1.0, 0.1]), torch.tensor([2.0, 1.0]),
+                      torch.tensor([1.0, 0.3]))
+    torch.testing.assert_close(loc, torch.tensor([1.0, 1.0]))
+    torch.testing.assert_close(scale, torch.tensor([0.5 ** 0.5, (1 / (100 + 1 / 0.09)) ** 0.5]))
+

@@ -17,7 +17,7 @@ def tiny_cpu_preset(monkeypatch):
                    perception_train=few,
                    xpl=replace(cpu.xpl, reasoning=replace(cpu.xpl.reasoning, width=16, layers=1, heads=2, mlp=16),
                                dynamics=replace(cpu.xpl.dynamics, hidden=16, lstm=16, buffer_heads=2)),
-                   xpl_train=replace(few, batch_size=4))
+                   xpl_train=replace(few, batch_size=4), proposal_train=replace(few, batch_size=4))
     monkeypatch.setitem(PRESETS, "cpu", tiny)
 
 
@@ -32,6 +32,7 @@ def test_tiny_pipeline_runs_end_to_end_and_skips_done_stages(tmp_path, tiny_cpu_
         assert (run / "scores" / f"{model}.csv").exists()
     for figure in ("holistic.png", "comparative.png", "explanation-blocking-S2.png"):
         assert (run / "report" / figure).exists()
+    assert (run / "proposal.pt").exists() and "train-proposal" in text
     stamp = (run / "xpl.pt").stat().st_mtime_ns
     run_pipeline(config)                     # everything done: nothing is redone
     assert (run / "xpl.pt").stat().st_mtime_ns == stamp

@@ -108,3 +108,56 @@ def test_transformer2_is_asked_for_seen_objects_often(tmp_path):
         hits += int((original < 2).sum())
         total += len(batch)
     assert 0.68 < hits / total < 0.82
+
+
+def test_the_proposal_stage_trains_transformer2_alone_and_overlays_xpl(cache, tmp_path):
+    from xvoe.train_xpl import train_proposal
+
+    with pytest.raises(XvoeError, match="train the xpl stage first"):
+        train_proposal(tmp_path, cache, progress=False)
+    train_xpl(cache, tmp_path, progress=False, **{**TINY, "steps": 20})
+    joint, _ = load_xpl(tmp_path)
+    path = train_proposal(tmp_path, progress=False, **{**TINY, "steps": 60})      # the cache from xpl.pt's meta
+    rows = losses(tmp_path, "proposal")
+    assert float(rows[-1]["mae"]) < float(rows[0]["mae"])
+    state = torch.load(path, weights_only=False)
+    assert state["model"] and all(name.startswith(("transformer2.", "existence.")) for name in state["model"])
+    tuned, loaded = load_xpl(tmp_path)
+    assert loaded["proposal"] == str(path)
+    for name, value in joint.state_dict().items():      # Transformer 1 and the dynamics are xpl.pt's
+        same = torch.equal(value, tuned.state_dict()[name])
+        assert same != name.startswith(("transformer2.", "existence.")), name
+    untouched, _ = load_xpl(tmp_path, proposal=False)
+    assert all(torch.equal(v, joint.state_dict()[k]) for k, v in untouched.state_dict().items())
+    # an xpl.pt trained again no longer matches: a clear error, not a silent mix
+    train_xpl(cache, tmp_path, progress=False, overwrite=True, **{**TINY, "steps": 21})
+    with pytest.raises(XvoeError, match="another xpl.pt"):
+        load_xpl(tmp_path)
+
+
+def test_the_proposal_stage_resumes_exactly(cache, tmp_path):
+    from xvoe.train_xpl import train_proposal
+
+    for run in ("a", "b"):
+        train_xpl(cache, tmp_path / run, progress=False, **{**TINY, "steps": 10})
+    straight = train_proposal(tmp_path / "a", progress=False, **{**TINY, "steps": 30})
+    train_proposal(tmp_path / "b", progress=False, **{**TINY, "steps": 12})
+    resumed = train_proposal(tmp_path / "b", progress=False, resume=True, **{**TINY, "steps": 30})
+    a, b = torch.load(straight, weights_only=False), torch.load(resumed, weights_only=False)
+    for name, value in a["model"].items():
+        torch.testing.assert_close(value, b["model"][name], msg=name)
+
+
+def test_wall_stays_fills_the_frames_the_wall_was_away_from_the_nearest_seen_one():
+    from xvoe.train_xpl import wall_stays
+
+    mean = torch.arange(2 * 5 * 3, dtype=torch.float32).reshape(2, 5, 3, 1)
+    visible = torch.zeros(2, 5, 3, dtype=torch.bool)
+    visible[0, 2:4, 1] = True             # video 0: the wall (slot 1) is down in frames 2 and 3
+    visible[:, :, 0] = True
+    walls = torch.zeros(2, 3, dtype=torch.bool)
+    walls[:, 1] = True                    # video 1's wall is never seen: left alone
+    stays, seen = wall_stays(mean, visible, walls)
+    assert stays[0, :, 1, 0].tolist() == [mean[0, 2, 1, 0]] * 3 + [mean[0, 3, 1, 0]] * 2
+    assert seen[0, :, 1].all() and not seen[1, :, 1].any()
+    assert torch.equal(stays[:, :, [0, 2]], mean[:, :, [0, 2]]) and torch.equal(stays[1], mean[1])

@@ -158,6 +158,11 @@ def cmd_train(args: argparse.Namespace) -> None:
         cache = args.cache or Path(args.out) / f"latents-{Path(args.data).stem}.h5"
         print(encode_split(args.model or args.out, args.data, cache, overwrite=args.overwrite,
                            progress=not args.quiet))
+    elif args.stage == "proposal":
+        from .train_xpl import train_proposal
+
+        print(train_proposal(args.out, args.data, resume=args.resume, overwrite=args.overwrite,
+                             progress=not args.quiet, **_train_overrides(args)))
     else:
         from .train_xpl import latent_cache_for, train_xpl
 
@@ -172,11 +177,14 @@ def cmd_train(args: argparse.Namespace) -> None:
 
 def add_train_parser(verbs) -> None:
     train = verbs.add_parser(
-        "train", help="train a stage of the XPL model (perception, encode, xpl, plato) or PhyDNet",
+        "train", help="train a stage of the XPL model (perception, encode, xpl, proposal, plato) or PhyDNet",
         description="Train one stage into a run directory (STAGE.pt checkpoint and STAGE.csv losses). "
-                    "Runs unchanged under torchrun --nproc_per_node N. The encode stage writes the latent "
-                    "cache of a split with a trained perception module.")
-    train.add_argument("--stage", required=True, choices=("perception", "encode", "xpl", "plato", "phydnet"))
+                    "Runs unchanged under torchrun --nproc_per_node N (not the proposal stage). The encode "
+                    "stage writes the latent cache of a split with a trained perception module; the proposal "
+                    "stage trains the run's Transformer 2 further on hidden objects (proposal.pt, loaded "
+                    "with xpl.pt from then on).")
+    train.add_argument("--stage", required=True,
+                       choices=("perception", "encode", "xpl", "proposal", "plato", "phydnet"))
     train.add_argument("--data", help="the split file (HDF5) to train on or to encode")
     train.add_argument("--out", required=True, help="the run directory")
     train.add_argument("--preset", default="cpu", help="model and training sizes: cpu (default) or paper")

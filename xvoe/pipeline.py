@@ -75,7 +75,7 @@ def run_pipeline(config: PipelineConfig) -> Path:
     from .score import score_split
     from .train import checkpoint_path, train_perception
     from .train_phydnet import train_phydnet
-    from .train_xpl import train_xpl
+    from .train_xpl import train_proposal, train_xpl
 
     size = preset(config.preset).perception.image_size
     run_dir = Path(config.out)
@@ -103,6 +103,10 @@ def run_pipeline(config: PipelineConfig) -> Path:
             stages.run(f"train-{model}", lambda stage=stage, residual=residual, model=model: train_xpl(
                 latents, run_dir, stage=stage, preset_name=config.preset, residual=residual,
                 progress=config.progress, resume=checkpoint_path(run_dir, model).exists(), seed=config.seed))
+            if model == "xpl":
+                stages.run("train-proposal", lambda: train_proposal(
+                    run_dir, latents, progress=config.progress,
+                    resume=checkpoint_path(run_dir, "proposal").exists(), seed=config.seed))
     if "phydnet" in config.models:
         stages.run("train-phydnet", lambda: train_phydnet(
             train_data, run_dir, preset_name=config.preset, progress=config.progress,

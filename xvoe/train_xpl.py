@@ -9,6 +9,7 @@ resumed or multi-process run sees the same batches.
 """
 from __future__ import annotations
 
+import hashlib
 import os
 from dataclasses import dataclass, replace
 from pathlib import Path
@@ -16,13 +17,13 @@ from typing import Any
 
 import numpy as np
 import torch
-from torch import Tensor
+from torch import Tensor, nn
 
 from .data import owned_shards
 from .errors import XvoeError
 from .latents import open_latents
 from .models.config import TrainConfig, from_dict, override, preset, to_dict
-from .models.xpl import XPL, XPLConfig
+from .models.xpl import XPL, XPLConfig, permute_slots
 from .train import (
     Job,
     checkpoint_path,
@@ -35,6 +36,8 @@ from .train import (
 )
 
 STAGES = ("xpl", "plato")
+PROPOSAL_OBJECT_SHARE = 0.5   # the proposal stage rebuilds a seen object this often (else any slot); as
+                              # in the joint stage: more, and Transformer 2 fills empty slots with objects
 
 
 @dataclass
@@ -56,14 +59,14 @@ class LatentBatches:
     """The shards of a latent cache that one process owns, and its batches of videos."""
 
     def __init__(self, path: str, *, batch_size: int, shards: int, rank: int = 0, world: int = 1,
-                 max_videos: int = 0, seed: int = 0):
+                 max_videos: int = 0, seed: int = 0, object_share: float = 0.5):
         with open_latents(path) as file:
             owned = owned_shards(path, file["mean"].shape[0], batch_size=batch_size, shards=shards, rank=rank,
                                  world=world, max_videos=max_videos)
             self.mean = torch.from_numpy(file["mean"][owned.start:owned.stop])
             self.visible = torch.from_numpy(file["visible"][owned.start:owned.stop])
         self.shards, self.bounds, self.per_shard = owned.shards, owned.bounds, owned.per_shard
-        self.start, self.seed = owned.start, seed
+        self.start, self.seed, self.object_share = owned.start, seed, object_share
         self.slots = self.mean.shape[2]
 
     def batch(self, step: int) -> LatentBatch:
@@ -93,20 +96,18 @@ class LatentBatches:
         t = np.arange(frames)[None, :, None]
         return (t >= start[:, None]) & (t < (start + length)[:, None]) & chosen[:, None]
 
-
-    OBJECT_SHARE = 0.5   # of the slots Transformer 2 rebuilds, at least this share hold a seen object
-
     def hidden_slots(self, rng: np.random.Generator, video: np.ndarray, order: np.ndarray) -> np.ndarray:
         """The slot (in the permuted order) Transformer 2 must rebuild in each video.
 
         Drawn uniformly, most would be empty (8 slots, 2 to 4 objects) and Transformer 2
-        learns to propose nothing; so half the time the slot is drawn among the seen objects.
+        learns to propose nothing; so a share `object_share` of the time the slot is drawn
+        among the seen objects.
         """
         seen = self.visible[torch.from_numpy(video)].any(dim=1).numpy()         # (B, K), original order
         uniform = rng.integers(0, self.slots, len(video))
         weights = rng.random(seen.shape) * seen
         among_seen = weights.argmax(axis=1)
-        use_seen = (rng.random(len(video)) < self.OBJECT_SHARE) & seen.any(axis=1)
+        use_seen = (rng.random(len(video)) < self.object_share) & seen.any(axis=1)
         original = np.where(use_seen, among_seen, uniform)
         inverse = np.argsort(order, axis=1)                                      # original -> permuted
         return inverse[np.arange(len(video)), original]
@@ -174,13 +175,139 @@ def latent_cache_for(data: str | os.PathLike, run_dir: str | os.PathLike, percep
     return cache
 
 
-def load_xpl(model: str | os.PathLike, stage: str = "xpl", device: str | torch.device = "cpu") -> tuple[XPL, dict]:
-    """A trained XPL (or PLATO) model in eval mode, and its checkpoint's contents."""
+class ProposalNetworks(nn.Module):
+    """What the proposal stage trains: Transformer 2 and the existence head of a trained XPL,
+    registered under the XPL's own names (so the stage's checkpoint overlays xpl.pt), while
+    Transformer 1 and the dynamics stay frozen outside it."""
+
+    def __init__(self, xpl: XPL):
+        super().__init__()
+        self.transformer2, self.existence = xpl.transformer2, xpl.existence
+        self.losses = xpl.proposal_losses
+
+    def forward(self, batch: LatentBatch) -> dict[str, Tensor]:
+        refined, visible = permute_slots(batch.mean, batch.visible, order=batch.order)
+        out = self.losses(refined, visible, batch.hidden)
+        out["loss"] = out["mae"] + out["existence"]
+        return out
+
+
+STAYS_SHARE = 0.5   # of the videos with a wall that comes and goes, this share is shown one that stays
+
+
+def refined_batches(latents: str, xpl: XPL, **batching: Any) -> LatentBatches:
+    """Batches of Transformer 1's refined latents (computed once: it is frozen here), with
+    the slot to rebuild drawn among the seen objects PROPOSAL_OBJECT_SHARE of the time, and
+    walls that stay (`wall_stays`) in a share of the videos."""
+    batches = LatentBatches(latents, object_share=PROPOSAL_OBJECT_SHARE, **batching)
+    with torch.no_grad():
+        batches.mean = torch.cat([xpl.refine(mean, visible) for mean, visible
+                                  in zip(batches.mean.split(500), batches.visible.split(500))])
+    walls = wall_slots(latents, batches.start, batches.start + len(batches.mean))
+    if walls is not None:
+        chosen = np.random.default_rng([batches.seed, 1]).random(len(walls)) < STAYS_SHARE
+        batches.mean, batches.visible = wall_stays(batches.mean, batches.visible, torch.from_numpy(walls & chosen[:, None]))
+    return batches
+
+
+def wall_slots(latents: str, start: int, stop: int) -> np.ndarray | None:
+    """(N, K) bool: the slots that hold a wall, from the split file the cache was encoded
+    from (its `kind` map); None, with a warning, when that file is gone."""
+    import warnings
+
+    from . import store
+
+    with open_latents(latents) as file:
+        source = file.attrs.get("source")
+    if source is None or not Path(source).is_file():
+        warnings.warn(f"the split file {source} the cache {latents} was encoded from is missing: "
+                      "the proposal stage trains without walls that stay")
+        return None
+    with store.open_dataset(source) as file:
+        names = list(file.attrs["kind_names"])
+        kind = file["kind"][start:stop]
+    return np.isin(kind, [names.index(name) for name in ("wall", "window_wall") if name in names])
+
+
+def wall_stays(mean: Tensor, visible: Tensor, walls: Tensor) -> tuple[Tensor, Tensor]:
+    """Latents of the same videos as if their walls (N, K) stood in every frame: each frame in
+    which a wall is unseen takes its latent from the nearest frame in which it is seen.
+
+    Training videos lift their wall at the start and the end, so that what it hides is seen
+    then and can be learnt; the hypothetical test videos keep the wall down throughout and
+    ask Transformer 2 for an object it never saw. Without this, Transformer 2 answers with
+    the wall's training timetable (a wall coming down, then going up)."""
+    mean, visible = mean.clone(), visible.clone()
+    frames = torch.arange(mean.shape[1])
+    for video, slot in walls.nonzero().tolist():
+        seen = visible[video, :, slot].nonzero().flatten()
+        if len(seen) == 0 or len(seen) == len(frames):
+            continue
+        nearest = seen[(frames[:, None] - seen[None]).abs().argmin(dim=1)]
+        mean[video, :, slot] = mean[video, nearest, slot]
+        visible[video, :, slot] = True
+    return mean, visible
+
+
+def fingerprint(state: dict[str, Tensor], prefixes: tuple[str, ...] = ("transformer1.", "dynamics.")) -> str:
+    """A short hash of the frozen networks' weights: which xpl.pt a proposal checkpoint belongs to."""
+    digest = hashlib.sha256()
+    for name in sorted(state):
+        if name.startswith(prefixes):
+            digest.update(name.encode())
+            digest.update(state[name].detach().cpu().contiguous().numpy().tobytes())
+    return digest.hexdigest()[:16]
+
+
+def train_proposal(run_dir: str | os.PathLike, latents: str | os.PathLike | None = None, *, resume: bool = False,
+                   overwrite: bool = False, progress: bool = True, **train_overrides: Any) -> Path:
+    """What `xvoe train --stage proposal` does: train Transformer 2 and the existence head of
+    RUN_DIR/xpl.pt further on -log q(hidden object | the rest), on objects hidden in every
+    frame of the training videos (the simulator's trajectories, encoded), into
+    RUN_DIR/proposal.pt. In the joint stage they get one step in each of the XPL's few steps
+    and a hidden object is a rare draw; the explanation and the NLL's proposal need more."""
+    run_dir = Path(run_dir)
+    xpl_path = checkpoint_path(run_dir, "xpl")
+    if not xpl_path.is_file():
+        raise XvoeError(f"no xpl.pt in {run_dir}: train the xpl stage first")
+    xpl, xpl_state = load_xpl(xpl_path, proposal=False)
+    ckpt = checkpoint_path(run_dir, "proposal")
+    preset_name = xpl_state["config"]["preset"]
+    if resume and ckpt.exists():
+        config = from_dict(TrainConfig, load_checkpoint(ckpt)["train"])
+    else:
+        config = preset(preset_name).proposal_train
+    config = override(override(config, **train_overrides), data_shards=config.data_shards or 1)
+    set_threads(config, 1)
+    seed_everything(config.seed)
+    latents = latents or xpl_state["meta"]["latents"]
+    batches = refined_batches(str(latents), xpl, batch_size=config.batch_size, shards=config.data_shards,
+                              max_videos=config.max_videos, seed=config.seed)
+    meta = {"latents": str(Path(latents).resolve()), "xpl": str(xpl_path.resolve()),
+            "xpl_fingerprint": fingerprint(xpl_state["model"])}
+    job = Job("proposal", ProposalNetworks(xpl), batches.batch, {"preset": preset_name, "xpl": to_dict(xpl.config)},
+              meta=meta)
+    return fit(job, config, run_dir, resume=resume, overwrite=overwrite, progress=progress)
+
+
+def load_xpl(model: str | os.PathLike, stage: str = "xpl", device: str | torch.device = "cpu",
+             proposal: bool = True) -> tuple[XPL, dict]:
+    """A trained XPL (or PLATO) model in eval mode, and its checkpoint's contents. An xpl.pt
+    with a proposal.pt beside it (the proposal stage ran) gets that checkpoint's Transformer 2
+    and existence head, unless `proposal` is False."""
     path = resolve_run(model, stage)
     state = load_checkpoint(path)
     if state["stage"] not in ("xpl", "plato", "xpl-noresidual"):
         raise XvoeError(f"{path} is a {state['stage']} checkpoint, not an XPL one")
     xpl = XPL(from_dict(XPLConfig, state["config"]["xpl"]))
     xpl.load_state_dict(state["model"])
+    tuned = path.parent / "proposal.pt"
+    if proposal and state["stage"] == "xpl" and tuned.is_file():
+        extra = load_checkpoint(tuned)
+        if extra["meta"].get("xpl_fingerprint") != fingerprint(state["model"]):
+            raise XvoeError(f"{tuned} was trained on another xpl.pt than {path}; retrain it "
+                            "(xvoe train --stage proposal --overwrite) or move it away")
+        xpl.load_state_dict(extra["model"], strict=False)
+        state["proposal"] = str(tuned)
     state["path"] = str(path)
     return xpl.to(device).eval(), state

@@ -36,7 +36,7 @@ def ship(run_dir: str | os.PathLike, out: str | os.PathLike = WEIGHTS) -> list[P
     from .train import load_checkpoint
 
     run_dir, out = Path(run_dir), Path(out)
-    stages = [s for s in ("perception", *SHIPPED) if (run_dir / f"{s}.pt").is_file()]
+    stages = [s for s in ("perception", *SHIPPED, "proposal") if (run_dir / f"{s}.pt").is_file()]
     if "perception" not in stages or "xpl" not in stages:
         raise XvoeError(f"{run_dir} holds no perception.pt and xpl.pt to ship")
     out.mkdir(parents=True, exist_ok=True)

@@ -92,6 +92,10 @@ class Preset:
     # about 6 minutes on 2 cores (0.25 s a step)
     xpl_train: TrainConfig = field(default_factory=lambda: TrainConfig(steps=1500, batch_size=32, warmup_steps=100,
                                                                        decay_steps=1000))
+    # Transformer 2 and the existence head trained further on hidden objects (the proposal stage);
+    # about 0.1 s a step on one core
+    proposal_train: TrainConfig = field(default_factory=lambda: TrainConfig(steps=4000, batch_size=32,
+                                                                            warmup_steps=100, decay_steps=1500))
     # the PhyDNet baseline: batch_size counts videos; ~4-5 minutes on one CPU thread
     phydnet: PhyDNetConfig = field(default_factory=PhyDNetConfig)
     phydnet_train: TrainConfig = field(default_factory=lambda: TrainConfig(steps=300, batch_size=8, lr=3e-3,
@@ -114,6 +118,8 @@ PRESETS: dict[str, Preset] = {
                       dynamics=DynamicsConfig(latent_dim=32, hidden=512, mlp_layers=3, lstm=2056, buffer_heads=8)),
         xpl_train=TrainConfig(steps=32_000, batch_size=500, warmup_steps=1000, decay_steps=10_000,
                               checkpoint_minutes=10.0, log_every=100),
+        proposal_train=TrainConfig(steps=32_000, batch_size=500, warmup_steps=1000, decay_steps=10_000,
+                                   checkpoint_minutes=10.0, log_every=100),
         perception_train=TrainConfig(steps=472_000, batch_size=36, lr=4e-4, warmup_steps=2000,
                                      decay_steps=100_000, checkpoint_minutes=10.0, log_every=100),
         # the original's sizes (64x64 -> 16x16 features, ConvLSTM 128-128-64), one more halving at 128x128;

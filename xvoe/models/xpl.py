@@ -102,18 +102,25 @@ class XPL(nn.Module):
         if self.config.use_reasoning:
             refined = torch.where(refill.unsqueeze(-1), z, refined)    # what Transformer 2 sees at test
             slot = hidden if hidden is not None else torch.randint(z.shape[2], (z.shape[0],), device=z.device)
-            keep = hide_slot(visible.shape, slot)
-            mean, scale = self.transformer2(refined.detach(), keep)
-            scale = scale.clamp_min(self.config.reasoning.min_scale)
-            out["mae"] = gaussian_nll(mean, scale, refined.detach(), ~keep)
-            rows = torch.arange(len(slot), device=z.device)
-            logit = self.existence_logit(mean[rows, :, slot].detach(), scale[rows, :, slot].detach())
-            exists = visible[rows, :, slot].any(dim=1).to(logit.dtype)
-            out["existence"] = nn.functional.binary_cross_entropy_with_logits(logit, exists)
-            out["mae_mse"] = (((mean - refined.detach()) ** 2).sum(-1) * (~keep)).sum() / (~keep).sum()
+            out.update(self.proposal_losses(refined.detach(), visible, slot))
         zero = torch.zeros((), device=z.device)
         out["loss"] = (out["dynamics"] + self.config.refill_weight * out.get("refill", zero)
                        + self.config.mae_weight * out.get("mae", zero) + out.get("existence", zero))
+        return out
+
+    def proposal_losses(self, refined: Tensor, visible: Tensor, slot: Tensor) -> dict[str, Tensor]:
+        """Transformer 2 and the existence head, on refined latents (B, T, K, D) with slot
+        `slot` (B,) hidden in every frame: the Gaussian NLL of what was hidden, -log q(z | rest),
+        and the cross-entropy of whether the slot held a seen object."""
+        keep = hide_slot(visible.shape, slot)
+        mean, scale = self.transformer2(refined, keep)
+        scale = scale.clamp_min(self.config.reasoning.min_scale)
+        out = {"mae": gaussian_nll(mean, scale, refined, ~keep)}
+        rows = torch.arange(len(slot), device=refined.device)
+        logit = self.existence_logit(mean[rows, :, slot].detach(), scale[rows, :, slot].detach())
+        exists = visible[rows, :, slot].any(dim=1).to(logit.dtype)
+        out["existence"] = nn.functional.binary_cross_entropy_with_logits(logit, exists)
+        out["mae_mse"] = (((mean - refined) ** 2).sum(-1) * (~keep)).sum() / (~keep).sum()
         return out
 
 
