@@ -161,3 +161,32 @@ def test_wall_stays_fills_the_frames_the_wall_was_away_from_the_nearest_seen_one
     assert stays[0, :, 1, 0].tolist() == [mean[0, 2, 1, 0]] * 3 + [mean[0, 3, 1, 0]] * 2
     assert seen[0, :, 1].all() and not seen[1, :, 1].any()
     assert torch.equal(stays[:, :, [0, 2]], mean[:, :, [0, 2]]) and torch.equal(stays[1], mean[1])
+
+
+def test_transformer2_never_sees_the_slot_it_rebuilds_not_even_through_transformer1():
+    """In the proposal stage the rebuilt slot is emptied before Transformer 1 refines the
+    others: what stood there may change freely without changing the loss (only the target may)."""
+    from xvoe.models.xpl import XPL, XPLConfig
+    from xvoe.models.reasoning import ReasoningConfig
+    from xvoe.models.dynamics import DynamicsConfig
+    from xvoe.train_xpl import ProposalBatch, ProposalNetworks
+
+    torch.manual_seed(0)
+    xpl = XPL(XPLConfig(reasoning=ReasoningConfig(latent_dim=D, slots=K, frames=T, width=16, layers=1, heads=2,
+                                                  mlp=16),
+                        dynamics=DynamicsConfig(latent_dim=D, hidden=16, lstm=16, buffer_heads=2))).eval()
+    networks = ProposalNetworks(xpl, torch.zeros(D))
+    mean, target = torch.randn(3, T, K, D), torch.randn(3, T, K, D)
+    visible = torch.ones(3, T, K, dtype=torch.bool)
+    visible[:, 2:5, 0] = False                   # slot 0 partly occluded: Transformer 1 fills it
+    order = torch.stack([torch.randperm(K) for _ in range(3)])
+    hidden = torch.tensor([1, 2, 3])             # in the permuted order
+    batch = ProposalBatch(mean, visible, order, hidden, torch.zeros_like(visible), target)
+    loss = networks(batch)["mae"]
+    moved = mean.clone()
+    original = order[torch.arange(3), hidden]    # the rebuilt slots in the stored order
+    moved[torch.arange(3), :, original] += 5.0
+    torch.testing.assert_close(networks(ProposalBatch(moved, visible, order, hidden, batch.refill, target))["mae"], loss)
+    other = mean.clone()
+    other[torch.arange(3), :, (original + 1) % K] += 5.0
+    assert not torch.allclose(networks(ProposalBatch(other, visible, order, hidden, batch.refill, target))["mae"], loss)

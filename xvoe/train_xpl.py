@@ -23,6 +23,7 @@ from .data import owned_shards
 from .errors import XvoeError
 from .latents import open_latents
 from .models.config import TrainConfig, from_dict, override, preset, to_dict
+from .models.reasoning import hide_slot
 from .models.xpl import XPL, XPLConfig, permute_slots
 from .train import (
     Job,
@@ -70,6 +71,11 @@ class LatentBatches:
         self.slots = self.mean.shape[2]
 
     def batch(self, step: int) -> LatentBatch:
+        video, order, hidden, refill = self.draw(step)
+        return LatentBatch(self.mean[video], self.visible[video], order, hidden, refill)
+
+    def draw(self, step: int) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+        """The videos (local indices), slot orders, rebuilt slots and refill spans of a step."""
         videos, orders, hidden, refill = [], [], [], []
         for shard, (start, stop) in zip(self.shards, self.bounds):
             rng = np.random.default_rng([self.seed, step, shard])
@@ -79,9 +85,7 @@ class LatentBatches:
             orders.append(order)
             hidden.append(self.hidden_slots(rng, video, order))
             refill.append(self.refill_spans(rng, len(video)))
-        video = torch.from_numpy(np.concatenate(videos))
-        return LatentBatch(self.mean[video], self.visible[video], torch.from_numpy(np.concatenate(orders)),
-                           torch.from_numpy(np.concatenate(hidden)), torch.from_numpy(np.concatenate(refill)))
+        return tuple(torch.from_numpy(np.concatenate(parts)) for parts in (videos, orders, hidden, refill))
 
     REFILL_SHARE = 0.5   # of the slots, this share has a span of frames hidden from Transformer 1
 
@@ -175,39 +179,72 @@ def latent_cache_for(data: str | os.PathLike, run_dir: str | os.PathLike, percep
     return cache
 
 
-class ProposalNetworks(nn.Module):
-    """What the proposal stage trains: Transformer 2 and the existence head of a trained XPL,
-    registered under the XPL's own names (so the stage's checkpoint overlays xpl.pt), while
-    Transformer 1 and the dynamics stay frozen outside it."""
+@dataclass
+class ProposalBatch(LatentBatch):
+    target: Tensor = None   # (B, T, K, D) Transformer 1's refined latents with every slot as seen
 
-    def __init__(self, xpl: XPL):
-        super().__init__()
-        self.transformer2, self.existence = xpl.transformer2, xpl.existence
-        self.losses = xpl.proposal_losses
-
-    def forward(self, batch: LatentBatch) -> dict[str, Tensor]:
-        refined, visible = permute_slots(batch.mean, batch.visible, order=batch.order)
-        out = self.losses(refined, visible, batch.hidden)
-        out["loss"] = out["mae"] + out["existence"]
-        return out
+    def to(self, device) -> ProposalBatch:
+        return ProposalBatch(*(t.to(device) for t in (self.mean, self.visible, self.order, self.hidden,
+                                                      self.refill, self.target)))
 
 
 STAYS_SHARE = 0.5   # of the videos with a wall that comes and goes, this share is shown one that stays
 
 
-def refined_batches(latents: str, xpl: XPL, **batching: Any) -> LatentBatches:
-    """Batches of Transformer 1's refined latents (computed once: it is frozen here), with
-    the slot to rebuild drawn among the seen objects PROPOSAL_OBJECT_SHARE of the time, and
-    walls that stay (`wall_stays`) in a share of the videos."""
-    batches = LatentBatches(latents, object_share=PROPOSAL_OBJECT_SHARE, **batching)
-    with torch.no_grad():
-        batches.mean = torch.cat([xpl.refine(mean, visible) for mean, visible
-                                  in zip(batches.mean.split(500), batches.visible.split(500))])
-    walls = wall_slots(latents, batches.start, batches.start + len(batches.mean))
-    if walls is not None:
-        chosen = np.random.default_rng([batches.seed, 1]).random(len(walls)) < STAYS_SHARE
-        batches.mean, batches.visible = wall_stays(batches.mean, batches.visible, torch.from_numpy(walls & chosen[:, None]))
-    return batches
+class ProposalBatches(LatentBatches):
+    """The cached means, with walls that stay (`wall_stays`) in a share of the videos, and
+    Transformer 1's refinement of them (computed once: it is frozen here), the target; the
+    slot to rebuild is drawn among the seen objects PROPOSAL_OBJECT_SHARE of the time."""
+
+    def __init__(self, path: str, xpl: XPL, **batching: Any):
+        super().__init__(path, object_share=PROPOSAL_OBJECT_SHARE, **batching)
+        walls = wall_slots(path, self.start, self.start + len(self.mean))
+        if walls is not None:
+            chosen = np.random.default_rng([self.seed, 1]).random(len(walls)) < STAYS_SHARE
+            self.mean, self.visible = wall_stays(self.mean, self.visible, torch.from_numpy(walls & chosen[:, None]))
+        with torch.no_grad():
+            self.target = torch.cat([xpl.refine(mean, visible) for mean, visible
+                                     in zip(self.mean.split(500), self.visible.split(500))])
+        self.empty = empty_latent(path)
+
+    def batch(self, step: int) -> ProposalBatch:
+        video, order, hidden, refill = self.draw(step)
+        return ProposalBatch(self.mean[video], self.visible[video], order, hidden, refill, self.target[video])
+
+
+def empty_latent(latents: str) -> Tensor:
+    """(D,) what the encoder makes of a slot with no pixels (the same for every such slot),
+    from the cache's never-present entries; zeros if it holds none."""
+    with open_latents(latents) as file:
+        mean, present = file["mean"][:200], file["present"][:200]
+    empty = mean[~present]
+    return torch.from_numpy(empty.mean(0) if len(empty) else np.zeros(mean.shape[-1], np.float32))
+
+
+class ProposalNetworks(nn.Module):
+    """What the proposal stage trains: Transformer 2 and the existence head of a trained XPL,
+    registered under the XPL's own names (so the stage's checkpoint overlays xpl.pt), while
+    Transformer 1 and the dynamics stay frozen outside it.
+
+    Transformer 2 sees the other slots as Transformer 1 refines them with the rebuilt slot
+    emptied, as at test, where the hidden object was never seen: refined with the object in
+    view, a partly occluded ball's fill carries where the object stands, a clue that is gone
+    at test."""
+
+    def __init__(self, xpl: XPL, empty: Tensor):
+        super().__init__()
+        self.transformer2, self.existence = xpl.transformer2, xpl.existence
+        self.refine, self.losses = xpl.refine, xpl.proposal_losses
+        self.register_buffer("empty", empty, persistent=False)
+
+    def forward(self, batch: ProposalBatch) -> dict[str, Tensor]:
+        raw, visible, target = permute_slots(batch.mean, batch.visible, batch.target, order=batch.order)
+        rebuilt = ~hide_slot(visible.shape, batch.hidden)
+        with torch.no_grad():
+            context = self.refine(torch.where(rebuilt.unsqueeze(-1), self.empty, raw), visible & ~rebuilt)
+        out = self.losses(torch.where(rebuilt.unsqueeze(-1), target, context), visible, batch.hidden)
+        out["loss"] = out["mae"] + out["existence"]
+        return out
 
 
 def wall_slots(latents: str, start: int, stop: int) -> np.ndarray | None:
@@ -281,11 +318,11 @@ def train_proposal(run_dir: str | os.PathLike, latents: str | os.PathLike | None
     set_threads(config, 1)
     seed_everything(config.seed)
     latents = latents or xpl_state["meta"]["latents"]
-    batches = refined_batches(str(latents), xpl, batch_size=config.batch_size, shards=config.data_shards,
+    batches = ProposalBatches(str(latents), xpl, batch_size=config.batch_size, shards=config.data_shards,
                               max_videos=config.max_videos, seed=config.seed)
     meta = {"latents": str(Path(latents).resolve()), "xpl": str(xpl_path.resolve()),
             "xpl_fingerprint": fingerprint(xpl_state["model"])}
-    job = Job("proposal", ProposalNetworks(xpl), batches.batch, {"preset": preset_name, "xpl": to_dict(xpl.config)},
+    job = Job("proposal", ProposalNetworks(xpl, batches.empty), batches.batch, {"preset": preset_name, "xpl": to_dict(xpl.config)},
               meta=meta)
     return fit(job, config, run_dir, resume=resume, overwrite=overwrite, progress=progress)
 
