@@ -8,7 +8,8 @@
 (b) mae_iou: on expected S1 videos, each ball or cube dropped from the input in all frames in
     turn; the IoU of Transformer 2's reconstruction with its silhouette.
 (c) dyn_mse: the dynamics' one-step pixel error (mean squared error per pixel, [-1, 1] units)
-    of the composite of predicted latents against the observed frame, expected S1 videos.
+    of the composite of predicted latents against the observed frame, expected S1 videos; and
+    its RMS error per latent (the NLL model's motion_sigma stands for it).
 Also the paper's Fig. 5b: the spread of the first ten principal components of the dynamics
 targets with the residual (z(t+1) - z(t)) and without it (z(t+1)).
 Last line: hidden_iou=0.NN mae_iou=0.NN dyn_mse=...
@@ -80,9 +81,10 @@ def mae_iou(scorer, file, videos: list[int], names: list[str], columns: list[str
 
 
 @torch.no_grad()
-def dynamics_error(scorer, file, videos: list[int]) -> tuple[float, np.ndarray, np.ndarray]:
-    """One-step pixel error, and the dynamics targets with and without the residual."""
-    errors, residual_targets, direct_targets = [], [], []
+def dynamics_error(scorer, file, videos: list[int]) -> tuple[float, float, np.ndarray, np.ndarray]:
+    """One-step pixel error, the one-step RMS error per latent of the occupied slots (what the
+    NLL's motion_sigma stands for), and the dynamics targets with and without the residual."""
+    errors, latent_errors, residual_targets, direct_targets = [], [], [], []
     for index in videos:
         video = encode(scorer, file, index)
         refined = scorer.xpl.refine(video["mean"], video["visible"])
@@ -91,11 +93,13 @@ def dynamics_error(scorer, file, videos: list[int]) -> tuple[float, np.ndarray, 
         background = scorer.vae.decode(video["background"][0])[None]
         expected = composite(scorer.vae, background[:, 1:], decode_slots(scorer.vae, predicted, occupied), occupied)
         errors.append(float((expected - video["frames"][:, 1:]).pow(2).mean()))
+        latent_errors.append((predicted - refined[:, 1:])[0][:, occupied[0]].pow(2).flatten().numpy())
         present = occupied[0].numpy()
         z = refined[0][:, present].numpy()                       # (T, objects, D)
         residual_targets.append((z[1:] - z[:-1]).reshape(-1, z.shape[-1]))
         direct_targets.append(z[1:].reshape(-1, z.shape[-1]))
-    return float(np.mean(errors)), np.concatenate(residual_targets), np.concatenate(direct_targets)
+    latent_rms = float(np.sqrt(np.concatenate(latent_errors).mean()))
+    return float(np.mean(errors)), latent_rms, np.concatenate(residual_targets), np.concatenate(direct_targets)
 
 
 def principal_spread(targets: np.ndarray, components: int = 10) -> np.ndarray:
@@ -121,9 +125,10 @@ def main() -> None:
         expected = [i for scenario in ("collision", "blocking", "permanence", "continuity")
                     for i in pick(file, scenario, "S1", 0, max(1, args.pairs // 4))]
         mae = mae_iou(scorer, file, expected, names, columns)
-        dyn, residual, direct = dynamics_error(scorer, file, expected)
+        dyn, latent_rms, residual, direct = dynamics_error(scorer, file, expected)
     spread_residual, spread_direct = principal_spread(residual), principal_spread(direct)
     print(f"videos: {args.pairs} blocking S2, {len(expected)} expected S1; {time.perf_counter() - start:.0f} s")
+    print(f"dynamics' one-step RMS error per latent, occupied slots: {latent_rms:.3f}")
     print("PC spread (std) with residual:   ", " ".join(f"{v:.3f}" for v in spread_residual))
     print("PC spread (std) without residual:", " ".join(f"{v:.3f}" for v in spread_direct))
     if args.figure:

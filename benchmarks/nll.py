@@ -2,7 +2,7 @@
 comparative accuracy against the MSE score on the same pairs.
 
     python benchmarks/nll.py --model NAME_OR_RUN --data test.h5 [--particles 64] [--pairs N] [--threads 2]
-                             [--independent-guide]
+                             [--motion-sigma S] [--independent-guide]
 
 Scores the first N pairs of every S1 and S3 setting and of blocking S2 with both surprise
 definitions, each video encoded once (as `xvoe score --surprise both` does).
@@ -105,6 +105,9 @@ def main() -> None:
     parser.add_argument("--pairs", type=int, default=1_000_000, help="pairs per setting (default: all)")
     parser.add_argument("--threads", type=int, default=2, help="torch threads (default 2)")
     parser.add_argument("--seed", type=int, default=0, help="seed of the importance samples")
+    parser.add_argument("--motion-sigma", type=float, default=InferenceConfig.motion_sigma,
+                        help="standard deviation of the seen objects' latents around the dynamics "
+                             f"(default {InferenceConfig.motion_sigma})")
     parser.add_argument("--independent-guide", action="store_true",
                         help="draw the hidden trajectory frame by frame from Transformer 2 alone (the guide "
                              "before it was fused with the dynamics' step), for comparison")
@@ -121,7 +124,8 @@ def run(args: argparse.Namespace) -> None:
     scorer = load_scorer(args.model)
     if scorer.xpl is None or not scorer.xpl.config.use_reasoning:
         raise XvoeError(f"the NLL surprise needs an XPL model with reasoning; {scorer.name} has none")
-    config = InferenceConfig(particles=args.particles, guide_follows_dynamics=not args.independent_guide)
+    config = InferenceConfig(particles=args.particles, motion_sigma=args.motion_sigma,
+                             guide_follows_dynamics=not args.independent_guide)
     rows, nll_seconds, mse_seconds = [], 0.0, 0.0
     with store.open_dataset(args.data) as file:
         check_size(file, scorer.image_size, f"the model {scorer.name}")
@@ -144,7 +148,7 @@ def report(table: dict[str, np.ndarray], args: argparse.Namespace, nll_seconds: 
     speed, median_ess = videos / nll_seconds, float(np.median(table["ess"]))
     print(f"model {args.model}, {args.data}: {videos} videos ({args.pairs if args.pairs < 1_000_000 else 'all'} "
           f"pairs per setting), {args.particles} particles, {args.threads} thread(s), "
-          f"{'independent' if args.independent_guide else 'dynamics-fused'} guide")
+          f"{'independent' if args.independent_guide else 'dynamics-fused'} guide, motion sigma {args.motion_sigma}")
     print(f"NLL scoring: {speed:.2f} videos/s (encoding included, {nll_seconds:.0f} s); "
           f"MSE scoring: {videos / mse_seconds:.1f} videos/s (encoding included)")
     print(f"ESS: median {median_ess:.1f}, 10th percentile {np.percentile(table['ess'], 10):.1f} "
