@@ -13,6 +13,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor, nn
 
+from xvoe.models.dynamics import DynamicsState
 from xvoe.models.perception import ComponentVAE
 from xvoe.models.xpl import XPL
 from xvoe.score import decode_slots
@@ -32,6 +33,8 @@ class XPLScene(nn.Module):
         with torch.no_grad():   # (T, K, 4, H, W); the free slot, never seen, stays blank
             self.register_buffer("layers", decode_slots(vae, refined[None], occupied[None])[0])
         self.register_buffer("moving", moving)
+        # the last history of the hidden slot, the dynamics' state after it and its predictions
+        self._carried: tuple[Tensor, DynamicsState, list[Tensor]] | None = None
 
     def initial(self, particles: int) -> tuple[Tensor, Tensor]:
         """The latent prior of the perception module, N(0, I)."""
@@ -46,7 +49,29 @@ class XPLScene(nn.Module):
         return scene
 
     def transition(self, history: Tensor) -> Tensor:
-        return self.xpl.dynamics(self.with_hidden(history))[:, -1, self.hidden]
+        """The dynamics' next latent of the hidden slot. The model asks frame after frame for
+        the same particles' growing history, so the dynamics' state after the previous call
+        is kept and stepped once, instead of running it over the whole prefix again."""
+        return self._step(history)[-1][:, self.hidden]
+
+    def _step(self, history: Tensor) -> list[Tensor]:
+        """The dynamics' predictions (N, K, D) after each frame of the history (N, t, D),
+        stepping on from the last call when it is that call's history and one frame more."""
+        steps = history.shape[1]
+        kept = self._carried
+        if kept is not None and kept[0].shape == history.shape and torch.equal(kept[0], history):
+            return kept[2]
+        if kept is not None and kept[0].shape[1] == steps - 1 and torch.equal(kept[0], history[:, :-1]):
+            _, state, predictions = kept
+            start = steps - 1
+        else:
+            state, predictions, start = None, [], 0
+        scene = self.with_hidden(history)
+        for t in range(start, steps):
+            prediction, state = self.xpl.dynamics.step(scene[:, t], state)
+            predictions = [*predictions, prediction]
+        self._carried = (history, state, predictions)
+        return predictions
 
     def render(self, trajectory: Tensor, exists: Tensor) -> Tensor:
         """Expected frames (N, T, 4, H, W). Particles without a hidden object all show the same
@@ -75,6 +100,6 @@ class XPLScene(nn.Module):
         alive = exists.bool()
         empty = self.xpl.dynamics(self.refined[None, :-1])[:, :, self.moving]
         predicted = empty.expand(len(alive), *empty.shape[1:]).clone()
-        if alive.any():
-            predicted[alive] = self.xpl.dynamics(self.with_hidden(trajectory[alive])[:, :-1])[:, :, self.moving]
+        if alive.any():     # the transitions stepped through these frames already
+            predicted[alive] = torch.stack(self._step(trajectory[alive][:, :-1]), dim=1)[:, :, self.moving]
         return predicted, self.refined[1:, self.moving]

@@ -180,3 +180,29 @@ def test_nll_scores_are_the_same_bytes_from_the_same_seed(tmp_path):
     first, second = (score_split(scorer, str(data), str(tmp_path / name), surprise="both", particles=8,
                                  progress=False).read_bytes() for name in ("a.csv", "b.csv"))
     assert first == second
+
+
+def test_the_scene_steps_the_dynamics_once_per_frame_and_matches_a_full_run():
+    """The hidden slot's transition carries the dynamics' state from one call to the next
+    (the model asks frame by frame); it must equal running the dynamics over the whole prefix,
+    also when the history is not a continuation of the last call."""
+    from inference.xpl_scene import XPLScene
+
+    vae, xpl = tiny_models()
+    for layer in xpl.dynamics.out:               # the zero-initialised head would hide differences
+        if isinstance(layer, torch.nn.Linear):
+            torch.nn.init.normal_(layer.weight, std=0.3)
+    _, mean, visible, background, _ = video()
+    with torch.no_grad():
+        scene = XPLScene(vae, xpl, mean, vae.decode(background), visible.any(0), 3, visible.any(0))
+        trajectory = torch.randn(6, T, D)
+        for steps in [*range(1, T + 1), 3, 2]:
+            full = xpl.dynamics(scene.with_hidden(trajectory[:, :steps]))[:, -1, 3]
+            torch.testing.assert_close(scene.transition(trajectory[:, :steps]), full, atol=1e-5, rtol=1e-5)
+        for steps in range(1, T):                # as the model asks, then the seen objects' motion
+            scene.transition(trajectory[:, :steps])
+        alive = torch.tensor([True, False, True, True, False, True])
+        predicted, _ = scene.seen_motion(trajectory, alive)
+        moving = visible.any(0)
+        torch.testing.assert_close(predicted[alive], xpl.dynamics(scene.with_hidden(trajectory[alive])[:, :-1])[:, :, moving],
+                                   atol=1e-5, rtol=1e-5)

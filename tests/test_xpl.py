@@ -1,4 +1,5 @@
 """The reasoning Transformers and the dynamics: masking, causality, slot order, learning."""
+import pytest
 import torch
 
 from xvoe.models.dynamics import DynamicsConfig, InteractionLSTM
@@ -147,3 +148,18 @@ def test_explain_hides_a_never_seen_slot():
     assert torch.equal(mean[1], z[1]) and torch.all(scale[1] == 0)
     assert not torch.equal(mean[0, :, 3], z[0, :, 3]) and torch.all(scale[0, :, 3] > 0)
     assert torch.equal(mean[0, :, :3], z[0, :, :3])
+
+
+@pytest.mark.parametrize("residual", [True, False])
+def test_the_dynamics_step_by_step_matches_the_whole_sequence(residual):
+    torch.manual_seed(0)
+    dynamics = InteractionLSTM(DynamicsConfig(latent_dim=5, hidden=16, lstm=12, buffer_heads=2, residual=residual))
+    for layer in dynamics.out:                        # the zero-initialised head would hide differences
+        if isinstance(layer, torch.nn.Linear):
+            torch.nn.init.normal_(layer.weight, std=0.3)
+    z = torch.randn(3, 6, 4, 5)
+    whole, state, steps = dynamics(z), None, []
+    for t in range(z.shape[1]):
+        prediction, state = dynamics.step(z[:, t], state)
+        steps.append(prediction)
+    torch.testing.assert_close(torch.stack(steps, dim=1), whole, atol=1e-5, rtol=1e-5)

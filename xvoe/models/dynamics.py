@@ -8,6 +8,7 @@ z(t+1) = z(t) + f(z(<=t)); PLATO's predicts z(t+1) directly.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import torch
 from torch import Tensor, nn
@@ -21,6 +22,14 @@ class DynamicsConfig:
     lstm: int = 128            # slot-wise LSTM size (paper: 2056)
     buffer_heads: int = 4      # attention heads that read the object buffer
     residual: bool = True      # XPL: predict the change; PLATO: predict the next latent
+
+
+class DynamicsState(NamedTuple):
+    """What `InteractionLSTM.step` carries from frame to frame."""
+
+    buffer: Tensor      # (B * K, t, H) every slot's object states so far
+    hidden: Tensor      # (B * K, L) the slot-wise LSTM's state
+    cell: Tensor
 
 
 def mlp(inputs: int, width: int, layers: int, outputs: int | None = None) -> nn.Sequential:
@@ -73,6 +82,27 @@ class InteractionLSTM(nn.Module):
             outputs.append(hidden)
         change = self.out(torch.stack(outputs, dim=1)).reshape(batch, slots, frames, -1).permute(0, 2, 1, 3)
         return z + change if self.config.residual else change
+
+    def step(self, z: Tensor, state: DynamicsState | None = None) -> tuple[Tensor, DynamicsState]:
+        """One frame at a time: z (B, K, D) is frame t, state what frames < t left. Returns
+        the prediction of frame t+1, as `forward` makes it, and the state to carry on; a
+        sequential caller (the NLL's particles) pays for each frame once, not once per prefix."""
+        batch, slots, _ = z.shape
+        current = self.object(z)                                            # (B, K, H)
+        own = current.reshape(batch * slots, 1, -1)
+        buffer = own if state is None else torch.cat([state.buffer, own], dim=1)
+        memory, _ = self.buffer(own, buffer, buffer, need_weights=False)
+        pairs = torch.relu(self.receiver(current).unsqueeze(2) + self.sender(current).unsqueeze(1))
+        others = 1.0 - torch.eye(slots, device=z.device, dtype=z.dtype)
+        effect = (self.interaction(pairs) * others[:, :, None]).sum(dim=2)
+        inputs = torch.cat([current, memory.reshape(batch, slots, -1), effect], dim=-1).reshape(batch * slots, -1)
+        if state is None:
+            hidden = cell = z.new_zeros(batch * slots, self.config.lstm)
+        else:
+            hidden, cell = state.hidden, state.cell
+        hidden, cell = self.cell(inputs, (hidden, cell))
+        change = self.out(hidden).reshape(batch, slots, -1)
+        return (z + change if self.config.residual else change), DynamicsState(buffer, hidden, cell)
 
     def rollout(self, z: Tensor, start: int, steps: int) -> Tensor:
         """Predict `steps` frames after frame `start - 1` feeding predictions back in (no teacher)."""
