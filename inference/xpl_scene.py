@@ -33,6 +33,8 @@ class XPLScene(nn.Module):
         with torch.no_grad():   # (T, K, 4, H, W); the free slot, never seen, stays blank
             self.register_buffer("layers", decode_slots(vae, refined[None], occupied[None])[0])
         self.register_buffer("moving", moving)
+        with torch.no_grad():
+            self._fixed = self._partial_composite()
         # the last history of the hidden slot, the dynamics' state after it and its predictions
         self._carried: tuple[Tensor, DynamicsState, list[Tensor]] | None = None
 
@@ -75,21 +77,45 @@ class XPLScene(nn.Module):
 
     def render(self, trajectory: Tensor, exists: Tensor) -> Tensor:
         """Expected frames (N, T, 4, H, W). Particles without a hidden object all show the same
-        scene, so it is composited once, and only the others' hidden latents are decoded."""
+        scene, so it is composited once; for the others only the hidden latents are decoded,
+        and added to the softmax the fixed layers left (`_partial_composite`)."""
         alive = exists.bool()
         frames = self._composite(self.layers[None]).expand(len(alive), -1, -1, -1, -1).clone()
         if alive.any():
             count = int(alive.sum())
             pictures = self.vae.decode(trajectory[alive].reshape(-1, self.dim))
-            layers = self.layers.expand(count, *self.layers.shape).clone()
-            layers[:, :, self.hidden] = pictures.reshape(count, self.frames, *self.layers.shape[-3:])
-            frames[alive] = self._composite(layers)
+            frames[alive] = self._composite_hidden(pictures.reshape(count, self.frames, *self.layers.shape[-3:]))
         return frames
 
     def _composite(self, layers: Tensor) -> Tensor:
         """Frames (B, T, 4, H, W) of slot pictures (B, T, K, 4, H, W) over the background."""
         background = self.background.expand(len(layers), *self.background.shape)[:, :, None]
         return self.vae.composite(torch.cat([background, layers], dim=2))
+
+    def _logits(self, layers: Tensor) -> Tensor:
+        """The compositor's softmax logits (..., 1, H, W) of pictures (..., 4, H, W)."""
+        return -1000.0 * self.vae.theta.abs() * layers[..., 3:4, :, :]
+
+    def _partial_composite(self) -> tuple[Tensor, Tensor, Tensor]:
+        """The compositor's softmax over the background and every slot but the hidden one,
+        unnormalised: its per-pixel largest logit, sum of weights and weighted sum of pictures
+        (T, [4 or 1], H, W). A particle's picture of the hidden slot then costs one more term,
+        not a softmax over all slots."""
+        others = [k for k in range(self.slots) if k != self.hidden]
+        layers = torch.cat([self.background[:, None], self.layers[:, others]], dim=1)     # (T, S, 4, H, W)
+        logits = self._logits(layers)
+        top = logits.max(dim=1).values
+        weights = torch.exp(logits - top[:, None])
+        return top, weights.sum(dim=1), (weights * layers).sum(dim=1)
+
+    def _composite_hidden(self, pictures: Tensor) -> Tensor:
+        """Frames (B, T, 4, H, W) with the hidden slot's pictures (B, T, 4, H, W): the same
+        softmax as `_composite`, finished from the fixed layers' partial sums."""
+        top, total, weighted = self._fixed
+        logits = self._logits(pictures)
+        peak = torch.maximum(top, logits)
+        fixed, own = torch.exp(top - peak), torch.exp(logits - peak)
+        return (weighted * fixed + pictures * own) / (total * fixed + own)
 
     def seen_motion(self, trajectory: Tensor, exists: Tensor) -> tuple[Tensor, Tensor]:
         """The dynamics' prediction (N, T-1, M, D) of the moving seen slots, and what was seen.

@@ -206,3 +206,16 @@ def test_the_scene_steps_the_dynamics_once_per_frame_and_matches_a_full_run():
         moving = visible.any(0)
         torch.testing.assert_close(predicted[alive], xpl.dynamics(scene.with_hidden(trajectory[alive])[:, :-1])[:, :, moving],
                                    atol=1e-5, rtol=1e-5)
+
+
+def test_the_scene_composites_a_hidden_picture_as_the_full_softmax_does():
+    from inference.xpl_scene import XPLScene
+
+    vae, xpl = tiny_models()
+    _, mean, visible, background, _ = video()
+    with torch.no_grad():
+        scene = XPLScene(vae, xpl, mean, vae.decode(background), visible.any(0), 3, visible.any(0))
+        pictures = vae.decode(torch.randn(2 * T, D)).reshape(2, T, 4, 16, 16)
+        layers = scene.layers.expand(2, *scene.layers.shape).clone()
+        layers[:, :, 3] = pictures
+        torch.testing.assert_close(scene._composite_hidden(pictures), scene._composite(layers), atol=1e-5, rtol=1e-4)
