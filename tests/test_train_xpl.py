@@ -190,3 +190,11 @@ def test_transformer2_never_sees_the_slot_it_rebuilds_not_even_through_transform
     other = mean.clone()
     other[torch.arange(3), :, (original + 1) % K] += 5.0
     assert not torch.allclose(networks(ProposalBatch(other, visible, order, hidden, batch.refill, target))["mae"], loss)
+
+
+def test_the_proposal_stage_refuses_torchrun(tmp_path, monkeypatch):
+    from xvoe.train_xpl import train_proposal
+
+    monkeypatch.setenv("WORLD_SIZE", "2")
+    with pytest.raises(XvoeError, match="without torchrun"):
+        train_proposal(tmp_path)

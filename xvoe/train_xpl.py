@@ -26,6 +26,7 @@ from .models.config import TrainConfig, from_dict, override, preset, to_dict
 from .models.reasoning import hide_slot
 from .models.xpl import XPL, XPLConfig, permute_slots
 from .train import (
+    Dist,
     Job,
     checkpoint_path,
     fit,
@@ -303,6 +304,8 @@ def train_proposal(run_dir: str | os.PathLike, latents: str | os.PathLike | None
     frame of the training videos (the simulator's trajectories, encoded), into
     RUN_DIR/proposal.pt. In the joint stage they get one step in each of the XPL's few steps
     and a hidden object is a rare draw; the explanation and the NLL's proposal need more."""
+    if int(os.environ.get("WORLD_SIZE", "1")) > 1:
+        raise XvoeError("the proposal stage runs in one process (a few minutes): launch it without torchrun")
     run_dir = Path(run_dir)
     xpl_path = checkpoint_path(run_dir, "xpl")
     if not xpl_path.is_file():
@@ -322,9 +325,10 @@ def train_proposal(run_dir: str | os.PathLike, latents: str | os.PathLike | None
                               max_videos=config.max_videos, seed=config.seed)
     meta = {"latents": str(Path(latents).resolve()), "xpl": str(xpl_path.resolve()),
             "xpl_fingerprint": fingerprint(xpl_state["model"])}
-    job = Job("proposal", ProposalNetworks(xpl, batches.empty), batches.batch, {"preset": preset_name, "xpl": to_dict(xpl.config)},
-              meta=meta)
-    return fit(job, config, run_dir, resume=resume, overwrite=overwrite, progress=progress)
+    place = Dist(device=torch.device("cuda" if torch.cuda.is_available() else "cpu"))
+    networks = ProposalNetworks(xpl.to(place.device), batches.empty)
+    job = Job("proposal", networks, batches.batch, {"preset": preset_name, "xpl": to_dict(xpl.config)}, meta=meta)
+    return fit(job, config, run_dir, place=place, resume=resume, overwrite=overwrite, progress=progress)
 
 
 def load_xpl(model: str | os.PathLike, stage: str = "xpl", device: str | torch.device = "cpu",
