@@ -182,7 +182,7 @@ def latent_cache_for(data: str | os.PathLike, run_dir: str | os.PathLike, percep
 
 @dataclass
 class ProposalBatch(LatentBatch):
-    target: Tensor = None   # (B, T, K, D) Transformer 1's refined latents with every slot as seen
+    target: Tensor | None = None   # (B, T, K, D) Transformer 1's refined latents with every slot as seen
 
     def to(self, device) -> ProposalBatch:
         return ProposalBatch(*(t.to(device) for t in (self.mean, self.visible, self.order, self.hidden,
