@@ -92,10 +92,6 @@ class XPLScene(nn.Module):
         background = self.background.expand(len(layers), *self.background.shape)[:, :, None]
         return self.vae.composite(torch.cat([background, layers], dim=2))
 
-    def _logits(self, layers: Tensor) -> Tensor:
-        """The compositor's softmax logits (..., 1, H, W) of pictures (..., 4, H, W)."""
-        return -1000.0 * self.vae.theta.abs() * layers[..., 3:4, :, :]
-
     def _partial_composite(self) -> tuple[Tensor, Tensor, Tensor]:
         """The compositor's softmax over the background and every slot but the hidden one,
         unnormalised: its per-pixel largest logit, sum of weights and weighted sum of pictures
@@ -103,7 +99,7 @@ class XPLScene(nn.Module):
         not a softmax over all slots."""
         others = [k for k in range(self.slots) if k != self.hidden]
         layers = torch.cat([self.background[:, None], self.layers[:, others]], dim=1)     # (T, S, 4, H, W)
-        logits = self._logits(layers)
+        logits = self.vae.composite_logits(layers)
         top = logits.max(dim=1).values
         weights = torch.exp(logits - top[:, None])
         return top, weights.sum(dim=1), (weights * layers).sum(dim=1)
@@ -112,7 +108,7 @@ class XPLScene(nn.Module):
         """Frames (B, T, 4, H, W) with the hidden slot's pictures (B, T, 4, H, W): the same
         softmax as `_composite`, finished from the fixed layers' partial sums."""
         top, total, weighted = self._fixed
-        logits = self._logits(pictures)
+        logits = self.vae.composite_logits(pictures)
         peak = torch.maximum(top, logits)
         fixed, own = torch.exp(top - peak), torch.exp(logits - peak)
         return (weighted * fixed + pictures * own) / (total * fixed + own)

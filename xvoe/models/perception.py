@@ -183,8 +183,12 @@ class ComponentVAE(nn.Module):
 
     def composite(self, layers: Tensor) -> Tensor:
         """Z-buffer the components (..., S, 4, H, W) into frames (..., 4, H, W)."""
-        weights = torch.softmax(-1000.0 * self.theta.abs() * layers[..., 3:4, :, :], dim=-4)
+        weights = torch.softmax(self.composite_logits(layers), dim=-4)
         return (weights * layers).sum(dim=-4)
+
+    def composite_logits(self, layers: Tensor) -> Tensor:
+        """The compositor's softmax logits (..., 1, H, W) of pictures (..., 4, H, W): nearer wins."""
+        return -1000.0 * self.theta.abs() * layers[..., 3:4, :, :]
 
     def blank(self) -> Tensor:
         """The input every empty slot sees: (1,4,H,W) of the blank value."""
