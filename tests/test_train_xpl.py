@@ -163,6 +163,20 @@ def test_wall_stays_fills_the_frames_the_wall_was_away_from_the_nearest_seen_one
     assert torch.equal(stays[:, :, [0, 2]], mean[:, :, [0, 2]]) and torch.equal(stays[1], mean[1])
 
 
+def test_bridge_hidden_interpolates_between_seen_frames_and_holds_beyond_them():
+    from xvoe.train_xpl import bridge_hidden
+
+    mean = torch.arange(6, dtype=torch.float32).view(1, 6, 1, 1).repeat(1, 1, 3, 2)
+    mean[0, 2:4, 0] = 99.0                     # what the encoder made of a hidden object: no measurement
+    visible = torch.zeros(1, 6, 3, dtype=torch.bool)
+    visible[0, [1, 4], 0] = True               # slot 0 seen in frames 1 and 4
+    visible[0, :4, 1] = True                   # slot 1 leaves the view after frame 3
+    bridged = bridge_hidden(mean, visible)
+    assert bridged[0, :, 0, 0].tolist() == [1, 1, 2, 3, 4, 4]
+    assert bridged[0, :, 1, 1].tolist() == [0, 1, 2, 3, 3, 3]
+    assert torch.equal(bridged[0, :, 2], mean[0, :, 2])      # seen in no frame: left as it is
+    assert torch.equal(bridged[visible], mean[visible])       # seen frames never change
+
 def test_transformer2_never_sees_the_slot_it_rebuilds_not_even_through_transformer1():
     """In the proposal stage the rebuilt slot is emptied before Transformer 1 refines the
     others: what stood there may change freely without changing the loss (only the target may)."""

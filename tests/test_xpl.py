@@ -53,6 +53,23 @@ def test_gaussian_nll_matches_torch():
     torch.testing.assert_close(gaussian_nll(mean, scale, target, where), expected)
 
 
+def test_beta_nll_scales_each_entry_and_keeps_the_scale_optimum():
+    mean, target = torch.zeros(1, 1, 1, 1, requires_grad=True), torch.ones(1, 1, 1, 1)
+    where = torch.ones(1, 1, 1, dtype=torch.bool)
+    for scale in (0.5, 2.0):
+        plain = gaussian_nll(mean, torch.tensor(scale).reshape(1, 1, 1, 1), target, where)
+        weighted = gaussian_nll(mean, torch.tensor(scale).reshape(1, 1, 1, 1), target, where, beta=0.5)
+        torch.testing.assert_close(weighted, plain * scale)   # scale ** (2 * beta), held constant
+        grad_plain, = torch.autograd.grad(plain, mean)
+        grad_weighted, = torch.autograd.grad(weighted, mean)
+        torch.testing.assert_close(grad_plain, -torch.ones(1, 1, 1, 1) / scale ** 2)
+        torch.testing.assert_close(grad_weighted, -torch.ones(1, 1, 1, 1) / scale)
+    # the scale that minimises it is still the error's size: d/ds [s (e^2 / 2s^2 + log s)] with s held
+    scale = torch.tensor(0.7, requires_grad=True)
+    loss = gaussian_nll(mean.detach(), scale.reshape(1, 1, 1, 1), target * 0.7, where, beta=0.5)
+    assert abs(torch.autograd.grad(loss, scale)[0].item()) < 1e-6
+
+
 def test_dynamics_is_causal():
     """The prediction of frame t+1 depends on frames <= t only."""
     torch.manual_seed(1)

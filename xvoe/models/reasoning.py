@@ -83,8 +83,14 @@ def hide_slot(shape: tuple[int, int, int], slot: Tensor) -> Tensor:
     return keep
 
 
-def gaussian_nll(mean: Tensor, scale: Tensor, target: Tensor, where: Tensor) -> Tensor:
-    """Mean negative log-likelihood per hidden latent vector (sum over D) under N(mean, scale)."""
+def gaussian_nll(mean: Tensor, scale: Tensor, target: Tensor, where: Tensor, beta: float = 0.0) -> Tensor:
+    """Mean negative log-likelihood per hidden latent vector (sum over D) under N(mean, scale).
+
+    beta > 0 weights each entry by scale**(2 beta), held constant (the beta-NLL of Seitzer et
+    al., 2022): the plain NLL divides the mean's gradient by scale**2, so an entry that is hard
+    early gets a large scale and its mean stops learning. The scale's optimum is unchanged."""
     per_entry = 0.5 * ((target - mean) / scale) ** 2 + torch.log(scale) + 0.5 * torch.log(torch.tensor(2 * torch.pi))
+    if beta:
+        per_entry = per_entry * scale.detach() ** (2 * beta)
     weights = where.unsqueeze(-1).to(per_entry.dtype)
     return (per_entry * weights).sum() / weights.sum().clamp_min(1.0)

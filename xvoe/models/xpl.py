@@ -108,14 +108,15 @@ class XPL(nn.Module):
                        + self.config.mae_weight * out.get("mae", zero) + out.get("existence", zero))
         return out
 
-    def proposal_losses(self, refined: Tensor, visible: Tensor, slot: Tensor) -> dict[str, Tensor]:
+    def proposal_losses(self, refined: Tensor, visible: Tensor, slot: Tensor, beta: float = 0.0) -> dict[str, Tensor]:
         """Transformer 2 and the existence head, on refined latents (B, T, K, D) with slot
-        `slot` (B,) hidden in every frame: the Gaussian NLL of what was hidden, -log q(z | rest),
-        and the cross-entropy of whether the slot held a seen object."""
+        `slot` (B,) hidden in every frame: the Gaussian NLL of what was hidden, -log q(z | rest)
+        (the beta-NLL if beta > 0, see reasoning.gaussian_nll), and the cross-entropy of whether
+        the slot held a seen object."""
         keep = hide_slot(visible.shape, slot)
         mean, scale = self.transformer2(refined, keep)
         scale = scale.clamp_min(self.config.reasoning.min_scale)
-        out = {"mae": gaussian_nll(mean, scale, refined, ~keep)}
+        out = {"mae": gaussian_nll(mean, scale, refined, ~keep, beta)}
         rows = torch.arange(len(slot), device=refined.device)
         logit = self.existence_logit(mean[rows, :, slot].detach(), scale[rows, :, slot].detach())
         exists = visible[rows, :, slot].any(dim=1).to(logit.dtype)
