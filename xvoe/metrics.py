@@ -74,13 +74,12 @@ def auc(positive: np.ndarray, negative: np.ndarray) -> float:
         return float("nan")
     values = np.concatenate([positive, negative])
     order = np.argsort(values, kind="mergesort")
-    ranks = np.empty(len(values))
     sorted_values = values[order]
-    # average rank of each run of equal values
-    starts = np.flatnonzero(np.r_[True, sorted_values[1:] != sorted_values[:-1]])
-    ends = np.r_[starts[1:], len(values)]
-    for start, end in zip(starts, ends):
-        ranks[order[start:end]] = (start + end + 1) / 2.0
+    # each run of equal values gets the average of its ranks
+    run = np.cumsum(np.r_[True, sorted_values[1:] != sorted_values[:-1]]) - 1
+    average = np.bincount(run, np.arange(1, len(values) + 1)) / np.bincount(run)
+    ranks = np.empty(len(values))
+    ranks[order] = average[run]
     u = ranks[: len(positive)].sum() - len(positive) * (len(positive) + 1) / 2.0
     return float(u / (len(positive) * len(negative)))
 
@@ -151,7 +150,9 @@ def _auc_by_unit(values: np.ndarray, possible: np.ndarray, unit: np.ndarray, rou
     bounds = np.searchsorted(slot[by_unit], np.arange(len(units) + 1))
 
     def statistic(chosen: np.ndarray) -> float:
-        rows = np.concatenate([by_unit[bounds[u]:bounds[u + 1]] for u in chosen])
+        starts, sizes = bounds[chosen], bounds[chosen + 1] - bounds[chosen]
+        offsets = np.arange(sizes.sum()) - np.repeat(np.cumsum(sizes) - sizes, sizes)
+        rows = by_unit[np.repeat(starts, sizes) + offsets]
         return auc(values[rows][~possible[rows]], values[rows][possible[rows]])
 
     return Estimate(auc(values[~possible], values[possible]), *_bootstrap(statistic, len(units), rounds, seed))
