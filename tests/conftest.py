@@ -10,6 +10,16 @@ settings.register_profile("xvoe", derandomize=True, deadline=None, database=None
 settings.load_profile("xvoe")
 
 
+def randomise_dynamics_head(dynamics) -> None:
+    """Give the dynamics' output head random weights: it starts at zero (no change), which
+    would hide any difference between two ways of running the dynamics."""
+    import torch
+
+    for layer in dynamics.out:
+        if isinstance(layer, torch.nn.Linear):
+            torch.nn.init.normal_(layer.weight, std=0.3)
+
+
 @pytest.fixture(scope="session")
 def test_file(tmp_path_factory):
     path = tmp_path_factory.mktemp("data") / "test.h5"

@@ -6,6 +6,7 @@ import pyro
 import pytest
 import torch
 from pyro.util import check_model_guide_match
+from conftest import randomise_dynamics_head
 
 from inference.model import InferenceConfig
 from inference.surprise import nll_surprise
@@ -189,9 +190,7 @@ def test_the_scene_steps_the_dynamics_once_per_frame_and_matches_a_full_run():
     from inference.xpl_scene import XPLScene
 
     vae, xpl = tiny_models()
-    for layer in xpl.dynamics.out:               # the zero-initialised head would hide differences
-        if isinstance(layer, torch.nn.Linear):
-            torch.nn.init.normal_(layer.weight, std=0.3)
+    randomise_dynamics_head(xpl.dynamics)
     _, mean, visible, background, _ = video()
     with torch.no_grad():
         scene = XPLScene(vae, xpl, mean, vae.decode(background), visible.any(0), 3, visible.any(0))

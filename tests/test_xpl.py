@@ -1,6 +1,7 @@
 """The reasoning Transformers and the dynamics: masking, causality, slot order, learning."""
 import pytest
 import torch
+from conftest import randomise_dynamics_head
 
 from xvoe.models.dynamics import DynamicsConfig, InteractionLSTM
 from xvoe.models.reasoning import (
@@ -171,9 +172,7 @@ def test_explain_hides_a_never_seen_slot():
 def test_the_dynamics_step_by_step_matches_the_whole_sequence(residual):
     torch.manual_seed(0)
     dynamics = InteractionLSTM(DynamicsConfig(latent_dim=5, hidden=16, lstm=12, buffer_heads=2, residual=residual))
-    for layer in dynamics.out:                        # the zero-initialised head would hide differences
-        if isinstance(layer, torch.nn.Linear):
-            torch.nn.init.normal_(layer.weight, std=0.3)
+    randomise_dynamics_head(dynamics)
     z = torch.randn(3, 6, 4, 5)
     whole, state, steps = dynamics(z), None, []
     for t in range(z.shape[1]):
