@@ -223,16 +223,19 @@ def bridge_hidden(mean: Tensor, visible: Tensor) -> Tensor:
     cube behind a wall next to the ball it stops (an object's width off; docs/results.md);
     scored on seen frames alone, Transformer 2 proposes nothing in the frames a wall covers.
     A static object is held exactly; one moving behind a wall is bridged at constant speed."""
-    frames = torch.arange(mean.shape[1]).view(1, -1, 1)
-    before = torch.where(visible, frames, -1).cummax(dim=1).values
-    after = torch.where(visible, frames, mean.shape[1]).flip(1).cummin(dim=1).values.flip(1)
-    before = torch.where(before < 0, after, before)
-    after = torch.where(after >= mean.shape[1], before, after)
-    seen = (before >= 0) & (before < mean.shape[1])          # slots seen in no frame keep their latents
-    before, after = before.clamp(0, mean.shape[1] - 1), after.clamp(0, mean.shape[1] - 1)
+    count = mean.shape[1]
+    frames = torch.arange(count).view(1, -1, 1)
+    before = torch.where(visible, frames, -1).cummax(dim=1).values                  # last seen frame <= t
+    after = torch.where(visible, frames, count).flip(1).cummin(dim=1).values.flip(1)  # first seen frame >= t
+    before, after = torch.where(before < 0, after, before), torch.where(after == count, before, after)
+    before, after = before.clamp(0, count - 1), after.clamp(0, count - 1)             # (slots seen nowhere)
     share = ((frames - before) / (after - before).clamp_min(1)).unsqueeze(-1).to(mean.dtype)
-    pick = lambda index: torch.gather(mean, 1, index.unsqueeze(-1).expand_as(mean))   # noqa: E731
-    bridged = pick(before) * (1 - share) + pick(after) * share
+
+    def at(index: Tensor) -> Tensor:
+        return torch.gather(mean, 1, index.unsqueeze(-1).expand_as(mean))
+
+    bridged = at(before) * (1 - share) + at(after) * share
+    seen = visible.any(dim=1, keepdim=True)                                           # the others keep theirs
     return torch.where(seen.unsqueeze(-1), bridged, mean)
 
 
