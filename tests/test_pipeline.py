@@ -36,6 +36,10 @@ def test_tiny_pipeline_runs_end_to_end_and_skips_done_stages(tmp_path, tiny_cpu_
     stamp = (run / "xpl.pt").stat().st_mtime_ns
     run_pipeline(config)                     # everything done: nothing is redone
     assert (run / "xpl.pt").stat().st_mtime_ns == stamp
+    # fewer models: the report is redone for them, the trained models are not
+    run_pipeline(replace(config, models=("xpl", "random")))
+    assert (run / "xpl.pt").stat().st_mtime_ns == stamp
+    assert {row.split(",")[0] for row in open(run / "report" / "metrics.csv").read().split()[1:]} == {"xpl", "random"}
 
     # the Pyro model's surprise beside the paper's, on the same run
     import csv

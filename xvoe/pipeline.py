@@ -44,7 +44,8 @@ class PipelineConfig:
 
 
 class Stages:
-    """Runs named stages once; a stage is done when its marker exists."""
+    """Runs named stages once; a stage is done when its marker exists (and, for a stage given
+    a key, such as the models a report covers, when the marker holds the same key)."""
 
     def __init__(self, run_dir: Path, progress: bool):
         self.run_dir, self.progress = run_dir, progress
@@ -52,18 +53,19 @@ class Stages:
         self.marks.mkdir(parents=True, exist_ok=True)
         self.timings: dict[str, float] = {}
 
-    def done(self, name: str) -> bool:
-        return (self.marks / name).exists()
+    def done(self, name: str, key: str = "") -> bool:
+        mark = self.marks / name
+        return mark.exists() and (not key or mark.read_text().splitlines()[1:] == [key])
 
-    def run(self, name: str, work: Callable[[], object]) -> None:
-        if self.done(name):
+    def run(self, name: str, work: Callable[[], object], key: str = "") -> None:
+        if self.done(name, key):
             return
         if self.progress:
             print(f"[pipeline] {name}", flush=True)
         start = time.monotonic()
         work()
         self.timings[name] = time.monotonic() - start
-        (self.marks / name).write_text(f"{self.timings[name]:.1f} s\n")
+        (self.marks / name).write_text(f"{self.timings[name]:.1f} s\n" + (f"{key}\n" if key else ""))
 
 
 def run_pipeline(config: PipelineConfig) -> Path:
@@ -118,8 +120,9 @@ def run_pipeline(config: PipelineConfig) -> Path:
             reference, str(test_data), str(run_dir / "scores" / f"{model}.csv"), overwrite=True,
             progress=config.progress))
     scores = [run_dir / "scores" / f"{model}.csv" for model in config.models]
-    stages.run("metrics", lambda: report(scores, run_dir / "report", seed=config.seed))
-    stages.run("explanations", lambda: _explanations(run_dir, test_data, config.models))
+    models = ",".join(config.models)    # a rerun with more models redoes what covers them all
+    stages.run("metrics", lambda: report(scores, run_dir / "report", seed=config.seed), key=models)
+    stages.run("explanations", lambda: _explanations(run_dir, test_data, config.models), key=models)
     return write_report(run_dir, config)
 
 
@@ -213,7 +216,7 @@ def write_report(run_dir: Path, config: PipelineConfig) -> Path:
         lines += [f"![{figure.stem}](report/{figure.name})", ""]
     timings = sorted((run_dir / ".done").iterdir())
     lines += ["## Stage times", "", "| stage | time |", "|---|---|"]
-    lines += [f"| {mark.name} | {mark.read_text().strip()} |" for mark in timings]
+    lines += [f"| {mark.name} | {mark.read_text().splitlines()[0]} |" for mark in timings]
     out = run_dir / "report.md"
     out.write_text("\n".join(lines) + "\n")
     return out
