@@ -214,6 +214,22 @@ class ProposalBatches(LatentBatches):
         return ProposalBatch(self.mean[video], self.visible[video], order, hidden, refill, self.target[video])
 
 
+def seen_neighbours(visible: Tensor) -> tuple[Tensor, Tensor]:
+    """(N, T, K) frame indices: the last frame <= t and the first frame >= t in which each slot
+    is seen; where one side has none, the other side's; 0 for a slot seen in no frame."""
+    count = visible.shape[1]
+    frames = torch.arange(count).view(1, -1, 1)
+    before = torch.where(visible, frames, -1).cummax(dim=1).values
+    after = torch.where(visible, frames, count).flip(1).cummin(dim=1).values.flip(1)
+    before, after = torch.where(before < 0, after, before), torch.where(after == count, before, after)
+    return before.clamp(0, count - 1), after.clamp(0, count - 1)
+
+
+def take_frames(mean: Tensor, index: Tensor) -> Tensor:
+    """mean (N, T, K, D) at frames index (N, T, K), per video and slot."""
+    return torch.gather(mean, 1, index.unsqueeze(-1).expand_as(mean))
+
+
 def bridge_hidden(mean: Tensor, visible: Tensor) -> Tensor:
     """Latents (N, T, K, D) with each frame in which a seen object is hidden interpolated
     linearly between its nearest seen frames (held at the first or last one beyond them).
@@ -223,18 +239,10 @@ def bridge_hidden(mean: Tensor, visible: Tensor) -> Tensor:
     cube behind a wall next to the ball it stops (an object's width off; docs/results.md);
     scored on seen frames alone, Transformer 2 proposes nothing in the frames a wall covers.
     A static object is held exactly; one moving behind a wall is bridged at constant speed."""
-    count = mean.shape[1]
-    frames = torch.arange(count).view(1, -1, 1)
-    before = torch.where(visible, frames, -1).cummax(dim=1).values                  # last seen frame <= t
-    after = torch.where(visible, frames, count).flip(1).cummin(dim=1).values.flip(1)  # first seen frame >= t
-    before, after = torch.where(before < 0, after, before), torch.where(after == count, before, after)
-    before, after = before.clamp(0, count - 1), after.clamp(0, count - 1)             # (slots seen nowhere)
+    before, after = seen_neighbours(visible)
+    frames = torch.arange(mean.shape[1]).view(1, -1, 1)
     share = ((frames - before) / (after - before).clamp_min(1)).unsqueeze(-1).to(mean.dtype)
-
-    def at(index: Tensor) -> Tensor:
-        return torch.gather(mean, 1, index.unsqueeze(-1).expand_as(mean))
-
-    bridged = at(before) * (1 - share) + at(after) * share
+    bridged = take_frames(mean, before) * (1 - share) + take_frames(mean, after) * share
     seen = visible.any(dim=1, keepdim=True)                                           # the others keep theirs
     return torch.where(seen.unsqueeze(-1), bridged, mean)
 
@@ -301,16 +309,11 @@ def wall_stays(mean: Tensor, visible: Tensor, walls: Tensor) -> tuple[Tensor, Te
     then and can be learnt; the hypothetical test videos keep the wall down throughout and
     ask Transformer 2 for an object it never saw. Without this, Transformer 2 answers with
     the wall's training timetable (a wall coming down, then going up)."""
-    mean, visible = mean.clone(), visible.clone()
-    frames = torch.arange(mean.shape[1])
-    for video, slot in walls.nonzero().tolist():
-        seen = visible[video, :, slot].nonzero().flatten()
-        if len(seen) == 0 or len(seen) == len(frames):
-            continue
-        nearest = seen[(frames[:, None] - seen[None]).abs().argmin(dim=1)]
-        mean[video, :, slot] = mean[video, nearest, slot]
-        visible[video, :, slot] = True
-    return mean, visible
+    before, after = seen_neighbours(visible)
+    frames = torch.arange(mean.shape[1]).view(1, -1, 1)
+    nearest = torch.where(frames - before <= after - frames, before, after)    # the earlier on a tie
+    stays = (walls & visible.any(dim=1)).unsqueeze(1)                           # (N, 1, K)
+    return torch.where(stays.unsqueeze(-1), take_frames(mean, nearest), mean), visible | stays
 
 
 def fingerprint(state: dict[str, Tensor], prefixes: tuple[str, ...] = ("transformer1.", "dynamics.")) -> str:
