@@ -108,6 +108,13 @@ def main() -> None:
     parser.add_argument("--motion-sigma", type=float, default=InferenceConfig.motion_sigma,
                         help="standard deviation of the seen objects' latents around the dynamics "
                              f"(default {InferenceConfig.motion_sigma})")
+    parser.add_argument("--occlusion-sharpness", type=float, default=InferenceConfig.occlusion_sharpness,
+                        help="how much harder than the learned compositor a surface in front hides the "
+                             f"hidden object (default {InferenceConfig.occlusion_sharpness})")
+    parser.add_argument("--refine-steps", type=int, default=InferenceConfig.refine_steps,
+                        help="gradient steps that move the proposal's mean out of sight "
+                             f"(default {InferenceConfig.refine_steps})")
+    parser.add_argument("--refine-rate", type=float, default=InferenceConfig.refine_rate)
     parser.add_argument("--independent-guide", action="store_true",
                         help="draw the hidden trajectory frame by frame from Transformer 2 alone (the guide "
                              "before it was fused with the dynamics' step), for comparison")
@@ -125,6 +132,8 @@ def run(args: argparse.Namespace) -> None:
     if scorer.xpl is None or not scorer.xpl.config.use_reasoning:
         raise XvoeError(f"the NLL surprise needs an XPL model with reasoning; {scorer.name} has none")
     config = InferenceConfig(particles=args.particles, motion_sigma=args.motion_sigma,
+                             occlusion_sharpness=args.occlusion_sharpness, refine_steps=args.refine_steps,
+                             refine_rate=args.refine_rate,
                              guide_follows_dynamics=not args.independent_guide)
     rows, nll_seconds, mse_seconds = [], 0.0, 0.0
     with store.open_dataset(args.data) as file:
@@ -148,7 +157,8 @@ def report(table: dict[str, np.ndarray], args: argparse.Namespace, nll_seconds: 
     speed, median_ess = videos / nll_seconds, float(np.median(table["ess"]))
     print(f"model {args.model}, {args.data}: {videos} videos ({args.pairs if args.pairs < 1_000_000 else 'all'} "
           f"pairs per setting), {args.particles} particles, {args.threads} thread(s), "
-          f"{'independent' if args.independent_guide else 'dynamics-fused'} guide, motion sigma {args.motion_sigma}")
+          f"{'independent' if args.independent_guide else 'dynamics-fused'} guide, motion sigma {args.motion_sigma}, "
+          f"occlusion sharpness {args.occlusion_sharpness}, {args.refine_steps} refining steps at {args.refine_rate}")
     print(f"NLL scoring: {speed:.2f} videos/s (encoding included, {nll_seconds:.0f} s); "
           f"MSE scoring: {videos / mse_seconds:.1f} videos/s (encoding included)")
     print(f"ESS: median {median_ess:.1f}, 10th percentile {np.percentile(table['ess'], 10):.1f} "
