@@ -2,7 +2,7 @@
 comparative accuracy against the MSE score on the same pairs.
 
     python benchmarks/nll.py --model NAME_OR_RUN --data test.h5 [--particles 64] [--pairs N] [--threads 2]
-                             [--motion-sigma S] [--independent-guide]
+                             [--motion-sigma S] [--refine-steps N] [--independent-guide]
 
 Scores the first N pairs of every S1 and S3 setting and of blocking S2 with both surprise
 definitions, each video encoded once (as `xvoe score --surprise both` does).
@@ -108,13 +108,11 @@ def main() -> None:
     parser.add_argument("--motion-sigma", type=float, default=InferenceConfig.motion_sigma,
                         help="standard deviation of the seen objects' latents around the dynamics "
                              f"(default {InferenceConfig.motion_sigma})")
-    parser.add_argument("--occlusion-sharpness", type=float, default=InferenceConfig.occlusion_sharpness,
-                        help="how much harder than the learned compositor a surface in front hides the "
-                             f"hidden object (default {InferenceConfig.occlusion_sharpness})")
     parser.add_argument("--refine-steps", type=int, default=InferenceConfig.refine_steps,
                         help="gradient steps that move the proposal's mean out of sight "
                              f"(default {InferenceConfig.refine_steps})")
-    parser.add_argument("--refine-rate", type=float, default=InferenceConfig.refine_rate)
+    parser.add_argument("--refine-rate", type=float, default=InferenceConfig.refine_rate,
+                        help=f"their learning rate (default {InferenceConfig.refine_rate})")
     parser.add_argument("--independent-guide", action="store_true",
                         help="draw the hidden trajectory frame by frame from Transformer 2 alone (the guide "
                              "before it was fused with the dynamics' step), for comparison")
@@ -132,7 +130,7 @@ def run(args: argparse.Namespace) -> None:
     if scorer.xpl is None or not scorer.xpl.config.use_reasoning:
         raise XvoeError(f"the NLL surprise needs an XPL model with reasoning; {scorer.name} has none")
     config = InferenceConfig(particles=args.particles, motion_sigma=args.motion_sigma,
-                             occlusion_sharpness=args.occlusion_sharpness, refine_steps=args.refine_steps,
+                             refine_steps=args.refine_steps,
                              refine_rate=args.refine_rate,
                              guide_follows_dynamics=not args.independent_guide)
     rows, nll_seconds, mse_seconds = [], 0.0, 0.0
@@ -158,7 +156,7 @@ def report(table: dict[str, np.ndarray], args: argparse.Namespace, nll_seconds: 
     print(f"model {args.model}, {args.data}: {videos} videos ({args.pairs if args.pairs < 1_000_000 else 'all'} "
           f"pairs per setting), {args.particles} particles, {args.threads} thread(s), "
           f"{'independent' if args.independent_guide else 'dynamics-fused'} guide, motion sigma {args.motion_sigma}, "
-          f"occlusion sharpness {args.occlusion_sharpness}, {args.refine_steps} refining steps at {args.refine_rate}")
+          f"{args.refine_steps} steps out of sight at rate {args.refine_rate}")
     print(f"NLL scoring: {speed:.2f} videos/s (encoding included, {nll_seconds:.0f} s); "
           f"MSE scoring: {videos / mse_seconds:.1f} videos/s (encoding included)")
     print(f"ESS: median {median_ess:.1f}, 10th percentile {np.percentile(table['ess'], 10):.1f} "

@@ -57,11 +57,9 @@ class InferenceConfig:
     # one-step error per latent on the default run's training latents, 0.19 (docs/results.md)
     motion_sigma: float = 0.2
     particles: int = 64
-    # a surface in front hides the hidden object this much harder than the learned compositor
-    # (XPLScene._composite_hidden); 1 keeps the compositor as trained
-    occlusion_sharpness: float = 1.0
-    refine_steps: int = 0           # gradient steps on the proposal's mean (surprise.refine_out_of_sight)
-    refine_rate: float = 0.05
+    refine_steps: int = 5           # gradient steps on the proposal's mean (surprise.refine_out_of_sight)
+    refine_rate: float = 0.1        # their Adam learning rate
+    refine_tolerance: float = 1.0   # nats a frame of the proposal's mean may cost before it is moved
     guide_follows_dynamics: bool = True   # fuse each frame's proposal with the dynamics' step
 
 

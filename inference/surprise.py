@@ -44,8 +44,8 @@ def nll_surprise(vae: ComponentVAE, xpl: XPL, frames: Tensor, mean: Tensor, visi
                  occluder: Tensor, config: InferenceConfig) -> NLLSurprise:
     """One video: frames (T, 4, H, W) in [-1, 1]; mean (T, K, D); visible (T, K) bool;
     background (T, D) latents; occluder (K,) bool. The guide proposes the hidden object's
-    trajectory from Transformer 2's mean and scale and its existence from XPL's amortised
-    existence probability."""
+    trajectory from Transformer 2's mean (moved out of sight, `refine_out_of_sight`) and scale,
+    and its existence from XPL's amortised existence probability."""
     refined = xpl.refine(mean[None], visible[None])
     explained, scale, slot = xpl.explain(refined, visible[None])
     unseen = never_seen(visible[None])[0]
@@ -53,13 +53,12 @@ def nll_surprise(vae: ComponentVAE, xpl: XPL, frames: Tensor, mean: Tensor, visi
     free = bool(unseen.any())
     background_pictures = vae.decode(background)
     occupied = visible.any(0)
-    scene = XPLScene(vae, xpl, refined[0], background_pictures, occupied, hidden, occupied & ~occluder,
-                     config.occlusion_sharpness)
+    scene = XPLScene(vae, xpl, refined[0], background_pictures, occupied, hidden, occupied & ~occluder)
     model = HiddenObjectModel(scene, config)
     loc, spread = explained[0, :, hidden], scale[0, :, hidden].clamp_min(xpl.config.reasoning.min_scale)
+    p_exists = torch.sigmoid(xpl.existence_logit(loc[None], spread[None]))[0] if free else torch.tensor(0.0)
     if free and config.refine_steps:
         loc = refine_out_of_sight(scene, loc, frames, config)
-    p_exists = torch.sigmoid(xpl.existence_logit(loc[None], spread[None]))[0] if free else torch.tensor(0.0)
     proposal = Proposal(defensive(p_exists, config.particles) if free else p_exists, loc, spread)
     estimate = importance(model.model, model.guide, frames, proposal=proposal, particles=config.particles)
     return NLLSurprise(estimate.nll, estimate.ess, float(estimate.posterior_mean("exists")),
@@ -73,18 +72,31 @@ def refine_out_of_sight(scene: XPLScene, loc: Tensor, frames: Tensor, config: In
     depth, partly in front of the wall; every particle drawn around it then pays hundreds of
     nats. The steps descend only the pixels' extra cost over the scene without the object
     (clipped at zero), so they hide the object and never reward it for patching what the
-    seen slots reconstruct badly. A deterministic function of the video: the guide stays a
-    proper proposal."""
+    seen slots reconstruct badly; frames where it costs under `refine_tolerance` nats are left
+    as they are. A deterministic function of the video: the guide stays a proper proposal."""
     without = (scene.empty() - frames).square()
+    every = torch.arange(len(loc))
+
+    def extra_cost(latents: Tensor, chosen: Tensor) -> Tensor:
+        """Nats (F,) the hidden object's pictures add in the frames `chosen`."""
+        extra = (scene.render_frames(latents, chosen) - frames[chosen]).square() - without[chosen]
+        return extra.clamp_min(0.0).sum(dim=(1, 2, 3)) / (2 * config.pixel_sigma ** 2)
+
+    chosen = every[extra_cost(loc, every) > config.refine_tolerance]
+    if len(chosen) == 0:
+        return loc
     with torch.enable_grad():
-        moved = loc.clone().requires_grad_(True)
+        moved = loc[chosen].clone().requires_grad_(True)
         optimiser = torch.optim.Adam([moved], lr=config.refine_rate)
         for _ in range(config.refine_steps):
-            extra = (scene.render(moved[None])[0] - frames).square() - without
-            loss = extra.clamp_min(0.0).sum() / (2 * config.pixel_sigma ** 2)
-            moved.grad, = torch.autograd.grad(loss, moved)    # not the networks' weights
+            cost = extra_cost(moved, chosen)
+            if float(cost.detach().max()) <= config.refine_tolerance:
+                break
+            moved.grad, = torch.autograd.grad(cost.sum(), moved)    # not the networks' weights
             optimiser.step()
-    return moved.detach()
+    refined = loc.clone()
+    refined[chosen] = moved.detach()
+    return refined
 
 
 @dataclass

@@ -21,17 +21,12 @@ from xvoe.score import decode_slots
 
 class XPLScene(nn.Module):
     def __init__(self, vae: ComponentVAE, xpl: XPL, refined: Tensor, background: Tensor, occupied: Tensor,
-                 hidden: int, moving: Tensor, occlusion_sharpness: float = 1.0):
+                 hidden: int, moving: Tensor):
         """refined: (T, K, D) latents; background: (T, 4, H, W) decoded background; occupied:
         (K,) slots that hold a seen object; hidden: the slot a hidden object would take (a
-        never-seen one); moving: (K,) seen slots whose motion is evidence (not the occluder);
-        occlusion_sharpness: how much harder than the learned compositor a surface in front
-        hides the hidden object (1: the compositor as trained; see `_composite_hidden`)."""
+        never-seen one); moving: (K,) seen slots whose motion is evidence (not the occluder)."""
         super().__init__()
-        if occlusion_sharpness < 1.0:
-            raise ValueError(f"occlusion_sharpness must be >= 1, got {occlusion_sharpness}")
         self.vae, self.xpl, self.hidden = vae, xpl, hidden
-        self.occlusion_sharpness = occlusion_sharpness
         self.frames, self.slots, self.dim = refined.shape
         self.register_buffer("refined", refined)
         self.register_buffer("background", background)
@@ -92,6 +87,11 @@ class XPLScene(nn.Module):
         pictures = self.vae.decode(trajectory.reshape(-1, self.dim))
         return self._composite_hidden(pictures.reshape(len(trajectory), self.frames, *self.layers.shape[-3:]))
 
+    def render_frames(self, latents: Tensor, frames: Tensor) -> Tensor:
+        """Expected frames (F, 4, H, W) at the frame indices `frames` (F,), with the hidden
+        object's latents there (F, D)."""
+        return self._composite_hidden(self.vae.decode(latents), frames)
+
     def _composite(self, layers: Tensor) -> Tensor:
         """Frames (B, T, 4, H, W) of slot pictures (B, T, K, 4, H, W) over the background."""
         background = self.background.expand(len(layers), *self.background.shape)[:, :, None]
@@ -109,20 +109,12 @@ class XPLScene(nn.Module):
         weights = torch.exp(logits - top[:, None])
         return top, weights.sum(dim=1), (weights * layers).sum(dim=1)
 
-    def _composite_hidden(self, pictures: Tensor) -> Tensor:
+    def _composite_hidden(self, pictures: Tensor, frames: Tensor | slice = slice(None)) -> Tensor:
         """Frames (B, T, 4, H, W) with the hidden slot's pictures (B, T, 4, H, W): the same
-        softmax as `_composite`, finished from the fixed layers' partial sums.
-
-        Where the hidden object lies behind the nearest fixed surface, its logit's distance
-        below that surface's is multiplied by the occlusion sharpness. The learned compositor
-        is soft (1000|theta| is about 14 per unit of depth in the default model: an object 0.2
-        behind a wall still tints it by 6%); perception never had to sharpen it, since an
-        encoded object holds only its visible part. A hidden object behind a wall would pay
-        hundreds of nats for that tint, and the posterior would deny every hidden object."""
-        top, total, weighted = self._fixed
+        softmax as `_composite`, finished from the fixed layers' partial sums; `frames` picks
+        the frames the pictures are of."""
+        top, total, weighted = (part[frames] for part in self._fixed)
         logits = self.vae.composite_logits(pictures)
-        if self.occlusion_sharpness != 1.0:
-            logits = torch.where(logits < top, top + self.occlusion_sharpness * (logits - top), logits)
         peak = torch.maximum(top, logits)
         fixed, own = torch.exp(top - peak), torch.exp(logits - peak)
         return (weighted * fixed + pictures * own) / (total * fixed + own)

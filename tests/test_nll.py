@@ -218,3 +218,62 @@ def test_the_scene_composites_a_hidden_picture_as_the_full_softmax_does():
         layers = scene.layers.expand(2, *scene.layers.shape).clone()
         layers[:, :, 3] = pictures
         torch.testing.assert_close(scene._composite_hidden(pictures), scene._composite(layers), atol=1e-5, rtol=1e-4)
+
+
+def tiny_scene():
+    """The tiny video's scene with slot 3 free for a hidden object."""
+    from inference.xpl_scene import XPLScene
+
+    vae, xpl = tiny_models()
+    frames, mean, visible, background, occluder = video()
+    with torch.no_grad():
+        scene = XPLScene(vae, xpl, mean, vae.decode(background), visible.any(0), 3, visible.any(0) & ~occluder)
+    return scene, frames
+
+
+def test_the_pixel_likelihood_is_the_gaussian_density_of_every_particles_frames():
+    """Particles without a hidden object are scored once; each must still get the density of
+    its own full render."""
+    from inference.model import HiddenObjectModel
+
+    scene, frames = tiny_scene()
+    model = HiddenObjectModel(scene, InferenceConfig(pixel_sigma=0.3))
+    trajectory, alive = torch.randn(5, T, D), torch.tensor([True, False, True, False, False])
+    with torch.no_grad():
+        found = model.pixel_log_likelihood(trajectory, alive, frames)
+        rendered = torch.where(alive[:, None, None, None, None], scene.render(trajectory), scene.empty())
+        expected = torch.distributions.Normal(rendered.double(), 0.3).log_prob(frames.double()).sum((1, 2, 3, 4))
+    assert found.dtype == torch.float64
+    torch.testing.assert_close(found, expected, atol=0.0, rtol=1e-6)      # float32 squares, float64 sums
+    assert found[1] == found[3] == found[4]
+
+
+def test_render_frames_is_the_render_at_those_frames():
+    scene, _ = tiny_scene()
+    trajectory, chosen = torch.randn(1, T, D), torch.tensor([0, 2, 3])
+    with torch.no_grad():
+        torch.testing.assert_close(scene.render_frames(trajectory[0, chosen], chosen), scene.render(trajectory)[0, chosen])
+
+
+def extra_nats(scene, loc, frames, sigma):
+    """Per frame, the nats the hidden object's pictures add where they spoil the frames."""
+    with torch.no_grad():
+        extra = (scene.render(loc[None])[0] - frames).square() - (scene.empty() - frames).square()
+    return extra.clamp_min(0).sum((1, 2, 3)) / (2 * sigma ** 2)
+
+
+def test_moving_the_proposal_out_of_sight_lowers_its_cost_and_leaves_hidden_frames_alone():
+    from inference.surprise import refine_out_of_sight
+
+    scene, frames = tiny_scene()
+    torch.manual_seed(3)
+    loc = torch.randn(T, D)
+    before = extra_nats(scene, loc, frames, 0.1)
+    tolerance = float(before.median())                  # frames at or under it count as out of sight
+    config = InferenceConfig(pixel_sigma=0.1, refine_steps=20, refine_rate=0.1, refine_tolerance=tolerance)
+    moved = refine_out_of_sight(scene, loc, frames, config)
+    after = extra_nats(scene, moved, frames, 0.1)
+    kept = before <= tolerance
+    assert kept.sum() == 3 and torch.equal(moved[kept], loc[kept])
+    assert (after[~kept] < 0.8 * before[~kept]).all()
+    assert all(p.grad is None for p in scene.parameters())           # the networks are not trained
