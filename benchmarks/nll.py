@@ -2,7 +2,7 @@
 comparative accuracy against the MSE score on the same pairs.
 
     python benchmarks/nll.py --model NAME_OR_RUN --data test.h5 [--particles 64] [--pairs N] [--threads 2]
-                             [--motion-sigma S] [--refine-steps N] [--independent-guide]
+                             [--motion-sigma S] [--pixel-sigma S] [--refine-steps N] [--independent-guide]
 
 Scores the first N pairs of every S1 and S3 setting and of blocking S2 with both surprise
 definitions, each video encoded once (as `xvoe score --surprise both` does).
@@ -108,6 +108,8 @@ def main() -> None:
     parser.add_argument("--motion-sigma", type=float, default=InferenceConfig.motion_sigma,
                         help="standard deviation of the seen objects' latents around the dynamics "
                              f"(default {InferenceConfig.motion_sigma})")
+    parser.add_argument("--pixel-sigma", type=float, default=InferenceConfig.pixel_sigma,
+                        help=f"standard deviation of the pixel likelihood (default {InferenceConfig.pixel_sigma})")
     parser.add_argument("--refine-steps", type=int, default=InferenceConfig.refine_steps,
                         help="gradient steps that move the proposal's mean out of sight "
                              f"(default {InferenceConfig.refine_steps})")
@@ -129,7 +131,7 @@ def run(args: argparse.Namespace) -> None:
     scorer = load_scorer(args.model)
     if scorer.xpl is None or not scorer.xpl.config.use_reasoning:
         raise XvoeError(f"the NLL surprise needs an XPL model with reasoning; {scorer.name} has none")
-    config = InferenceConfig(particles=args.particles, motion_sigma=args.motion_sigma,
+    config = InferenceConfig(particles=args.particles, motion_sigma=args.motion_sigma, pixel_sigma=args.pixel_sigma,
                              refine_steps=args.refine_steps,
                              refine_rate=args.refine_rate,
                              guide_follows_dynamics=not args.independent_guide)
@@ -156,6 +158,7 @@ def report(table: dict[str, np.ndarray], args: argparse.Namespace, nll_seconds: 
     print(f"model {args.model}, {args.data}: {videos} videos ({args.pairs if args.pairs < 1_000_000 else 'all'} "
           f"pairs per setting), {args.particles} particles, {args.threads} thread(s), "
           f"{'independent' if args.independent_guide else 'dynamics-fused'} guide, motion sigma {args.motion_sigma}, "
+          f"pixel sigma {args.pixel_sigma}, "
           f"{args.refine_steps} steps out of sight at rate {args.refine_rate}")
     print(f"NLL scoring: {speed:.2f} videos/s (encoding included, {nll_seconds:.0f} s); "
           f"MSE scoring: {videos / mse_seconds:.1f} videos/s (encoding included)")
