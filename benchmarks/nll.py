@@ -28,12 +28,11 @@ import torch
 from tqdm.auto import tqdm
 
 from inference.model import InferenceConfig
-from inference.surprise import nll_surprise
 from xvoe import store
 from xvoe.data import check_size
 from xvoe.errors import XvoeError
 from xvoe.metrics import comparative
-from xvoe.score import encode_videos, load_scorer, mse_surprise
+from xvoe.score import encode_videos, load_scorer, mse_surprise, xpl_nll
 
 SETTINGS = [(scenario, setting) for setting in ("S1", "S3")
             for scenario in ("collision", "blocking", "permanence", "continuity")
@@ -68,11 +67,8 @@ def score_range(scorer, file, start: int, stop: int, config: InferenceConfig) ->
     began = time.perf_counter()
     batch = encode_videos(scorer, file, start, stop)
     encoded = time.perf_counter()
-    rows = []
-    for i in range(stop - start):
-        found = nll_surprise(scorer.vae, scorer.xpl, batch["frames"][i], batch["mean"][i], batch["visible"][i],
-                             batch["background"][i], batch["occluder"][i], config)
-        rows.append({"index": start + i, "nll": found.nll, "ess": found.ess, "p_hidden": found.p_hidden})
+    rows = [{"index": start + i, "nll": nll, "ess": ess, "p_hidden": p_hidden}
+            for i, (nll, ess, p_hidden) in enumerate(xpl_nll(scorer, batch, config))]
     nll_done = time.perf_counter()
     mse = mse_surprise(scorer.vae, scorer.xpl, batch["frames"], batch["mean"], batch["visible"], batch["background"],
                        batch["occluder"]).per_frame.sum(dim=1)

@@ -17,6 +17,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import torch
 from torch import Tensor
@@ -24,6 +25,9 @@ from torch import Tensor
 from .models.perception import ComponentVAE
 from .models.phydnet import PhyDNet
 from .models.xpl import XPL
+
+if TYPE_CHECKING:       # xvoe imports inference only inside the functions that need it
+    from inference.model import InferenceConfig
 
 
 @dataclass
@@ -211,7 +215,9 @@ def score_split(model: str | Scorer, data: str, out: str, *, how: str = "sum", v
                     batch = encode_videos(scorer, file, start, stop)     # once, for both surprises
                     curves[:, start:stop] = torch.stack(_xpl_curves(scorer, batch)).numpy()
                     if with_nll:
-                        nll[start:stop] = _xpl_nll(scorer, batch, particles)
+                        from inference.model import InferenceConfig
+
+                        nll[start:stop] = xpl_nll(scorer, batch, InferenceConfig(particles=particles))
     s_img, s_dyn = (aggregate(torch.from_numpy(c), how).numpy() for c in curves)
     total = aggregate(torch.from_numpy(curves.sum(0)), how).numpy() if surprise != "nll" else nll[:, 0]
     tmp = out.with_name(f".{out.name}.tmp")
@@ -253,12 +259,10 @@ def _xpl_curves(scorer: Scorer, batch: dict[str, Tensor]) -> tuple[Tensor, Tenso
     return surprise.s_img, surprise.s_dyn
 
 
-def _xpl_nll(scorer: Scorer, batch: dict[str, Tensor], particles: int) -> list[tuple[float, float, float]]:
+def xpl_nll(scorer: Scorer, batch: dict[str, Tensor], config: InferenceConfig) -> list[tuple[float, float, float]]:
     """(nll, ess, p_hidden) of each encoded video (`encode_videos`) under the Pyro hidden-object model."""
-    from inference.model import InferenceConfig
     from inference.surprise import nll_surprise
 
-    config = InferenceConfig(particles=particles)
     results = []
     for i in range(len(batch["mean"])):
         found = nll_surprise(scorer.vae, scorer.xpl, batch["frames"][i], batch["mean"][i], batch["visible"][i],
