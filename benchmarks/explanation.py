@@ -6,7 +6,8 @@
     decoded explanation (Transformer 2's never-seen slot) with the cube's true silhouette,
     rasterised from the saved states, frame by frame.
 (b) mae_iou: on expected S1 videos, each ball or cube dropped from the input in all frames in
-    turn; the IoU of Transformer 2's reconstruction with its silhouette.
+    turn (its slot emptied, as the proposal stage trains: Transformer 1 sees no trace of it);
+    the IoU of Transformer 2's reconstruction with its silhouette.
 (c) dyn_mse: the dynamics' one-step pixel error (mean squared error per pixel, [-1, 1] units)
     of the composite of predicted latents against the observed frame, expected S1 videos; and
     its RMS error per latent (the NLL model's motion_sigma stands for it).
@@ -62,6 +63,7 @@ def hidden_iou(scorer, file, videos: list[int], names: list[str], columns: list[
 
 @torch.no_grad()
 def mae_iou(scorer, file, videos: list[int], names: list[str], columns: list[str]) -> float:
+    empty = scorer.vae.posterior(scorer.vae.blank())[0][0]      # the encoder's latent of a slot with no pixels
     scores = []
     for index in videos:
         kinds = [names[k] for k in file["kind"][index]]
@@ -69,9 +71,10 @@ def mae_iou(scorer, file, videos: list[int], names: list[str], columns: list[str
         for slot, kind in enumerate(kinds):
             if kind not in ("ball", "cube"):
                 continue
-            visible = video["visible"].clone()
+            visible, mean = video["visible"].clone(), video["mean"].clone()
             visible[0, :, slot] = False
-            refined = scorer.xpl.refine(video["mean"], visible)
+            mean[0, :, slot] = empty
+            refined = scorer.xpl.refine(mean, visible)
             keep = hide_slot(visible.shape, torch.tensor([slot]))
             rebuilt, _ = scorer.xpl.transformer2(refined, keep)
             masks = decoded_mask(scorer.vae.decode(rebuilt[0, :, slot]))
