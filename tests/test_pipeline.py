@@ -30,7 +30,7 @@ def test_tiny_pipeline_runs_end_to_end_and_skips_done_stages(tmp_path, tiny_cpu_
     assert "Holistic" in text and "| collision |" in text and "continuity S3" in text
     for model in ("xpl", "plato", "random"):
         assert (run / "scores" / f"{model}.csv").exists()
-    for figure in ("holistic.png", "comparative.png", "explanation-blocking-S2.png"):
+    for figure in ("holistic.png", "comparative.png", "components-plato.png", "explanation-blocking-S2.png"):
         assert (run / "report" / figure).exists()
     assert (run / "proposal.pt").exists() and "train-proposal" in text
     stamp = (run / "xpl.pt").stat().st_mtime_ns
@@ -40,6 +40,9 @@ def test_tiny_pipeline_runs_end_to_end_and_skips_done_stages(tmp_path, tiny_cpu_
     run_pipeline(replace(config, models=("xpl", "random")))
     assert (run / "xpl.pt").stat().st_mtime_ns == stamp
     assert {row.split(",")[0] for row in open(run / "report" / "metrics.csv").read().split()[1:]} == {"xpl", "random"}
+    assert not (run / "report" / "components-plato.png").exists()           # no figure of a dropped model
+    assert "components-plato" not in (run / "report.md").read_text()
+    assert (run / "report" / "components-xpl.png").exists() and (run / "report" / "explanation-blocking-S2.png").exists()
 
     # the Pyro model's surprise beside the paper's, on the same run
     import csv

@@ -121,9 +121,22 @@ def run_pipeline(config: PipelineConfig) -> Path:
             progress=config.progress))
     scores = [run_dir / "scores" / f"{model}.csv" for model in config.models]
     models = ",".join(config.models)    # a rerun with more models redoes what covers them all
-    stages.run("metrics", lambda: report(scores, run_dir / "report", seed=config.seed), key=models)
+
+    def metrics() -> None:
+        _remove(run_dir / "report", "holistic.png", "comparative.png", "components-*.png", "disagreements-*.png")
+        report(scores, run_dir / "report", seed=config.seed)
+
+    stages.run("metrics", metrics, key=models)
     stages.run("explanations", lambda: _explanations(run_dir, test_data, config.models), key=models)
     return write_report(run_dir, config)
+
+
+def _remove(directory: Path, *patterns: str) -> None:
+    """Delete what an earlier run of a report stage drew, so that a rerun for fewer models
+    leaves no figure of a dropped one (report.md shows every figure in the directory)."""
+    for pattern in patterns:
+        for path in directory.glob(pattern):
+            path.unlink()
 
 
 def _explanations(run_dir: Path, test_data: Path, models: tuple[str, ...]) -> None:
@@ -135,6 +148,7 @@ def _explanations(run_dir: Path, test_data: Path, models: tuple[str, ...]) -> No
     from .score import load_scorer
     from .viz import plot_explanation
 
+    _remove(run_dir / "report", "explanation-*.png")
     if "xpl" not in models:
         return
     scorer = load_scorer(str(run_dir / "xpl.pt"))
