@@ -35,8 +35,8 @@ def main() -> None:
         refined = scorer.xpl.refine(video["mean"], video["visible"])[0]
         occupied = video["visible"][0].any(0)
         hidden = int((~occupied).float().argmax())
-        scene = XPLScene(scorer.vae, scorer.xpl, refined, scorer.vae.decode(video["background"][0]), occupied,
-                         hidden, occupied)
+        scene = XPLScene(scorer.vae, scorer.xpl, refined, scorer.vae.decode(video["background"][0]),
+                         video["visible"][0], video["occluder"][0], hidden)
         frames, dim = refined.shape[0], refined.shape[-1]
         pictures = scorer.vae.decode(torch.randn(args.particles * frames, dim)).reshape(
             args.particles, frames, *scene.layers.shape[-3:])

@@ -16,23 +16,28 @@ from torch import Tensor, nn
 from xvoe.models.dynamics import DynamicsState
 from xvoe.models.perception import ComponentVAE
 from xvoe.models.xpl import XPL
-from xvoe.score import decode_slots
+from xvoe.score import behind_walls, decode_slots, nearest_wall, push_behind
 
 
 class XPLScene(nn.Module):
-    def __init__(self, vae: ComponentVAE, xpl: XPL, refined: Tensor, background: Tensor, occupied: Tensor,
-                 hidden: int, moving: Tensor):
-        """refined: (T, K, D) latents; background: (T, 4, H, W) decoded background; occupied:
-        (K,) slots that hold a seen object; hidden: the slot a hidden object would take (a
-        never-seen one); moving: (K,) seen slots whose motion is evidence (not the occluder)."""
+    def __init__(self, vae: ComponentVAE, xpl: XPL, refined: Tensor, background: Tensor, visible: Tensor,
+                 occluder: Tensor, hidden: int):
+        """refined: (T, K, D) latents; background: (T, 4, H, W) decoded background; visible:
+        (T, K) what the encoder saw; occluder: (K,) the walls, whose motion is no evidence;
+        hidden: the slot a hidden object would take (a never-seen one). As in the MSE score,
+        an object not seen in a frame stands behind the walls there (xvoe.score.behind_walls):
+        the seen objects' fills, and the hidden object in every frame."""
         super().__init__()
         self.vae, self.xpl, self.hidden = vae, xpl, hidden
         self.frames, self.slots, self.dim = refined.shape
         self.register_buffer("refined", refined)
         self.register_buffer("background", background)
+        occupied = visible.any(0)
         with torch.no_grad():   # (T, K, 4, H, W); the free slot, never seen, stays blank
-            self.register_buffer("layers", decode_slots(vae, refined[None], occupied[None])[0])
-        self.register_buffer("moving", moving)
+            layers = decode_slots(vae, refined[None], occupied[None])
+            self.register_buffer("layers", behind_walls(layers, visible[None], occluder[None])[0])
+            self.register_buffer("walls", nearest_wall(self.layers[None], occluder[None])[0, :, 0])   # (T, 1, H, W)
+        self.register_buffer("moving", occupied & ~occluder)
         with torch.no_grad():
             self._fixed = self._partial_composite()
             self._empty = self._composite(self.layers[None])[0]
@@ -84,13 +89,14 @@ class XPLScene(nn.Module):
         """Expected frames (M, T, 4, H, W) with a hidden object on each trajectory (M, T, D):
         only the hidden latents are decoded, and added to the softmax the fixed layers left
         (`_partial_composite`)."""
-        pictures = self.vae.decode(trajectory.reshape(-1, self.dim))
-        return self._composite_hidden(pictures.reshape(len(trajectory), self.frames, *self.layers.shape[-3:]))
+        pictures = self.vae.decode(trajectory.reshape(-1, self.dim)).reshape(len(trajectory), self.frames,
+                                                                             *self.layers.shape[-3:])
+        return self._composite_hidden(push_behind(pictures, self.walls))
 
     def render_frames(self, latents: Tensor, frames: Tensor) -> Tensor:
         """Expected frames (F, 4, H, W) at the frame indices `frames` (F,), with the hidden
         object's latents there (F, D)."""
-        return self._composite_hidden(self.vae.decode(latents), frames)
+        return self._composite_hidden(push_behind(self.vae.decode(latents), self.walls[frames]), frames)
 
     def _composite(self, layers: Tensor) -> Tensor:
         """Frames (B, T, 4, H, W) of slot pictures (B, T, K, 4, H, W) over the background."""

@@ -193,7 +193,7 @@ def test_the_scene_steps_the_dynamics_once_per_frame_and_matches_a_full_run():
     randomise_dynamics_head(xpl.dynamics)
     _, mean, visible, background, _ = video()
     with torch.no_grad():
-        scene = XPLScene(vae, xpl, mean, vae.decode(background), visible.any(0), 3, visible.any(0))
+        scene = XPLScene(vae, xpl, mean, vae.decode(background), visible, torch.zeros(K, dtype=torch.bool), 3)
         trajectory = torch.randn(6, T, D)
         for steps in [*range(1, T + 1), 3, 2]:
             full = xpl.dynamics(scene.with_hidden(trajectory[:, :steps]))[:, -1, 3]
@@ -213,7 +213,7 @@ def test_the_scene_composites_a_hidden_picture_as_the_full_softmax_does():
     vae, xpl = tiny_models()
     _, mean, visible, background, _ = video()
     with torch.no_grad():
-        scene = XPLScene(vae, xpl, mean, vae.decode(background), visible.any(0), 3, visible.any(0))
+        scene = XPLScene(vae, xpl, mean, vae.decode(background), visible, torch.zeros(K, dtype=torch.bool), 3)
         pictures = vae.decode(torch.randn(2 * T, D)).reshape(2, T, 4, 16, 16)
         layers = scene.layers.expand(2, *scene.layers.shape).clone()
         layers[:, :, 3] = pictures
@@ -227,7 +227,7 @@ def tiny_scene():
     vae, xpl = tiny_models()
     frames, mean, visible, background, occluder = video()
     with torch.no_grad():
-        scene = XPLScene(vae, xpl, mean, vae.decode(background), visible.any(0), 3, visible.any(0) & ~occluder)
+        scene = XPLScene(vae, xpl, mean, vae.decode(background), visible, occluder, 3)
     return scene, frames
 
 

@@ -123,3 +123,21 @@ def test_scores_need_a_test_split(train_file, tmp_path):
 
     with pytest.raises(XvoeError, match="test split"):
         score_split("random", str(train_file), str(tmp_path / "x.csv"), progress=False)
+
+
+def test_objects_unseen_in_a_frame_stay_behind_the_walls_there():
+    from xvoe.score import BEHIND, behind_walls
+
+    layers = torch.ones(1, 2, 3, 4, 2, 2)                   # far everywhere: depth 1
+    layers[0, :, 0, 3, 0, :] = -0.5                         # slot 0, a wall, covers the top row
+    layers[0, :, 1, 3] = -0.8                               # slot 1 decodes in front of it, everywhere
+    layers[0, :, 2, 3] = -0.8                               # slot 2 too
+    visible = torch.tensor([[[True, False, True], [True, True, False]]])     # slot 1 unseen in frame 0, slot 2 in 1
+    occluder = torch.tensor([[True, False, False]])
+    out = behind_walls(layers, visible, occluder)
+    assert torch.equal(out[0, 0, 1, 3, 0], torch.full((2,), -0.5 + BEHIND))      # pushed behind the wall
+    assert torch.equal(out[0, 0, 1, 3, 1], torch.full((2,), -0.8))               # no wall below: still shows
+    assert torch.equal(out[0, 1, 1], layers[0, 1, 1]) and torch.equal(out[0, 0, 2], layers[0, 0, 2])   # seen
+    assert torch.equal(out[0, 1, 2, 3, 0], torch.full((2,), -0.5 + BEHIND))
+    assert torch.equal(out[:, :, 0], layers[:, :, 0]) and torch.equal(out[..., :3, :, :], layers[..., :3, :, :])
+    assert torch.equal(behind_walls(layers, visible, torch.tensor([[False, False, False]])), layers)   # no wall

@@ -25,6 +25,7 @@ from torch import Tensor
 from .models.perception import ComponentVAE
 from .models.phydnet import PhyDNet
 from .models.xpl import XPL
+from .render import DEPTH_FAR, OBJECT_DEPTH, WALL_DEPTH
 
 if TYPE_CHECKING:       # xvoe imports inference only inside the functions that need it
     from inference.model import InferenceConfig
@@ -83,17 +84,49 @@ def mse_surprise(vae: ComponentVAE, xpl: XPL, frames: Tensor, mean: Tensor, visi
     refined, slot, occupied = explained_latents(xpl, mean, visible)
     batch, frames_count = mean.shape[:2]
     background_pictures = vae.decode(background.flatten(0, 1)).reshape(batch, frames_count, *frames.shape[2:])
-    layers = decode_slots(vae, refined, occupied)
+    layers = behind_walls(decode_slots(vae, refined, occupied), visible, occluder)
     s_img = (frames - composite(vae, background_pictures, layers, occupied)).pow(2).flatten(2).sum(2)
 
     moving = occupied & ~occluder
     predicted = xpl.dynamics(refined[:, :-1])
-    predicted_layers = decode_slots(vae, predicted, moving)
+    predicted_layers = behind_walls(decode_slots(vae, predicted, moving), visible[:, 1:], occluder, layers[:, 1:])
     seen = composite(vae, background_pictures[:, 1:], layers[:, 1:], moving)
     expected = composite(vae, background_pictures[:, 1:], predicted_layers, moving)
     s_dyn = torch.zeros_like(s_img)
     s_dyn[:, 1:] = (seen - expected).pow(2).flatten(2).sum(2)
     return Surprise(s_img, s_dyn, slot)
+
+
+WALL_PIXEL = 0.5    # decoded depth under which a wall's picture covers a pixel ([-1, 1]; walls stand at -0.5)
+BEHIND = 2 * (OBJECT_DEPTH - WALL_DEPTH) / DEPTH_FAR    # from a wall to the objects' lane in [-1, 1]: 0.5
+
+
+def behind_walls(layers: Tensor, visible: Tensor, occluder: Tensor, walls_from: Tensor | None = None) -> Tensor:
+    """Slot pictures (B, T, K, 4, H, W) in which every object the encoder did not see in a
+    frame stands behind the walls there (`push_behind`); seen objects and walls are left
+    alone. Transformer 1's fill of a hidden object decodes within a few tenths of the wall's
+    depth, and the compositor is soft (a fill 0.2 behind still tints the wall by 6%), so
+    without this the fills of objects really behind a wall show through it and cost the
+    possible videos pixels; a fill where no wall stands still shows. `walls_from`: the
+    pictures to take the walls from (default: `layers`)."""
+    walls = nearest_wall(layers if walls_from is None else walls_from, occluder)
+    hidden = (~visible & ~occluder[:, None, :])[..., None, None, None]
+    return torch.where(hidden, push_behind(layers, walls), layers)
+
+
+def nearest_wall(layers: Tensor, occluder: Tensor) -> Tensor:
+    """Depth (B, T, 1, 1, H, W) of the nearest wall's picture at each pixel (inf: no wall) of
+    slot pictures (B, T, K, 4, H, W) whose walls are the slots `occluder` (B, K)."""
+    far = torch.full_like(layers[:, :, :1, 3:], float("inf"))
+    return torch.where(occluder[:, None, :, None, None, None], layers[:, :, :, 3:], far).amin(dim=2, keepdim=True)
+
+
+def push_behind(pictures: Tensor, walls: Tensor) -> Tensor:
+    """Pictures (..., 4, H, W) whose depth is at least the walls' (..., 1, H, W, broadcast)
+    plus BEHIND, the distance from the walls to the objects' lane, where a wall covers the pixel."""
+    depth = pictures[..., 3:, :, :]
+    pushed = torch.where(walls < WALL_PIXEL, torch.maximum(depth, walls + BEHIND), depth)
+    return torch.cat([pictures[..., :3, :, :], pushed], dim=-3)
 
 
 def aggregate(per_frame: Tensor, how: str) -> Tensor:
