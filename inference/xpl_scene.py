@@ -35,8 +35,9 @@ class XPLScene(nn.Module):
         occupied = visible.any(0)
         with torch.no_grad():   # (T, K, 4, H, W); the free slot, never seen, stays blank
             layers = decode_slots(vae, refined[None], occupied[None])
-            self.register_buffer("layers", behind_walls(layers, visible[None], occluder[None])[0])
-            self.register_buffer("walls", nearest_wall(self.layers[None], occluder[None])[0, :, 0])   # (T, 1, H, W)
+            walls = nearest_wall(layers, occluder[None])
+            self.register_buffer("layers", behind_walls(layers, visible[None], occluder[None], walls)[0])
+            self.register_buffer("walls", walls[0, :, 0])   # (T, 1, H, W)
         self.register_buffer("moving", occupied & ~occluder)
         with torch.no_grad():
             self._fixed = self._partial_composite()

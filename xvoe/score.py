@@ -84,12 +84,14 @@ def mse_surprise(vae: ComponentVAE, xpl: XPL, frames: Tensor, mean: Tensor, visi
     refined, slot, occupied = explained_latents(xpl, mean, visible)
     batch, frames_count = mean.shape[:2]
     background_pictures = vae.decode(background.flatten(0, 1)).reshape(batch, frames_count, *frames.shape[2:])
-    layers = behind_walls(decode_slots(vae, refined, occupied), visible, occluder)
+    layers = decode_slots(vae, refined, occupied)
+    walls = nearest_wall(layers, occluder)
+    layers = behind_walls(layers, visible, occluder, walls)
     s_img = (frames - composite(vae, background_pictures, layers, occupied)).pow(2).flatten(2).sum(2)
 
     moving = occupied & ~occluder
     predicted = xpl.dynamics(refined[:, :-1])
-    predicted_layers = behind_walls(decode_slots(vae, predicted, moving), visible[:, 1:], occluder, layers[:, 1:])
+    predicted_layers = behind_walls(decode_slots(vae, predicted, moving), visible[:, 1:], occluder, walls[:, 1:])
     seen = composite(vae, background_pictures[:, 1:], layers[:, 1:], moving)
     expected = composite(vae, background_pictures[:, 1:], predicted_layers, moving)
     s_dyn = torch.zeros_like(s_img)
@@ -101,15 +103,15 @@ WALL_PIXEL = 0.5    # decoded depth under which a wall's picture covers a pixel 
 BEHIND = 2 * (OBJECT_DEPTH - WALL_DEPTH) / DEPTH_FAR    # from a wall to the objects' lane in [-1, 1]: 0.5
 
 
-def behind_walls(layers: Tensor, visible: Tensor, occluder: Tensor, walls_from: Tensor | None = None) -> Tensor:
+def behind_walls(layers: Tensor, visible: Tensor, occluder: Tensor, walls: Tensor | None = None) -> Tensor:
     """Slot pictures (B, T, K, 4, H, W) in which every object the encoder did not see in a
     frame stands behind the walls there (`push_behind`); seen objects and walls are left
     alone. Transformer 1's fill of a hidden object decodes within a few tenths of the wall's
     depth, and the compositor is soft (a fill 0.2 behind still tints the wall by 6%), so
     without this the fills of objects really behind a wall show through it and cost the
-    possible videos pixels; a fill where no wall stands still shows. `walls_from`: the
-    pictures to take the walls from (default: `layers`)."""
-    walls = nearest_wall(layers if walls_from is None else walls_from, occluder)
+    possible videos pixels; a fill where no wall stands still shows. `walls`: their
+    `nearest_wall` depth, if already known (default: from `layers`)."""
+    walls = nearest_wall(layers, occluder) if walls is None else walls
     hidden = (~visible & ~occluder[:, None, :])[..., None, None, None]
     return torch.where(hidden, push_behind(layers, walls), layers)
 
