@@ -133,8 +133,9 @@ def main(argv: list[str] | None = None) -> int:
     if Path(args.data).resolve() == Path(state["meta"].get("data", "")):
         print(f"warning: {args.data} is the file this model was trained on; its frames are not held out")
     train_config = from_dict(TrainConfig, state["train"])
+    took = f" in {state['elapsed'] / 60:.1f} min" if "elapsed" in state else ""    # shipped weights keep no timing
     print(f"model {state['path']}: {state['config']['preset']} preset, {model.config.encoder} encoder, "
-          f"{size}x{size}, D={model.config.latent_dim}, {state['step']} steps in {state['elapsed'] / 60:.1f} min "
+          f"{size}x{size}, D={model.config.latent_dim}, {state['step']} steps{took} "
           f"(batch {train_config.batch_size} frames, {state.get('world', 1)} process(es))")
     print(f"data {args.data}: {count} videos x {frames} frames")
     quality = reconstruction(model, rgbd.reshape(-1, size, size, 4), ids.reshape(-1, size, size), slots)

@@ -3,18 +3,21 @@ import pytest
 import torch
 
 from xvoe.data import masked_inputs, perception_batch
+from xvoe.errors import XvoeError
 from xvoe.models.config import PerceptionConfig, from_dict, preset, to_dict
-from xvoe.models.perception import BLANK, BLANK_DEPTH, ComponentVAE, normalise
+from xvoe.models.perception import BLANK, BLANK_DEPTH, ComponentVAE, normalise, visible_centroid
 
 TINY = dict(latent_dim=4, cnn_channels=(8, 8), cnn_hidden=16, decoder_channels=8, vit_patch=4, vit_width=16,
             vit_layers=1, vit_heads=2, vit_mlp=32, vit_head_hidden=16)
 
 
+@pytest.mark.parametrize("where", [False, True])
 @pytest.mark.parametrize("encoder", ["cnn", "vit"])
 @pytest.mark.parametrize("size, grid", [(16, 4), (32, 8)])
-def test_shapes_and_posterior_ranges(encoder, size, grid):
+def test_shapes_and_posterior_ranges(encoder, size, grid, where):
     torch.manual_seed(0)
-    model = ComponentVAE(PerceptionConfig(image_size=size, broadcast_size=grid, encoder=encoder, **TINY))
+    model = ComponentVAE(PerceptionConfig(image_size=size, broadcast_size=grid, encoder=encoder, where_latents=where,
+                                          **TINY))
     images = torch.randn(5, 4, size, size) * 3
     mean, std = model.posterior(images)
     assert mean.shape == std.shape == (5, 4)
@@ -93,3 +96,50 @@ def test_the_paper_preset_builds_at_128_pixels():
         assert mean.shape == std.shape == (1, 32)
         assert model.decode(mean).shape == (1, 4, 128, 128)
     assert len(model.decoder.convs) == 2 * 4 + 2          # 8 -> 128: four stride-2 layers, one stride-1
+
+
+def test_where_latents_move_the_picture_by_whole_grid_cells():
+    """Shifting latents 0 and 1 by one broadcast cell shifts the decoded picture by 32/8 = 4 pixels
+    (exactly, away from the borders, where the cells that enter and leave the grid differ)."""
+    torch.manual_seed(0)
+    model = ComponentVAE(PerceptionConfig(where_latents=True))
+    with torch.no_grad():
+        for weight in model.decoder.parameters():
+            weight.normal_(0, 0.5)                  # pictures that vary a lot with position
+        z = torch.randn(3, model.config.latent_dim) * 0.3
+        cell = 2 * 4 / 31                           # 4 pixels in the [-1, 1] pixel-centre coordinates
+        right, down = z.clone(), z.clone()
+        right[:, 0] += cell
+        down[:, 1] += cell
+        picture = model.decode(z)
+        assert (model.decode(right) - picture).abs().max() > 1.0
+        assert torch.allclose(model.decode(right)[..., 8:24], picture[..., 4:20], atol=1e-3)
+        assert torch.allclose(model.decode(down)[..., 8:24, :], picture[..., 4:20, :], atol=1e-3)
+
+
+def test_where_latents_start_at_the_visible_pixels_centroid():
+    images = torch.tensor(BLANK).view(1, 4, 1, 1).repeat(3, 1, 32, 32)
+    images[0, :, 10:13, 20:23] = 0.0                 # a 3x3 square centred on pixel (x 21, y 11)
+    images[1, :, 0, 0] = images[1, :, 31, 31] = 0.5  # two opposite corners: the centre
+    centroid = visible_centroid(images)
+    assert torch.allclose(centroid[0], torch.tensor([-1 + 2 * 21 / 31, -1 + 2 * 11 / 31]))
+    assert torch.allclose(centroid[1], torch.zeros(2), atol=1e-6)
+    assert torch.equal(centroid[2], torch.zeros(2))  # an empty slot: no pixels, no NaN
+    model = ComponentVAE(PerceptionConfig(where_latents=True))
+    with torch.no_grad():                            # an encoder that outputs a = 0: the means are the start
+        last = model.encoder.head[-1]
+        last.weight.zero_()
+        last.bias[:model.config.latent_dim] = 0.0
+        mean, _ = model.posterior(images)
+    assert torch.allclose(mean[:, :2], centroid, atol=1e-5)
+    assert torch.equal(mean[:, 2:], torch.zeros(3, model.config.latent_dim - 2))
+
+
+def test_where_latents_are_the_cpu_preset_and_off_in_older_configs():
+    assert preset("cpu").perception.where_latents and not preset("paper").perception.where_latents
+    older = to_dict(preset("cpu").perception)
+    del older["where_latents"]                        # a checkpoint written before the field existed
+    model = ComponentVAE(from_dict(PerceptionConfig, older))
+    assert not model.decoder.where and hasattr(model.decoder, "position")
+    with pytest.raises(XvoeError, match="where_latents needs latent_dim >= 3"):
+        PerceptionConfig(where_latents=True, latent_dim=2)

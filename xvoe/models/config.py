@@ -41,6 +41,9 @@ class PerceptionConfig:
     decoder_channels: int = 32
     decoder_kernel: int = 5
     decoder_extra_convs: int = 0    # stride-1 convs after the upsampling (paper: 1)
+    # latents 0 and 1 are the object's (x, y): the decoder draws relative to them and the encoder
+    # starts them at the visible pixels' centroid (off in the paper; off in checkpoints made before it)
+    where_latents: bool = False
     # likelihood and prior
     sigma: float = 0.05             # pixel standard deviation of the Gaussian likelihood
     beta: float = 0.5               # weight of the KL to N(0, I)
@@ -57,6 +60,8 @@ class PerceptionConfig:
                             "times a power of two")
         if self.encoder == "vit" and self.image_size % self.vit_patch:
             raise XvoeError(f"image_size {self.image_size} is not a multiple of vit_patch {self.vit_patch}")
+        if self.where_latents and self.latent_dim < 3:
+            raise XvoeError(f"where_latents needs latent_dim >= 3 (two for position), not {self.latent_dim}")
         if self.encoder == "vit" and self.vit_width % self.vit_heads:
             raise XvoeError(f"vit_width {self.vit_width} is not a multiple of vit_heads {self.vit_heads}")
 
@@ -106,7 +111,7 @@ PRESETS: dict[str, Preset] = {
     # 2 CPU cores: 32x32 frames, a small CNN encoder and a light decoder.
     "cpu": Preset(
         name="cpu",
-        perception=PerceptionConfig(),
+        perception=PerceptionConfig(where_latents=True),
         perception_train=TrainConfig(),
     ),
     # The paper's sizes (appendix tables): 128x128, ViT encoder, D=32, 64-channel decoder; for GPUs.

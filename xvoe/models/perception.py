@@ -10,6 +10,12 @@ plane, so an empty slot always loses the z-buffer to the background and to every
 The background (the pixels of id 0: floor and sky) is one more component, encoded and
 decoded by the same networks and composited like the slots; its loss counts only its own
 pixels, so the decoder fills in the background behind the objects.
+
+With `where_latents` (the `cpu` preset) the first two latents are the object's position:
+the decoder draws the object relative to them, and the encoder starts them at the centroid
+of the object's visible pixels and learns only a correction (for occlusion, and for where
+the drawing's reference point sits). Position is then linear in the latents by construction,
+for every kind of object alike, which the later stages' dynamics and a linear probe need.
 """
 from __future__ import annotations
 
@@ -35,6 +41,16 @@ def blank_like(images: Tensor) -> Tensor:
 def normalise(rgbd: Tensor) -> Tensor:
     """uint8 RGBD (..., H, W, 4) to float (..., 4, H, W) in [-1, 1]."""
     return (rgbd.movedim(-1, -3).float() / 127.5) - 1.0
+
+
+def visible_centroid(images: Tensor) -> Tensor:
+    """(x, y) in [-1, 1] (pixel centres, y downwards) of the non-blank pixels of masked images
+    (N,4,H,W); 0 for an image with none (an empty slot), so no NaN can arise."""
+    size = images.shape[-1]
+    shown = (images[:, 3] < (1.0 + BLANK_DEPTH) / 2).to(images.dtype)         # blank depth is beyond 1.0
+    ramp = torch.linspace(-1, 1, size, dtype=images.dtype, device=images.device)
+    count = shown.sum((1, 2)).clamp_min(1.0)
+    return torch.stack([(shown * ramp).sum((1, 2)) / count, (shown * ramp[:, None]).sum((1, 2)) / count], dim=-1)
 
 
 def to_uint8(images: Tensor) -> Tensor:
@@ -95,6 +111,10 @@ class BroadcastDecoder(nn.Module):
     """Spatial broadcast decoder: latent tiled on a small grid plus a position embedding,
     stride-2 transposed convolutions up to full size, RGBD out.
 
+    With `where_latents` the position embedding is an MLP of each grid cell's coordinates
+    relative to the first two latents, and only the others are tiled: shifting those two by
+    one grid cell shifts the picture by image_size / broadcast_size pixels.
+
     The output layer starts at the blank value with small weights, so every slot begins as
     "nothing here": without that the encoder saturates its means at +-3 within a few steps.
     """
@@ -102,11 +122,19 @@ class BroadcastDecoder(nn.Module):
     def __init__(self, config: PerceptionConfig):
         super().__init__()
         width, kernel, grid = config.decoder_channels, config.decoder_kernel, config.broadcast_size
-        self.grid = grid
-        self.project = nn.Linear(config.latent_dim, width)
-        self.position = nn.Linear(4, width)
-        ys, xs = torch.meshgrid(torch.linspace(0, 1, grid), torch.linspace(0, 1, grid), indexing="ij")
-        self.register_buffer("coords", torch.stack([xs, ys, 1 - xs, 1 - ys], dim=-1), persistent=False)
+        self.grid, self.where = grid, config.where_latents
+        if self.where:
+            self.project = nn.Linear(config.latent_dim - 2, width)
+            self.relative_position = nn.Sequential(nn.Linear(2, width), nn.ReLU(), nn.Linear(width, width))
+            # each cell's centre in the coordinates of visible_centroid (pixel centres spanning [-1, 1])
+            centres = ((torch.arange(grid) + 0.5) * (config.image_size / grid) - 0.5) * 2 / (config.image_size - 1) - 1
+            ys, xs = torch.meshgrid(centres, centres, indexing="ij")
+            self.register_buffer("cells", torch.stack([xs, ys], dim=-1), persistent=False)      # (g, g, 2)
+        else:
+            self.project = nn.Linear(config.latent_dim, width)
+            self.position = nn.Linear(4, width)
+            ys, xs = torch.meshgrid(torch.linspace(0, 1, grid), torch.linspace(0, 1, grid), indexing="ij")
+            self.register_buffer("coords", torch.stack([xs, ys, 1 - xs, 1 - ys], dim=-1), persistent=False)
         layers = []
         for _ in range(int(math.log2(config.image_size // grid))):
             layers += [nn.ConvTranspose2d(width, width, kernel, stride=2, padding=kernel // 2, output_padding=1),
@@ -120,7 +148,11 @@ class BroadcastDecoder(nn.Module):
             self.out.bias.copy_(torch.tensor(BLANK))
 
     def forward(self, z: Tensor) -> Tensor:
-        features = self.project(z)[:, :, None, None] + self.position(self.coords).permute(2, 0, 1)
+        if self.where:
+            relative = self.cells - z[:, None, None, :2]                                    # (N, g, g, 2)
+            features = self.project(z[:, 2:])[:, :, None, None] + self.relative_position(relative).permute(0, 3, 1, 2)
+        else:
+            features = self.project(z)[:, :, None, None] + self.position(self.coords).permute(2, 0, 1)
         return self.out(self.convs(features))
 
 
@@ -173,8 +205,14 @@ class ComponentVAE(nn.Module):
             last.bias[self.config.latent_dim:] = math.log(std / (STD_SCALE - std))
 
     def posterior(self, images: Tensor) -> tuple[Tensor, Tensor]:
-        """Mean in (-3, 3) and std in (0, 3) of q(z | masked image); images (N,4,H,W)."""
+        """Mean in (-3, 3) and std in (0, 3) of q(z | masked image); images (N,4,H,W).
+
+        With where latents the first two means are 6*sigmoid(a + c)-3 with c the logit that
+        puts them at the visible pixels' centroid when a = 0."""
         a, b = self.encoder(images).chunk(2, dim=-1)
+        if self.config.where_latents:
+            start = torch.logit((visible_centroid(images) + MEAN_RANGE) / (2 * MEAN_RANGE))
+            a = torch.cat([a[:, :2] + start, a[:, 2:]], dim=-1)
         return MEAN_RANGE * (2 * torch.sigmoid(a) - 1), STD_SCALE * torch.sigmoid(b)
 
     DECODE_CHUNK = 64   # latents per decoder pass outside training (benchmarks/decode.py)
