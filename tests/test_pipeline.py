@@ -4,7 +4,7 @@ from dataclasses import replace
 import pytest
 
 from xvoe.errors import XvoeError
-from xvoe.models.config import PRESETS, PerceptionConfig, TrainConfig
+from xvoe.models.config import PRESETS, TrainConfig
 from xvoe.pipeline import PipelineConfig, run_pipeline
 
 
@@ -12,8 +12,8 @@ from xvoe.pipeline import PipelineConfig, run_pipeline
 def tiny_cpu_preset(monkeypatch):
     cpu = PRESETS["cpu"]
     few = TrainConfig(steps=6, batch_size=8, warmup_steps=1, log_every=2)
-    tiny = replace(cpu, perception=PerceptionConfig(image_size=32, latent_dim=8, cnn_channels=(8, 8), cnn_hidden=16,
-                                                    decoder_channels=8),
+    tiny = replace(cpu, perception=replace(cpu.perception, latent_dim=8, cnn_channels=(8, 8), cnn_hidden=16,
+                                           decoder_channels=8),
                    perception_train=few,
                    xpl=replace(cpu.xpl, reasoning=replace(cpu.xpl.reasoning, width=16, layers=1, heads=2, mlp=16),
                                dynamics=replace(cpu.xpl.dynamics, hidden=16, lstm=16, buffer_heads=2)),

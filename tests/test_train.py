@@ -10,12 +10,13 @@ import torch
 from xvoe.cli import main
 from xvoe.errors import XvoeError
 from xvoe.generate import GenerateConfig, generate
-from xvoe.models.config import PerceptionConfig, TrainConfig, from_dict
+from xvoe.models.config import PerceptionConfig, TrainConfig, from_dict, override, preset
 from xvoe.models.perception import ComponentVAE
 from xvoe.train import learning_rate, load_checkpoint, load_perception, seed_everything, train_perception
 
 TINY = dict(image_size=16, broadcast_size=4, latent_dim=4, cnn_channels=(8, 8), cnn_hidden=16, decoder_channels=8)
 TRAIN = dict(batch_size=4, log_every=2, warmup_steps=2, threads=1)
+TINY_CONFIG = override(preset("cpu").perception, **TINY)     # what train_perception builds from the overrides
 
 
 @pytest.fixture(scope="module")
@@ -49,7 +50,7 @@ def test_checkpoint_round_trip_and_exact_resume(tiny_file, tmp_path):
     first = run(tiny_file, tmp_path / "stopped", 3)
     state = load_checkpoint(first)
     assert state["step"] == 3 and state["stage"] == "perception"
-    assert from_dict(PerceptionConfig, state["config"]["perception"]) == PerceptionConfig(**TINY)
+    assert from_dict(PerceptionConfig, state["config"]["perception"]) == TINY_CONFIG
     assert from_dict(TrainConfig, state["train"]).batch_size == 4
     resumed = load_checkpoint(train_perception(tiny_file, tmp_path / "stopped", steps=6, resume=True, progress=False))
     assert resumed["step"] == 6
@@ -113,5 +114,5 @@ def test_two_processes_under_torchrun_match_one_process(tiny_file, tmp_path):
             torch.testing.assert_close(double["model"][name], weight, rtol=1e-4, atol=1e-5)
     # and training moved the weights away from their (seeded) initial values
     seed_everything(0)
-    initial = ComponentVAE(PerceptionConfig(**TINY)).state_dict()
+    initial = ComponentVAE(TINY_CONFIG).state_dict()
     assert not torch.equal(initial["decoder.out.weight"], single["model"]["decoder.out.weight"])

@@ -125,6 +125,11 @@ class BroadcastDecoder(nn.Module):
         self.grid, self.where = grid, config.where_latents
         if self.where:
             self.project = nn.Linear(config.latent_dim - 2, width)
+            # appearance scales the shape's features (colour where the object is); zero at first, so the
+            # decoder starts as a plain sum of the two
+            self.gate = nn.Linear(config.latent_dim - 2, width)
+            nn.init.zeros_(self.gate.weight)
+            nn.init.zeros_(self.gate.bias)
             self.relative_position = nn.Sequential(nn.Linear(2, width), nn.ReLU(), nn.Linear(width, width))
             # each cell's centre in the coordinates of visible_centroid (pixel centres spanning [-1, 1])
             centres = ((torch.arange(grid) + 0.5) * (config.image_size / grid) - 0.5) * 2 / (config.image_size - 1) - 1
@@ -150,7 +155,10 @@ class BroadcastDecoder(nn.Module):
     def forward(self, z: Tensor) -> Tensor:
         if self.where:
             relative = self.cells - z[:, None, None, :2]                                    # (N, g, g, 2)
-            features = self.project(z[:, 2:])[:, :, None, None] + self.relative_position(relative).permute(0, 3, 1, 2)
+            appearance = z[:, 2:]
+            shape = self.relative_position(relative).permute(0, 3, 1, 2)
+            gate = 1 + self.gate(appearance)[:, :, None, None]
+            features = self.project(appearance)[:, :, None, None] + shape * gate
         else:
             features = self.project(z)[:, :, None, None] + self.position(self.coords).permute(2, 0, 1)
         return self.out(self.convs(features))
