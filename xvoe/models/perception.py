@@ -112,8 +112,8 @@ class BroadcastDecoder(nn.Module):
     stride-2 transposed convolutions up to full size, RGBD out.
 
     With `where_latents` the position embedding is an MLP of each grid cell's coordinates
-    relative to the first two latents, and only the others are tiled: shifting those two by
-    one grid cell shifts the picture by image_size / broadcast_size pixels.
+    relative to the first two latents (times where_scale), and only the others are tiled:
+    shifting those two by one grid cell shifts the picture by image_size / broadcast_size pixels.
 
     The output layer starts at the blank value with small weights, so every slot begins as
     "nothing here": without that the encoder saturates its means at +-3 within a few steps.
@@ -122,7 +122,7 @@ class BroadcastDecoder(nn.Module):
     def __init__(self, config: PerceptionConfig):
         super().__init__()
         width, kernel, grid = config.decoder_channels, config.decoder_kernel, config.broadcast_size
-        self.grid, self.where = grid, config.where_latents
+        self.grid, self.where, self.where_scale = grid, config.where_latents, config.where_scale
         if self.where:
             self.project = nn.Linear(config.latent_dim - 2, width)
             # appearance scales the shape's features (colour where the object is); zero at first, so the
@@ -154,7 +154,7 @@ class BroadcastDecoder(nn.Module):
 
     def forward(self, z: Tensor) -> Tensor:
         if self.where:
-            relative = self.cells - z[:, None, None, :2]                                    # (N, g, g, 2)
+            relative = self.cells - self.where_scale * z[:, None, None, :2]                 # (N, g, g, 2)
             appearance = z[:, 2:]
             shape = self.relative_position(relative).permute(0, 3, 1, 2)
             gate = 1 + self.gate(appearance)[:, :, None, None]
@@ -216,10 +216,10 @@ class ComponentVAE(nn.Module):
         """Mean in (-3, 3) and std in (0, 3) of q(z | masked image); images (N,4,H,W).
 
         With where latents the first two means are 6*sigmoid(a + c)-3 with c the logit that
-        puts them at the visible pixels' centroid when a = 0."""
+        puts them at the visible pixels' centroid (divided by where_scale) when a = 0."""
         a, b = self.encoder(images).chunk(2, dim=-1)
         if self.config.where_latents:
-            start = torch.logit((visible_centroid(images) + MEAN_RANGE) / (2 * MEAN_RANGE))
+            start = torch.logit((visible_centroid(images) / self.config.where_scale + MEAN_RANGE) / (2 * MEAN_RANGE))
             a = torch.cat([a[:, :2] + start, a[:, 2:]], dim=-1)
         return MEAN_RANGE * (2 * torch.sigmoid(a) - 1), STD_SCALE * torch.sigmoid(b)
 
