@@ -135,8 +135,10 @@ def test_where_latents_start_at_the_visible_pixels_centroid():
     assert torch.equal(mean[:, 2:], torch.zeros(3, model.config.latent_dim - 2))
 
 
-def test_where_latents_are_the_cpu_preset_and_off_in_older_configs():
-    assert not preset("paper").perception.where_latents
+def test_where_latents_are_a_preset_and_off_in_older_configs():
+    assert preset("cpu-where").perception.where_latents
+    assert not preset("cpu").perception.where_latents and not preset("paper").perception.where_latents
+    assert preset("cpu-where").xpl == preset("cpu").xpl      # only the perception differs
     older = to_dict(preset("cpu").perception)
     del older["where_latents"]                        # a checkpoint written before the field existed
     model = ComponentVAE(from_dict(PerceptionConfig, older))

@@ -117,6 +117,12 @@ PRESETS: dict[str, Preset] = {
         perception=PerceptionConfig(),
         perception_train=TrainConfig(),
     ),
+    # The cpu preset with where latents (object position as two latents): perception and its
+    # linear probe gain a lot, the later stages not yet (docs/results.md).
+    "cpu-where": Preset(
+        name="cpu-where",
+        perception=PerceptionConfig(where_latents=True),
+    ),
     # The paper's sizes (appendix tables): 128x128, ViT encoder, D=32, 64-channel decoder; for GPUs.
     "paper": Preset(
         name="paper",
