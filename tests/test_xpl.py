@@ -179,3 +179,29 @@ def test_the_dynamics_step_by_step_matches_the_whole_sequence(residual):
         prediction, state = dynamics.step(z[:, t], state)
         steps.append(prediction)
     torch.testing.assert_close(torch.stack(steps, dim=1), whole, atol=1e-5, rtol=1e-5)
+
+
+def test_latent_weights_weigh_each_latent_in_the_refill_and_dynamics_losses():
+    """All ones change nothing; a weight w on one latent counts its squared error w times."""
+    torch.manual_seed(0)
+    z, visible = torch.randn(2, T, K, D), torch.rand(2, T, K) > 0.3
+    refill = torch.rand(2, T, K) > 0.5
+    order, hidden = torch.stack([torch.randperm(K) for _ in range(2)]), torch.tensor([0, 1])
+    plain = XPL(XPLConfig(reasoning=SMALL_REASONING, dynamics=SMALL_DYNAMICS)).eval()
+    randomise_dynamics_head(plain.dynamics)
+    ones = XPL(XPLConfig(reasoning=SMALL_REASONING, dynamics=SMALL_DYNAMICS, latent_weights=(1.0,) * D)).eval()
+    ones.load_state_dict(plain.state_dict())
+    weights = (3.0,) + (0.0,) * (D - 1)                  # only latent 0, three times
+    first = XPL(XPLConfig(reasoning=SMALL_REASONING, dynamics=SMALL_DYNAMICS, latent_weights=weights)).eval()
+    first.load_state_dict(plain.state_dict())
+    with torch.no_grad():
+        base, same, only = (model.losses(z, visible, order, hidden, refill) for model in (plain, ones, first))
+        refined = plain.transformer1(z, occlusion_keep(visible) & ~refill)[0]
+    for name in ("dynamics", "refill"):
+        torch.testing.assert_close(same[name], base[name])
+    shown = refill & visible
+    torch.testing.assert_close(only["refill"], 3 * ((refined - z)[..., 0] ** 2 * shown).sum() / shown.sum())
+    with torch.no_grad():
+        target = torch.where(visible.unsqueeze(-1), z, refined)[:, 1:]
+        error = plain.dynamics(refined[:, :-1]) - target
+    torch.testing.assert_close(only["dynamics"], 3 * (error[..., 0] ** 2).mean())

@@ -26,6 +26,9 @@ class XPLConfig:
     mae_weight: float = 1.0
     refill_weight: float = 1.0      # Transformer 1 rebuilding hidden spans of seen frames
     permute_slots: bool = True      # slot order carries no meaning: shuffle it in training
+    # weight of each latent in the refill and dynamics losses (empty: all 1); e.g. how much each
+    # moves the decoded picture, so that a squared error in latents weighs as one in pixels
+    latent_weights: tuple[float, ...] = ()
 
 
 class XPL(nn.Module):
@@ -92,13 +95,13 @@ class XPL(nn.Module):
         if self.config.use_reasoning:
             refined = self.transformer1(z, occlusion_keep(visible) & ~refill)[0]
             if refill.any():
-                out["refill"] = (((refined - z) ** 2).sum(-1) * refill).sum() / refill.sum()
+                out["refill"] = (self._weighted_square(refined - z) * refill).sum() / refill.sum()
             fills = refined if not self.config.stop_target_gradient else refined.detach()
             target = torch.where(visible.unsqueeze(-1), z, fills)[:, 1:]
         else:
             refined, target = z, z[:, 1:]
         prediction = self.dynamics(refined[:, :-1])
-        out["dynamics"] = ((prediction - target) ** 2).sum(-1).mean()
+        out["dynamics"] = self._weighted_square(prediction - target).mean()
         if self.config.use_reasoning:
             refined = torch.where(refill.unsqueeze(-1), z, refined)    # what Transformer 2 sees at test
             slot = hidden if hidden is not None else torch.randint(z.shape[2], (z.shape[0],), device=z.device)
@@ -107,6 +110,12 @@ class XPL(nn.Module):
         out["loss"] = (out["dynamics"] + self.config.refill_weight * out.get("refill", zero)
                        + self.config.mae_weight * out.get("mae", zero) + out.get("existence", zero))
         return out
+
+    def _weighted_square(self, error: Tensor) -> Tensor:
+        """Squared error summed over the latent axis, each latent weighted by latent_weights."""
+        if not self.config.latent_weights:
+            return (error ** 2).sum(-1)
+        return (error ** 2 * error.new_tensor(self.config.latent_weights)).sum(-1)
 
     def proposal_losses(self, refined: Tensor, visible: Tensor, slot: Tensor, beta: float = 0.0) -> dict[str, Tensor]:
         """Transformer 2 and the existence head, on refined latents (B, T, K, D) with slot
