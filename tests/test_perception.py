@@ -145,3 +145,16 @@ def test_where_latents_are_a_preset_and_off_in_older_configs():
     assert not model.decoder.where and hasattr(model.decoder, "position")
     with pytest.raises(XvoeError, match="where_latents needs latent_dim >= 3"):
         PerceptionConfig(where_latents=True, latent_dim=2)
+
+
+@pytest.mark.parametrize("where", [False, True])
+def test_latent_sensitivity_is_the_decoders_squared_jacobian(where):
+    torch.manual_seed(0)
+    model = ComponentVAE(PerceptionConfig(image_size=16, broadcast_size=4, where_latents=where, **TINY)).double()
+    with torch.no_grad():
+        for weight in model.decoder.parameters():
+            weight.normal_(0, 0.5)
+    z = torch.randn(3, 4, dtype=torch.float64) * 0.5
+    jacobian = torch.stack([torch.autograd.functional.jacobian(lambda v: model.decode(v[None])[0], row) for row in z])
+    expected = jacobian.pow(2).flatten(1, 3).sum(1).mean(0)          # (D,): per latent, mean over z
+    torch.testing.assert_close(model.latent_sensitivity(z, step=1e-6), expected, rtol=1e-3, atol=1e-6)

@@ -235,6 +235,17 @@ class ComponentVAE(nn.Module):
             return self.decoder(z)
         return torch.cat([self.decoder(chunk) for chunk in z.split(self.DECODE_CHUNK)])
 
+    @torch.no_grad()
+    def latent_sensitivity(self, z: Tensor, step: float = 1e-2) -> Tensor:
+        """How much each latent moves the picture: the mean over latents z (N, D) of the squared
+        pixel change per unit of latent d (D,), by finite differences through the decoder (the
+        diagonal of the decoder's Gauss-Newton metric). Latent losses that weigh every latent
+        alike match pixel losses only where these are about equal."""
+        base = self.decode(z)
+        moved = z[None].repeat(z.shape[1], 1, 1) + step * torch.eye(z.shape[1], dtype=z.dtype, device=z.device)[:, None]
+        change = (self.decode(moved.flatten(0, 1)).unflatten(0, moved.shape[:2]) - base) / step
+        return change.pow(2).flatten(2).sum(2).mean(1)
+
     def composite(self, layers: Tensor) -> Tensor:
         """Z-buffer the components (..., S, 4, H, W) into frames (..., 4, H, W)."""
         weights = torch.softmax(self.composite_logits(layers), dim=-4)
