@@ -11,7 +11,7 @@ The background (the pixels of id 0: floor and sky) is one more component, encode
 decoded by the same networks and composited like the slots; its loss counts only its own
 pixels, so the decoder fills in the background behind the objects.
 
-With `where_latents` (the `cpu` preset) the first two latents are the object's position:
+With `where_latents` (the `cpu-where` preset) the first two latents are the object's position:
 the decoder draws the object relative to them, and the encoder starts them at the centroid
 of the object's visible pixels and learns only a correction (for occlusion, and for where
 the drawing's reference point sits). Position is then linear in the latents by construction,
