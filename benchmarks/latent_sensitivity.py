@@ -3,11 +3,11 @@
     python benchmarks/latent_sensitivity.py --model RUN_DIR [--cache RUN_DIR/latents-train.h5] [--objects 256]
     python benchmarks/latent_sensitivity.py --model xpl --cache train.h5      # a split: its first videos encoded
 
-For visible objects drawn from a latent cache (or a split, encoded here), the mean squared pixel change per unit of each
-latent (`ComponentVAE.latent_sensitivity`). The later stages' losses are squared errors in latent
-units, each latent weighted alike (unless XPLConfig.latent_weights says otherwise): they stand for
-pixel errors only where these numbers are about equal. Last line: `sensitivity_ratio=N` (largest
-over smallest).
+For visible objects drawn from a latent cache (or a split, encoded here), the mean squared pixel
+change per unit of each latent (`ComponentVAE.latent_sensitivity`). The later stages' losses are
+squared errors in latent units, each latent weighted alike (unless XPLConfig.latent_weights says
+otherwise): they stand for pixel errors only where these numbers are about equal. Last line:
+`sensitivity_ratio=N` (largest over smallest).
 """
 from __future__ import annotations
 
@@ -16,12 +16,11 @@ import sys
 from pathlib import Path
 
 import h5py
-import numpy as np
 import torch
 
 from xvoe.data import visible_threshold
 from xvoe.errors import XvoeError
-from xvoe.latents import encode_frames
+from xvoe.latents import encode_means
 from xvoe.train import load_perception
 
 
@@ -46,11 +45,8 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     with h5py.File(cache, "r") as file:
         if "rgbd" in file:                                      # a split: encode its first videos
-            encoded = [encode_frames(model, file["rgbd"][v], file["ids"][v], file["states"].shape[2])
-                       for v in range(min(len(file["rgbd"]), 40))]
-            mean = torch.tensor(np.stack([e["mean"] for e in encoded]))
-            pixels = np.stack([e["pixels"] for e in encoded])
-            visible = torch.tensor(pixels > visible_threshold(model.config.image_size))
+            means, pixels = encode_means(model, file["rgbd"][:40], file["ids"][:40], file["states"].shape[2])
+            mean, visible = torch.tensor(means), torch.tensor(pixels > visible_threshold(model.config.image_size))
         else:
             count = min(len(file["mean"]), 200)
             mean, visible = torch.tensor(file["mean"][:count]), torch.tensor(file["visible"][:count]).bool()

@@ -23,7 +23,7 @@ import torch
 from xvoe import store
 from xvoe.data import ShardedFrames, check_size, perception_batch, visible_threshold
 from xvoe.errors import XvoeError
-from xvoe.latents import encode_frames
+from xvoe.latents import encode_means
 from xvoe.models.config import TrainConfig, from_dict
 from xvoe.models.perception import ComponentVAE, to_uint8
 from xvoe.train import load_perception
@@ -53,12 +53,6 @@ def reconstruction(model: ComponentVAE, rgbd: np.ndarray, ids: np.ndarray, slots
         sums["objects"] += error[..., :3][on].sum()
         counts["objects"] += 3 * int(on.sum())
     return {name: psnr(sums[name], counts[name]) for name in sums}
-
-
-def encode_means(model: ComponentVAE, rgbd: np.ndarray, ids: np.ndarray, slots: int) -> tuple[np.ndarray, np.ndarray]:
-    """Posterior means (V,T,K,D) and mask pixel counts (V,T,K) of every slot of every video."""
-    encoded = [encode_frames(model, rgbd[v], ids[v], slots) for v in range(len(rgbd))]
-    return np.stack([e["mean"] for e in encoded]), np.stack([e["pixels"] for e in encoded])
 
 
 def probe(means: np.ndarray, targets: np.ndarray, chosen: np.ndarray) -> list[float]:

@@ -110,6 +110,13 @@ def encode_frames(model, rgbd: np.ndarray, ids: np.ndarray, slots: int) -> dict[
             "pixels": parts["pixels"].cpu().numpy().astype(np.int32)}
 
 
+def encode_means(model, rgbd: np.ndarray, ids: np.ndarray, slots: int) -> tuple[np.ndarray, np.ndarray]:
+    """Posterior means (V,T,K,D) and mask pixel counts (V,T,K) of every slot of videos (V,T,H,W,4)
+    and their id maps (V,T,H,W), one video at a time (what the benchmarks probe)."""
+    encoded = [encode_frames(model, rgbd[v], ids[v], slots) for v in range(len(rgbd))]
+    return np.stack([e["mean"] for e in encoded]), np.stack([e["pixels"] for e in encoded])
+
+
 def encode_split(model_ref: str | os.PathLike, data: str | os.PathLike, out: str | os.PathLike, *,
                  videos_per_batch: int = 16, overwrite: bool = False, progress: bool = True,
                  device: str | torch.device | None = None) -> Path:
