@@ -15,7 +15,8 @@ With `where_latents` (the `cpu-where` preset) the first two latents are the obje
 the decoder draws the object relative to them, and the encoder starts them at the centroid
 of the object's visible pixels and learns only a correction (for occlusion, and for where
 the drawing's reference point sits). Position is then linear in the latents by construction,
-for every kind of object alike, which the later stages' dynamics and a linear probe need.
+for every kind of object alike; the later stages, whose losses weigh every latent alike, do not
+gain from it yet (docs/results.md, XPLConfig.latent_weights).
 """
 from __future__ import annotations
 
