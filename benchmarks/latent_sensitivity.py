@@ -20,7 +20,7 @@ import torch
 
 from xvoe.data import visible_threshold
 from xvoe.errors import XvoeError
-from xvoe.latents import encode_means
+from xvoe.latents import encode_means, picture_weights
 from xvoe.train import load_perception
 
 
@@ -50,11 +50,10 @@ def main(argv: list[str] | None = None) -> int:
         else:
             count = min(len(file["mean"]), 200)
             mean, visible = torch.tensor(file["mean"][:count]), torch.tensor(file["visible"][:count]).bool()
-    seen = mean[visible]
-    chosen = torch.randperm(len(seen), generator=torch.Generator().manual_seed(args.seed))[:args.objects]
-    sensitivity = model.latent_sensitivity(seen[chosen])
+    sensitivity = picture_weights(model, mean, visible, args.objects, args.seed)
     where = "where latents 0, 1 = x, y; " if model.config.where_latents else ""
-    print(f"model {state['path']} ({where}D={model.config.latent_dim}), {len(chosen)} visible objects of {cache}")
+    print(f"model {state['path']} ({where}D={model.config.latent_dim}), {min(args.objects, int(visible.sum()))} "
+          f"visible objects of {cache}")
     print("squared pixel change per unit of each latent: " + " ".join(f"{v:.0f}" for v in sensitivity.tolist()))
     weights = sensitivity / sensitivity.mean()
     print("as latent weights (mean 1): " + " ".join(f"{v:.3f}" for v in weights.tolist()))

@@ -70,6 +70,22 @@ def probe(means: np.ndarray, targets: np.ndarray, chosen: np.ndarray) -> list[fl
     return [float(v) for v in r2]
 
 
+def hidden_part_error(means: np.ndarray, targets: np.ndarray, seen: np.ndarray, fraction: np.ndarray) -> dict:
+    """RMS error (pixels) of x and y read linearly from the latents, by how much of the object is
+    in view: the probe is fitted on wholly visible objects of the first half of the videos and
+    applied to the second half's wholly visible and partly hidden (behind another object) ones.
+    A position code that follows the visible part, not the object, shows as a larger error."""
+    half = len(means) // 2
+    whole, partly = seen & (fraction >= 0.99), seen & (fraction < 0.9)
+    weights, *_ = np.linalg.lstsq(np.c_[means[:half][whole[:half]], np.ones(whole[:half].sum())],
+                                  targets[:half][whole[:half]], rcond=None)
+    errors = {}
+    for name, chosen in (("whole", whole[half:]), ("partly hidden", partly[half:])):
+        guess = np.c_[means[half:][chosen], np.ones(chosen.sum())] @ weights
+        errors[name] = (int(chosen.sum()), np.sqrt(((guess - targets[half:][chosen]) ** 2).mean(0)))
+    return errors
+
+
 def train_throughput(model: ComponentVAE, data: str, config: TrainConfig, steps: int) -> float:
     """Median object images per second of full training steps (forward, backward, Adam)."""
     frames = ShardedFrames(data, image_size=model.config.image_size, latent_dim=model.config.latent_dim,
@@ -141,6 +157,10 @@ def main(argv: list[str] | None = None) -> int:
     r2_x, r2_y = probe(means, targets, visible)
     print(f"linear probe (latent mean -> x, y), one for all {int(visible[count // 2:].sum())} visible objects "
           f"of the held-out half of the videos: R^2 x {r2_x:.4f}, y {r2_y:.4f}")
+    fraction = states[..., columns.index("visible")]
+    for name, (count_in, rms) in hidden_part_error(means, targets, visible, fraction).items():
+        print(f"  position read from the latents, {name} objects ({count_in}): RMS error x {rms[0]:.2f} px, "
+              f"y {rms[1]:.2f} px")
     kinds = np.broadcast_to(kind[:, None, :], visible.shape)
     for code, name in enumerate(kind_names):
         chosen = visible & (kinds == code)

@@ -5,7 +5,7 @@ import torch
 from xvoe.data import masked_inputs, perception_batch
 from xvoe.errors import XvoeError
 from xvoe.models.config import PerceptionConfig, from_dict, preset, to_dict
-from xvoe.models.perception import BLANK, BLANK_DEPTH, ComponentVAE, normalise, visible_centroid
+from xvoe.models.perception import BLANK, BLANK_DEPTH, ComponentVAE, PerceptionBatch, normalise, visible_centroid
 
 TINY = dict(latent_dim=4, cnn_channels=(8, 8), cnn_hidden=16, decoder_channels=8, vit_patch=4, vit_width=16,
             vit_layers=1, vit_heads=2, vit_mlp=32, vit_head_hidden=16)
@@ -63,6 +63,28 @@ def test_masked_inputs_blank_outside_each_mask_and_skip_empty_slots():
     assert torch.equal(parts["objects"][0][:, 2:, :], torch.tensor(BLANK).view(4, 1, 1).expand(4, 6, 8))
     assert parts["pixels"][0].tolist() == [0, 0, 4, 0, 0, 0, 0, 0]
     assert parts["background_mask"][1, 0, 4:, 4:].sum() == 0 and parts["background_mask"][1].sum() == 48
+
+
+def test_the_amodal_object_loss_ignores_what_stands_behind_other_objects():
+    """Where another object covers the frame, an object may stand hidden: with `amodal` its
+    picture there costs nothing in its own loss (the composite still sees it), else it does."""
+    rgbd = np.full((1, 16, 16, 4), 200, np.uint8)
+    ids = np.zeros((1, 16, 16), np.uint8)
+    ids[0, 4:10, 2:8] = 1                                      # an object, its right part ...
+    ids[0, 2:12, 6:12] = 2                                     # ... behind a wall in front of it
+    rgbd[0][ids[0] == 2] = (90, 90, 90, 10)
+    rgbd[0][ids[0] == 1] = (30, 180, 60, 100)
+    batch = perception_batch(rgbd, ids, 2, np.zeros((1, 3, 4), np.float32), np.zeros((1, 4), np.float32))
+    known = batch.object_known[batch.object_slot == 0][0, 0]
+    assert known[ids[0] == 2].sum() == 0 and known[ids[0] != 2].min() == 1
+    drawn = batch.objects.clone()
+    drawn[batch.object_slot == 0, :, 2:12, 6:12] = 0.3          # the whole object drawn, under the wall too
+    for amodal in (False, True):
+        model = ComponentVAE(PerceptionConfig(image_size=16, broadcast_size=4, amodal=amodal, **TINY))
+        assert model.object_nll(batch.objects, batch).sum() == 0
+        cost = model.object_nll(drawn, batch)
+        assert cost[batch.object_slot == 1] == 0                 # the wall's picture did not change
+        assert (cost[batch.object_slot == 0] == 0) == amodal
 
 
 def test_loss_is_finite_with_empty_frames_and_decreases_on_a_tiny_batch():
@@ -136,13 +158,14 @@ def test_where_latents_start_at_the_visible_pixels_centroid():
 
 
 def test_where_latents_are_a_preset_and_off_in_older_configs():
-    assert preset("cpu-where").perception.where_latents
-    assert not preset("cpu").perception.where_latents and not preset("paper").perception.where_latents
-    assert preset("cpu-where").xpl == preset("cpu").xpl      # only the perception differs
+    where = preset("cpu-where")
+    assert where.perception.where_latents and where.perception.amodal and where.xpl.weigh_by_picture
+    for name in ("cpu", "paper"):
+        assert not preset(name).perception.where_latents and not preset(name).perception.amodal
     older = to_dict(preset("cpu").perception)
-    del older["where_latents"]                        # a checkpoint written before the field existed
+    del older["where_latents"], older["amodal"]       # a checkpoint written before the fields existed
     model = ComponentVAE(from_dict(PerceptionConfig, older))
-    assert not model.decoder.where and hasattr(model.decoder, "position")
+    assert not model.decoder.where and hasattr(model.decoder, "position") and not model.config.amodal
     with pytest.raises(XvoeError, match="where_latents needs latent_dim >= 3"):
         PerceptionConfig(where_latents=True, latent_dim=2)
 
@@ -158,3 +181,21 @@ def test_latent_sensitivity_is_the_decoders_squared_jacobian(where):
     jacobian = torch.stack([torch.autograd.functional.jacobian(lambda v: model.decode(v[None])[0], row) for row in z])
     expected = jacobian.pow(2).flatten(1, 3).sum(1).mean(0)          # (D,): per latent, mean over z
     torch.testing.assert_close(model.latent_sensitivity(z, step=1e-6), expected, rtol=1e-3, atol=1e-6)
+
+
+def test_cut_objects_blank_one_side_of_the_chosen_objects_only():
+    from xvoe.data import cut_objects, cut_plan
+
+    objects = torch.tensor(BLANK).view(1, 4, 1, 1).repeat(3, 1, 12, 12)
+    objects[:, :, 2:8, 3:9] = -0.5                             # a 6x6 object in each image
+    plan = np.array([[1, 0, 0.5], [1, 3, 0.5], [0, 0, 0.5]])   # right half goes; top half goes; untouched
+    cut = cut_objects(objects, plan)
+    shown = cut[:, 3] < 1.0
+    assert shown[0].sum() == 18 and shown[0, 2:8, 3:6].all()   # columns 3-5 stay
+    assert shown[1].sum() == 18 and shown[1, 5:8, 3:9].all()   # rows 5-7 stay
+    assert torch.equal(cut[2], objects[2])
+    rng = np.random.default_rng(0)
+    drawn = cut_plan(rng, 4000, 0.25)
+    assert abs(drawn[:, 0].mean() - 0.25) < 0.03 and set(drawn[:, 1]) == {0, 1, 2, 3}
+    assert 0.3 <= drawn[:, 2].min() and drawn[:, 2].max() <= 0.9
+    assert np.array_equal(cut_plan(np.random.default_rng(0), 4000, 0.25), drawn)

@@ -116,3 +116,15 @@ def test_two_processes_under_torchrun_match_one_process(tiny_file, tmp_path):
     seed_everything(0)
     initial = ComponentVAE(TINY_CONFIG).state_dict()
     assert not torch.equal(initial["decoder.out.weight"], single["model"]["decoder.out.weight"])
+
+
+def test_cut_objects_do_not_depend_on_the_process_count(tiny_file):
+    """The cuts are drawn shard by shard: two processes' halves are the one process's batch."""
+    from xvoe.data import ShardedFrames
+
+    common = dict(image_size=16, latent_dim=4, batch_size=8, shards=2, seed=3, cut_share=0.5)
+    whole = ShardedFrames(str(tiny_file), **common).batch(5)
+    halves = [ShardedFrames(str(tiny_file), rank=r, world=2, **common).batch(5) for r in (0, 1)]
+    assert torch.equal(torch.cat([h.object_inputs for h in halves]), whole.object_inputs)
+    assert torch.equal(torch.cat([h.objects for h in halves]), whole.objects)
+    assert not torch.equal(whole.object_inputs, whole.objects)        # some were cut

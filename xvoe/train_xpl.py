@@ -152,6 +152,8 @@ def train_xpl(latents: str | os.PathLike | None, run_dir: str | os.PathLike, *, 
         with open_latents(latents) as file:
             shape = file["mean"].shape[1:]
         model_config = stage_config(chosen.xpl, stage, residual, stop_gradient, shape)
+        if model_config.weigh_by_picture and not model_config.latent_weights:
+            model_config = replace(model_config, latent_weights=cache_picture_weights(latents))
         config = chosen.xpl_train
     config = override(config, **train_overrides)
     config = override(config, data_shards=config.data_shards or place.world)
@@ -162,6 +164,22 @@ def train_xpl(latents: str | os.PathLike | None, run_dir: str | os.PathLike, *, 
     job = Job(name, XPL(model_config), batches.batch, {"preset": preset_name, "xpl": to_dict(model_config)},
               meta={"latents": str(Path(latents).resolve())})
     return fit(job, config, run_dir, place=place, resume=resume, overwrite=overwrite, progress=progress)
+
+
+def cache_picture_weights(latents: str | os.PathLike, videos: int = 200) -> tuple[float, ...]:
+    """XPLConfig.latent_weights for a latent cache: each latent's picture sensitivity under the
+    perception module that made the cache (recorded in it), over their mean."""
+    from .latents import picture_weights
+    from .train import load_perception
+
+    with open_latents(latents) as file:
+        source = file.attrs["perception_checkpoint"]
+        mean, visible = torch.tensor(file["mean"][:videos]), torch.tensor(file["visible"][:videos])
+    if not Path(source).is_file():
+        raise XvoeError(f"{latents} was made by {source}, which is gone; the latent weights need it")
+    model, _ = load_perception(source)
+    sensitivity = picture_weights(model, mean, visible)
+    return tuple(round(float(w), 6) for w in sensitivity / sensitivity.mean())
 
 
 def latent_cache_for(data: str | os.PathLike, run_dir: str | os.PathLike, perception: str | None = None,

@@ -47,6 +47,12 @@ class PerceptionConfig:
     # frame coordinates ([-1, 1]) per unit of those two latents: 0.5 spans the frame over +-2 of the
     # means' +-3, so that a pixel's move weighs more in the later stages' latent losses
     where_scale: float = 0.5
+    # the per-object loss leaves out the other objects' pixels, where this one may stand hidden, so
+    # a partly hidden object is decoded whole (its latents then say where it is, not its visible part)
+    amodal: bool = False
+    # share of the object images the encoder sees with a random side cut off while the loss asks for
+    # the whole object: it learns where a partly hidden object is, and to draw it whole
+    cut_share: float = 0.0
     # likelihood and prior
     sigma: float = 0.05             # pixel standard deviation of the Gaussian likelihood
     beta: float = 0.5               # weight of the KL to N(0, I)
@@ -121,7 +127,8 @@ PRESETS: dict[str, Preset] = {
     # linear probe gain a lot, the later stages not yet (docs/results.md).
     "cpu-where": Preset(
         name="cpu-where",
-        perception=PerceptionConfig(where_latents=True),
+        perception=PerceptionConfig(where_latents=True, amodal=True, cut_share=0.25),
+        xpl=XPLConfig(weigh_by_picture=True),
     ),
     # The paper's sizes (appendix tables): 128x128, ViT encoder, D=32, 64-channel decoder; for GPUs.
     "paper": Preset(

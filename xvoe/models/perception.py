@@ -14,7 +14,10 @@ pixels, so the decoder fills in the background behind the objects.
 With `where_latents` (the `cpu-where` preset) the first two latents are the object's position:
 the decoder draws the object relative to them, and the encoder starts them at the centroid
 of the object's visible pixels and learns only a correction (for occlusion, and for where
-the drawing's reference point sits). Position is then linear in the latents by construction,
+the drawing's reference point sits). That preset also trains the encoder on object images
+with a side cut off against the whole object (`cut_share`), and leaves the pixels of other
+objects out of each object's own loss (`amodal`), so that a partly hidden object's latents
+say where the object is, not where its visible part is. Position is then linear in the latents by construction,
 for every kind of object alike; the later stages, whose losses weigh every latent alike, do not
 gain from it yet (docs/results.md, XPLConfig.latent_weights).
 """
@@ -170,13 +173,17 @@ class PerceptionBatch:
     """A batch of frames cut into per-object inputs (see xvoe.data.perception_batch).
 
     frames (B,4,H,W) targets; objects (M,4,H,W) the masked images of the slots with pixels,
-    which sit at (object_frame, object_slot); background (B,4,H,W) with background_mask
+    which sit at (object_frame, object_slot), and object_inputs what the encoder sees of them
+    (the same, or cut: data.cut_objects), with object_known (M,1,H,W) = 0 on the pixels of
+    the other objects (what stands behind them is unknown); background (B,4,H,W) with background_mask
     (B,1,H,W) = 1 on id-0 pixels; noise (B,K+1,D) for the reparameterisation (component 0 is
     the background), blank_noise (1,D) for the shared blank input.
     """
 
     frames: Tensor
     objects: Tensor
+    object_inputs: Tensor
+    object_known: Tensor
     object_frame: Tensor
     object_slot: Tensor
     background: Tensor
@@ -268,7 +275,7 @@ class ComponentVAE(nn.Module):
         encoded once and its decoding stands in for every slot without pixels.
         """
         count = len(batch.frames)
-        inputs = torch.cat([batch.objects, batch.background, self.blank()])
+        inputs = torch.cat([batch.object_inputs, batch.background, self.blank()])
         mean, std = self.posterior(inputs)
         z = mean
         if sample:
@@ -285,13 +292,16 @@ class ComponentVAE(nn.Module):
         """Negative ELBO per frame: composite and per-object Gaussian likelihoods plus beta*KL.
 
         The per-object term is needed: with the composite alone the decoder can hide every
-        object behind the background, where it gets no gradient.
+        object behind the background, where it gets no gradient. With `amodal` it leaves out
+        the other objects' pixels: behind a wall the decoder may draw the whole object, which
+        the composite then hides, so its latents can say where it is, not where its visible
+        part is.
         """
         out, count = self.forward_batch(batch), len(batch.frames)
         scale = 0.5 / self.config.sigma ** 2
         error = (out["composite"] - batch.frames).pow(2)
         per_frame = scale * error.flatten(1).sum(1)
-        object_nll = scale * (out["objects"] - batch.objects).pow(2).flatten(1).sum(1)
+        object_nll = self.object_nll(out["objects"], batch)
         per_frame = per_frame + self.config.object_loss_weight * _sum_by(object_nll, batch.object_frame, count)
         background_error = batch.background_mask * (out["background"] - batch.background).pow(2)
         per_frame = per_frame + scale * background_error.flatten(1).sum(1)
@@ -302,6 +312,14 @@ class ComponentVAE(nn.Module):
         mse = error.mean().detach()
         return {"loss": per_frame.mean() + blank_nll, "mse": mse, "kl": kl.mean().detach(),
                 "psnr": 10 * torch.log10(4.0 / mse.clamp_min(1e-10))}
+
+    def object_nll(self, pictures: Tensor, batch: PerceptionBatch) -> Tensor:
+        """Per-object Gaussian NLL (M,) of decoded pictures against the masked object images;
+        with `amodal`, not on the other objects' pixels, where the object may stand hidden."""
+        error = (pictures - batch.objects).pow(2)
+        if self.config.amodal:
+            error = error * batch.object_known
+        return 0.5 / self.config.sigma ** 2 * error.flatten(1).sum(1)
 
     def forward(self, batch: PerceptionBatch) -> dict[str, Tensor]:
         """The training objective (what DistributedDataParallel calls)."""

@@ -29,6 +29,9 @@ class XPLConfig:
     # weight of each latent in the refill and dynamics losses (empty: all 1); e.g. how much each
     # moves the decoded picture, so that a squared error in latents weighs as one in pixels
     latent_weights: tuple[float, ...] = ()
+    # set latent_weights when training starts from how much each latent moves the picture of the
+    # perception module that made the latent cache (xvoe.latents.picture_weights), mean 1
+    weigh_by_picture: bool = False
 
 
 class XPL(nn.Module):
