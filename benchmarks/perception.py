@@ -70,17 +70,21 @@ def probe(means: np.ndarray, targets: np.ndarray, chosen: np.ndarray) -> list[fl
     return [float(v) for v in r2]
 
 
-def hidden_part_error(means: np.ndarray, targets: np.ndarray, seen: np.ndarray, fraction: np.ndarray) -> dict:
+def hidden_part_error(means: np.ndarray, targets: np.ndarray, seen: np.ndarray, fraction: np.ndarray,
+                      edge: np.ndarray) -> dict:
     """RMS error (pixels) of x and y read linearly from the latents, by how much of the object is
     in view: the probe is fitted on wholly visible objects of the first half of the videos and
-    applied to the second half's wholly visible and partly hidden (behind another object) ones.
-    A position code that follows the visible part, not the object, shows as a larger error."""
+    applied to the second half's wholly visible ones, the partly hidden ones (behind another
+    object) and the ones the frame's edge cuts. A position code that follows the visible part,
+    not the object, shows as a larger error in the last two."""
     half = len(means) // 2
-    whole, partly = seen & (fraction >= 0.99), seen & (fraction < 0.9)
-    weights, *_ = np.linalg.lstsq(np.c_[means[:half][whole[:half]], np.ones(whole[:half].sum())],
-                                  targets[:half][whole[:half]], rcond=None)
+    groups = {"whole": seen & (fraction >= 0.99) & ~edge, "partly hidden": seen & (fraction < 0.9) & ~edge,
+              "cut by the frame's edge": seen & edge}
+    whole = groups["whole"][:half]
+    weights, *_ = np.linalg.lstsq(np.c_[means[:half][whole], np.ones(whole.sum())], targets[:half][whole], rcond=None)
     errors = {}
-    for name, chosen in (("whole", whole[half:]), ("partly hidden", partly[half:])):
+    for name, chosen in groups.items():
+        chosen = chosen[half:]
         guess = np.c_[means[half:][chosen], np.ones(chosen.sum())] @ weights
         errors[name] = (int(chosen.sum()), np.sqrt(((guess - targets[half:][chosen]) ** 2).mean(0)))
     return errors
@@ -158,7 +162,9 @@ def main(argv: list[str] | None = None) -> int:
     print(f"linear probe (latent mean -> x, y), one for all {int(visible[count // 2:].sum())} visible objects "
           f"of the held-out half of the videos: R^2 x {r2_x:.4f}, y {r2_y:.4f}")
     fraction = states[..., columns.index("visible")]
-    for name, (count_in, rms) in hidden_part_error(means, targets, visible, fraction).items():
+    x, radius = targets[..., 0], states[..., columns.index("size")]
+    edge = (x - radius < 0) | (x + radius > size)
+    for name, (count_in, rms) in hidden_part_error(means, targets, visible, fraction, edge).items():
         print(f"  position read from the latents, {name} objects ({count_in}): RMS error x {rms[0]:.2f} px, "
               f"y {rms[1]:.2f} px")
     kinds = np.broadcast_to(kind[:, None, :], visible.shape)

@@ -157,13 +157,15 @@ def test_where_latents_start_at_the_visible_pixels_centroid():
     assert torch.equal(mean[:, 2:], torch.zeros(3, model.config.latent_dim - 2))
 
 
-def test_where_latents_are_a_preset_and_off_in_older_configs():
-    where = preset("cpu-where")
-    assert where.perception.where_latents and where.perception.amodal and where.xpl.weigh_by_picture
-    for name in ("cpu", "paper"):
+def test_where_latents_are_the_cpu_preset_and_off_in_older_configs():
+    cpu = preset("cpu")
+    assert cpu.perception.where_latents and cpu.perception.amodal and cpu.xpl.weigh_by_picture
+    for name in ("cpu-broadcast", "paper"):
         assert not preset(name).perception.where_latents and not preset(name).perception.amodal
+        assert not preset(name).perception.cut_share and not preset(name).xpl.weigh_by_picture
     older = to_dict(preset("cpu").perception)
-    del older["where_latents"], older["amodal"]       # a checkpoint written before the fields existed
+    for field in ("where_latents", "where_scale", "amodal", "cut_share"):
+        del older[field]                              # a checkpoint written before the fields existed
     model = ComponentVAE(from_dict(PerceptionConfig, older))
     assert not model.decoder.where and hasattr(model.decoder, "position") and not model.config.amodal
     with pytest.raises(XvoeError, match="where_latents needs latent_dim >= 3"):

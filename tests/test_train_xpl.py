@@ -40,7 +40,7 @@ def tiny_preset(monkeypatch):
     from xvoe.models.config import PRESETS
 
     cpu = PRESETS["cpu"]
-    small = replace(cpu, xpl=replace(cpu.xpl, reasoning=replace(cpu.xpl.reasoning, width=16, layers=1, heads=2, mlp=16),
+    small = replace(cpu, xpl=replace(cpu.xpl, weigh_by_picture=False, reasoning=replace(cpu.xpl.reasoning, width=16, layers=1, heads=2, mlp=16),
                                      dynamics=replace(cpu.xpl.dynamics, hidden=32, lstm=32, buffer_heads=2)))
     monkeypatch.setattr(stage, "preset", lambda name: small)
 
@@ -212,3 +212,14 @@ def test_the_proposal_stage_refuses_torchrun(tmp_path, monkeypatch):
     monkeypatch.setenv("WORLD_SIZE", "2")
     with pytest.raises(XvoeError, match="without torchrun"):
         train_proposal(tmp_path)
+
+
+def test_weighing_by_picture_needs_a_cache_that_names_its_perception(cache, tmp_path, monkeypatch):
+    from dataclasses import replace
+
+    import xvoe.train_xpl as stage
+
+    small = stage.preset("cpu")                     # the tiny preset of the autouse fixture
+    monkeypatch.setattr(stage, "preset", lambda name: replace(small, xpl=replace(small.xpl, weigh_by_picture=True)))
+    with pytest.raises(XvoeError, match="does not say which perception module made it"):
+        train_xpl(cache, tmp_path / "run", progress=False, **TINY)

@@ -173,7 +173,10 @@ def cache_picture_weights(latents: str | os.PathLike, videos: int = 200) -> tupl
     from .train import load_perception
 
     with open_latents(latents) as file:
-        source = file.attrs["perception_checkpoint"]
+        source = file.attrs.get("perception_checkpoint")
+        if source is None:
+            raise XvoeError(f"{latents} does not say which perception module made it, and weigh_by_picture "
+                            "needs it; encode the split with `xvoe train --stage encode`")
         mean, visible = torch.tensor(file["mean"][:videos]), torch.tensor(file["visible"][:videos])
     if not Path(source).is_file():
         raise XvoeError(f"{latents} was made by {source}, which is gone; the latent weights need it")

@@ -117,18 +117,19 @@ class Preset:
 
 
 PRESETS: dict[str, Preset] = {
-    # 2 CPU cores: 32x32 frames, a small CNN encoder and a light decoder.
+    # 2 CPU cores: 32x32 frames, a small CNN encoder and a light decoder. Each object's position is two
+    # latents the decoder draws from (found whole behind walls: amodal, cut_share), and the later
+    # stages weigh each latent by how much it moves the picture (docs/results.md).
     "cpu": Preset(
         name="cpu",
-        perception=PerceptionConfig(),
-        perception_train=TrainConfig(),
-    ),
-    # The cpu preset with where latents (object position as two latents): perception and its
-    # linear probe gain a lot, the later stages not yet (docs/results.md).
-    "cpu-where": Preset(
-        name="cpu-where",
         perception=PerceptionConfig(where_latents=True, amodal=True, cut_share=0.25),
         xpl=XPLConfig(weigh_by_picture=True),
+    ),
+    # The cpu preset before where latents: the whole latent broadcast, every latent weighed alike.
+    # The shipped models were trained with it (their checkpoints hold the full config).
+    "cpu-broadcast": Preset(
+        name="cpu-broadcast",
+        perception=PerceptionConfig(),
     ),
     # The paper's sizes (appendix tables): 128x128, ViT encoder, D=32, 64-channel decoder; for GPUs.
     "paper": Preset(

@@ -11,15 +11,16 @@ The background (the pixels of id 0: floor and sky) is one more component, encode
 decoded by the same networks and composited like the slots; its loss counts only its own
 pixels, so the decoder fills in the background behind the objects.
 
-With `where_latents` (the `cpu-where` preset) the first two latents are the object's position:
+With `where_latents` (the `cpu` preset) the first two latents are the object's position:
 the decoder draws the object relative to them, and the encoder starts them at the centroid
 of the object's visible pixels and learns only a correction (for occlusion, and for where
-the drawing's reference point sits). That preset also trains the encoder on object images
+the drawing's reference point sits). The preset also trains the encoder on object images
 with a side cut off against the whole object (`cut_share`), and leaves the pixels of other
 objects out of each object's own loss (`amodal`), so that a partly hidden object's latents
-say where the object is, not where its visible part is. Position is then linear in the latents by construction,
-for every kind of object alike; the later stages, whose losses weigh every latent alike, do not
-gain from it yet (docs/results.md, XPLConfig.latent_weights).
+say where the object is, not where its visible part is. Position is then linear in the
+latents by construction, for every kind of object alike. Per unit, these two latents move the
+picture hundreds of times more than the others, so the later stages weigh their latent losses
+by that (XPLConfig.weigh_by_picture; docs/results.md).
 """
 from __future__ import annotations
 
