@@ -78,3 +78,41 @@ def test_report_compares_models_with_their_numbers():
     assert "- plato: lowest predictive (S1) accuracy 80.0% (collision)." in lines
     assert "- random: 50% lies inside the 95% interval in 1 of 2 settings." in lines
     assert compare_models([row("xpl", "collision", "S3", 0.9)]) == []
+
+
+def test_models_trained_side_by_side_match_one_after_another(tmp_path, tiny_cpu_preset, monkeypatch):
+    """--jobs 2 trains and scores xpl and plato in two processes (the tiny preset goes with
+    them); --jobs 1 with as many threads, one after the other: the same bytes. The second run
+    starts from the first's data, perception and cache."""
+    import os
+    import shutil
+
+    import torch
+
+    runs, threads = {}, torch.get_num_threads()
+    lane_threads = max(1, len(os.sched_getaffinity(0)) // 2)     # what each of two lanes gets
+    for jobs in (1, 2):
+        config = PipelineConfig(str(tmp_path / f"jobs{jobs}"), train_videos=8, pairs=1, models=("xpl", "plato", "random"),
+                                workers=1, progress=False, jobs=jobs)
+        if jobs == 2:
+            shutil.copytree(runs[1] / "data", tmp_path / "jobs2" / "data")
+            for name in ("perception.pt", "latents-train.h5"):
+                shutil.copy(runs[1] / name, tmp_path / "jobs2" / name)
+            (tmp_path / "jobs2" / ".done").mkdir()
+            for stage in ("generate-train", "generate-test", "perception", "encode-train"):
+                shutil.copy(runs[1] / ".done" / stage, tmp_path / "jobs2" / ".done" / stage)
+        with monkeypatch.context() as patch:
+            if jobs == 1:       # the training stages take their threads from OMP_NUM_THREADS, scoring from torch
+                patch.setenv("OMP_NUM_THREADS", str(lane_threads))
+                torch.set_num_threads(lane_threads)
+            try:
+                run_pipeline(config)
+            finally:
+                torch.set_num_threads(threads)
+        runs[jobs] = tmp_path / f"jobs{jobs}"
+    for model in ("plato", "xpl"):
+        one, two = (torch.load(runs[j] / f"{model}.pt", weights_only=False)["model"] for j in (1, 2))
+        assert all(torch.equal(two[name], value) for name, value in one.items()), model
+        assert (runs[1] / "scores" / f"{model}.csv").read_bytes() == (runs[2] / "scores" / f"{model}.csv").read_bytes()
+    with pytest.raises(XvoeError, match="--jobs"):
+        PipelineConfig("x", jobs=-1)

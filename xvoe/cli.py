@@ -95,7 +95,7 @@ def cmd_pipeline(args: argparse.Namespace) -> None:
 
     models = tuple(m.strip() for m in args.models.split(",") if m.strip())
     print(run_pipeline(PipelineConfig(args.out, args.preset, args.train_videos, args.pairs, models, args.seed,
-                                      args.workers, not args.quiet)))
+                                      args.workers, not args.quiet, args.jobs)))
 
 
 def cmd_metrics(args: argparse.Namespace) -> None:
@@ -299,6 +299,8 @@ def build_parser() -> argparse.ArgumentParser:
                           help="comma-separated: xpl, plato, xpl-noresidual, phydnet, random (default xpl,random)")
     pipeline.add_argument("--seed", type=int, default=0, help="training seed; the test split uses seed + 1")
     pipeline.add_argument("--workers", type=_positive, default=_default_workers(), help="generation workers")
+    pipeline.add_argument("--jobs", type=int, default=0,
+                          help="models trained and scored side by side, the cores shared out (default 0: one per core)")
     pipeline.add_argument("--quiet", action="store_true", help="no progress bars")
     pipeline.set_defaults(run=cmd_pipeline)
 

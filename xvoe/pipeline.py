@@ -13,14 +13,21 @@ checkpoint, so an interrupted pipeline loses at most a few minutes of work.
 """
 from __future__ import annotations
 
+import multiprocessing
+import os
 import time
 from collections.abc import Callable
+from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from .errors import XvoeError
 
-MODELS = ("xpl", "plato", "xpl-noresidual", "phydnet", "random")
+if TYPE_CHECKING:
+    from .models.config import Preset
+
+MODELS = ("xpl", "xpl-noresidual", "plato", "phydnet", "random")      # longest to train and score first
 TRAINED = {"xpl": ("xpl", True), "plato": ("plato", True), "xpl-noresidual": ("xpl", False)}
 
 
@@ -34,6 +41,7 @@ class PipelineConfig:
     seed: int = 0
     workers: int = 2
     progress: bool = True
+    jobs: int = 0       # models trained and scored side by side, each with cores/jobs threads (0: one per core)
 
     def __post_init__(self) -> None:
         unknown = [m for m in self.models if m not in MODELS]
@@ -41,6 +49,8 @@ class PipelineConfig:
             raise XvoeError(f"unknown model(s) {', '.join(unknown)}; choose from {', '.join(MODELS)}")
         if self.train_videos < 1 or self.pairs < 1:
             raise XvoeError("--train-videos and --pairs must be at least 1")
+        if self.jobs < 0:
+            raise XvoeError("--jobs must be 0 (one per core) or more")
 
 
 class Stages:
@@ -74,10 +84,7 @@ def run_pipeline(config: PipelineConfig) -> Path:
     from .latents import encode_split
     from .metrics import report
     from .models.config import preset
-    from .score import score_split
     from .train import checkpoint_path, train_perception
-    from .train_phydnet import train_phydnet
-    from .train_xpl import train_proposal, train_xpl
 
     size = preset(config.preset).perception.image_size
     run_dir = Path(config.out)
@@ -99,26 +106,17 @@ def run_pipeline(config: PipelineConfig) -> Path:
             resume=checkpoint_path(run_dir, "perception").exists(), seed=config.seed))
         stages.run("encode-train", lambda: encode_split(run_dir, train_data, latents, overwrite=True,
                                                         progress=config.progress))
-    for model in config.models:
-        if model in TRAINED:
-            stage, residual = TRAINED[model]
-            stages.run(f"train-{model}", lambda stage=stage, residual=residual, model=model: train_xpl(
-                latents, run_dir, stage=stage, preset_name=config.preset, residual=residual,
-                progress=config.progress, resume=checkpoint_path(run_dir, model).exists(), seed=config.seed))
-            if model == "xpl":
-                stages.run("train-proposal", lambda: train_proposal(
-                    run_dir, latents, progress=config.progress,
-                    resume=checkpoint_path(run_dir, "proposal").exists(), seed=config.seed))
-    if "phydnet" in config.models:
-        stages.run("train-phydnet", lambda: train_phydnet(
-            train_data, run_dir, preset_name=config.preset, progress=config.progress,
-            resume=checkpoint_path(run_dir, "phydnet").exists(), seed=config.seed))
     (run_dir / "scores").mkdir(exist_ok=True)
+    heavy = sorted((m for m in config.models if m != "random"), key=MODELS.index)     # the longest first
+    lanes = min(config.jobs or len(os.sched_getaffinity(0)), len(heavy))
+    if lanes > 1:       # one model per lane, the cores shared out: two 1-thread runs beat one 2-thread run
+        threads = max(1, len(os.sched_getaffinity(0)) // lanes)
+        context = multiprocessing.get_context("spawn")
+        with ProcessPoolExecutor(lanes, mp_context=context) as pool:
+            for done in [pool.submit(_lane, config, preset(config.preset), model, threads) for model in heavy]:
+                done.result()
     for model in config.models:
-        reference = "random" if model == "random" else str(checkpoint_path(run_dir, model))
-        stages.run(f"score-{model}", lambda reference=reference, model=model: score_split(
-            reference, str(test_data), str(run_dir / "scores" / f"{model}.csv"), overwrite=True,
-            progress=config.progress))
+        _model_stages(config, model, stages, config.progress)
     scores = [run_dir / "scores" / f"{model}.csv" for model in config.models]
     models = ",".join(config.models)    # a rerun with more models redoes what covers them all
 
@@ -129,6 +127,47 @@ def run_pipeline(config: PipelineConfig) -> Path:
     stages.run("metrics", metrics, key=models)
     stages.run("explanations", lambda: _explanations(run_dir, test_data, config.models), key=models)
     return write_report(run_dir, config)
+
+
+def _model_stages(config: PipelineConfig, model: str, stages: Stages, bars: bool) -> None:
+    """Train (with the proposal stage for xpl) and score one model, skipping what is done."""
+    from .score import score_split
+    from .train import checkpoint_path
+    from .train_phydnet import train_phydnet
+    from .train_xpl import train_proposal, train_xpl
+
+    run_dir = Path(config.out)
+    train_data, test_data = run_dir / "data" / "train.h5", run_dir / "data" / "test.h5"
+    latents = run_dir / "latents-train.h5"
+    if model in TRAINED:
+        stage, residual = TRAINED[model]
+        stages.run(f"train-{model}", lambda: train_xpl(
+            latents, run_dir, stage=stage, preset_name=config.preset, residual=residual, progress=bars,
+            resume=checkpoint_path(run_dir, model).exists(), seed=config.seed))
+        if model == "xpl":
+            stages.run("train-proposal", lambda: train_proposal(
+                run_dir, latents, progress=bars, resume=checkpoint_path(run_dir, "proposal").exists(),
+                seed=config.seed))
+    if model == "phydnet":
+        stages.run("train-phydnet", lambda: train_phydnet(
+            train_data, run_dir, preset_name=config.preset, progress=bars,
+            resume=checkpoint_path(run_dir, "phydnet").exists(), seed=config.seed))
+    reference = "random" if model == "random" else str(checkpoint_path(run_dir, model))
+    stages.run(f"score-{model}", lambda: score_split(
+        reference, str(test_data), str(run_dir / "scores" / f"{model}.csv"), overwrite=True, progress=bars))
+
+
+def _lane(config: PipelineConfig, sizes: Preset, model: str, threads: int) -> None:
+    """One model's stages in a process of its own with `threads` threads and the caller's preset
+    `sizes` (no progress bars: lanes would draw over each other; each stage's start is printed)."""
+    import torch
+
+    from .models.config import PRESETS
+
+    PRESETS[config.preset] = sizes
+    os.environ["OMP_NUM_THREADS"] = str(threads)
+    torch.set_num_threads(threads)
+    _model_stages(config, model, Stages(Path(config.out), config.progress), bars=False)
 
 
 def _remove(directory: Path, *patterns: str) -> None:
