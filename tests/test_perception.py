@@ -5,7 +5,7 @@ import torch
 from xvoe.data import masked_inputs, perception_batch
 from xvoe.errors import XvoeError
 from xvoe.models.config import PerceptionConfig, from_dict, preset, to_dict
-from xvoe.models.perception import BLANK, BLANK_DEPTH, ComponentVAE, PerceptionBatch, normalise, visible_centroid
+from xvoe.models.perception import BLANK, BLANK_DEPTH, ComponentVAE, normalise, visible_centroid
 
 TINY = dict(latent_dim=4, cnn_channels=(8, 8), cnn_hidden=16, decoder_channels=8, vit_patch=4, vit_width=16,
             vit_layers=1, vit_heads=2, vit_mlp=32, vit_head_hidden=16)

@@ -92,8 +92,8 @@ def test_models_trained_side_by_side_match_one_after_another(tmp_path, tiny_cpu_
     runs, threads = {}, torch.get_num_threads()
     lane_threads = max(1, len(os.sched_getaffinity(0)) // 2)     # what each of two lanes gets
     for jobs in (1, 2):
-        config = PipelineConfig(str(tmp_path / f"jobs{jobs}"), train_videos=8, pairs=1, models=("xpl", "plato", "random"),
-                                workers=1, progress=False, jobs=jobs)
+        config = PipelineConfig(str(tmp_path / f"jobs{jobs}"), train_videos=8, pairs=1,
+                                models=("xpl", "plato", "random"), workers=1, progress=False, jobs=jobs)
         if jobs == 2:
             shutil.copytree(runs[1] / "data", tmp_path / "jobs2" / "data")
             for name in ("perception.pt", "latents-train.h5"):

@@ -45,8 +45,9 @@ def masked_inputs(frames: Tensor, ids: Tensor, slots: int) -> dict[str, Tensor]:
     """Cut normalised frames (B,4,H,W) into per-object inputs by the id map (B,H,W).
 
     Every slot with at least one pixel gives an object image (the frame blanked outside the
-    slot's mask; the encoder's input and the target alike) and an `object_known` mask (0 on the pixels of the other objects, where this
-    one may stand hidden); slots without pixels give nothing (they all share the blank input).
+    slot's mask; the encoder's input and the target alike) and an `object_known` mask (0 on
+    the pixels of the other objects, where this one may stand hidden); slots without pixels
+    give nothing (they all share the blank input).
     The background input is the frame blanked on the objects, with a mask of its own pixels.
     """
     ids = ids.long()
@@ -199,8 +200,9 @@ class ShardedFrames:
         frame = np.concatenate([p[1] for p in picks])
         blank_noise = np.random.default_rng([self.seed, step, BLANK_SEED]).standard_normal(
             (1, self.latent_dim), dtype=np.float32)
+        cuts = partial(self.cuts, step) if self.cut_share else None
         return perception_batch(self.data.rgbd[video, frame], self.data.ids[video, frame], self.slots,
-                                np.concatenate(noises), blank_noise, partial(self.cuts, step) if self.cut_share else None)
+                                np.concatenate(noises), blank_noise, cuts)
 
     def cuts(self, step: int, object_frame: Tensor) -> np.ndarray:
         """The cut plan of a step's objects, drawn shard by shard (the objects come in frame order,

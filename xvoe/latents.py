@@ -117,7 +117,8 @@ def encode_means(model, rgbd: np.ndarray, ids: np.ndarray, slots: int) -> tuple[
     return np.stack([e["mean"] for e in encoded]), np.stack([e["pixels"] for e in encoded])
 
 
-def picture_weights(model, mean: torch.Tensor, visible: torch.Tensor, objects: int = 256, seed: int = 0) -> torch.Tensor:
+def picture_weights(model, mean: torch.Tensor, visible: torch.Tensor, objects: int = 256,
+                    seed: int = 0) -> torch.Tensor:
     """How much each latent moves the decoded picture (`ComponentVAE.latent_sensitivity`),
     averaged over `objects` visible entries drawn (seeded) from cached means (N,T,K,D) with
     visibility (N,T,K): a squared error in latents times these weighs as one in pixels."""

@@ -176,8 +176,8 @@ class PerceptionBatch:
     frames (B,4,H,W) targets; objects (M,4,H,W) the masked images of the slots with pixels,
     which sit at (object_frame, object_slot), and object_inputs what the encoder sees of them
     (the same, or cut: data.cut_objects), with object_known (M,1,H,W) = 0 on the pixels of
-    the other objects (what stands behind them is unknown); background (B,4,H,W) with background_mask
-    (B,1,H,W) = 1 on id-0 pixels; noise (B,K+1,D) for the reparameterisation (component 0 is
+    the other objects (what stands behind them is unknown); background (B,4,H,W) with
+    background_mask (B,1,H,W) = 1 on id-0 pixels; noise (B,K+1,D) for the reparameterisation (component 0 is
     the background), blank_noise (1,D) for the shared blank input.
     """
 
