@@ -81,9 +81,9 @@ def test_report_compares_models_with_their_numbers():
 
 
 def test_models_trained_side_by_side_match_one_after_another(tmp_path, tiny_cpu_preset, monkeypatch):
-    """--jobs 2 trains and scores xpl and plato in two processes (the tiny preset goes with
-    them); --jobs 1 with as many threads, one after the other: the same bytes. The second run
-    starts from the first's data, perception and cache."""
+    """--jobs 2 trains xpl and plato in two processes (the tiny preset goes with them), then
+    scores them; --jobs 1 with as many threads, one after the other: the same bytes. The second
+    run starts from the first's data, perception and cache."""
     import os
     import shutil
 
@@ -102,9 +102,9 @@ def test_models_trained_side_by_side_match_one_after_another(tmp_path, tiny_cpu_
             for stage in ("generate-train", "generate-test", "perception", "encode-train"):
                 shutil.copy(runs[1] / ".done" / stage, tmp_path / "jobs2" / ".done" / stage)
         with monkeypatch.context() as patch:
-            if jobs == 1:       # the training stages take their threads from OMP_NUM_THREADS, scoring from torch
+            if jobs == 1:       # the training stages take their threads from OMP_NUM_THREADS
                 patch.setenv("OMP_NUM_THREADS", str(lane_threads))
-                torch.set_num_threads(lane_threads)
+            torch.set_num_threads(lane_threads)     # scoring, in this process either way, from torch
             try:
                 run_pipeline(config)
             finally:

@@ -109,7 +109,7 @@ def run_pipeline(config: PipelineConfig) -> Path:
     (run_dir / "scores").mkdir(exist_ok=True)
     heavy = sorted((m for m in config.models if m != "random"), key=MODELS.index)     # the longest first
     lanes = min(config.jobs or len(os.sched_getaffinity(0)), len(heavy))
-    if lanes > 1:       # one model per lane, the cores shared out: two 1-thread runs beat one 2-thread run
+    if lanes > 1:       # one model's training per lane, the cores shared out: two 1-thread runs beat one 2-thread run
         threads = max(1, len(os.sched_getaffinity(0)) // lanes)
         context = multiprocessing.get_context("spawn")
         with ProcessPoolExecutor(lanes, mp_context=context) as pool:
@@ -129,7 +129,7 @@ def run_pipeline(config: PipelineConfig) -> Path:
     return write_report(run_dir, config)
 
 
-def _model_stages(config: PipelineConfig, model: str, stages: Stages, bars: bool) -> None:
+def _model_stages(config: PipelineConfig, model: str, stages: Stages, bars: bool, score: bool = True) -> None:
     """Train (with the proposal stage for xpl) and score one model, skipping what is done."""
     from .score import score_split
     from .train import checkpoint_path
@@ -152,14 +152,18 @@ def _model_stages(config: PipelineConfig, model: str, stages: Stages, bars: bool
         stages.run("train-phydnet", lambda: train_phydnet(
             train_data, run_dir, preset_name=config.preset, progress=bars,
             resume=checkpoint_path(run_dir, "phydnet").exists(), seed=config.seed))
+    if not score:
+        return
     reference = "random" if model == "random" else str(checkpoint_path(run_dir, model))
     stages.run(f"score-{model}", lambda: score_split(
         reference, str(test_data), str(run_dir / "scores" / f"{model}.csv"), overwrite=True, progress=bars))
 
 
 def _lane(config: PipelineConfig, sizes: Preset, model: str, threads: int) -> None:
-    """One model's stages in a process of its own with `threads` threads and the caller's preset
-    `sizes` (no progress bars: lanes would draw over each other; each stage's start is printed)."""
+    """One model's training stages in a process of its own with `threads` threads and the
+    caller's preset `sizes` (no progress bars: lanes would draw over each other; each stage's
+    start is printed). Scoring is left to the caller: it uses every core well, and two scorers
+    at once would hold two test sets of decoded frames (5-7 GB together)."""
     import torch
 
     from .models.config import PRESETS
@@ -167,7 +171,7 @@ def _lane(config: PipelineConfig, sizes: Preset, model: str, threads: int) -> No
     PRESETS[config.preset] = sizes
     os.environ["OMP_NUM_THREADS"] = str(threads)
     torch.set_num_threads(threads)
-    _model_stages(config, model, Stages(Path(config.out), config.progress), bars=False)
+    _model_stages(config, model, Stages(Path(config.out), config.progress), bars=False, score=False)
 
 
 def _remove(directory: Path, *patterns: str) -> None:
