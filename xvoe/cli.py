@@ -299,8 +299,9 @@ def build_parser() -> argparse.ArgumentParser:
                           help="comma-separated: xpl, plato, xpl-noresidual, phydnet, random (default xpl,random)")
     pipeline.add_argument("--seed", type=int, default=0, help="training seed; the test split uses seed + 1")
     pipeline.add_argument("--workers", type=_positive, default=_default_workers(), help="generation workers")
-    pipeline.add_argument("--jobs", type=int, default=0,
-                          help="models trained and scored side by side, the cores shared out (default 0: one per core)")
+    pipeline.add_argument("--jobs", type=int, default=1,
+                          help="models trained side by side, the cores shared out (0: one per core; default 1: "
+                               "one at a time; 2 lanes were 11%% faster and held 3 times the memory)")
     pipeline.add_argument("--quiet", action="store_true", help="no progress bars")
     pipeline.set_defaults(run=cmd_pipeline)
 

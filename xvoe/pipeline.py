@@ -41,7 +41,8 @@ class PipelineConfig:
     seed: int = 0
     workers: int = 2
     progress: bool = True
-    jobs: int = 0       # models trained and scored side by side, each with cores/jobs threads (0: one per core)
+    jobs: int = 1       # models trained side by side, each with cores/jobs threads (0: one per core); more
+                        # memory: two lanes held 8.4 GB together against 2.6 GB one at a time (docs/results.md)
 
     def __post_init__(self) -> None:
         unknown = [m for m in self.models if m not in MODELS]
@@ -162,8 +163,8 @@ def _model_stages(config: PipelineConfig, model: str, stages: Stages, bars: bool
 def _lane(config: PipelineConfig, sizes: Preset, model: str, threads: int) -> None:
     """One model's training stages in a process of its own with `threads` threads and the
     caller's preset `sizes` (no progress bars: lanes would draw over each other; each stage's
-    start is printed). Scoring is left to the caller: it uses every core well, and two scorers
-    at once would hold two test sets of decoded frames (5-7 GB together)."""
+    start is printed). Scoring is left to the caller: it uses every core well (on one thread
+    beside another lane it took twice as long)."""
     import torch
 
     from .models.config import PRESETS
