@@ -80,13 +80,13 @@ def cut_objects(objects: Tensor, plan: np.ndarray) -> Tensor:
         return objects
     shown = objects[:, 3] < (1.0 + BLANK[3]) / 2                          # (M, H, W): the object's pixels
     ramp = torch.arange(size, dtype=objects.dtype)
+    fraction = torch.as_tensor(keep, dtype=objects.dtype)
     cut = torch.zeros_like(shown)
     for axis, along in ((0, ramp[None, :]), (1, ramp[:, None])):          # 0: columns (x), 1: rows (y)
-        extent = shown.any(dim=1 + axis).to(objects.dtype)                 # (M, size) occupied columns / rows
-        first = torch.where(extent > 0, ramp, float(size)).amin(1)
-        last = torch.where(extent > 0, ramp, -1.0).amax(1)
+        extent = shown.any(dim=1 + axis)                                   # (M, size) occupied columns / rows
+        first = torch.where(extent, ramp, float(size)).amin(1)
+        last = torch.where(extent, ramp, -1.0).amax(1)
         span = (last - first + 1).clamp_min(1)
-        fraction = torch.as_tensor(keep, dtype=objects.dtype)
         low_keep = first + fraction * span                                # keep the low side: cut at or past
         high_keep = last + 1 - fraction * span                            # keep the high side: cut below
         low = torch.as_tensor((side == 2 * axis) & chosen)

@@ -92,8 +92,7 @@ def run_pipeline(config: PipelineConfig) -> Path:
     run_dir.mkdir(parents=True, exist_ok=True)
     (run_dir / "data").mkdir(exist_ok=True)
     stages = Stages(run_dir, config.progress)
-    train_data, test_data = run_dir / "data" / "train.h5", run_dir / "data" / "test.h5"
-    latents = run_dir / "latents-train.h5"
+    train_data, test_data, latents = run_files(run_dir)
 
     stages.run("generate-train", lambda: generate(
         GenerateConfig("train", videos=config.train_videos, size=size, seed=config.seed), train_data,
@@ -109,9 +108,10 @@ def run_pipeline(config: PipelineConfig) -> Path:
                                                         progress=config.progress))
     (run_dir / "scores").mkdir(exist_ok=True)
     heavy = sorted((m for m in config.models if m != "random"), key=MODELS.index)     # the longest first
-    lanes = min(config.jobs or len(os.sched_getaffinity(0)), len(heavy))
+    cores = len(os.sched_getaffinity(0))
+    lanes = min(config.jobs or cores, len(heavy))
     if lanes > 1:       # one model's training per lane, the cores shared out: two 1-thread runs beat one 2-thread run
-        threads = max(1, len(os.sched_getaffinity(0)) // lanes)
+        threads = max(1, cores // lanes)
         context = multiprocessing.get_context("spawn")
         with ProcessPoolExecutor(lanes, mp_context=context) as pool:
             for done in [pool.submit(_lane, config, preset(config.preset), model, threads) for model in heavy]:
@@ -130,6 +130,11 @@ def run_pipeline(config: PipelineConfig) -> Path:
     return write_report(run_dir, config)
 
 
+def run_files(run_dir: Path) -> tuple[Path, Path, Path]:
+    """Where a run keeps its training split, its test split and the training split's latent cache."""
+    return run_dir / "data" / "train.h5", run_dir / "data" / "test.h5", run_dir / "latents-train.h5"
+
+
 def _model_stages(config: PipelineConfig, model: str, stages: Stages, bars: bool, score: bool = True) -> None:
     """Train (with the proposal stage for xpl) and score one model, skipping what is done."""
     from .score import score_split
@@ -138,8 +143,7 @@ def _model_stages(config: PipelineConfig, model: str, stages: Stages, bars: bool
     from .train_xpl import train_proposal, train_xpl
 
     run_dir = Path(config.out)
-    train_data, test_data = run_dir / "data" / "train.h5", run_dir / "data" / "test.h5"
-    latents = run_dir / "latents-train.h5"
+    train_data, test_data, latents = run_files(run_dir)
     if model in TRAINED:
         stage, residual = TRAINED[model]
         stages.run(f"train-{model}", lambda: train_xpl(
