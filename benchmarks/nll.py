@@ -2,7 +2,8 @@
 comparative accuracy against the MSE score on the same pairs.
 
     python benchmarks/nll.py --model NAME_OR_RUN --data test.h5 [--particles 64] [--pairs N] [--threads 2]
-                             [--motion-sigma S] [--pixel-sigma S] [--refine-steps N] [--independent-guide]
+                             [--motion-sigma S] [--pixel-sigma S] [--refine-steps N] [--proposal-widening F]
+                             [--independent-guide]
 
 Scores the first N pairs of every S1 and S3 setting and of blocking S2 with both surprise
 definitions, each video encoded once (as `xvoe score --surprise both` does).
@@ -111,6 +112,9 @@ def main() -> None:
                              f"(default {InferenceConfig.refine_steps})")
     parser.add_argument("--refine-rate", type=float, default=InferenceConfig.refine_rate,
                         help=f"their learning rate (default {InferenceConfig.refine_rate})")
+    parser.add_argument("--proposal-widening", type=float, default=InferenceConfig.proposal_widening,
+                        help="factor on Transformer 2's scales after the first frame before they are fused with "
+                             f"the dynamics' step (default {InferenceConfig.proposal_widening})")
     parser.add_argument("--independent-guide", action="store_true",
                         help="draw the hidden trajectory frame by frame from Transformer 2 alone (the guide "
                              "before it was fused with the dynamics' step), for comparison")
@@ -129,7 +133,7 @@ def run(args: argparse.Namespace) -> None:
         raise XvoeError(f"the NLL surprise needs an XPL model with reasoning; {scorer.name} has none")
     config = InferenceConfig(particles=args.particles, motion_sigma=args.motion_sigma, pixel_sigma=args.pixel_sigma,
                              refine_steps=args.refine_steps,
-                             refine_rate=args.refine_rate,
+                             refine_rate=args.refine_rate, proposal_widening=args.proposal_widening,
                              guide_follows_dynamics=not args.independent_guide)
     rows, nll_seconds, mse_seconds = [], 0.0, 0.0
     with store.open_dataset(args.data) as file:
@@ -155,7 +159,8 @@ def report(table: dict[str, np.ndarray], args: argparse.Namespace, nll_seconds: 
           f"pairs per setting), {args.particles} particles, {args.threads} thread(s), "
           f"{'independent' if args.independent_guide else 'dynamics-fused'} guide, motion sigma {args.motion_sigma}, "
           f"pixel sigma {args.pixel_sigma}, "
-          f"{args.refine_steps} steps out of sight at rate {args.refine_rate}")
+          f"{args.refine_steps} steps out of sight at rate {args.refine_rate}, proposal widening "
+          f"{args.proposal_widening}")
     print(f"NLL scoring: {speed:.2f} videos/s (encoding included, {nll_seconds:.0f} s); "
           f"MSE scoring: {videos / mse_seconds:.1f} videos/s (encoding included)")
     print(f"ESS: median {median_ess:.1f}, 10th percentile {np.percentile(table['ess'], 10):.1f} "

@@ -83,10 +83,11 @@ S_0, Q, SIGMA, P = 0.8, 0.3, 0.4, 0.3
 BACKGROUND = torch.tensor([0.1, 0.2, -0.1], dtype=torch.float64)
 
 
-def linear_model(follow_dynamics: bool = True):
+def linear_model(follow_dynamics: bool = True, widening: float = 1.0):
     scene = LinearGaussianScene(T, M_0, S_0, A, H, BACKGROUND)
     return HiddenObjectModel(scene, InferenceConfig(prior_hidden=P, pixel_sigma=SIGMA, transition_sigma=Q,
-                                                    guide_follows_dynamics=follow_dynamics))
+                                                    guide_follows_dynamics=follow_dynamics,
+                                                    proposal_widening=widening))
 
 
 def kalman_log_evidence(frames):
@@ -168,12 +169,13 @@ def test_linear_gaussian_exact_proposal_matches_the_kalman_evidence():
     assert estimate.ess == pytest.approx(512, rel=1e-6)
 
 
-@pytest.mark.parametrize("follow_dynamics", [True, False])
-def test_linear_gaussian_amortised_style_proposal_and_posterior_of_existence(follow_dynamics):
-    """The real guide (Gaussians per frame, fused with the dynamics' step or not, and its own
-    existence probability) stays within three standard errors; the weighted share of particles
-    with an object is the exact posterior probability that a hidden object exists."""
-    frames, model = simulate_frames(2), linear_model(follow_dynamics)
+@pytest.mark.parametrize("follow_dynamics, widening", [(True, 1.0), (True, 3.0), (False, 1.0)])
+def test_linear_gaussian_amortised_style_proposal_and_posterior_of_existence(follow_dynamics, widening):
+    """The real guide (Gaussians per frame, fused with the dynamics' step or not, widened or
+    not, and its own existence probability) stays within three standard errors; the weighted
+    share of particles with an object is the exact posterior probability that a hidden object
+    exists."""
+    frames, model = simulate_frames(2), linear_model(follow_dynamics, widening)
     mean, chol = trajectory_posterior(frames)
     marginal_sd = torch.sqrt((chol ** 2).sum(1)).reshape(T, D)
     proposal = Proposal(torch.tensor(0.5), mean.reshape(T, D), 1.2 * marginal_sd)
@@ -187,6 +189,23 @@ def test_linear_gaussian_amortised_style_proposal_and_posterior_of_existence(fol
     with warnings.catch_warnings():
         warnings.simplefilter("error")
         check_model_guide_match(estimate.model_trace, estimate.guide_trace)
+
+
+def test_a_widened_proposal_follows_the_dynamics_after_the_first_frame():
+    """Widened without bound, the fused proposal of z_1.. is the model's own transition, so
+    those sites add nothing to the log-weights; the first frame still comes from the proposal."""
+    frames, model = simulate_frames(2), linear_model(widening=1e6)
+    mean, chol = trajectory_posterior(frames)
+    proposal = Proposal(torch.tensor(0.9), mean.reshape(T, D), 0.5 * torch.sqrt((chol ** 2).sum(1)).reshape(T, D))
+    pyro.set_rng_seed(4)
+    estimate = importance(model.model, model.guide, frames, proposal=proposal, particles=64)
+    model_trace, guide_trace = estimate.model_trace, estimate.guide_trace
+    alive = guide_trace.nodes["exists"]["value"].bool()
+    assert alive.sum() > 10
+    later = sum(model_trace.nodes[f"z_{t}"]["log_prob"] - guide_trace.nodes[f"z_{t}"]["log_prob"] for t in range(1, T))
+    torch.testing.assert_close(later[alive], torch.zeros(int(alive.sum()), dtype=later.dtype), atol=1e-4, rtol=0)
+    first = model_trace.nodes["z_0"]["log_prob"] - guide_trace.nodes["z_0"]["log_prob"]
+    assert first[alive].abs().min() > 0.01
 
 
 def test_fuse_is_the_product_of_two_gaussians():
