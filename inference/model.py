@@ -104,9 +104,9 @@ class HiddenObjectModel(nn.Module):
                     trajectory.append(pyro.sample(f"z_{t}", step))
             pyro.factor("frames", self.pixel_log_likelihood(torch.stack(trajectory, dim=1), exists.bool(), frames))
             if hasattr(self.scene, "seen_motion"):
-                predicted, seen = self.scene.seen_motion(torch.stack(trajectory, dim=1), exists)
-                pyro.sample("seen_motion", dist.Normal(predicted, self.config.motion_sigma).to_event(3),
-                            obs=seen.expand(particles, *seen.shape))
+                predicted, seen, observed = self.scene.seen_motion(torch.stack(trajectory, dim=1), exists)
+                motion = dist.Normal(predicted, self.config.motion_sigma).mask(observed[..., None]).to_event(3)
+                pyro.sample("seen_motion", motion, obs=seen.expand(particles, *seen.shape))
         return exists
 
     def pixel_log_likelihood(self, trajectory: Tensor, alive: Tensor, frames: Tensor) -> Tensor:

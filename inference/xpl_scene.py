@@ -4,9 +4,11 @@ The latents of what is seen are fixed (Transformer 1's refined latents); one nev
 is left free for a hidden object. Rendering decodes the hidden object's latents and
 composites them with the fixed slots and the background; its dynamics are XPL's, run with
 the particle's trajectory in the free slot so the hidden object interacts with the others.
-The seen objects' own motion is evidence too: their refined latents are observed under the
-dynamics' one-step prediction (site `seen_motion`), so a hidden object that explains a ball
-bouncing back raises the likelihood.
+The seen objects' own motion is evidence too: their latents in the frames the encoder saw them
+are observed under the dynamics' one-step prediction (site `seen_motion`), so a hidden object
+that explains a ball bouncing back raises the likelihood. Transformer 1's fills of the other
+frames feed the dynamics' history but are not observations: they are the model's guesses, made
+without the hidden object, and scoring them as data counted that guess against it.
 """
 from __future__ import annotations
 
@@ -39,6 +41,7 @@ class XPLScene(nn.Module):
             self.register_buffer("layers", behind_walls(layers, visible[None], occluder[None], walls)[0])
             self.register_buffer("walls", walls[0, :, 0])   # (T, 1, H, W)
         self.register_buffer("moving", occupied & ~occluder)
+        self.register_buffer("observed", visible[1:][:, self.moving])     # (T-1, M): seen_motion's data
         with torch.no_grad():
             self._fixed = self._partial_composite()
             self._empty = self._composite(self.layers[None])[0]
@@ -126,8 +129,9 @@ class XPLScene(nn.Module):
         fixed, own = torch.exp(top - peak), torch.exp(logits - peak)
         return (weighted * fixed + pictures * own) / (total * fixed + own)
 
-    def seen_motion(self, trajectory: Tensor, exists: Tensor) -> tuple[Tensor, Tensor]:
-        """The dynamics' prediction (N, T-1, M, D) of the moving seen slots, and what was seen.
+    def seen_motion(self, trajectory: Tensor, exists: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+        """The dynamics' prediction (N, T-1, M, D) of the moving seen slots, their refined
+        latents (T-1, M, D), and which of those the encoder saw (T-1, M): the data.
 
         Without a hidden object the free slot holds what the encoder made of its (empty)
         pixels, as during training; that scene is the same for every such particle, so the
@@ -137,4 +141,4 @@ class XPLScene(nn.Module):
         predicted = empty.expand(len(alive), *empty.shape[1:]).clone()
         if alive.any():     # the transitions stepped through these frames already
             predicted[alive] = torch.stack(self._step(trajectory[alive][:, :-1]), dim=1)[:, :, self.moving]
-        return predicted, self.refined[1:, self.moving]
+        return predicted, self.refined[1:, self.moving], self.observed

@@ -201,7 +201,7 @@ def test_the_scene_steps_the_dynamics_once_per_frame_and_matches_a_full_run():
         for steps in range(1, T):                # as the model asks, then the seen objects' motion
             scene.transition(trajectory[:, :steps])
         alive = torch.tensor([True, False, True, True, False, True])
-        predicted, _ = scene.seen_motion(trajectory, alive)
+        predicted, _, _ = scene.seen_motion(trajectory, alive)
         moving = visible.any(0)
         torch.testing.assert_close(predicted[alive], xpl.dynamics(scene.with_hidden(trajectory[alive])[:, :-1])[:, :, moving],
                                    atol=1e-5, rtol=1e-5)
@@ -246,6 +246,37 @@ def test_the_pixel_likelihood_is_the_gaussian_density_of_every_particles_frames(
     assert found.dtype == torch.float64
     torch.testing.assert_close(found, expected, atol=0.0, rtol=1e-6)      # float32 squares, float64 sums
     assert found[1] == found[3] == found[4]
+
+
+def test_the_seen_objects_motion_is_observed_only_where_the_encoder_saw_them():
+    """Transformer 1's fills feed the dynamics but are not data: the seen_motion site's density
+    is the Gaussian one summed over the (frame, slot) entries the encoder saw, and nothing else."""
+    from pyro import poutine
+
+    from inference.model import HiddenObjectModel, Proposal
+    from inference.xpl_scene import XPLScene
+
+    vae, xpl = tiny_models()
+    randomise_dynamics_head(xpl.dynamics)
+    frames, mean, visible, background, occluder = video()
+    visible[2:4, 1] = False                     # slot 1 behind a wall for two frames: filled, not seen
+    config = InferenceConfig()
+    with torch.no_grad():
+        scene = XPLScene(vae, xpl, mean, vae.decode(background), visible, occluder, 3)
+        model = HiddenObjectModel(scene, config)
+        proposal = Proposal(torch.tensor(0.5), torch.zeros(T, D), torch.ones(T, D))
+        pyro.set_rng_seed(0)
+        guide_trace = poutine.trace(model.guide).get_trace(frames, proposal, particles=6)
+        trace = poutine.trace(poutine.replay(model.model, trace=guide_trace)).get_trace(frames, proposal, particles=6)
+        trace.compute_log_prob()
+        trajectory = torch.stack([guide_trace.nodes[f"z_{t}"]["value"] for t in range(T)], dim=1)
+        predicted, seen, observed = scene.seen_motion(trajectory, guide_trace.nodes["exists"]["value"])
+    moving = visible.any(0) & ~occluder
+    assert observed.tolist() == visible[1:][:, moving].tolist() and not observed.all()
+    density = torch.distributions.Normal(predicted, config.motion_sigma).log_prob(seen)    # (N, T-1, M, D)
+    expected = (density * observed[..., None]).sum(dim=(1, 2, 3))
+    torch.testing.assert_close(trace.nodes["seen_motion"]["log_prob"], expected)
+    assert (density.sum(dim=(1, 2, 3)) - expected).abs().min() > 1e-3      # the fills would have counted
 
 
 def test_render_frames_is_the_render_at_those_frames():
