@@ -10,9 +10,9 @@ The guide proposes `exists` from its own amortised probability and the trajector
 per-frame Gaussian (in XPL: Transformer 2's mean and scale), by default fused with the
 model's own step: each z_t is drawn from the product of the dynamics' Gaussian given the
 particle's past and the per-frame Gaussian, as if the latter were a measurement of z_t (the
-locally optimal proposal of a Kalman filter); after the first frame that measurement's scale
-is widened (`proposal_widening`), for it says where the object is on the whole, not anew each
-frame. Drawn independently frame by frame, a trajectory jitters by the per-frame scale, far
+locally optimal proposal of a Kalman filter), its scale widened (`proposal_widening`): it says
+where the object is on the whole, not anew each frame, and a proposal narrower than the
+posterior misses part of the evidence, where a wider one only costs variance. Drawn independently frame by frame, a trajectory jitters by the per-frame scale, far
 more than the dynamics' transition noise, and every particle holding an object pays hundreds
 of nats for it. The trajectory sites are masked by `exists` in both model and guide, so a
 particle without a hidden object is weighted by p(no object) p(x | no object) / q(no object)
@@ -68,10 +68,12 @@ class InferenceConfig:
     refine_rate: float = 0.1        # their Adam learning rate
     refine_tolerance: float = 1.0   # nats a frame of the proposal's mean may cost before it is moved
     guide_follows_dynamics: bool = True   # fuse each frame's proposal with the dynamics' step
-    # Transformer 2's scales after the first frame are multiplied by this before the fusion: they
-    # are each frame's marginal uncertainty, not fresh evidence about that frame, and taken at
-    # face value they pull every particle off the dynamics' step at a cost of 30-100 nats; 3 was
-    # chosen on the default test split and confirmed on a fresh one (docs/results.md)
+    # Transformer 2's scales are multiplied by this before the fusion. After the first frame they
+    # are each frame's marginal uncertainty, not fresh evidence about that frame, and taken at face
+    # value they pull every particle off the dynamics' step at a cost of 30-100 nats; in the first
+    # frame they are narrower than what the video leaves open (a never-seen object's colour), and
+    # the missed volume cost about 17 nats. 3 was chosen on the default test split and confirmed
+    # on a fresh one (docs/results.md)
     proposal_widening: float = 3.0
 
 
@@ -158,8 +160,7 @@ class HiddenObjectModel(nn.Module):
                         else:
                             step = self._transition(torch.stack(trajectory, dim=1), alive)
                             spread = torch.full_like(step, self.config.transition_sigma)
-                            scale = scale * self.config.proposal_widening
-                        loc, scale = fuse(step, spread, loc, scale)
+                        loc, scale = fuse(step, spread, loc, scale * self.config.proposal_widening)
                     trajectory.append(pyro.sample(f"z_{t}", dist.Normal(loc, scale).to_event(1)))
         return exists
 

@@ -191,21 +191,25 @@ def test_linear_gaussian_amortised_style_proposal_and_posterior_of_existence(fol
         check_model_guide_match(estimate.model_trace, estimate.guide_trace)
 
 
-def test_a_widened_proposal_follows_the_dynamics_after_the_first_frame():
-    """Widened without bound, the fused proposal of z_1.. is the model's own transition, so
-    those sites add nothing to the log-weights; the first frame still comes from the proposal."""
-    frames, model = simulate_frames(2), linear_model(widening=1e6)
+def test_a_widened_proposal_becomes_the_models_own_prior():
+    """Widened without bound, the fused proposal is the model's own first-frame prior and
+    transitions (a bootstrap proposal), so the trajectory sites add nothing to the log-weights;
+    unwidened, they do."""
+    frames = simulate_frames(2)
     mean, chol = trajectory_posterior(frames)
     proposal = Proposal(torch.tensor(0.9), mean.reshape(T, D), 0.5 * torch.sqrt((chol ** 2).sum(1)).reshape(T, D))
-    pyro.set_rng_seed(4)
-    estimate = importance(model.model, model.guide, frames, proposal=proposal, particles=64)
-    model_trace, guide_trace = estimate.model_trace, estimate.guide_trace
-    alive = guide_trace.nodes["exists"]["value"].bool()
-    assert alive.sum() > 10
-    later = sum(model_trace.nodes[f"z_{t}"]["log_prob"] - guide_trace.nodes[f"z_{t}"]["log_prob"] for t in range(1, T))
-    torch.testing.assert_close(later[alive], torch.zeros(int(alive.sum()), dtype=later.dtype), atol=1e-4, rtol=0)
-    first = model_trace.nodes["z_0"]["log_prob"] - guide_trace.nodes["z_0"]["log_prob"]
-    assert first[alive].abs().min() > 0.01
+    gaps = {}
+    for widening in (1.0, 1e6):
+        model = linear_model(widening=widening)
+        pyro.set_rng_seed(4)
+        estimate = importance(model.model, model.guide, frames, proposal=proposal, particles=64)
+        model_trace, guide_trace = estimate.model_trace, estimate.guide_trace
+        alive = guide_trace.nodes["exists"]["value"].bool()
+        assert alive.sum() > 10
+        gap = sum(model_trace.nodes[f"z_{t}"]["log_prob"] - guide_trace.nodes[f"z_{t}"]["log_prob"] for t in range(T))
+        gaps[widening] = gap[alive]
+    torch.testing.assert_close(gaps[1e6], torch.zeros_like(gaps[1e6]), atol=1e-4, rtol=0)
+    assert gaps[1.0].abs().min() > 0.01
 
 
 def test_fuse_is_the_product_of_two_gaussians():
