@@ -113,7 +113,7 @@ def main() -> None:
     parser.add_argument("--refine-rate", type=float, default=InferenceConfig.refine_rate,
                         help=f"their learning rate (default {InferenceConfig.refine_rate})")
     parser.add_argument("--proposal-widening", type=float, default=InferenceConfig.proposal_widening,
-                        help="factor on Transformer 2's scales after the first frame before they are fused with "
+                        help="factor on Transformer 2's scales before they are fused with the latent prior and "
                              f"the dynamics' step (default {InferenceConfig.proposal_widening})")
     parser.add_argument("--independent-guide", action="store_true",
                         help="draw the hidden trajectory frame by frame from Transformer 2 alone (the guide "
