@@ -12,12 +12,13 @@ model's own step: each z_t is drawn from the product of the dynamics' Gaussian g
 particle's past and the per-frame Gaussian, as if the latter were a measurement of z_t (the
 locally optimal proposal of a Kalman filter), its scale widened (`proposal_widening`): it says
 where the object is on the whole, not anew each frame, and a proposal narrower than the
-posterior misses part of the evidence, where a wider one only costs variance. Drawn independently frame by frame, a trajectory jitters by the per-frame scale, far
-more than the dynamics' transition noise, and every particle holding an object pays hundreds
-of nats for it. The trajectory sites are masked by `exists` in both model and guide, so a
-particle without a hidden object is weighted by p(no object) p(x | no object) / q(no object)
-alone: an exact trans-dimensional importance sampler. Every site lives in a `particles` plate,
-for `inference.importance`.
+posterior misses part of the evidence, where a wider one only costs variance. Drawn
+independently frame by frame, a trajectory jitters by the per-frame scale, far more than the
+dynamics' transition noise, and every particle holding an object pays hundreds of nats for it.
+The trajectory sites are masked by `exists` in both model and guide, so a particle without a
+hidden object is weighted by p(no object) p(x | no object) / q(no object) alone: an exact
+trans-dimensional importance sampler. Every site lives in a `particles` plate, for
+`inference.importance`.
 """
 from __future__ import annotations
 
