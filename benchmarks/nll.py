@@ -9,7 +9,8 @@ Scores the first N pairs of every S1 and S3 setting and of blocking S2 with both
 definitions, each video encoded once (as `xvoe score --surprise both` does).
 (a) videos_per_s: NLL scoring throughput, encoding included, MSE excluded (goal >= 5 at 64
     particles on 2 cores).
-(b) median_ess: the median effective sample size of the importance weights.
+(b) median_ess: the median effective sample size of the importance weights (and, apart, on
+    the hidden-cube videos of (c), where it is far lower).
 (c) p_hidden_hidden: of the blocking S2 member-0 videos whose ground truth holds an object
     visible in no frame (the saved states' `visible` column), the share with p_hidden > 0.5.
 (d) p_hidden_seen: of the scored videos in which every object is seen at some frame, the share
@@ -168,6 +169,9 @@ def report(table: dict[str, np.ndarray], args: argparse.Namespace, nll_seconds: 
     blocking_s2 = (table["scenario"] == "blocking") & (table["setting"] == "S2")
     hidden = blocking_s2 & (table["member"] == 0) & (table["truth"] == "hidden")
     seen = table["truth"] == "seen"
+    if hidden.any():    # there the particles holding an object carry the weight, and few of them do
+        print(f"ESS on the {int(hidden.sum())} blocking S2 member-0 videos with an object visible in no frame: "
+              f"median {np.median(table['ess'][hidden]):.1f} of {args.particles}")
     p_hidden_hidden = share(table["p_hidden"][hidden] > 0.5)
     p_hidden_seen = share(table["p_hidden"][seen] < 0.5)
     print(f"p_hidden > 0.5 on {int((table['p_hidden'][hidden] > 0.5).sum())} of {int(hidden.sum())} blocking S2 "
