@@ -251,8 +251,7 @@ def test_the_pixel_likelihood_is_the_gaussian_density_of_every_particles_frames(
 def test_the_seen_objects_motion_is_observed_only_where_the_encoder_saw_them():
     """Transformer 1's fills feed the dynamics but are not data: the seen_motion site's density
     is the Gaussian one summed over the (frame, slot) entries the encoder saw, and nothing else."""
-    from pyro import poutine
-
+    from inference.importance import importance
     from inference.model import HiddenObjectModel, Proposal
     from inference.xpl_scene import XPLScene
 
@@ -266,16 +265,15 @@ def test_the_seen_objects_motion_is_observed_only_where_the_encoder_saw_them():
         model = HiddenObjectModel(scene, config)
         proposal = Proposal(torch.tensor(0.5), torch.zeros(T, D), torch.ones(T, D))
         pyro.set_rng_seed(0)
-        guide_trace = poutine.trace(model.guide).get_trace(frames, proposal, particles=6)
-        trace = poutine.trace(poutine.replay(model.model, trace=guide_trace)).get_trace(frames, proposal, particles=6)
-        trace.compute_log_prob()
+        estimate = importance(model.model, model.guide, frames, proposal=proposal, particles=6)
+        guide_trace = estimate.guide_trace
         trajectory = torch.stack([guide_trace.nodes[f"z_{t}"]["value"] for t in range(T)], dim=1)
         predicted, seen, observed = scene.seen_motion(trajectory, guide_trace.nodes["exists"]["value"])
     moving = visible.any(0) & ~occluder
     assert observed.tolist() == visible[1:][:, moving].tolist() and not observed.all()
     density = torch.distributions.Normal(predicted, config.motion_sigma).log_prob(seen)    # (N, T-1, M, D)
     expected = (density * observed[..., None]).sum(dim=(1, 2, 3))
-    torch.testing.assert_close(trace.nodes["seen_motion"]["log_prob"], expected)
+    torch.testing.assert_close(estimate.model_trace.nodes["seen_motion"]["log_prob"], expected)
     assert (density.sum(dim=(1, 2, 3)) - expected).abs().min() > 1e-3      # the fills would have counted
 
 
