@@ -82,7 +82,17 @@ def mse_surprise(vae: ComponentVAE, xpl: XPL, frames: Tensor, mean: Tensor, visi
     (B, T, K) bool; background: (B, T, D) the background component's means; occluder: (B, K)
     bool, the wall slots."""
     refined, slot, occupied = explained_latents(xpl, mean, visible)
-    batch, frames_count = mean.shape[:2]
+    s_img, s_dyn = latent_surprise(vae, xpl, frames, refined, occupied, visible, background, occluder)
+    return Surprise(s_img, s_dyn, slot)
+
+
+@torch.no_grad()
+def latent_surprise(vae: ComponentVAE, xpl: XPL, frames: Tensor, refined: Tensor, occupied: Tensor, visible: Tensor,
+                    background: Tensor, occluder: Tensor) -> tuple[Tensor, Tensor]:
+    """s_img and s_dyn (B, T) of given refined latents (B, T, K, D) with occupied slots (B, K):
+    `mse_surprise` once Transformers 1 and 2 have run. Apart so that other latents can be scored
+    the same way (benchmarks/oracle_fills.py: the hidden objects' true latents for the fills)."""
+    batch, frames_count = refined.shape[:2]
     background_pictures = vae.decode(background.flatten(0, 1)).reshape(batch, frames_count, *frames.shape[2:])
     layers = decode_slots(vae, refined, occupied)
     walls = nearest_wall(layers, occluder)
@@ -96,7 +106,7 @@ def mse_surprise(vae: ComponentVAE, xpl: XPL, frames: Tensor, mean: Tensor, visi
     expected = composite(vae, background_pictures[:, 1:], predicted_layers, moving)
     s_dyn = torch.zeros_like(s_img)
     s_dyn[:, 1:] = (seen - expected).pow(2).flatten(2).sum(2)
-    return Surprise(s_img, s_dyn, slot)
+    return s_img, s_dyn
 
 
 WALL_PIXEL = 0.5    # decoded depth under which a wall's picture covers a pixel ([-1, 1]; walls stand at -0.5)
