@@ -127,8 +127,8 @@ PRESETS: dict[str, Preset] = {
     ),
     # The cpu preset before where latents: the whole latent broadcast, every latent weighed alike,
     # and the XPL stage (plato and xpl-noresidual too) trained twice as long as in cpu, which
-    # raised 6 of the 7 S1/S3 settings here (docs/results.md). The shipped models were trained
-    # with it (their checkpoints hold the full config).
+    # raised 6 of the 7 S1/S3 settings on the default split (docs/results.md). The shipped
+    # models were trained with it (their checkpoints hold the full config).
     "cpu-broadcast": Preset(
         name="cpu-broadcast",
         perception=PerceptionConfig(),
