@@ -38,7 +38,7 @@ def main() -> None:
     with torch.inference_mode():
         whole_ms = per_call_ms(vae.decoder, z, args.repeats)
         for size in (16, 32, 64, 128, 256):
-            ms = per_call_ms(lambda x: torch.cat([vae.decoder(c) for c in x.split(size)]), z, args.repeats)
+            ms = per_call_ms(lambda x, size=size: torch.cat([vae.decoder(c) for c in x.split(size)]), z, args.repeats)
             print(f"chunks of {size:4d}: {ms:7.1f} ms  ratio to whole {whole_ms / ms:.2f}")
         chunked_ms = per_call_ms(vae.decode, z, args.repeats)
         diff = (vae.decode(z) - vae.decoder(z)).abs().max().item()

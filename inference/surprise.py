@@ -69,10 +69,11 @@ def refine_out_of_sight(scene: XPLScene, loc: Tensor, frames: Tensor, config: In
     pictures out of sight where they spoil the frames. Transformer 2 learned the latents of
     objects that were partly seen, and its mean for a never-seen one can show where no wall
     covers it (the scene keeps it behind the walls, `XPLScene.render`); every particle drawn
-    around it then pays hundreds of nats. The steps descend only the pixels' extra cost over the scene without the object
-    (clipped at zero), so they hide the object and never reward it for patching what the
-    seen slots reconstruct badly; frames where it costs under `refine_tolerance` nats are left
-    as they are. A deterministic function of the video: the guide stays a proper proposal."""
+    around it then pays hundreds of nats. The steps descend only the pixels' extra cost over the
+    scene without the object (clipped at zero), so they hide the object and never reward it for
+    patching what the seen slots reconstruct badly; frames where it costs under
+    `refine_tolerance` nats are left as they are. A deterministic function of the video: the
+    guide stays a proper proposal."""
     without = (scene.empty() - frames).square()
     every = torch.arange(len(loc))
 

@@ -5,8 +5,8 @@ import numpy as np
 import pyro
 import pytest
 import torch
-from pyro.util import check_model_guide_match
 from conftest import randomise_dynamics_head
+from pyro.util import check_model_guide_match
 
 from inference.model import InferenceConfig
 from inference.surprise import nll_surprise
@@ -203,8 +203,8 @@ def test_the_scene_steps_the_dynamics_once_per_frame_and_matches_a_full_run():
         alive = torch.tensor([True, False, True, True, False, True])
         predicted, _, _ = scene.seen_motion(trajectory, alive)
         moving = visible.any(0)
-        torch.testing.assert_close(predicted[alive], xpl.dynamics(scene.with_hidden(trajectory[alive])[:, :-1])[:, :, moving],
-                                   atol=1e-5, rtol=1e-5)
+        expected = xpl.dynamics(scene.with_hidden(trajectory[alive])[:, :-1])[:, :, moving]
+        torch.testing.assert_close(predicted[alive], expected, atol=1e-5, rtol=1e-5)
 
 
 def test_the_scene_composites_a_hidden_picture_as_the_full_softmax_does():
@@ -281,7 +281,8 @@ def test_render_frames_is_the_render_at_those_frames():
     scene, _ = tiny_scene()
     trajectory, chosen = torch.randn(1, T, D), torch.tensor([0, 2, 3])
     with torch.no_grad():
-        torch.testing.assert_close(scene.render_frames(trajectory[0, chosen], chosen), scene.render(trajectory)[0, chosen])
+        torch.testing.assert_close(scene.render_frames(trajectory[0, chosen], chosen),
+                                   scene.render(trajectory)[0, chosen])
 
 
 def extra_nats(scene, loc, frames, sigma):

@@ -40,8 +40,9 @@ def tiny_preset(monkeypatch):
     from xvoe.models.config import PRESETS
 
     cpu = PRESETS["cpu"]
-    small = replace(cpu, xpl=replace(cpu.xpl, weigh_by_picture=False, reasoning=replace(cpu.xpl.reasoning, width=16, layers=1, heads=2, mlp=16),
-                                     dynamics=replace(cpu.xpl.dynamics, hidden=32, lstm=32, buffer_heads=2)))
+    reasoning = replace(cpu.xpl.reasoning, width=16, layers=1, heads=2, mlp=16)
+    dynamics = replace(cpu.xpl.dynamics, hidden=32, lstm=32, buffer_heads=2)
+    small = replace(cpu, xpl=replace(cpu.xpl, weigh_by_picture=False, reasoning=reasoning, dynamics=dynamics))
     monkeypatch.setattr(stage, "preset", lambda name: small)
 
 
@@ -180,9 +181,9 @@ def test_bridge_hidden_interpolates_between_seen_frames_and_holds_beyond_them():
 def test_transformer2_never_sees_the_slot_it_rebuilds_not_even_through_transformer1():
     """In the proposal stage the rebuilt slot is emptied before Transformer 1 refines the
     others: what stood there may change freely without changing the loss (only the target may)."""
-    from xvoe.models.xpl import XPL, XPLConfig
-    from xvoe.models.reasoning import ReasoningConfig
     from xvoe.models.dynamics import DynamicsConfig
+    from xvoe.models.reasoning import ReasoningConfig
+    from xvoe.models.xpl import XPL, XPLConfig
     from xvoe.train_xpl import ProposalBatch, ProposalNetworks
 
     torch.manual_seed(0)
@@ -200,7 +201,8 @@ def test_transformer2_never_sees_the_slot_it_rebuilds_not_even_through_transform
     moved = mean.clone()
     original = order[torch.arange(3), hidden]    # the rebuilt slots in the stored order
     moved[torch.arange(3), :, original] += 5.0
-    torch.testing.assert_close(networks(ProposalBatch(moved, visible, order, hidden, batch.refill, target))["mae"], loss)
+    moved_batch = ProposalBatch(moved, visible, order, hidden, batch.refill, target)
+    torch.testing.assert_close(networks(moved_batch)["mae"], loss)
     other = mean.clone()
     other[torch.arange(3), :, (original + 1) % K] += 5.0
     assert not torch.allclose(networks(ProposalBatch(other, visible, order, hidden, batch.refill, target))["mae"], loss)

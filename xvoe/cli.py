@@ -187,7 +187,8 @@ def add_train_parser(verbs) -> None:
                        choices=("perception", "encode", "xpl", "proposal", "plato", "phydnet"))
     train.add_argument("--data", help="the split file (HDF5) to train on or to encode")
     train.add_argument("--out", required=True, help="the run directory")
-    train.add_argument("--preset", default="cpu", help="model and training sizes: cpu (default), cpu-broadcast or paper")
+    train.add_argument("--preset", default="cpu",
+                       help="model and training sizes: cpu (default), cpu-broadcast or paper")
     train.add_argument("--steps", type=_positive, help="training steps (default: the preset's)")
     train.add_argument("--minutes", type=_positive_float, help="stop after this many minutes of training")
     train.add_argument("--batch-size", type=_positive, help="frames (phydnet: videos) per step over all processes")
@@ -292,7 +293,8 @@ def build_parser() -> argparse.ArgumentParser:
                                             "compute the metrics and write RUN_DIR/report.md. A rerun skips "
                                             "the stages already done and resumes an interrupted one.")
     pipeline.add_argument("--out", required=True, help="the run directory")
-    pipeline.add_argument("--preset", default="cpu", help="model and training sizes: cpu (default), cpu-broadcast or paper")
+    pipeline.add_argument("--preset", default="cpu",
+                          help="model and training sizes: cpu (default), cpu-broadcast or paper")
     pipeline.add_argument("--train-videos", type=_positive, default=10_000, help="training videos (default 10000)")
     pipeline.add_argument("--pairs", type=_positive, default=200, help="test pairs per setting (default 200)")
     pipeline.add_argument("--models", default="xpl,random",

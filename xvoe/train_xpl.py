@@ -314,7 +314,7 @@ def wall_slots(latents: str, start: int, stop: int) -> np.ndarray | None:
         source = file.attrs.get("source")
     if source is None or not Path(source).is_file():
         warnings.warn(f"the split file {source} the cache {latents} was encoded from is missing: "
-                      "the proposal stage trains without walls that stay")
+                      "the proposal stage trains without walls that stay", stacklevel=2)
         return None
     with store.open_dataset(source) as file:
         names = list(file.attrs["kind_names"])
