@@ -29,6 +29,7 @@ from xvoe import store
 from xvoe.data import visible_threshold
 from xvoe.generate import GenerateConfig, unit_rng
 from xvoe.latents import encode_frames
+from xvoe.metrics import pairwise_win
 from xvoe.render import render
 from xvoe.scenes import SCENARIOS, TEST_SETTINGS
 from xvoe.score import encode_videos, explained_latents, latent_surprise, load_scorer
@@ -39,8 +40,7 @@ def generator_config(file: h5py.File) -> GenerateConfig:
     config = store.config_of(file)
     if file.attrs.get("split") != "test" or config.get("custom"):
         raise SystemExit("--data must be a test split made by `xvoe generate` (the pairs are simulated again)")
-    return GenerateConfig(split="test", pairs=config["pairs"], seed=config["seed"], size=config["size"],
-                          frames=config["frames"])
+    return GenerateConfig(**config)
 
 
 def true_latents(scorer, config: GenerateConfig, unit: int, stored: np.ndarray) -> tuple[torch.Tensor, torch.Tensor]:
@@ -104,7 +104,7 @@ def main() -> None:
                 result = score_pair(scorer, encode_videos(scorer, file, 2 * unit, 2 * unit + 2), truth, seen)
                 for name in wins:
                     first, second = result[name]
-                    wins[name].append(float(second > first) + 0.5 * float(second == first))
+                    wins[name].append(float(pairwise_win(second, first)))
                 for member in (0, 1):
                     error = result["fill_error"][member]
                     if not error.isnan().all():
