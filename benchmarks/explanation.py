@@ -92,7 +92,7 @@ def dynamics_error(scorer, file, videos: list[int]) -> tuple[float, float, np.nd
         video = encode(scorer, file, index)
         refined = scorer.xpl.refine(video["mean"], video["visible"])
         occupied = video["visible"].any(1)
-        predicted = scorer.xpl.dynamics(refined[:, :-1])
+        predicted = scorer.xpl.predict(refined, video["occluder"])
         background = scorer.vae.decode(video["background"][0])[None]
         expected = composite(scorer.vae, background[:, 1:], decode_slots(scorer.vae, predicted, occupied), occupied)
         errors.append(float((expected - video["frames"][:, 1:]).pow(2).mean()))

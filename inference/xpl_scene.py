@@ -41,6 +41,8 @@ class XPLScene(nn.Module):
             self.register_buffer("layers", behind_walls(layers, visible[None], occluder[None], walls)[0])
             self.register_buffer("walls", walls[0, :, 0])   # (T, 1, H, W)
         self.register_buffer("moving", occupied & ~occluder)
+        self.register_buffer("occluder", occluder[None])
+        self.inert = self.occluder if xpl.config.inert_walls else None     # (1, K): what the dynamics leave out
         self.register_buffer("observed", visible[1:][:, self.moving])     # (T-1, M): seen_motion's data
         with torch.no_grad():
             self._fixed = self._partial_composite()
@@ -80,7 +82,7 @@ class XPLScene(nn.Module):
             state, predictions, start = None, [], 0
         scene = self.with_hidden(history)
         for t in range(start, steps):
-            prediction, state = self.xpl.dynamics.step(scene[:, t], state)
+            prediction, state = self.xpl.dynamics.step(scene[:, t], state, self.inert)
             predictions = [*predictions, prediction]
         self._carried = (history, state, predictions)
         return predictions
@@ -137,7 +139,7 @@ class XPLScene(nn.Module):
         pixels, as during training; that scene is the same for every such particle, so the
         dynamics run on it once."""
         alive = exists.bool()
-        empty = self.xpl.dynamics(self.refined[None, :-1])[:, :, self.moving]
+        empty = self.xpl.predict(self.refined[None], self.occluder)[:, :, self.moving]
         predicted = empty.expand(len(alive), *empty.shape[1:]).clone()
         if alive.any():     # the transitions stepped through these frames already
             predicted[alive] = torch.stack(self._step(trajectory[alive][:, :-1]), dim=1)[:, :, self.moving]

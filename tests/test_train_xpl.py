@@ -196,16 +196,17 @@ def test_transformer2_never_sees_the_slot_it_rebuilds_not_even_through_transform
     visible[:, 2:5, 0] = False                   # slot 0 partly occluded: Transformer 1 fills it
     order = torch.stack([torch.randperm(K) for _ in range(3)])
     hidden = torch.tensor([1, 2, 3])             # in the permuted order
-    batch = ProposalBatch(mean, visible, order, hidden, torch.zeros_like(visible), target)
+    batch = ProposalBatch(mean, visible, order, hidden, torch.zeros_like(visible), visible[:, 0] & False, target)
     loss = networks(batch)["mae"]
     moved = mean.clone()
     original = order[torch.arange(3), hidden]    # the rebuilt slots in the stored order
     moved[torch.arange(3), :, original] += 5.0
-    moved_batch = ProposalBatch(moved, visible, order, hidden, batch.refill, target)
+    moved_batch = ProposalBatch(moved, visible, order, hidden, batch.refill, batch.walls, target)
     torch.testing.assert_close(networks(moved_batch)["mae"], loss)
     other = mean.clone()
     other[torch.arange(3), :, (original + 1) % K] += 5.0
-    assert not torch.allclose(networks(ProposalBatch(other, visible, order, hidden, batch.refill, target))["mae"], loss)
+    assert not torch.allclose(networks(ProposalBatch(other, visible, order, hidden, batch.refill, batch.walls,
+                                                  target))["mae"], loss)
 
 
 def test_the_proposal_stage_refuses_torchrun(tmp_path, monkeypatch):

@@ -103,6 +103,55 @@ def test_dynamics_treats_slots_alike():
     torch.testing.assert_close(model(z[:, :, order]), model(z)[:, :, order], atol=1e-5, rtol=1e-4)
 
 
+def test_inert_slots_move_no_other_slot():
+    """What an inert slot (a wall) does changes no other slot's prediction, though it is still
+    predicted itself; without the mark it does change them. Step by step gives the same."""
+    torch.manual_seed(3)
+    model = InteractionLSTM(SMALL_DYNAMICS)
+    randomise_dynamics_head(model)
+    z = torch.randn(2, T, K, D)
+    inert = torch.tensor([[False, True, False, False], [True, False, False, True]])
+    moved = z.clone()
+    moved[0, :, 1] += 2.0
+    moved[1, :, [0, 3]] -= 2.0
+    base, after = model(z, inert), model(moved, inert)
+    torch.testing.assert_close(after[~inert[:, None, :].expand(-1, T, -1)], base[~inert[:, None, :].expand(-1, T, -1)])
+    assert not torch.allclose(after[0, :, 1], base[0, :, 1])
+    assert not torch.allclose(model(moved)[0, :, 0], model(z)[0, :, 0])
+    state, steps = None, []
+    for t in range(T):
+        prediction, state = model.step(z[:, t], state, inert)
+        steps.append(prediction)
+    torch.testing.assert_close(torch.stack(steps, dim=1), base, atol=1e-5, rtol=1e-5)
+
+
+def test_inert_walls_leave_the_walls_out_of_the_dynamics_loss():
+    """With inert_walls, the dynamics loss is the mean over the other slots only, whatever the
+    walls hold, and under any slot order; without it the walls' error counts."""
+    torch.manual_seed(4)
+    config = XPLConfig(reasoning=SMALL_REASONING, dynamics=SMALL_DYNAMICS, inert_walls=True)
+    model = XPL(config)
+    randomise_dynamics_head(model.dynamics)
+    z, visible = torch.randn(2, T, K, D), torch.ones(2, T, K, dtype=torch.bool)
+    walls = torch.tensor([[False, False, True, False], [False, False, False, True]])
+    order = torch.stack([torch.randperm(K) for _ in range(2)])
+    moved = z.clone()
+    moved[0, :, 2] += 3.0
+    moved[1, :, 3] -= 3.0
+    model.train()
+    base = model.losses(z, visible, order, walls=walls)["dynamics"]
+    torch.testing.assert_close(model.losses(moved, visible, order, walls=walls)["dynamics"], base)
+    model.eval()
+    with torch.no_grad():
+        error = ((model.dynamics(z[:, :-1], walls) - z[:, 1:]) ** 2).sum(-1)
+        expected = error[~walls[:, None, :].expand(-1, T - 1, -1)].mean()
+        torch.testing.assert_close(model.losses(z, visible, walls=walls)["dynamics"], expected)
+        plain = XPL(XPLConfig(reasoning=SMALL_REASONING, dynamics=SMALL_DYNAMICS)).eval()
+        plain.load_state_dict(model.state_dict())
+        assert not torch.allclose(plain.losses(moved, visible, walls=walls)["dynamics"],
+                                  plain.losses(z, visible, walls=walls)["dynamics"])
+
+
 def test_permute_slots_moves_everything_together():
     torch.manual_seed(3)
     z = torch.arange(2 * T * K, dtype=torch.float).reshape(2, T, K, 1).expand(-1, -1, -1, D)

@@ -100,7 +100,7 @@ def latent_surprise(vae: ComponentVAE, xpl: XPL, frames: Tensor, refined: Tensor
     s_img = (frames - composite(vae, background_pictures, layers, occupied)).pow(2).flatten(2).sum(2)
 
     moving = occupied & ~occluder
-    predicted = xpl.dynamics(refined[:, :-1])
+    predicted = xpl.predict(refined, occluder)
     predicted_layers = behind_walls(decode_slots(vae, predicted, moving), visible[:, 1:], occluder, walls[:, 1:])
     seen = composite(vae, background_pictures[:, 1:], layers[:, 1:], moving)
     expected = composite(vae, background_pictures[:, 1:], predicted_layers, moving)

@@ -51,9 +51,11 @@ class LatentBatch:
     order: Tensor       # (B, K) slot order
     hidden: Tensor      # (B,) the slot Transformer 2 must rebuild
     refill: Tensor      # (B, T, K) bool: seen entries hidden from Transformer 1, which must rebuild them
+    walls: Tensor       # (B, K) bool: the wall slots
 
     def to(self, device) -> LatentBatch:
-        return LatentBatch(*(t.to(device) for t in (self.mean, self.visible, self.order, self.hidden, self.refill)))
+        return LatentBatch(*(t.to(device) for t in (self.mean, self.visible, self.order, self.hidden, self.refill,
+                                                    self.walls)))
 
     def __len__(self) -> int:
         return len(self.mean)
@@ -63,19 +65,21 @@ class LatentBatches:
     """The shards of a latent cache that one process owns, and its batches of videos."""
 
     def __init__(self, path: str, *, batch_size: int, shards: int, rank: int = 0, world: int = 1,
-                 max_videos: int = 0, seed: int = 0, object_share: float = 0.5):
+                 max_videos: int = 0, seed: int = 0, object_share: float = 0.5, walls: bool = False):
         with open_latents(path) as file:
             owned = owned_shards(path, file["mean"].shape[0], batch_size=batch_size, shards=shards, rank=rank,
                                  world=world, max_videos=max_videos)
             self.mean = torch.from_numpy(file["mean"][owned.start:owned.stop])
             self.visible = torch.from_numpy(file["visible"][owned.start:owned.stop])
+        found = wall_slots(path, owned.start, owned.stop) if walls else None    # (read only when used)
+        self.walls = torch.zeros_like(self.visible[:, 0]) if found is None else torch.from_numpy(found)
         self.shards, self.bounds, self.per_shard = owned.shards, owned.bounds, owned.per_shard
         self.start, self.seed, self.object_share = owned.start, seed, object_share
         self.slots = self.mean.shape[2]
 
     def batch(self, step: int) -> LatentBatch:
         video, order, hidden, refill = self.draw(step)
-        return LatentBatch(self.mean[video], self.visible[video], order, hidden, refill)
+        return LatentBatch(self.mean[video], self.visible[video], order, hidden, refill, self.walls[video])
 
     def draw(self, step: int) -> tuple[Tensor, Tensor, Tensor, Tensor]:
         """The videos (local indices), slot orders, rebuilt slots and refill spans of a step."""
@@ -160,7 +164,8 @@ def train_xpl(latents: str | os.PathLike | None, run_dir: str | os.PathLike, *, 
     set_threads(config, int(os.environ.get("LOCAL_WORLD_SIZE", "1")))
     seed_everything(config.seed)
     batches = LatentBatches(str(latents), batch_size=config.batch_size, shards=config.data_shards, rank=place.rank,
-                            world=place.world, max_videos=config.max_videos, seed=config.seed)
+                            world=place.world, max_videos=config.max_videos, seed=config.seed,
+                            walls=model_config.inert_walls)
     job = Job(name, XPL(model_config), batches.batch, {"preset": preset_name, "xpl": to_dict(model_config)},
               meta={"latents": str(Path(latents).resolve())})
     return fit(job, config, run_dir, place=place, resume=resume, overwrite=overwrite, progress=progress)
@@ -209,7 +214,7 @@ class ProposalBatch(LatentBatch):
 
     def to(self, device) -> ProposalBatch:
         return ProposalBatch(*(t.to(device) for t in (self.mean, self.visible, self.order, self.hidden,
-                                                      self.refill, self.target)))
+                                                      self.refill, self.walls, self.target)))
 
 
 STAYS_SHARE = 0.5   # of the videos with a wall that comes and goes, this share is shown one that stays
@@ -222,17 +227,16 @@ class ProposalBatches(LatentBatches):
     PROPOSAL_OBJECT_SHARE of the time."""
 
     def __init__(self, path: str, **batching: Any):
-        super().__init__(path, object_share=PROPOSAL_OBJECT_SHARE, **batching)
-        walls = wall_slots(path, self.start, self.start + len(self.mean))
-        if walls is not None:
-            chosen = np.random.default_rng([self.seed, 1]).random(len(walls)) < STAYS_SHARE
-            self.mean, self.visible = wall_stays(self.mean, self.visible, torch.from_numpy(walls & chosen[:, None]))
+        super().__init__(path, object_share=PROPOSAL_OBJECT_SHARE, walls=True, **batching)
+        chosen = torch.from_numpy(np.random.default_rng([self.seed, 1]).random(len(self.walls)) < STAYS_SHARE)
+        self.mean, self.visible = wall_stays(self.mean, self.visible, self.walls & chosen[:, None])
         self.target = bridge_hidden(self.mean, self.visible)
         self.empty = empty_latent(path)
 
     def batch(self, step: int) -> ProposalBatch:
         video, order, hidden, refill = self.draw(step)
-        return ProposalBatch(self.mean[video], self.visible[video], order, hidden, refill, self.target[video])
+        return ProposalBatch(self.mean[video], self.visible[video], order, hidden, refill, self.walls[video],
+                             self.target[video])
 
 
 def seen_neighbours(visible: Tensor) -> tuple[Tensor, Tensor]:
@@ -314,7 +318,7 @@ def wall_slots(latents: str, start: int, stop: int) -> np.ndarray | None:
         source = file.attrs.get("source")
     if source is None or not Path(source).is_file():
         warnings.warn(f"the split file {source} the cache {latents} was encoded from is missing: "
-                      "the proposal stage trains without walls that stay", stacklevel=2)
+                      "training goes on as if its videos had no walls", stacklevel=2)
         return None
     with store.open_dataset(source) as file:
         names = list(file.attrs["kind_names"])

@@ -3,7 +3,8 @@
 Each slot keeps an object buffer of all its past latents, read by attention from its
 current state; slot states interact pairwise through an MLP summed over the other slots; a
 slot-wise LSTM (shared across slots) carries the history. XPL's form is residual:
-z(t+1) = z(t) + f(z(<=t)); PLATO's predicts z(t+1) directly.
+z(t+1) = z(t) + f(z(<=t)); PLATO's predicts z(t+1) directly. Slots marked inert (the walls,
+which stand in a nearer depth lane and never touch an object) exert no effect on the others.
 """
 from __future__ import annotations
 
@@ -59,9 +60,10 @@ class InteractionLSTM(nn.Module):
         nn.init.zeros_(self.out[-1].weight)     # start from "nothing changes" (residual) / zero
         nn.init.zeros_(self.out[-1].bias)
 
-    def forward(self, z: Tensor) -> Tensor:
-        """z: (B, T, K, D). Returns (B, T, K, D): entry t is the prediction of frame t+1
-        made from frames 0..t (teacher forcing)."""
+    def forward(self, z: Tensor, inert: Tensor | None = None) -> Tensor:
+        """z: (B, T, K, D); inert: (B, K) bool, slots whose effect on the others is left out.
+        Returns (B, T, K, D): entry t is the prediction of frame t+1 made from frames 0..t
+        (teacher forcing)."""
         batch, frames, slots, _ = z.shape
         state = self.object(z)                                              # (B, T, K, H)
         # object buffer: slot k at frame t attends over its own frames 0..t
@@ -72,8 +74,7 @@ class InteractionLSTM(nn.Module):
         # pairwise interactions at frame t, summed over the other slots
         pairs = torch.relu(self.receiver(state).unsqueeze(3) + self.sender(state).unsqueeze(2))
         effects = self.interaction(pairs)                                   # (B, T, K, K, H)
-        others = 1.0 - torch.eye(slots, device=z.device, dtype=z.dtype)
-        effect = (effects * others[:, :, None]).sum(dim=3)
+        effect = (effects * senders(slots, inert, z)[:, None, :, :, None]).sum(dim=3)
         inputs = torch.cat([state, memory, effect], dim=-1).reshape(batch, frames, slots, -1)
         hidden = cell = z.new_zeros(batch * slots, self.config.lstm)
         outputs = []
@@ -83,7 +84,8 @@ class InteractionLSTM(nn.Module):
         change = self.out(torch.stack(outputs, dim=1)).reshape(batch, slots, frames, -1).permute(0, 2, 1, 3)
         return z + change if self.config.residual else change
 
-    def step(self, z: Tensor, state: DynamicsState | None = None) -> tuple[Tensor, DynamicsState]:
+    def step(self, z: Tensor, state: DynamicsState | None = None,
+             inert: Tensor | None = None) -> tuple[Tensor, DynamicsState]:
         """One frame at a time: z (B, K, D) is frame t, state what frames < t left. Returns
         the prediction of frame t+1, as `forward` makes it, and the state to carry on; a
         sequential caller (the NLL's particles) pays for each frame once, not once per prefix."""
@@ -93,8 +95,7 @@ class InteractionLSTM(nn.Module):
         buffer = own if state is None else torch.cat([state.buffer, own], dim=1)
         memory, _ = self.buffer(own, buffer, buffer, need_weights=False)
         pairs = torch.relu(self.receiver(current).unsqueeze(2) + self.sender(current).unsqueeze(1))
-        others = 1.0 - torch.eye(slots, device=z.device, dtype=z.dtype)
-        effect = (self.interaction(pairs) * others[:, :, None]).sum(dim=2)
+        effect = (self.interaction(pairs) * senders(slots, inert, z)[..., None]).sum(dim=2)
         inputs = torch.cat([current, memory.reshape(batch, slots, -1), effect], dim=-1).reshape(batch * slots, -1)
         if state is None:
             hidden = cell = z.new_zeros(batch * slots, self.config.lstm)
@@ -110,3 +111,10 @@ class InteractionLSTM(nn.Module):
         for _ in range(steps):
             history = torch.cat([history, self(history)[:, -1:]], dim=1)
         return history[:, start:]
+
+
+def senders(slots: int, inert: Tensor | None, like: Tensor) -> Tensor:
+    """(1 or B, K, K) weights of the effect of slot j (last axis) on slot i: 0 on the
+    diagonal and from inert slots, 1 elsewhere."""
+    others = (1.0 - torch.eye(slots, device=like.device, dtype=like.dtype))[None]
+    return others if inert is None else others * (~inert)[:, None, :].to(like.dtype)

@@ -32,6 +32,11 @@ class XPLConfig:
     # set latent_weights when training starts from how much each latent moves the picture of the
     # perception module that made the latent cache (xvoe.latents.picture_weights), mean 1
     weigh_by_picture: bool = False
+    # walls exert no effect in the dynamics, and their own prediction is no part of its loss: a
+    # wall stands in a nearer depth lane and touches nothing. Otherwise the dynamics learn the
+    # training walls' schedule (lowered over frames 1-3) and carry it into the balls' motion in
+    # test videos whose wall stands from the start (S2, S3)
+    inert_walls: bool = False
 
 
 class XPL(nn.Module):
@@ -48,7 +53,12 @@ class XPL(nn.Module):
 
     def forward(self, batch) -> dict[str, Tensor]:
         """The training objective of a LatentBatch (what the training loop calls)."""
-        return self.losses(batch.mean, batch.visible, batch.order, batch.hidden, batch.refill)
+        return self.losses(batch.mean, batch.visible, batch.order, batch.hidden, batch.refill, batch.walls)
+
+    def predict(self, refined: Tensor, walls: Tensor | None = None) -> Tensor:
+        """The dynamics' prediction (B, T-1, K, D) of frames 1..T-1 from refined latents (B, T, K, D),
+        each from the frames before it; walls (B, K) bool are inert if the config says so."""
+        return self.dynamics(refined[:, :-1], walls if self.config.inert_walls else None)
 
     def refine(self, z: Tensor, visible: Tensor) -> Tensor:
         """Fill the frames in which a seen object is occluded (Transformer 1)."""
@@ -79,11 +89,13 @@ class XPL(nn.Module):
         return self.existence(features.flatten(1)).squeeze(-1)
 
     def losses(self, z: Tensor, visible: Tensor, order: Tensor | None = None,
-               hidden: Tensor | None = None, refill: Tensor | None = None) -> dict[str, Tensor]:
+               hidden: Tensor | None = None, refill: Tensor | None = None,
+               walls: Tensor | None = None) -> dict[str, Tensor]:
         """z: (B, T, K, D) cached means; visible: (B, T, K) bool. `order` (B, K), a slot
         order per video, `hidden` (B,), the slot Transformer 2 must rebuild, and `refill`
         (B, T, K) bool, seen entries Transformer 1 must rebuild, are drawn here unless given
-        (the training data give them, so that batches are reproducible).
+        (the training data give them, so that batches are reproducible). `walls` (B, K) bool:
+        the wall slots (used with inert_walls; none if not given).
 
         Transformer 1 learns from two signals: the dynamics loss, and rebuilding seen entries
         hidden from it (spans like the ones a wall hides). The second keeps its fills on the
@@ -91,8 +103,11 @@ class XPL(nn.Module):
         decode to nothing or to blots."""
         if refill is None:
             refill = torch.zeros_like(visible)
+        if walls is None:
+            walls = torch.zeros_like(visible[:, 0])
         if self.config.permute_slots and self.training:
-            z, visible, refill = permute_slots(z, visible, refill, order=order)
+            z, visible, refill, walls = permute_slots(z, visible, refill, walls[:, None].expand_as(visible), order=order)
+            walls = walls[:, 0]
         refill = refill & visible
         out = {}
         if self.config.use_reasoning:
@@ -103,8 +118,12 @@ class XPL(nn.Module):
             target = torch.where(visible.unsqueeze(-1), z, fills)[:, 1:]
         else:
             refined, target = z, z[:, 1:]
-        prediction = self.dynamics(refined[:, :-1])
-        out["dynamics"] = self._weighted_square(prediction - target).mean()
+        error = self._weighted_square(self.predict(refined, walls) - target)
+        if self.config.inert_walls:
+            moving = (~walls)[:, None, :].expand_as(error)
+            out["dynamics"] = (error * moving).sum() / moving.sum().clamp_min(1)
+        else:
+            out["dynamics"] = error.mean()
         if self.config.use_reasoning:
             refined = torch.where(refill.unsqueeze(-1), z, refined)    # what Transformer 2 sees at test
             slot = hidden if hidden is not None else torch.randint(z.shape[2], (z.shape[0],), device=z.device)
