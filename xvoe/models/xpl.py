@@ -106,7 +106,8 @@ class XPL(nn.Module):
         if walls is None:
             walls = torch.zeros_like(visible[:, 0])
         if self.config.permute_slots and self.training:
-            z, visible, refill, walls = permute_slots(z, visible, refill, walls[:, None].expand_as(visible), order=order)
+            z, visible, refill, walls = permute_slots(z, visible, refill, walls.unsqueeze(1).expand_as(visible),
+                                                      order=order)
             walls = walls[:, 0]
         refill = refill & visible
         out = {}
