@@ -119,19 +119,22 @@ class Preset:
 PRESETS: dict[str, Preset] = {
     # 2 CPU cores: 32x32 frames, a small CNN encoder and a light decoder. Each object's position is two
     # latents the decoder draws from (found whole behind walls: amodal, cut_share), and the later
-    # stages weigh each latent by how much it moves the picture (docs/results.md).
+    # stages weigh each latent by how much it moves the picture; walls are inert in the dynamics
+    # (docs/results.md).
     "cpu": Preset(
         name="cpu",
         perception=PerceptionConfig(where_latents=True, amodal=True, cut_share=0.25),
-        xpl=XPLConfig(weigh_by_picture=True),
+        xpl=XPLConfig(weigh_by_picture=True, inert_walls=True),
     ),
     # The cpu preset before where latents: the whole latent broadcast, every latent weighed alike,
     # and the XPL stage (plato and xpl-noresidual too) trained twice as long as in cpu, which
-    # raised 6 of the 7 S1/S3 settings on the default split (docs/results.md). The shipped
-    # models were trained with it (their checkpoints hold the full config).
+    # raised 6 of the 7 S1/S3 settings on the default split; walls inert in the dynamics
+    # (docs/results.md). The shipped models were trained with it (their checkpoints hold the
+    # full config).
     "cpu-broadcast": Preset(
         name="cpu-broadcast",
         perception=PerceptionConfig(),
+        xpl=XPLConfig(inert_walls=True),
         xpl_train=TrainConfig(steps=3000, batch_size=32, warmup_steps=100, decay_steps=2000),
     ),
     # The paper's sizes (appendix tables): 128x128, ViT encoder, D=32, 64-channel decoder; for GPUs.
