@@ -152,6 +152,20 @@ def test_inert_walls_leave_the_walls_out_of_the_dynamics_loss():
                                   plain.losses(z, visible, walls=walls)["dynamics"])
 
 
+def test_stop_input_gradient_leaves_transformer1_to_the_refill_loss():
+    """With stop_input_gradient the dynamics loss trains the dynamics only; without it, it
+    reaches Transformer 1 through its fills (stop_target_gradient keeps the target out)."""
+    torch.manual_seed(5)
+    z, visible = torch.randn(2, T, K, D), torch.rand(2, T, K) > 0.3
+    for stop, reaches in ((True, False), (False, True)):
+        model = XPL(XPLConfig(reasoning=SMALL_REASONING, dynamics=SMALL_DYNAMICS, stop_input_gradient=stop))
+        randomise_dynamics_head(model.dynamics)
+        model.losses(z, visible)["dynamics"].backward()
+        gradients = [p.grad for p in model.transformer1.parameters()]
+        assert any(g is not None and g.abs().sum() > 0 for g in gradients) == reaches
+        assert all(p.grad is not None for p in model.dynamics.parameters())
+
+
 def test_permute_slots_moves_everything_together():
     torch.manual_seed(3)
     z = torch.arange(2 * T * K, dtype=torch.float).reshape(2, T, K, 1).expand(-1, -1, -1, D)

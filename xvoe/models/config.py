@@ -128,13 +128,13 @@ PRESETS: dict[str, Preset] = {
     ),
     # The cpu preset before where latents: the whole latent broadcast, every latent weighed alike,
     # and the XPL stage (plato and xpl-noresidual too) trained twice as long as in cpu, which
-    # raised 6 of the 7 S1/S3 settings on the default split; walls inert in the dynamics
-    # (docs/results.md). The shipped models were trained with it (their checkpoints hold the
-    # full config).
+    # raised 6 of the 7 S1/S3 settings on the default split; walls inert in the dynamics, and
+    # Transformer 1 trained by the refill loss alone (docs/results.md). The shipped models were
+    # trained with it (their checkpoints hold the full config).
     "cpu-broadcast": Preset(
         name="cpu-broadcast",
         perception=PerceptionConfig(),
-        xpl=XPLConfig(inert_walls=True),
+        xpl=XPLConfig(inert_walls=True, stop_input_gradient=True),
         xpl_train=TrainConfig(steps=3000, batch_size=32, warmup_steps=100, decay_steps=2000),
     ),
     # The paper's sizes (appendix tables): 128x128, ViT encoder, D=32, 64-channel decoder; for GPUs.

@@ -23,6 +23,10 @@ class XPLConfig:
     dynamics: DynamicsConfig = field(default_factory=DynamicsConfig)
     use_reasoning: bool = True      # False: PLATO (dynamics on the raw means)
     stop_target_gradient: bool = True   # the dynamics target is a constant for Transformer 1
+    # the dynamics' input is a constant for Transformer 1 too: it learns its fills from rebuilding
+    # seen spans alone (refill), not by making the dynamics' task easier; through the input, the
+    # fills of an impossible video drift towards what the dynamics expect and explain it away
+    stop_input_gradient: bool = False
     mae_weight: float = 1.0
     refill_weight: float = 1.0      # Transformer 1 rebuilding hidden spans of seen frames
     permute_slots: bool = True      # slot order carries no meaning: shuffle it in training
@@ -119,7 +123,8 @@ class XPL(nn.Module):
             target = torch.where(visible.unsqueeze(-1), z, fills)[:, 1:]
         else:
             refined, target = z, z[:, 1:]
-        error = self._weighted_square(self.predict(refined, walls) - target)
+        inputs = refined.detach() if self.config.stop_input_gradient else refined
+        error = self._weighted_square(self.predict(inputs, walls) - target)
         if self.config.inert_walls:
             moving = (~walls)[:, None, :].expand_as(error)
             out["dynamics"] = (error * moving).sum() / moving.sum().clamp_min(1)
