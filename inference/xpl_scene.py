@@ -41,8 +41,7 @@ class XPLScene(nn.Module):
             self.register_buffer("layers", behind_walls(layers, visible[None], occluder[None], walls)[0])
             self.register_buffer("walls", walls[0, :, 0])   # (T, 1, H, W)
         self.register_buffer("moving", occupied & ~occluder)
-        self.register_buffer("occluder", occluder[None])
-        self.inert = self.occluder if xpl.config.inert_walls else None     # (1, K): what the dynamics leave out
+        self.register_buffer("occluder", occluder[None])      # (1, K)
         self.register_buffer("observed", visible[1:][:, self.moving])     # (T-1, M): seen_motion's data
         with torch.no_grad():
             self._fixed = self._partial_composite()
@@ -82,10 +81,14 @@ class XPLScene(nn.Module):
             state, predictions, start = None, [], 0
         scene = self.with_hidden(history)
         for t in range(start, steps):
-            prediction, state = self.xpl.dynamics.step(scene[:, t], state, self.inert)
+            prediction, state = self.xpl.dynamics.step(scene[:, t], state, self.inert())
             predictions = [*predictions, prediction]
         self._carried = (history, state, predictions)
         return predictions
+
+    def inert(self) -> Tensor | None:
+        """The slots whose effect the dynamics leave out (XPLConfig.inert_walls): the walls."""
+        return self.occluder if self.xpl.config.inert_walls else None
 
     def empty(self) -> Tensor:
         """Expected frames (T, 4, H, W) without a hidden object."""

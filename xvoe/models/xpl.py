@@ -104,7 +104,7 @@ class XPL(nn.Module):
         Transformer 1 learns from two signals: the dynamics loss, and rebuilding seen entries
         hidden from it (spans like the ones a wall hides). The second keeps its fills on the
         latents the decoder knows; with the dynamics loss alone, fills drift to latents that
-        decode to nothing or to blots."""
+        decode to nothing or to blots. With stop_input_gradient it learns from the second alone."""
         if refill is None:
             refill = torch.zeros_like(visible)
         if walls is None:
