@@ -280,21 +280,19 @@ def score_split(model: str | Scorer, data: str, out: str, *, how: str = "sum", v
 
 def encode_videos(scorer: Scorer, file, start: int, stop: int) -> dict[str, Tensor]:
     """Videos [start, stop) of an open test split, encoded: frames, latents, visibility, walls."""
-    import numpy as np
-
+    from . import store
     from .data import visible_threshold
     from .latents import encode_frames
     from .models.perception import normalise
 
     _, frames_count, size = file["rgbd"].shape[:3]
-    walls = [list(file.attrs["kind_names"]).index(k) for k in ("wall", "window_wall")]
     rgbd, ids = file["rgbd"][start:stop], file["ids"][start:stop]
     encoded = encode_frames(scorer.vae, rgbd.reshape(-1, size, size, 4), ids.reshape(-1, size, size),
                             file["states"].shape[2])
     shaped = {k: torch.from_numpy(v).reshape(stop - start, frames_count, *v.shape[1:]) for k, v in encoded.items()}
     return {"frames": normalise(torch.from_numpy(rgbd)), "mean": shaped["mean"],
             "visible": shaped["pixels"] > visible_threshold(size), "background": shaped["background_mean"],
-            "occluder": torch.from_numpy(np.isin(file["kind"][start:stop], walls))}
+            "occluder": torch.from_numpy(store.wall_mask(file, start, stop))}
 
 
 def _xpl_curves(scorer: Scorer, batch: dict[str, Tensor]) -> tuple[Tensor, Tensor]:

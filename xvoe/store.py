@@ -22,7 +22,7 @@ import numpy as np
 
 from .errors import XvoeError
 from .render import DEPTH_FAR, STATE_COLUMNS, Video
-from .world import KIND_NAMES, MAX_SLOTS
+from .world import KIND_NAMES, MAX_SLOTS, WALL_KINDS
 
 SCHEMA_VERSION = 1
 GENERATOR_VERSION = "1.0"
@@ -151,6 +151,12 @@ def open_dataset(path: str | os.PathLike) -> h5py.File:
 
 def config_of(file: h5py.File) -> dict:
     return json.loads(file.attrs["config"])
+
+
+def wall_mask(file: h5py.File, start: int, stop: int) -> np.ndarray:
+    """(N, K) bool: the slots of videos [start, stop) that hold a wall, from the kind map."""
+    names = list(file.attrs["kind_names"])
+    return np.isin(file["kind"][start:stop], [names.index(name) for name in WALL_KINDS if name in names])
 
 
 def strings(file: h5py.File, name: str) -> np.ndarray:

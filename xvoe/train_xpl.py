@@ -321,9 +321,7 @@ def wall_slots(latents: str, start: int, stop: int) -> np.ndarray | None:
                       "training goes on as if its videos had no walls", stacklevel=2)
         return None
     with store.open_dataset(source) as file:
-        names = list(file.attrs["kind_names"])
-        kind = file["kind"][start:stop]
-    return np.isin(kind, [names.index(name) for name in ("wall", "window_wall") if name in names])
+        return store.wall_mask(file, start, stop)
 
 
 def wall_stays(mean: Tensor, visible: Tensor, walls: Tensor) -> tuple[Tensor, Tensor]:

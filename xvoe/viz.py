@@ -393,10 +393,9 @@ def wall_lowered(file: h5py.File, index: int) -> np.ndarray:
     there is none (with several walls, the lowest)."""
     from .world import FLOOR, WORLD
 
-    names = list(file.attrs["kind_names"])
-    walls = [k for k, kind in enumerate(file["kind"][index]) if names[kind] in ("wall", "window_wall")]
+    walls = np.flatnonzero(store.wall_mask(file, index, index + 1)[0])
     frames, size = file["rgbd"].shape[1], file["rgbd"].shape[2]
-    if not walls:
+    if walls.size == 0:
         return np.zeros(frames)
     columns = list(file["states"].attrs["state_columns"])
     states = file["states"][index][:, walls]
