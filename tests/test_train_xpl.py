@@ -226,3 +226,57 @@ def test_weighing_by_picture_needs_a_cache_that_names_its_perception(cache, tmp_
     monkeypatch.setattr(stage, "preset", lambda name: replace(small, xpl=replace(small.xpl, weigh_by_picture=True)))
     with pytest.raises(XvoeError, match="does not say which perception module made it"):
         train_xpl(cache, tmp_path / "run", progress=False, **TINY)
+
+
+def walled_cache(train_file, path):
+    """A cache of the training split's visibility (latents all zero) that names the split."""
+    from xvoe import store
+
+    with store.open_dataset(train_file) as file:
+        columns = list(file["states"].attrs["state_columns"])
+        visible = file["states"][..., columns.index("visible")] > 0.25
+    mean = np.zeros(visible.shape + (D,), np.float32)
+    zeros = np.zeros(visible.shape[:2] + (D,), np.float32)
+    latents = Latents(mean=mean, std=mean, visible=visible, present=visible, pixels=visible.astype(np.int32),
+                      background_mean=zeros, background_std=zeros,
+                      attrs={"config": "{}", "source": str(train_file)})
+    return write_latents(path, latents)
+
+
+def test_wall_refill_hides_what_one_wall_would_hide(train_file, tmp_path):
+    """Each video's refill spans are one wall's: the hidden entries were seen, are no wall, lie
+    within one wall's width and in one run of frames that ends before the last two frames; every
+    hidden object is still seen somewhere; and in wall-less collision videos the wall often hides
+    both balls at the event, as the test walls do."""
+    from xvoe import store
+    from xvoe.scenes.behind import WALL_HALF_WIDTH
+    from xvoe.train_xpl import object_places
+
+    cache = walled_cache(train_file, tmp_path / "latents.h5")
+    batches = LatentBatches(str(cache), batch_size=32, shards=1, seed=2, walls=True, wall_refill=1.0)
+    places, events = object_places(str(cache), 0, len(batches.visible))
+    with store.open_dataset(train_file) as file:
+        groups, has_wall = store.strings(file, "group"), file["has_wall"][:]
+    both, collisions = 0, 0
+    for step in range(6):
+        video, _, _, refill = (t.numpy() for t in batches.draw(step))
+        seen, walls = batches.visible[video].numpy(), batches.walls[video].numpy()
+        assert not (refill & ~seen).any() and not (refill & walls[:, None, :]).any()
+        assert not (refill.any(1) & ~(seen & ~refill).any(1)).any()
+        for b, v in enumerate(video):
+            frames = np.flatnonzero(refill[b].any(1))
+            if len(frames):
+                assert frames.max() < refill.shape[1] - 2
+                x, size = places[v, :, :, 0][refill[b]], places[v, :, :, 2][refill[b]]
+                assert (x + size / 2).max() - (x - size / 2).min() <= 2 * WALL_HALF_WIDTH[1]
+            if groups[v] == "collision" and not has_wall[v] and events[v] >= 0:
+                collisions += 1
+                both += refill[b, events[v]].sum() >= 2
+    assert collisions >= 5 and both / collisions > 0.4
+    again = LatentBatches(str(cache), batch_size=32, shards=1, seed=2, walls=True, wall_refill=1.0)
+    assert torch.equal(again.batch(3).refill, batches.batch(3).refill)
+
+
+def test_wall_refill_needs_the_split_the_cache_came_from(cache):
+    with pytest.raises(XvoeError, match="wall_refill needs the objects' places"):
+        LatentBatches(str(cache), batch_size=8, shards=1, wall_refill=0.5)

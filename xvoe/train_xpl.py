@@ -25,6 +25,7 @@ from .latents import open_latents
 from .models.config import TrainConfig, from_dict, override, preset, to_dict
 from .models.reasoning import hide_slot
 from .models.xpl import XPL, XPLConfig, permute_slots
+from .scenes.behind import WALL_HALF_WIDTH, WALL_HEIGHT
 from .train import (
     Dist,
     Job,
@@ -36,6 +37,7 @@ from .train import (
     set_threads,
     setup_distributed,
 )
+from .world import FLOOR, WORLD
 
 STAGES = ("xpl", "plato")
 PROPOSAL_OBJECT_SHARE = 0.5   # the proposal stage rebuilds a seen object this often (else any slot); as
@@ -65,7 +67,8 @@ class LatentBatches:
     """The shards of a latent cache that one process owns, and its batches of videos."""
 
     def __init__(self, path: str, *, batch_size: int, shards: int, rank: int = 0, world: int = 1,
-                 max_videos: int = 0, seed: int = 0, object_share: float = 0.5, walls: bool = False):
+                 max_videos: int = 0, seed: int = 0, object_share: float = 0.5, walls: bool = False,
+                 wall_refill: float = 0.0):
         with open_latents(path) as file:
             owned = owned_shards(path, file["mean"].shape[0], batch_size=batch_size, shards=shards, rank=rank,
                                  world=world, max_videos=max_videos)
@@ -73,6 +76,8 @@ class LatentBatches:
             self.visible = torch.from_numpy(file["visible"][owned.start:owned.stop])
         found = wall_slots(path, owned.start, owned.stop) if walls else None    # (read only when used)
         self.walls = torch.zeros_like(self.visible[:, 0]) if found is None else torch.from_numpy(found)
+        self.wall_refill = wall_refill
+        self.places, self.events = object_places(path, owned.start, owned.stop) if wall_refill else (None, None)
         self.shards, self.bounds, self.per_shard = owned.shards, owned.bounds, owned.per_shard
         self.start, self.seed, self.object_share = owned.start, seed, object_share
         self.slots = self.mean.shape[2]
@@ -91,7 +96,11 @@ class LatentBatches:
             videos.append(video)
             orders.append(order)
             hidden.append(self.hidden_slots(rng, video, order))
-            refill.append(self.refill_spans(rng, len(video)))
+            spans = self.refill_spans(rng, len(video))
+            if self.wall_refill:
+                walled = rng.random(len(video)) < self.wall_refill
+                spans = np.where(walled[:, None, None], self.behind_wall(rng, video), spans)
+            refill.append(spans)
         return tuple(torch.from_numpy(np.concatenate(parts)) for parts in (videos, orders, hidden, refill))
 
     REFILL_SHARE = 0.5   # of the slots, this share has a span of frames hidden from Transformer 1
@@ -106,6 +115,37 @@ class LatentBatches:
         chosen = rng.random((videos, self.slots)) < self.REFILL_SHARE
         t = np.arange(frames)[None, :, None]
         return (t >= start[:, None]) & (t < (start + length)[:, None]) & chosen[:, None]
+
+    def behind_wall(self, rng: np.random.Generator, video: np.ndarray) -> np.ndarray:
+        """(B, T, K) bool in the original slot order: the seen entries a made-up wall would hide,
+        sized as the test walls and standing from frame 0 (half the time) or 1-3 until frame T-5 to
+        T-2. Where the video has an event, 3 times in 4 the wall hides it as the test walls do: it
+        stands about the middle of a random object and the one nearest it at the event frame;
+        otherwise about a random object at a random frame. An object it would hide in every
+        frame in which it is seen is left out, so that Transformer 1 still sees it somewhere."""
+        places, visible = self.places[video], self.visible[video].numpy()
+        batch, frames = places.shape[:2]
+        movable = visible.any(axis=1) & ~self.walls[video].numpy()                   # (B, K)
+        anchor = (rng.random(movable.shape) * movable).argmax(axis=1)
+        on_event = (self.events[video] >= 0) & (rng.random(batch) < 0.75)
+        at = np.where(on_event, self.events[video], rng.integers(0, frames, batch))
+        half_width, height = rng.uniform(*WALL_HALF_WIDTH, batch), rng.uniform(*WALL_HEIGHT, batch)
+        rows = np.arange(batch)
+        x_then = places[rows, at, :, 0]                                                # (B, K)
+        gap = np.where(movable, np.abs(x_then - x_then[rows, anchor][:, None]), np.inf)
+        gap[rows, anchor] = np.inf
+        nearest = np.where(np.isfinite(gap.min(axis=1)), gap.argmin(axis=1), anchor)
+        centre = np.where(on_event, (x_then[rows, anchor] + x_then[rows, nearest]) / 2, x_then[rows, anchor])
+        centre = centre + rng.uniform(-0.5, 0.5, batch) * half_width * np.where(on_event, 0.5, 1.0)
+        start = np.where(rng.random(batch) < 0.5, 0, rng.integers(1, 4, batch))
+        stop = rng.integers(frames - 5, frames - 1, batch)
+        x, y, size = (places[..., i] for i in range(3))
+        behind = ((np.abs(x - centre[:, None, None]) <= half_width[:, None, None] - size / 2)
+                  & (y + size / 2 <= FLOOR + height[:, None, None]))
+        t = np.arange(frames)[None, :, None]
+        standing = (t >= start[:, None, None]) & (t < stop[:, None, None])
+        hidden = behind & standing & visible & movable[:, None, :]
+        return hidden & (visible & ~hidden).any(axis=1)[:, None, :]
 
     def hidden_slots(self, rng: np.random.Generator, video: np.ndarray, order: np.ndarray) -> np.ndarray:
         """The slot (in the permuted order) Transformer 2 must rebuild in each video.
@@ -165,7 +205,8 @@ def train_xpl(latents: str | os.PathLike | None, run_dir: str | os.PathLike, *, 
     seed_everything(config.seed)
     batches = LatentBatches(str(latents), batch_size=config.batch_size, shards=config.data_shards, rank=place.rank,
                             world=place.world, max_videos=config.max_videos, seed=config.seed,
-                            walls=model_config.inert_walls)
+                            walls=model_config.inert_walls or model_config.wall_refill > 0,
+                            wall_refill=model_config.wall_refill)
     job = Job(name, XPL(model_config), batches.batch, {"preset": preset_name, "xpl": to_dict(model_config)},
               meta={"latents": str(Path(latents).resolve())})
     return fit(job, config, run_dir, place=place, resume=resume, overwrite=overwrite, progress=progress)
@@ -322,6 +363,26 @@ def wall_slots(latents: str, start: int, stop: int) -> np.ndarray | None:
         return None
     with store.open_dataset(source) as file:
         return store.wall_mask(file, start, stop)
+
+
+def object_places(latents: str, start: int, stop: int) -> tuple[np.ndarray, np.ndarray]:
+    """(N, T, K, 3) float32: each slot's centre x, y (up) and size in world units, per frame, and
+    (N,) the event frame (-1 if none), from the split file the cache was encoded from."""
+    from . import store
+
+    with open_latents(latents) as file:
+        source = file.attrs.get("source")
+    if source is None or not Path(source).is_file():
+        raise XvoeError(f"wall_refill needs the objects' places from the split file {source} the cache "
+                        f"{latents} was encoded from, and it is missing")
+    with store.open_dataset(source) as file:
+        columns = list(file["states"].attrs["state_columns"])
+        states = file["states"][start:stop][..., [columns.index(c) for c in ("x", "y", "size")]]
+        scale = WORLD / file["rgbd"].shape[2]
+        events = file["event_frame"][start:stop].astype(np.int64)
+    states = states * scale
+    states[..., 1] = WORLD - states[..., 1]
+    return states.astype(np.float32), events
 
 
 def wall_stays(mean: Tensor, visible: Tensor, walls: Tensor) -> tuple[Tensor, Tensor]:

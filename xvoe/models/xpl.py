@@ -29,6 +29,11 @@ class XPLConfig:
     stop_input_gradient: bool = False
     mae_weight: float = 1.0
     refill_weight: float = 1.0      # Transformer 1 rebuilding hidden spans of seen frames
+    # share of the training videos whose refill spans are what a made-up wall would hide (every
+    # object behind it, from the first frame or soon after, until near the end), not one random
+    # span per slot: the test walls hide an object from the start and an event with it, and a
+    # per-slot span seldom hides both together
+    wall_refill: float = 0.0
     permute_slots: bool = True      # slot order carries no meaning: shuffle it in training
     # weight of each latent in the refill and dynamics losses (empty: all 1); e.g. how much each
     # moves the decoded picture, so that a squared error in latents weighs as one in pixels

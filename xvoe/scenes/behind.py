@@ -12,13 +12,15 @@ from ..world import Edit, Scene, Thing, ball, make_scene, rolling_speed, wall
 
 INCOMING, HIDDEN, WALL = 0, 1, 2
 SCHEDULES = {"S1": "away_start_end", "S2": "stays", "S3": "away_end"}
+WALL_HALF_WIDTH = (11.0, 14.0)   # ranges the wall's size is drawn from, world units
+WALL_HEIGHT = (14.0, 22.0)
 
 
 def sample(rng: np.random.Generator, make_hidden: Callable[[float], Thing]) -> Scene:
     """Incoming ball, the hidden thing (fully covered by the wall) and the wall."""
     wall_x = rng.uniform(30.0, 36.0)
-    half_width = rng.uniform(11.0, 14.0)
-    height = rng.uniform(14.0, 22.0)
+    half_width = rng.uniform(*WALL_HALF_WIDTH)
+    height = rng.uniform(*WALL_HEIGHT)
     # The hidden thing and the incoming ball at the moment they meet both stay behind the wall.
     hidden_x = rng.uniform(wall_x - half_width + 3 * R + 1, wall_x + half_width - R - 1)
     speed = rolling_speed(rng)
