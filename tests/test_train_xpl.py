@@ -245,7 +245,7 @@ def walled_cache(train_file, path):
 
 def test_wall_refill_hides_what_one_wall_would_hide(train_file, tmp_path):
     """Each video's refill spans are one wall's: the hidden entries were seen, are no wall, lie
-    within one wall's width and in one run of frames that ends before the last two frames; every
+    within one wall's width and in frames before the last two, from which the wall is gone; every
     hidden object is still seen somewhere; and in wall-less collision videos the wall often hides
     both balls at the event, as the test walls do."""
     from xvoe import store

@@ -118,11 +118,12 @@ class LatentBatches:
 
     def behind_wall(self, rng: np.random.Generator, video: np.ndarray) -> np.ndarray:
         """(B, T, K) bool in the original slot order: the seen entries a made-up wall would hide,
-        sized as the test walls and standing from frame 0 (half the time) or 1-3 until frame T-5 to
-        T-2. Where the video has an event, 3 times in 4 the wall hides it as the test walls do: it
-        stands about the middle of a random object and the one nearest it at the event frame;
-        otherwise about a random object at a random frame. An object it would hide in every
-        frame in which it is seen is left out, so that Transformer 1 still sees it somewhere."""
+        sized as the test walls, standing from frame 0 (half the time) or 1-3, and hiding its last
+        frame somewhere from T-6 to T-3 (the test walls are lifted from frame T-3). Where the video
+        has an event, 3 times in 4 the wall hides it as the test walls do: it stands about the
+        middle of a random object and the one nearest it at the event frame; otherwise about a
+        random object at a random frame. An object it would hide in every frame in which it is
+        seen is left out, so that Transformer 1 still sees it somewhere."""
         places, visible = self.places[video], self.visible[video].numpy()
         batch, frames = places.shape[:2]
         movable = visible.any(axis=1) & ~self.walls[video].numpy()                   # (B, K)
@@ -379,7 +380,8 @@ def object_places(latents: str, start: int, stop: int) -> tuple[np.ndarray, np.n
         columns = list(file["states"].attrs["state_columns"])
         states = file["states"][start:stop][..., [columns.index(c) for c in ("x", "y", "size")]]
         scale = WORLD / file["rgbd"].shape[2]
-        events = file["event_frame"][start:stop].astype(np.int64)
+        events = (file["event_frame"][start:stop].astype(np.int64) if "event_frame" in file
+                  else np.full(stop - start, -1, np.int64))
     states = states * scale
     states[..., 1] = WORLD - states[..., 1]
     return states.astype(np.float32), events
