@@ -74,6 +74,23 @@ def test_plato_and_the_no_residual_ablation(cache, tmp_path):
     assert model.config.use_reasoning and not model.config.dynamics.residual
 
 
+def test_a_preset_can_train_plato_longer_than_xpl(cache, tmp_path, monkeypatch):
+    """Preset.plato_train, where set, is the plato stage's training; the other stages keep xpl_train."""
+    from dataclasses import replace
+
+    import xvoe.train_xpl as stage
+    from xvoe.models.config import TrainConfig
+
+    base = stage.preset("cpu")
+    xpl_train = TrainConfig(**{**TINY, "steps": 3})
+    longer = replace(base, xpl_train=xpl_train, plato_train=replace(xpl_train, steps=7, lr=2e-3))
+    monkeypatch.setattr(stage, "preset", lambda name: longer)
+    plato = torch.load(train_xpl(cache, tmp_path, stage="plato", progress=False), weights_only=False)
+    ablation = torch.load(train_xpl(cache, tmp_path, residual=False, progress=False), weights_only=False)
+    assert (plato["step"], plato["train"]["lr"]) == (7, 2e-3)
+    assert (ablation["step"], ablation["train"]["lr"]) == (3, xpl_train.lr)
+
+
 def test_batches_do_not_depend_on_the_process_count(cache):
     one = LatentBatches(str(cache), batch_size=8, shards=2, seed=3).batch(7)
     halves = [LatentBatches(str(cache), batch_size=8, shards=2, rank=r, world=2, seed=3).batch(7) for r in (0, 1)]

@@ -110,6 +110,10 @@ class Preset:
     # about 0.1 s a step on one core
     proposal_train: TrainConfig = field(default_factory=lambda: TrainConfig(steps=4000, batch_size=32,
                                                                             warmup_steps=100, decay_steps=1500))
+    # the PLATO baseline's training (None: xpl_train's). Without Transformer 1 it predicts the
+    # raw latents directly, and every visible object costs its prediction error in every frame:
+    # trained no longer than XPL, that cost outweighs the violations of the predictive settings
+    plato_train: TrainConfig | None = None
     # the PhyDNet baseline: batch_size counts videos; ~4-5 minutes on one CPU thread
     phydnet: PhyDNetConfig = field(default_factory=PhyDNetConfig)
     phydnet_train: TrainConfig = field(default_factory=lambda: TrainConfig(steps=300, batch_size=8, lr=3e-3,
