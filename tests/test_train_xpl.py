@@ -5,7 +5,8 @@ import torch
 
 from xvoe.errors import XvoeError
 from xvoe.latents import Latents, write_latents
-from xvoe.train_xpl import LatentBatches, load_xpl, train_xpl
+from xvoe.train_xpl import LatentBatches, load_xpl, object_places, outside_picture, train_xpl
+from xvoe.world import WORLD
 
 N, T, K, D = 32, 8, 4, 6
 TINY = {"steps": 100, "batch_size": 32, "lr": 3e-3, "warmup_steps": 1, "log_every": 5}
@@ -213,17 +214,18 @@ def test_transformer2_never_sees_the_slot_it_rebuilds_not_even_through_transform
     visible[:, 2:5, 0] = False                   # slot 0 partly occluded: Transformer 1 fills it
     order = torch.stack([torch.randperm(K) for _ in range(3)])
     hidden = torch.tensor([1, 2, 3])             # in the permuted order
-    batch = ProposalBatch(mean, visible, order, hidden, torch.zeros_like(visible), visible[:, 0] & False, target)
+    batch = ProposalBatch(mean, visible, order, hidden, torch.zeros_like(visible), visible[:, 0] & False,
+                          target=target)
     loss = networks(batch)["mae"]
     moved = mean.clone()
     original = order[torch.arange(3), hidden]    # the rebuilt slots in the stored order
     moved[torch.arange(3), :, original] += 5.0
-    moved_batch = ProposalBatch(moved, visible, order, hidden, batch.refill, batch.walls, target)
+    moved_batch = ProposalBatch(moved, visible, order, hidden, batch.refill, batch.walls, target=target)
     torch.testing.assert_close(networks(moved_batch)["mae"], loss)
     other = mean.clone()
     other[torch.arange(3), :, (original + 1) % K] += 5.0
     assert not torch.allclose(networks(ProposalBatch(other, visible, order, hidden, batch.refill, batch.walls,
-                                                  target))["mae"], loss)
+                                                  target=target))["mae"], loss)
 
 
 def test_the_proposal_stage_refuses_torchrun(tmp_path, monkeypatch):
@@ -267,7 +269,6 @@ def test_wall_refill_hides_what_one_wall_would_hide(train_file, tmp_path):
     both balls at the event, as the test walls do."""
     from xvoe import store
     from xvoe.scenes.behind import WALL_HALF_WIDTH
-    from xvoe.train_xpl import object_places
 
     cache = walled_cache(train_file, tmp_path / "latents.h5")
     batches = LatentBatches(str(cache), batch_size=32, shards=1, seed=2, walls=True, wall_refill=1.0)
@@ -297,3 +298,27 @@ def test_wall_refill_hides_what_one_wall_would_hide(train_file, tmp_path):
 def test_wall_refill_needs_the_split_the_cache_came_from(cache):
     with pytest.raises(XvoeError, match="wall_refill needs the objects' places"):
         LatentBatches(str(cache), batch_size=8, shards=1, wall_refill=0.5)
+
+
+def test_outside_picture_needs_the_whole_object_beyond_an_edge():
+    """An object counts as outside once its farthest corner, however it turns, is past an edge."""
+    size = 4.0
+    reach = size / np.sqrt(2)
+    places = np.array([[32, 32, size], [32, WORLD + reach + 0.1, size], [32, WORLD + reach - 0.1, size],
+                       [-reach - 0.1, 10, size], [-reach + 0.1, 10, size], [WORLD + 3, -reach - 0.1, size]],
+                      np.float32)
+    assert outside_picture(places).tolist() == [False, True, False, True, False, True]
+
+
+def test_batches_mark_the_hidden_entries_outside_the_picture(train_file, tmp_path):
+    """The training videos' cubes fall in from above: the batches mark their entries before they
+    come into view, and only entries that are hidden and wholly outside the picture."""
+    cache = walled_cache(train_file, tmp_path / "latents.h5")
+    batches = LatentBatches(str(cache), batch_size=32, shards=1, seed=2, outside=True)
+    places, _ = object_places(str(cache), 0, len(batches.visible))
+    marked = batches.outside.numpy()
+    assert marked.any() and not (marked & batches.visible.numpy()).any()
+    assert (places[..., 1][marked] - places[..., 2][marked] / np.sqrt(2) >= WORLD).mean() > 0.5   # above
+    batch = batches.batch(0)
+    assert batch.outside.shape == batch.visible.shape and not (batch.outside & batch.visible).any()
+    assert LatentBatches(str(cache), batch_size=32, shards=1).batch(0).outside is None

@@ -268,3 +268,25 @@ def test_latent_weights_weigh_each_latent_in_the_refill_and_dynamics_losses():
         target = torch.where(visible.unsqueeze(-1), z, refined)[:, 1:]
         error = plain.dynamics(refined[:, :-1]) - target
     torch.testing.assert_close(only["dynamics"], 3 * (error[..., 0] ** 2).mean())
+
+
+def test_outside_entries_join_the_refill_loss_as_the_cached_latent():
+    """Hidden entries of seen objects marked outside the picture are rebuilt towards the cache's
+    latent there, with the refill spans; visible or never-seen entries marked outside are not."""
+    torch.manual_seed(1)
+    z, visible = torch.randn(2, T, K, D), torch.ones(2, T, K, dtype=torch.bool)
+    visible[:, :3, 0] = False               # slot 0 comes into the picture at frame 3
+    visible[:, :, 1] = False                # slot 1 is never seen
+    refill = torch.zeros(2, T, K, dtype=torch.bool)
+    refill[:, 5:7, 2] = True
+    outside = torch.zeros(2, T, K, dtype=torch.bool)
+    outside[:, :4, :2] = True               # frame 3 of slot 0 is visible, slot 1 is never seen
+    model = XPL(XPLConfig(reasoning=SMALL_REASONING, dynamics=SMALL_DYNAMICS)).eval()
+    with torch.no_grad():
+        without, marked = (model.losses(z, visible, refill=refill, outside=o)["refill"] for o in (None, outside))
+        refined = model.transformer1(z, occlusion_keep(visible) & ~refill)[0]
+    square = ((refined - z) ** 2).sum(-1)
+    rebuilt = refill.clone()
+    rebuilt[:, :3, 0] = True
+    torch.testing.assert_close(without, (square * refill).sum() / refill.sum())
+    torch.testing.assert_close(marked, (square * rebuilt).sum() / rebuilt.sum())

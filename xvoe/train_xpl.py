@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import hashlib
 import os
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -54,10 +54,11 @@ class LatentBatch:
     hidden: Tensor      # (B,) the slot Transformer 2 must rebuild
     refill: Tensor      # (B, T, K) bool: seen entries hidden from Transformer 1, which must rebuild them
     walls: Tensor       # (B, K) bool: the wall slots
+    # (B, T, K) bool: entries outside the picture (outside_refill)
+    outside: Tensor | None = field(default=None, kw_only=True)
 
     def to(self, device) -> LatentBatch:
-        return LatentBatch(*(t.to(device) for t in (self.mean, self.visible, self.order, self.hidden, self.refill,
-                                                    self.walls)))
+        return replace(self, **{name: value.to(device) for name, value in vars(self).items() if value is not None})
 
     def __len__(self) -> int:
         return len(self.mean)
@@ -68,7 +69,7 @@ class LatentBatches:
 
     def __init__(self, path: str, *, batch_size: int, shards: int, rank: int = 0, world: int = 1,
                  max_videos: int = 0, seed: int = 0, object_share: float = 0.5, walls: bool = False,
-                 wall_refill: float = 0.0):
+                 wall_refill: float = 0.0, outside: bool = False):
         with open_latents(path) as file:
             owned = owned_shards(path, file["mean"].shape[0], batch_size=batch_size, shards=shards, rank=rank,
                                  world=world, max_videos=max_videos)
@@ -77,14 +78,17 @@ class LatentBatches:
         found = wall_slots(path, owned.start, owned.stop) if walls else None    # (read only when used)
         self.walls = torch.zeros_like(self.visible[:, 0]) if found is None else torch.from_numpy(found)
         self.wall_refill = wall_refill
-        self.places, self.events = object_places(path, owned.start, owned.stop) if wall_refill else (None, None)
+        self.places, self.events = (object_places(path, owned.start, owned.stop) if wall_refill or outside
+                                    else (None, None))
+        self.outside = torch.from_numpy(outside_picture(self.places)) & ~self.visible if outside else None
         self.shards, self.bounds, self.per_shard = owned.shards, owned.bounds, owned.per_shard
         self.start, self.seed, self.object_share = owned.start, seed, object_share
         self.slots = self.mean.shape[2]
 
     def batch(self, step: int) -> LatentBatch:
         video, order, hidden, refill = self.draw(step)
-        return LatentBatch(self.mean[video], self.visible[video], order, hidden, refill, self.walls[video])
+        return LatentBatch(self.mean[video], self.visible[video], order, hidden, refill, self.walls[video],
+                           outside=None if self.outside is None else self.outside[video])
 
     def draw(self, step: int) -> tuple[Tensor, Tensor, Tensor, Tensor]:
         """The videos (local indices), slot orders, rebuilt slots and refill spans of a step."""
@@ -207,7 +211,7 @@ def train_xpl(latents: str | os.PathLike | None, run_dir: str | os.PathLike, *, 
     batches = LatentBatches(str(latents), batch_size=config.batch_size, shards=config.data_shards, rank=place.rank,
                             world=place.world, max_videos=config.max_videos, seed=config.seed,
                             walls=model_config.inert_walls or model_config.wall_refill > 0,
-                            wall_refill=model_config.wall_refill)
+                            wall_refill=model_config.wall_refill, outside=model_config.outside_refill)
     job = Job(name, XPL(model_config), batches.batch, {"preset": preset_name, "xpl": to_dict(model_config)},
               meta={"latents": str(Path(latents).resolve())})
     return fit(job, config, run_dir, place=place, resume=resume, overwrite=overwrite, progress=progress)
@@ -252,11 +256,8 @@ def latent_cache_for(data: str | os.PathLike, run_dir: str | os.PathLike, percep
 
 @dataclass
 class ProposalBatch(LatentBatch):
-    target: Tensor | None = None   # (B, T, K, D) the latents with hidden frames interpolated (`bridge_hidden`)
-
-    def to(self, device) -> ProposalBatch:
-        return ProposalBatch(*(t.to(device) for t in (self.mean, self.visible, self.order, self.hidden,
-                                                      self.refill, self.walls, self.target)))
+    # (B, T, K, D) the latents with hidden frames interpolated (`bridge_hidden`)
+    target: Tensor | None = field(default=None, kw_only=True)
 
 
 STAYS_SHARE = 0.5   # of the videos with a wall that comes and goes, this share is shown one that stays
@@ -278,7 +279,7 @@ class ProposalBatches(LatentBatches):
     def batch(self, step: int) -> ProposalBatch:
         video, order, hidden, refill = self.draw(step)
         return ProposalBatch(self.mean[video], self.visible[video], order, hidden, refill, self.walls[video],
-                             self.target[video])
+                             target=self.target[video])
 
 
 def seen_neighbours(visible: Tensor) -> tuple[Tensor, Tensor]:
@@ -385,6 +386,13 @@ def object_places(latents: str, start: int, stop: int) -> tuple[np.ndarray, np.n
     states = states * scale
     states[..., 1] = WORLD - states[..., 1]
     return states.astype(np.float32), events
+
+
+def outside_picture(places: np.ndarray) -> np.ndarray:
+    """(N, T, K) bool: the slots whose object lies wholly outside the picture, from `object_places`
+    (a cube's corners reach out to size / sqrt(2) from its centre, whichever way it turns)."""
+    x, y, reach = places[..., 0], places[..., 1], places[..., 2] / np.sqrt(2)
+    return (np.minimum(x, y) + reach <= 0) | (np.maximum(x, y) - reach >= WORLD)
 
 
 def wall_stays(mean: Tensor, visible: Tensor, walls: Tensor) -> tuple[Tensor, Tensor]:

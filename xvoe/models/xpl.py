@@ -34,6 +34,11 @@ class XPLConfig:
     # span per slot: the test walls hide an object from the start and an event with it, and a
     # per-slot span seldom hides both together
     wall_refill: float = 0.0
+    # Transformer 1 also rebuilds the entries of seen objects that lie wholly outside the picture
+    # (the simulator says where), as the blank latent the cache holds there. Nothing else trains
+    # those fills, yet more than half the hidden entries of the training videos are such (cubes
+    # that fall in from above), and the MSE score draws them where no wall stands
+    outside_refill: bool = False
     permute_slots: bool = True      # slot order carries no meaning: shuffle it in training
     # weight of each latent in the refill and dynamics losses (empty: all 1); e.g. how much each
     # moves the decoded picture, so that a squared error in latents weighs as one in pixels
@@ -62,7 +67,8 @@ class XPL(nn.Module):
 
     def forward(self, batch) -> dict[str, Tensor]:
         """The training objective of a LatentBatch (what the training loop calls)."""
-        return self.losses(batch.mean, batch.visible, batch.order, batch.hidden, batch.refill, batch.walls)
+        return self.losses(batch.mean, batch.visible, batch.order, batch.hidden, batch.refill, batch.walls,
+                           batch.outside)
 
     def predict(self, refined: Tensor, walls: Tensor | None = None) -> Tensor:
         """The dynamics' prediction (B, T-1, K, D) of frames 1..T-1 from refined latents (B, T, K, D),
@@ -99,12 +105,13 @@ class XPL(nn.Module):
 
     def losses(self, z: Tensor, visible: Tensor, order: Tensor | None = None,
                hidden: Tensor | None = None, refill: Tensor | None = None,
-               walls: Tensor | None = None) -> dict[str, Tensor]:
+               walls: Tensor | None = None, outside: Tensor | None = None) -> dict[str, Tensor]:
         """z: (B, T, K, D) cached means; visible: (B, T, K) bool. `order` (B, K), a slot
         order per video, `hidden` (B,), the slot Transformer 2 must rebuild, and `refill`
         (B, T, K) bool, seen entries Transformer 1 must rebuild, are drawn here unless given
         (the training data give them, so that batches are reproducible). `walls` (B, K) bool:
-        the wall slots (used with inert_walls; none if not given).
+        the wall slots (used with inert_walls; none if not given). `outside` (B, T, K) bool: hidden
+        entries outside the picture, which Transformer 1 must fill with the cached (blank) latent.
 
         Transformer 1 learns from two signals: the dynamics loss, and rebuilding seen entries
         hidden from it (spans like the ones a wall hides). The second keeps its fills on the
@@ -114,16 +121,19 @@ class XPL(nn.Module):
             refill = torch.zeros_like(visible)
         if walls is None:
             walls = torch.zeros_like(visible[:, 0])
+        if outside is None:
+            outside = torch.zeros_like(visible)
         if self.config.permute_slots and self.training:
-            z, visible, refill, walls = permute_slots(z, visible, refill, walls.unsqueeze(1).expand_as(visible),
-                                                      order=order)
+            z, visible, refill, walls, outside = permute_slots(
+                z, visible, refill, walls.unsqueeze(1).expand_as(visible), outside, order=order)
             walls = walls[:, 0]
         refill = refill & visible
         out = {}
         if self.config.use_reasoning:
             refined = self.transformer1(z, occlusion_keep(visible) & ~refill)[0]
-            if refill.any():
-                out["refill"] = (self._weighted_square(refined - z) * refill).sum() / refill.sum()
+            rebuilt = refill | (outside & ~occlusion_keep(visible))
+            if rebuilt.any():
+                out["refill"] = (self._weighted_square(refined - z) * rebuilt).sum() / rebuilt.sum()
             fills = refined if not self.config.stop_target_gradient else refined.detach()
             target = torch.where(visible.unsqueeze(-1), z, fills)[:, 1:]
         else:
