@@ -302,8 +302,8 @@ def test_wall_refill_needs_the_split_the_cache_came_from(cache):
 
 def test_outside_picture_needs_the_whole_object_beyond_an_edge():
     """An object counts as outside once its farthest corner, however it turns, is past an edge."""
-    size = 4.0
-    reach = size / np.sqrt(2)
+    size = 4.0                    # half side
+    reach = size * np.sqrt(2)
     places = np.array([[32, 32, size], [32, WORLD + reach + 0.1, size], [32, WORLD + reach - 0.1, size],
                        [-reach - 0.1, 10, size], [-reach + 0.1, 10, size], [WORLD + 3, -reach - 0.1, size]],
                       np.float32)
@@ -318,7 +318,7 @@ def test_batches_mark_the_hidden_entries_outside_the_picture(train_file, tmp_pat
     places, _ = object_places(str(cache), 0, len(batches.visible))
     marked = batches.outside.numpy()
     assert marked.any() and not (marked & batches.visible.numpy()).any()
-    assert (places[..., 1][marked] - places[..., 2][marked] / np.sqrt(2) >= WORLD).mean() > 0.5   # above
+    assert (places[..., 1][marked] - places[..., 2][marked] * np.sqrt(2) >= WORLD).mean() > 0.5   # above
     batch = batches.batch(0)
     assert batch.outside.shape == batch.visible.shape and not (batch.outside & batch.visible).any()
     assert LatentBatches(str(cache), batch_size=32, shards=1).batch(0).outside is None

@@ -390,8 +390,9 @@ def object_places(latents: str, start: int, stop: int) -> tuple[np.ndarray, np.n
 
 def outside_picture(places: np.ndarray) -> np.ndarray:
     """(N, T, K) bool: the slots whose object lies wholly outside the picture, from `object_places`
-    (a cube's corners reach out to size / sqrt(2) from its centre, whichever way it turns)."""
-    x, y, reach = places[..., 0], places[..., 1], places[..., 2] / np.sqrt(2)
+    (size is a ball's radius or a cube's half side: its corners reach size * sqrt(2) from its
+    centre, whichever way it turns)."""
+    x, y, reach = places[..., 0], places[..., 1], places[..., 2] * np.sqrt(2)
     return (np.minimum(x, y) + reach <= 0) | (np.maximum(x, y) - reach >= WORLD)
 
 
