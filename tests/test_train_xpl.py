@@ -286,7 +286,7 @@ def test_wall_refill_hides_what_one_wall_would_hide(train_file, tmp_path):
             if len(frames):
                 assert frames.max() < refill.shape[1] - 2
                 x, size = places[v, :, :, 0][refill[b]], places[v, :, :, 2][refill[b]]
-                assert (x + size / 2).max() - (x - size / 2).min() <= 2 * WALL_HALF_WIDTH[1]
+                assert (x + size).max() - (x - size).min() <= 2 * WALL_HALF_WIDTH[1]
             if groups[v] == "collision" and not has_wall[v] and events[v] >= 0:
                 collisions += 1
                 both += refill[b, events[v]].sum() >= 2

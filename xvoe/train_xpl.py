@@ -145,8 +145,8 @@ class LatentBatches:
         start = np.where(rng.random(batch) < 0.5, 0, rng.integers(1, 4, batch))
         stop = rng.integers(frames - 5, frames - 1, batch)
         x, y, size = (places[..., i] for i in range(3))
-        behind = ((np.abs(x - centre[:, None, None]) <= half_width[:, None, None] - size / 2)
-                  & (y + size / 2 <= FLOOR + height[:, None, None]))
+        behind = ((np.abs(x - centre[:, None, None]) <= half_width[:, None, None] - size)
+                  & (y + size <= FLOOR + height[:, None, None]))
         t = np.arange(frames)[None, :, None]
         standing = (t >= start[:, None, None]) & (t < stop[:, None, None])
         hidden = behind & standing & visible & movable[:, None, :]
@@ -368,7 +368,7 @@ def wall_slots(latents: str, start: int, stop: int) -> np.ndarray | None:
 
 
 def object_places(latents: str, start: int, stop: int) -> tuple[np.ndarray, np.ndarray]:
-    """(N, T, K, 3) float32: each slot's centre x, y (up) and size in world units, per frame, and
+    """(N, T, K, 3) float32: each slot's centre x, y (up) and size (radius or half side) in world units, per frame, and
     (N,) the event frame (-1 if none), from the split file the cache was encoded from."""
     from . import store
 
