@@ -18,7 +18,7 @@ from torch import Tensor, nn
 from xvoe.models.dynamics import DynamicsState
 from xvoe.models.perception import ComponentVAE
 from xvoe.models.xpl import XPL
-from xvoe.score import behind_walls, decode_slots, nearest_wall, push_behind
+from xvoe.score import push_behind, scene_layers
 
 
 class XPLScene(nn.Module):
@@ -26,9 +26,10 @@ class XPLScene(nn.Module):
                  occluder: Tensor, hidden: int):
         """refined: (T, K, D) latents; background: (T, 4, H, W) decoded background; visible:
         (T, K) what the encoder saw; occluder: (K,) the walls, whose motion is no evidence;
-        hidden: the slot a hidden object would take (a never-seen one). As in the MSE score,
-        an object not seen in a frame stands behind the walls there (xvoe.score.behind_walls):
-        the seen objects' fills, and the hidden object in every frame."""
+        hidden: the slot a hidden object would take (a never-seen one). As in the MSE score
+        (xvoe.score.scene_layers), a wall is drawn only where it was seen, and an object not seen
+        in a frame stands behind the walls there: the seen objects' fills, and the hidden object
+        in every frame."""
         super().__init__()
         self.vae, self.xpl, self.hidden = vae, xpl, hidden
         self.frames, self.slots, self.dim = refined.shape
@@ -36,9 +37,8 @@ class XPLScene(nn.Module):
         self.register_buffer("background", background)
         occupied = visible.any(0)
         with torch.no_grad():   # (T, K, 4, H, W); the free slot, never seen, stays blank
-            layers = decode_slots(vae, refined[None], occupied[None])
-            walls = nearest_wall(layers, occluder[None])
-            self.register_buffer("layers", behind_walls(layers, visible[None], occluder[None], walls)[0])
+            layers, walls = scene_layers(vae, refined[None], occupied[None], visible[None], occluder[None])
+            self.register_buffer("layers", layers[0])
             self.register_buffer("walls", walls[0, :, 0])   # (T, 1, H, W)
         self.register_buffer("moving", occupied & ~occluder)
         self.register_buffer("occluder", occluder[None])      # (1, K)

@@ -141,3 +141,22 @@ def test_objects_unseen_in_a_frame_stay_behind_the_walls_there():
     assert torch.equal(out[0, 1, 2, 3, 0], torch.full((2,), -0.5 + BEHIND))
     assert torch.equal(out[:, :, 0], layers[:, :, 0]) and torch.equal(out[..., :3, :, :], layers[..., :3, :, :])
     assert torch.equal(behind_walls(layers, visible, torch.tensor([[False, False, False]])), layers)   # no wall
+
+
+def test_a_wall_is_drawn_only_in_the_frames_it_was_seen(models):
+    """Nothing hides a wall (the nearest lane): unseen, it is out of the picture, whatever
+    Transformer 1 fills it with; so its fill costs no pixels and hides nothing."""
+    from xvoe.score import WALL_PIXEL, scene_layers
+
+    vae, xpl = models
+    mean, visible, background, occluder = scene(moving=False)
+    visible[:, 3:, 0] = False                              # the wall (slot 0) is lifted away at frame 3
+    with torch.no_grad():   # the frames as the encoder saw them: no wall from frame 3
+        frames = rendered(vae, mean, visible, background)
+        frames[:, 3:] = rendered(vae, mean, visible & ~occluder[:, None, :], background)[:, 3:]
+        layers, walls = scene_layers(vae, mean, visible.any(1), visible, occluder)
+    assert torch.equal(layers[:, 3:, 0], vae.blank()[0].expand_as(layers[:, 3:, 0]))
+    assert torch.equal(layers[:, :3, 0], decode_slots(vae, mean, visible.any(1))[:, :3, 0])
+    assert torch.all(walls[:, 3:] >= WALL_PIXEL)          # it covers no pixel there
+    surprise = mse_surprise(vae, xpl, frames, mean, visible, background, occluder)
+    torch.testing.assert_close(surprise.s_img, torch.zeros(B, T), atol=1e-6, rtol=0)

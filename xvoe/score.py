@@ -94,9 +94,7 @@ def latent_surprise(vae: ComponentVAE, xpl: XPL, frames: Tensor, refined: Tensor
     the same way (benchmarks/oracle_fills.py: the hidden objects' true latents for the fills)."""
     batch, frames_count = refined.shape[:2]
     background_pictures = vae.decode(background.flatten(0, 1)).reshape(batch, frames_count, *frames.shape[2:])
-    layers = decode_slots(vae, refined, occupied)
-    walls = nearest_wall(layers, occluder)
-    layers = behind_walls(layers, visible, occluder, walls)
+    layers, walls = scene_layers(vae, refined, occupied, visible, occluder)
     s_img = (frames - composite(vae, background_pictures, layers, occupied)).pow(2).flatten(2).sum(2)
 
     moving = occupied & ~occluder
@@ -107,6 +105,22 @@ def latent_surprise(vae: ComponentVAE, xpl: XPL, frames: Tensor, refined: Tensor
     s_dyn = torch.zeros_like(s_img)
     s_dyn[:, 1:] = (seen - expected).pow(2).flatten(2).sum(2)
     return s_img, s_dyn
+
+
+def scene_layers(vae: ComponentVAE, refined: Tensor, occupied: Tensor, visible: Tensor,
+                 occluder: Tensor) -> tuple[Tensor, Tensor]:
+    """The slot pictures (B, T, K, 4, H, W) a video's refined latents draw, and the nearest
+    wall's depth (B, T, 1, 1, H, W): a wall is drawn only in the frames in which the encoder saw
+    it, and every object it did not see stands behind the walls (`behind_walls`).
+
+    A wall stands in the nearest depth lane, so nothing hides it: unseen, it is out of the
+    picture (lowered from above, or lifted away). Transformer 1 fills it there all the same, and
+    a fill that draws a wall costs pixels that vary from one video to its partner."""
+    layers = decode_slots(vae, refined, occupied)
+    unseen_walls = (occluder[:, None, :] & ~visible)[..., None, None, None]
+    layers = torch.where(unseen_walls, vae.blank()[0], layers)
+    walls = nearest_wall(layers, occluder)
+    return behind_walls(layers, visible, occluder, walls), walls
 
 
 WALL_PIXEL = 0.5    # decoded depth under which a wall's picture covers a pixel ([-1, 1]; walls stand at -0.5)
