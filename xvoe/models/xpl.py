@@ -36,8 +36,8 @@ class XPLConfig:
     wall_refill: float = 0.0
     # Transformer 1 also rebuilds the entries of seen objects that lie wholly outside the picture
     # (the simulator says where), as the blank latent the cache holds there. Nothing else trains
-    # those fills, yet more than half the hidden entries of the training videos are such (cubes
-    # that fall in from above), and the MSE score draws them where no wall stands
+    # those fills, yet about a third of the hidden entries of the training videos are such (cubes
+    # that fall in from above, balls that roll in), and the MSE score draws them where no wall stands
     outside_refill: bool = False
     permute_slots: bool = True      # slot order carries no meaning: shuffle it in training
     # weight of each latent in the refill and dynamics losses (empty: all 1); e.g. how much each
