@@ -60,8 +60,8 @@ def nll_surprise(vae: ComponentVAE, xpl: XPL, frames: Tensor, mean: Tensor, visi
         loc = refine_out_of_sight(scene, loc, frames, config)
     proposal = Proposal(defensive(p_exists, config.particles) if free else p_exists, loc, spread)
     estimate = importance(model.model, model.guide, frames, proposal=proposal, particles=config.particles)
-    return NLLSurprise(estimate.nll, estimate.ess, float(estimate.posterior_mean("exists")),
-                       hidden if free else -1, estimate)
+    p_hidden = float(estimate.posterior_mean("exists").clamp(0.0, 1.0))   # a weighted mean can round past 1
+    return NLLSurprise(estimate.nll, estimate.ess, p_hidden, hidden if free else -1, estimate)
 
 
 def refine_out_of_sight(scene: XPLScene, loc: Tensor, frames: Tensor, config: InferenceConfig) -> Tensor:
