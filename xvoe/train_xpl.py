@@ -78,9 +78,9 @@ class LatentBatches:
         found = wall_slots(path, owned.start, owned.stop) if walls else None    # (read only when used)
         self.walls = torch.zeros_like(self.visible[:, 0]) if found is None else torch.from_numpy(found)
         self.wall_refill = wall_refill
-        self.places, self.events = (object_places(path, owned.start, owned.stop) if wall_refill or outside
-                                    else (None, None))
-        self.outside = torch.from_numpy(outside_picture(self.places)) & ~self.visible if outside else None
+        places, events = object_places(path, owned.start, owned.stop) if wall_refill or outside else (None, None)
+        self.outside = torch.from_numpy(outside_picture(places)) & ~self.visible if outside else None
+        self.places, self.events = (places, events) if wall_refill else (None, None)   # kept for behind_wall
         self.shards, self.bounds, self.per_shard = owned.shards, owned.bounds, owned.per_shard
         self.start, self.seed, self.object_share = owned.start, seed, object_share
         self.slots = self.mean.shape[2]

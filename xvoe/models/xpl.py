@@ -130,8 +130,9 @@ class XPL(nn.Module):
         refill = refill & visible
         out = {}
         if self.config.use_reasoning:
-            refined = self.transformer1(z, occlusion_keep(visible) & ~refill)[0]
-            rebuilt = refill | (outside & ~occlusion_keep(visible))
+            keep = occlusion_keep(visible)
+            refined = self.transformer1(z, keep & ~refill)[0]
+            rebuilt = refill | (outside & ~keep)
             if rebuilt.any():
                 out["refill"] = (self._weighted_square(refined - z) * rebuilt).sum() / rebuilt.sum()
             fills = refined if not self.config.stop_target_gradient else refined.detach()
