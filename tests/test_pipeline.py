@@ -54,6 +54,15 @@ def test_tiny_pipeline_runs_end_to_end_and_skips_done_stages(tmp_path, tiny_cpu_
     rows = list(csv.DictReader(open(out)))
     assert {"nll", "ess", "p_hidden"} <= set(rows[0])
     assert all(1.0 <= float(r["ess"]) <= 4.0 + 1e-9 and 0.0 <= float(r["p_hidden"]) <= 1.0 for r in rows)
+    # the excess: the paper's score less the perception's own error of what it saw, per frame
+    import numpy as np
+
+    curves = np.load(out.with_suffix(".curves.npz"))
+    np.testing.assert_allclose([float(r["s_rec"]) for r in rows], curves["s_rec"].sum(1), rtol=1e-6)
+    np.testing.assert_allclose([float(r["excess"]) for r in rows],
+                               (curves["s_img"] - curves["s_rec"] + curves["s_dyn"]).sum(1), rtol=1e-5, atol=1e-3)
+    assert all(0 <= float(r["s_rec"]) for r in rows) and any(float(r["s_rec"]) > 0 for r in rows)
+    assert "excess" in {r.split(",")[2] for r in open(run / "report" / "metrics.csv").read().split()[1:]}
     with pytest.raises(XvoeError, match="NLL surprise needs"):
         score_split(str(run / "plato.pt"), str(run / "data" / "test.h5"), str(tmp_path / "x.csv"),
                     surprise="nll", progress=False)

@@ -160,3 +160,43 @@ def test_a_wall_is_drawn_only_in_the_frames_it_was_seen(models):
     assert torch.all(walls[:, 3:] >= WALL_PIXEL)          # it covers no pixel there
     surprise = mse_surprise(vae, xpl, frames, mean, visible, background, occluder)
     torch.testing.assert_close(surprise.s_img, torch.zeros(B, T), atol=1e-6, rtol=0)
+
+
+def test_the_excess_leaves_out_what_the_perception_misses_of_what_it_saw(models):
+    """When every object is seen in every frame, nothing is filled: s_img is the perception's
+    own reconstruction error, whatever the frames hold, and the excess is the dynamics term."""
+    vae, xpl = models
+    mean, visible, background, occluder = scene(moving=True)
+    with torch.no_grad():
+        frames = rendered(vae, mean, visible, background) + 0.3 * torch.randn(B, T, 4, 16, 16)   # clutter
+    surprise = mse_surprise(vae, xpl, frames, mean, visible, background, occluder)
+    assert torch.all(surprise.s_img > 1)
+    torch.testing.assert_close(surprise.s_rec, surprise.s_img)
+    torch.testing.assert_close(surprise.excess, surprise.s_dyn)
+
+
+def test_the_excess_keeps_a_fill_drawn_where_nothing_was_seen(models):
+    """An object seen, then hidden with no wall in front of it: Transformer 1's fill draws it
+    in the open. s_rec (the seen entries alone) matches frames without it; s_img pays the
+    fill, and so does the excess, by the same amount, however noisy the picture elsewhere."""
+    from xvoe.score import latent_surprise
+
+    vae, xpl = models
+    mean, visible, background, occluder = scene(moving=False)
+    occluder[:] = False                                   # no wall to hide behind
+    visible[:, 3:, 1] = False                             # slot 1 unseen from frame 3
+    with torch.no_grad():
+        pictures = vae.decode(background.flatten(0, 1)).reshape(B, T, 4, 16, 16)
+        seen = torch.where(visible[..., None, None, None], decode_slots(vae, mean, visible.any(1)), vae.blank()[0])
+        frames = composite(vae, pictures, seen, visible.any(1))   # what the encoder saw: slot 1 gone
+        filled = mean.clone()                               # a fill: the object stays where it was
+        s_img, s_dyn, s_rec = latent_surprise(vae, xpl, frames, filled, visible.any(1), visible, background, occluder)
+    torch.testing.assert_close(s_rec, torch.zeros(B, T), atol=1e-6, rtol=0)
+    assert torch.all(s_img[:, 3:] > 1e-3) and torch.all(s_img[:, :3].abs() < 1e-6)
+    with torch.no_grad():     # noise where the fill draws nothing moves s_img and s_rec alike
+        drawn = (rendered(vae, filled, torch.ones_like(visible), background) - frames).abs().amax(2, keepdim=True)
+        noisy = frames + torch.where(drawn > 1e-4, 0.0, 0.3 * torch.randn_like(frames))
+        noisy_img, _, noisy_rec = latent_surprise(vae, xpl, noisy, filled, visible.any(1), visible, background,
+                                                  occluder)
+    assert torch.all(noisy_rec > 1)
+    torch.testing.assert_close(noisy_img - noisy_rec, s_img - s_rec, atol=1e-3, rtol=1e-4)

@@ -4,6 +4,13 @@
     s_dyn(t) = sum over pixels (composite of refined latents - composite of the dynamics'
                prediction)^2,  t >= 1, the occluder's slot left out of both composites
 
+The excess score leaves out what no explanation can change. For a seen object the refined
+latents are the encoder's, so the perception module's own reconstruction error of the seen
+objects (s_rec, the composite of the seen entries alone) is in s_img whatever the model
+believes, and it varies with a scene's clutter and colours far more than an impossible event
+moves the score. excess(t) = s_img(t) - s_rec(t) + s_dyn(t) keeps the pixels the fills and the
+explanation get wrong, and the dynamics term. Same decodes, one more composite.
+
 Refined latents: Transformer 1 fills the frames in which a seen object is occluded and
 Transformer 2 proposes the object seen in no frame. Decoding is the cost, so only occupied
 slots are decoded (seen at some frame, or the explained one), the decodes are shared by the
@@ -35,11 +42,17 @@ if TYPE_CHECKING:       # xvoe imports inference only inside the functions that 
 class Surprise:
     s_img: Tensor        # (B, T)
     s_dyn: Tensor        # (B, T); 0 at frame 0
+    s_rec: Tensor        # (B, T) the perception's own error: the seen entries alone composited
     explained_slot: Tensor   # (B,) the slot Transformer 2 filled, -1 if none
 
     @property
     def per_frame(self) -> Tensor:
         return self.s_img + self.s_dyn
+
+    @property
+    def excess(self) -> Tensor:
+        """Per-frame surprise beyond the perception's reconstruction of what it saw."""
+        return self.s_img - self.s_rec + self.s_dyn
 
 
 def decode_slots(vae: ComponentVAE, z: Tensor, occupied: Tensor) -> Tensor:
@@ -82,20 +95,21 @@ def mse_surprise(vae: ComponentVAE, xpl: XPL, frames: Tensor, mean: Tensor, visi
     (B, T, K) bool; background: (B, T, D) the background component's means; occluder: (B, K)
     bool, the wall slots."""
     refined, slot, occupied = explained_latents(xpl, mean, visible)
-    s_img, s_dyn = latent_surprise(vae, xpl, frames, refined, occupied, visible, background, occluder)
-    return Surprise(s_img, s_dyn, slot)
+    return Surprise(*latent_surprise(vae, xpl, frames, refined, occupied, visible, background, occluder), slot)
 
 
 @torch.no_grad()
 def latent_surprise(vae: ComponentVAE, xpl: XPL, frames: Tensor, refined: Tensor, occupied: Tensor, visible: Tensor,
-                    background: Tensor, occluder: Tensor) -> tuple[Tensor, Tensor]:
-    """s_img and s_dyn (B, T) of given refined latents (B, T, K, D) with occupied slots (B, K):
+                    background: Tensor, occluder: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+    """s_img, s_dyn and s_rec (B, T) of given refined latents (B, T, K, D) with occupied slots (B, K):
     `mse_surprise` once Transformers 1 and 2 have run. Apart so that other latents can be scored
     the same way (benchmarks/oracle_fills.py: the hidden objects' true latents for the fills)."""
     batch, frames_count = refined.shape[:2]
     background_pictures = vae.decode(background.flatten(0, 1)).reshape(batch, frames_count, *frames.shape[2:])
     layers, walls = scene_layers(vae, refined, occupied, visible, occluder)
     s_img = (frames - composite(vae, background_pictures, layers, occupied)).pow(2).flatten(2).sum(2)
+    seen_layers = torch.where(visible[..., None, None, None], layers, vae.blank()[0])
+    s_rec = (frames - composite(vae, background_pictures, seen_layers, occupied)).pow(2).flatten(2).sum(2)
 
     moving = occupied & ~occluder
     predicted = xpl.predict(refined, occluder)
@@ -104,7 +118,7 @@ def latent_surprise(vae: ComponentVAE, xpl: XPL, frames: Tensor, refined: Tensor
     expected = composite(vae, background_pictures[:, 1:], predicted_layers, moving)
     s_dyn = torch.zeros_like(s_img)
     s_dyn[:, 1:] = (seen - expected).pow(2).flatten(2).sum(2)
-    return s_img, s_dyn
+    return s_img, s_dyn, s_rec
 
 
 def scene_layers(vae: ComponentVAE, refined: Tensor, occupied: Tensor, visible: Tensor,
@@ -168,6 +182,7 @@ def aggregate(per_frame: Tensor, how: str) -> Tensor:
 
 NLL_COLUMNS = ("nll", "ess", "p_hidden")
 SCORE_COLUMNS = ("index", "model", "scenario", "setting", "pair", "member", "possible", "score", "s_img", "s_dyn")
+EXCESS_COLUMNS = ("s_rec", "excess")    # models with a perception module: XPL, its ablation, PLATO
 XPL_STAGES = ("xpl", "plato", "xpl-noresidual")
 STAGES = (*XPL_STAGES, "phydnet")
 
@@ -227,9 +242,10 @@ def load_scorer(model: str, device: str = "cpu") -> Scorer:
 def score_split(model: str | Scorer, data: str, out: str, *, how: str = "sum", videos_per_batch: int = 16,
                 surprise: str = "mse", particles: int = 64, overwrite: bool = False, progress: bool = True) -> Path:
     """What `xvoe score` does: one CSV row per test video, and the per-frame surprise curves
-    (s_img, s_dyn: (N, T)) in an .npz beside it. With surprise "nll" or "both", the columns
-    nll, ess and p_hidden of the Pyro model are added (XPL models only); with "nll", the
-    score column is the NLL."""
+    (s_img, s_dyn: (N, T); s_rec too for a model with a perception module) in an .npz beside
+    it. Models with a perception module also get the columns s_rec and excess (the module
+    docstring). With surprise "nll" or "both", the columns nll, ess and p_hidden of the Pyro
+    model are added (XPL models only); with "nll", the score column is the NLL."""
     import csv
 
     import numpy as np
@@ -257,10 +273,10 @@ def score_split(model: str | Scorer, data: str, out: str, *, how: str = "sum", v
         count, frames_count = file["rgbd"].shape[:2]
         labels = {name: (store.strings(file, name) if name in ("scenario", "setting") else file[name][:])
                   for name in ("scenario", "setting", "pair", "member", "possible")}
-        curves = np.zeros((2, count, frames_count))
+        curves = np.zeros((3, count, frames_count))     # s_img, s_dyn, s_rec
         nll = np.zeros((count, 3))
         if scorer.is_random:
-            curves[:] = np.random.default_rng(scorer.seed).random((2, count, frames_count))
+            curves[:2] = np.random.default_rng(scorer.seed).random((2, count, frames_count))
         else:
             check_size(file, scorer.image_size, f"the model {scorer.name}")
             with torch.random.fork_rng(devices=[]):     # the NLL's particles come from the scorer's seed
@@ -269,7 +285,7 @@ def score_split(model: str | Scorer, data: str, out: str, *, how: str = "sum", v
                                   disable=not progress):
                     stop = min(count, start + videos_per_batch)
                     if scorer.phydnet is not None:
-                        curves[:, start:stop] = torch.stack(_phydnet_curves(scorer, file, start, stop)).numpy()
+                        curves[:2, start:stop] = torch.stack(_phydnet_curves(scorer, file, start, stop)).numpy()
                         continue
                     batch = encode_videos(scorer, file, start, stop)     # once, for both surprises
                     curves[:, start:stop] = torch.stack(_xpl_curves(scorer, batch)).numpy()
@@ -277,17 +293,22 @@ def score_split(model: str | Scorer, data: str, out: str, *, how: str = "sum", v
                         from inference.model import InferenceConfig
 
                         nll[start:stop] = xpl_nll(scorer, batch, InferenceConfig(particles=particles))
-    s_img, s_dyn = (aggregate(torch.from_numpy(c), how).numpy() for c in curves)
-    total = aggregate(torch.from_numpy(curves.sum(0)), how).numpy() if surprise != "nll" else nll[:, 0]
+    with_rec = scorer.vae is not None
+    s_img, s_dyn, s_rec = (aggregate(torch.from_numpy(c), how).numpy() for c in curves)
+    total = aggregate(torch.from_numpy(curves[:2].sum(0)), how).numpy() if surprise != "nll" else nll[:, 0]
+    excess = aggregate(torch.from_numpy(curves[0] - curves[2] + curves[1]), how).numpy()
     tmp = out.with_name(f".{out.name}.tmp")
     with open(tmp, "w", newline="") as handle:
         writer = csv.writer(handle)
-        writer.writerow(SCORE_COLUMNS + (NLL_COLUMNS if with_nll else ()))
+        writer.writerow(SCORE_COLUMNS + (EXCESS_COLUMNS if with_rec else ()) + (NLL_COLUMNS if with_nll else ()))
         for i in range(count):
+            extra = [float(s_rec[i]), float(excess[i])] if with_rec else []
+            extra += list(map(float, nll[i])) if with_nll else []
             writer.writerow([i, scorer.name, labels["scenario"][i], labels["setting"][i], int(labels["pair"][i]),
                              int(labels["member"][i]), bool(labels["possible"][i]), float(total[i]),
-                             float(s_img[i]), float(s_dyn[i])] + (list(map(float, nll[i])) if with_nll else []))
-    np.savez_compressed(out.with_suffix(".curves.npz"), s_img=curves[0], s_dyn=curves[1])
+                             float(s_img[i]), float(s_dyn[i])] + extra)
+    named = {"s_img": curves[0], "s_dyn": curves[1]} | ({"s_rec": curves[2]} if with_rec else {})
+    np.savez_compressed(out.with_suffix(".curves.npz"), **named)
     tmp.replace(out)
     return out
 
@@ -309,11 +330,11 @@ def encode_videos(scorer: Scorer, file, start: int, stop: int) -> dict[str, Tens
             "occluder": torch.from_numpy(store.wall_mask(file, start, stop))}
 
 
-def _xpl_curves(scorer: Scorer, batch: dict[str, Tensor]) -> tuple[Tensor, Tensor]:
-    """s_img and s_dyn (B, T) of encoded videos (`encode_videos`) under XPL or PLATO."""
+def _xpl_curves(scorer: Scorer, batch: dict[str, Tensor]) -> tuple[Tensor, Tensor, Tensor]:
+    """s_img, s_dyn and s_rec (B, T) of encoded videos (`encode_videos`) under XPL or PLATO."""
     surprise = mse_surprise(scorer.vae, scorer.xpl, batch["frames"], batch["mean"], batch["visible"],
                             batch["background"], batch["occluder"])
-    return surprise.s_img, surprise.s_dyn
+    return surprise.s_img, surprise.s_dyn, surprise.s_rec
 
 
 def xpl_nll(scorer: Scorer, batch: dict[str, Tensor], config: InferenceConfig) -> list[tuple[float, float, float]]:
