@@ -33,6 +33,20 @@ def test_the_curves_of_a_pair_are_drawn_and_written(scored, test_file, tmp_path)
     viz.plot_surprise_curves(scored, None, "permanence", "S2", 0)       # the curves alone
 
 
+def test_curves_with_the_perception_error_add_the_excess_panel(scored, test_file, tmp_path):
+    with np.load(scored.with_suffix(".curves.npz")) as saved:
+        s_img, s_dyn = saved["s_img"], saved["s_dyn"]
+    s_rec = 0.5 * s_img
+    np.savez(tmp_path / "rec.npz", s_img=s_img, s_dyn=s_dyn, s_rec=s_rec)
+    fig = viz.plot_surprise_curves(scored, None, "collision", "S3", 2, curves=tmp_path / "rec.npz")
+    assert [ax.get_title().splitlines()[0] for ax in fig.axes] == ["s_img", "s_dyn", "s_img + s_dyn",
+                                                                   "excess: s_img - s_rec + s_dyn"]
+    with store.open_dataset(test_file) as file:
+        first, _ = viz.find_pair(file, "collision", "S3", 2)
+    drawn = [line.get_ydata() for line in fig.axes[3].get_lines() if len(line.get_ydata()) > 2]
+    np.testing.assert_allclose(drawn[0], s_img[first] - s_rec[first] + s_dyn[first])
+
+
 def test_wall_timetables_read_back_from_the_states(test_file):
     with store.open_dataset(test_file) as file:
         s1 = viz.wall_lowered(file, viz.find_pair(file, "blocking", "S1", 0)[0])

@@ -408,7 +408,8 @@ def wall_lowered(file: h5py.File, index: int) -> np.ndarray:
 
 def plot_surprise_curves(scores: str | Path, data: str | Path | None, scenario: str, setting: str, pair: int, *,
                          curves: str | Path | None = None, frame: int | None = None) -> plt.Figure:
-    """Per-frame surprise of the two members of a test pair: s_img, s_dyn and their sum.
+    """Per-frame surprise of the two members of a test pair: s_img, s_dyn and their sum, and
+    the excess (s_img - s_rec + s_dyn) when the curves hold s_rec (models with a perception).
 
     scores: a CSV written by `xvoe score` (score_split); curves: its per-frame curves (default:
     the .curves.npz beside it); data: the test split that was scored, for the event frame (red
@@ -424,6 +425,7 @@ def plot_surprise_curves(scores: str | Path, data: str | Path | None, scenario: 
         if not {"s_img", "s_dyn"} <= set(saved.files):
             raise XvoeError(f"{curves} is not a curves file (it holds {', '.join(saved.files)})")
         s_img, s_dyn = saved["s_img"], saved["s_dyn"]
+        s_rec = saved["s_rec"] if "s_rec" in saved.files else None
     if s_img.shape[0] != len(table["index"]):
         raise XvoeError(f"{curves} holds {s_img.shape[0]} videos but {scores} {len(table['index'])}: "
                         "they were not written together")
@@ -447,7 +449,9 @@ def plot_surprise_curves(scores: str | Path, data: str | Path | None, scenario: 
 
     model = str(table["model"][0]) if "model" in table else Path(scores).stem
     panels = [("s_img", s_img), ("s_dyn", s_dyn), ("s_img + s_dyn", s_img + s_dyn)]
-    fig, axes = plt.subplots(1, 3, figsize=(11, 3.4), sharex=True)
+    if s_rec is not None:
+        panels.append(("excess: s_img - s_rec + s_dyn", s_img - s_rec + s_dyn))
+    fig, axes = plt.subplots(1, len(panels), figsize=(3.7 * len(panels), 3.4), sharex=True)
     t = np.arange(frames)
     for ax, (name, values) in zip(axes, panels):
         for t0 in t[lowered > 0]:
