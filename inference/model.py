@@ -79,6 +79,12 @@ class InferenceConfig:
     proposal_widening: float = 3.0
 
 
+def pixel_log_normaliser(pixels: int, sigma: float) -> float:
+    """log of the normaliser of an isotropic Gaussian over `pixels` values: the pixel
+    likelihood's constant, also that of a reference drawing scored the same way."""
+    return pixels * (math.log(sigma) + 0.5 * math.log(2 * math.pi))
+
+
 @dataclass
 class Proposal:
     """The guide's parameters for one video."""
@@ -119,7 +125,7 @@ class HiddenObjectModel(nn.Module):
         rendered and scored once; a (N, T, 4, H, W) density of 64 particles cost a third of
         the scoring time."""
         sigma = self.config.pixel_sigma
-        constant = frames.numel() * (math.log(sigma) + 0.5 * math.log(2 * math.pi))
+        constant = pixel_log_normaliser(frames.numel(), sigma)
 
         def log_density(expected: Tensor) -> Tensor:
             squares = ((expected - frames) / sigma).square().flatten(start_dim=expected.dim() - frames.dim())

@@ -63,6 +63,16 @@ def test_tiny_pipeline_runs_end_to_end_and_skips_done_stages(tmp_path, tiny_cpu_
                                (curves["s_img"] - curves["s_rec"] + curves["s_dyn"]).sum(1), rtol=1e-5, atol=1e-3)
     assert all(0 <= float(r["s_rec"]) for r in rows) and any(float(r["s_rec"]) > 0 for r in rows)
     assert "excess" in {r.split(",")[2] for r in open(run / "report" / "metrics.csv").read().split()[1:]}
+    # the NLL's excess: less the NLL of a reference drawing only what was seen
+    from inference.model import InferenceConfig
+    from xvoe import store
+    from xvoe.score import reference_nll
+
+    with store.open_dataset(run / "data" / "test.h5") as file:
+        size = file["rgbd"].shape[2]
+    reference = reference_nll(curves["s_rec"], 4 * size * size, InferenceConfig().pixel_sigma)
+    np.testing.assert_allclose([float(r["nll_excess"]) for r in rows], [float(r["nll"]) for r in rows] - reference,
+                               rtol=1e-9, atol=1e-6)
     with pytest.raises(XvoeError, match="NLL surprise needs"):
         score_split(str(run / "plato.pt"), str(run / "data" / "test.h5"), str(tmp_path / "x.csv"),
                     surprise="nll", progress=False)

@@ -200,3 +200,25 @@ def test_the_excess_keeps_a_fill_drawn_where_nothing_was_seen(models):
                                                   occluder)
     assert torch.all(noisy_rec > 1)
     torch.testing.assert_close(noisy_img - noisy_rec, s_img - s_rec, atol=1e-3, rtol=1e-4)
+
+
+def test_the_reference_nll_is_the_gaussian_density_of_the_seen_drawing(models):
+    """nll_excess = nll - reference_nll: the reference is -log N(frames | the composite of the
+    seen entries, sigma^2) summed over every pixel of every frame, from the s_rec curve alone."""
+    import numpy as np
+
+    from xvoe.score import latent_surprise, reference_nll
+
+    vae, xpl = models
+    mean, visible, background, occluder = scene(moving=False)
+    visible[:, 2:, 1] = False
+    with torch.no_grad():
+        frames = rendered(vae, mean, visible, background) + 0.2 * torch.randn(B, T, 4, 16, 16)
+        _, _, s_rec = latent_surprise(vae, xpl, frames, mean, visible.any(1), visible, background, occluder)
+        pictures = vae.decode(background.flatten(0, 1)).reshape(B, T, 4, 16, 16)
+        seen = torch.where(visible[..., None, None, None], decode_slots(vae, mean, visible.any(1)), vae.blank()[0])
+        drawing = composite(vae, pictures, seen, visible.any(1))
+    sigma = 0.5
+    expected = -torch.distributions.Normal(drawing.double(), sigma).log_prob(frames.double()).flatten(1).sum(1)
+    np.testing.assert_allclose(reference_nll(s_rec.double().numpy(), 4 * 16 * 16, sigma), expected.numpy(),
+                               rtol=1e-6)

@@ -249,7 +249,7 @@ def build_parser() -> argparse.ArgumentParser:
     score.add_argument("--out", required=True, help="the scores CSV to write")
     score.add_argument("--surprise", choices=("mse", "nll", "both"), default="mse",
                        help="mse: the paper's score; nll: -log p(video) under the Pyro model (adds nll, ess, "
-                            "p_hidden); both: the MSE score with the NLL columns beside it")
+                            "p_hidden, nll_excess); both: the MSE score with the NLL columns beside it")
     score.add_argument("--particles", type=_positive, default=64, help="importance samples per video (nll)")
     score.add_argument("--aggregate", choices=("sum", "max"), default="sum", help="over frames (default sum)")
     score.add_argument("--batch", type=_positive, default=16, help="videos per batch")

@@ -181,7 +181,7 @@ def _settings(scores: dict[str, np.ndarray]) -> list[tuple[str, str]]:
 
 
 METRICS = ("comparative", "holistic", "relative")
-COMPONENTS = ("score", "s_img", "s_dyn", "excess", "nll")    # excess, nll: when the scores hold them
+COMPONENTS = ("score", "s_img", "s_dyn", "excess", "nll", "nll_excess")    # the last three: when scored
 
 
 def metric_rows(scores: dict[str, np.ndarray], model: str, columns: tuple[str, ...] = COMPONENTS,

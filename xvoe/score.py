@@ -35,6 +35,8 @@ from .models.xpl import XPL
 from .render import DEPTH_FAR, OBJECT_DEPTH, WALL_DEPTH
 
 if TYPE_CHECKING:       # xvoe imports inference only inside the functions that need it
+    import numpy as np
+
     from inference.model import InferenceConfig
 
 
@@ -180,7 +182,7 @@ def aggregate(per_frame: Tensor, how: str) -> Tensor:
 
 # --- scoring a split file ---------------------------------------------------------------
 
-NLL_COLUMNS = ("nll", "ess", "p_hidden")
+NLL_COLUMNS = ("nll", "ess", "p_hidden", "nll_excess")
 SCORE_COLUMNS = ("index", "model", "scenario", "setting", "pair", "member", "possible", "score", "s_img", "s_dyn")
 EXCESS_COLUMNS = ("s_rec", "excess")    # models with a perception module: XPL, its ablation, PLATO
 XPL_STAGES = ("xpl", "plato", "xpl-noresidual")
@@ -244,8 +246,9 @@ def score_split(model: str | Scorer, data: str, out: str, *, how: str = "sum", v
     """What `xvoe score` does: one CSV row per test video, and the per-frame surprise curves
     (s_img, s_dyn: (N, T); s_rec too for a model with a perception module) in an .npz beside
     it. Models with a perception module also get the columns s_rec and excess (the module
-    docstring). With surprise "nll" or "both", the columns nll, ess and p_hidden of the Pyro
-    model are added (XPL models only); with "nll", the score column is the NLL."""
+    docstring). With surprise "nll" or "both", the columns nll, ess, p_hidden and nll_excess
+    (`reference_nll`) of the Pyro model are added (XPL models only); with "nll", the score
+    column is the NLL."""
     import csv
 
     import numpy as np
@@ -270,11 +273,15 @@ def score_split(model: str | Scorer, data: str, out: str, *, how: str = "sum", v
     with store.open_dataset(data) as file:
         if file.attrs["split"] != "test":
             raise XvoeError(f"{data} is a {file.attrs['split']} split; scores need a test split")
-        count, frames_count = file["rgbd"].shape[:2]
+        count, frames_count, size = file["rgbd"].shape[:3]
         labels = {name: (store.strings(file, name) if name in ("scenario", "setting") else file[name][:])
                   for name in ("scenario", "setting", "pair", "member", "possible")}
         curves = np.zeros((3, count, frames_count))     # s_img, s_dyn, s_rec
-        nll = np.zeros((count, 3))
+        nll = np.zeros((count, len(NLL_COLUMNS)))
+        if with_nll:
+            from inference.model import InferenceConfig
+
+            nll_config = InferenceConfig(particles=particles)
         if scorer.is_random:
             curves[:2] = np.random.default_rng(scorer.seed).random((2, count, frames_count))
         else:
@@ -290,10 +297,10 @@ def score_split(model: str | Scorer, data: str, out: str, *, how: str = "sum", v
                     batch = encode_videos(scorer, file, start, stop)     # once, for both surprises
                     curves[:, start:stop] = torch.stack(_xpl_curves(scorer, batch)).numpy()
                     if with_nll:
-                        from inference.model import InferenceConfig
-
-                        nll[start:stop] = xpl_nll(scorer, batch, InferenceConfig(particles=particles))
+                        nll[start:stop, :3] = xpl_nll(scorer, batch, nll_config)
     with_rec = scorer.vae is not None
+    if with_nll:
+        nll[:, 3] = nll[:, 0] - reference_nll(curves[2], 4 * size * size, nll_config.pixel_sigma)
     s_img, s_dyn, s_rec = (aggregate(torch.from_numpy(c), how).numpy() for c in curves)
     total = aggregate(torch.from_numpy(curves[:2].sum(0)), how).numpy() if surprise != "nll" else nll[:, 0]
     excess = aggregate(torch.from_numpy(curves[0] - curves[2] + curves[1]), how).numpy()
@@ -311,6 +318,17 @@ def score_split(model: str | Scorer, data: str, out: str, *, how: str = "sum", v
     np.savez_compressed(out.with_suffix(".curves.npz"), **named)
     tmp.replace(out)
     return out
+
+
+def reference_nll(s_rec: np.ndarray, pixels: int, sigma: float) -> np.ndarray:
+    """-log N(frames | the perception's drawing of what it saw, sigma^2) per video, from its
+    s_rec curve (N, T) and the pixels of one frame: the NLL of a reference that draws the seen
+    objects and nothing else, under the Pyro model's pixel likelihood. The NLL less this is a
+    log-likelihood ratio (nll_excess): the pixels of the seen objects that the perception
+    misses, the same under every hypothesis, cancel, as in the excess score."""
+    from inference.model import pixel_log_normaliser
+
+    return s_rec.sum(axis=1) / (2 * sigma ** 2) + pixel_log_normaliser(pixels * s_rec.shape[1], sigma)
 
 
 def encode_videos(scorer: Scorer, file, start: int, stop: int) -> dict[str, Tensor]:
