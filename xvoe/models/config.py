@@ -140,9 +140,10 @@ PRESETS: dict[str, Preset] = {
         perception=PerceptionConfig(),
         xpl=XPLConfig(inert_walls=True, stop_input_gradient=True, outside_refill=True),
         xpl_train=TrainConfig(steps=12_000, batch_size=32, warmup_steps=100, decay_steps=8000),
-        # the shipped PLATO: trained 10x as long as XPL, its predictive accuracy reaches 98-99.5%
-        # in three scenarios (3,000 steps: 3-57%); about 50 minutes on one core (docs/results.md)
-        plato_train=TrainConfig(steps=30_000, batch_size=32, warmup_steps=100, decay_steps=15_000),
+        # the shipped PLATO: trained 5x as long as XPL, its predictive accuracy reaches 97-100% in
+        # three scenarios and 89% in continuity (3,000 steps: 3-57%); about 100 minutes on one core
+        # (docs/results.md)
+        plato_train=TrainConfig(steps=60_000, batch_size=32, warmup_steps=100, decay_steps=15_000),
     ),
     # The paper's sizes (appendix tables): 128x128, ViT encoder, D=32, 64-channel decoder; for GPUs.
     "paper": Preset(
