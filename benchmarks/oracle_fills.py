@@ -74,7 +74,7 @@ def score_pair(scorer, batch: dict, truth: torch.Tensor, seen_without_walls: tor
     for name, latents, slots in (("t1", refined, occupied),
                                  ("oracle", oracle, occupied | (seen_without_walls.any(dim=1) & ~occluder))):
         s_img, s_dyn, _ = latent_surprise(scorer.vae, scorer.xpl, batch["frames"], latents, slots, visible,
-                                       batch["background"], occluder)
+                                          batch["background"], occluder)
         out[name] = (s_img + s_dyn).sum(1).numpy()
         out[name + "_dyn"] = s_dyn.sum(1).numpy()
     return out
