@@ -53,8 +53,13 @@ class Surprise:
 
     @property
     def excess(self) -> Tensor:
-        """Per-frame surprise beyond the perception's reconstruction of what it saw."""
-        return self.s_img - self.s_rec + self.s_dyn
+        return excess(self.s_img, self.s_dyn, self.s_rec)
+
+
+def excess(s_img: Tensor | np.ndarray, s_dyn: Tensor | np.ndarray, s_rec: Tensor | np.ndarray) -> Tensor | np.ndarray:
+    """Per-frame surprise beyond the perception's reconstruction of what it saw (tensors or
+    arrays alike): s_img - s_rec + s_dyn."""
+    return s_img - s_rec + s_dyn
 
 
 def decode_slots(vae: ComponentVAE, z: Tensor, occupied: Tensor) -> Tensor:
@@ -277,7 +282,7 @@ def score_split(model: str | Scorer, data: str, out: str, *, how: str = "sum", v
         labels = {name: (store.strings(file, name) if name in ("scenario", "setting") else file[name][:])
                   for name in ("scenario", "setting", "pair", "member", "possible")}
         curves = np.zeros((3, count, frames_count))     # s_img, s_dyn, s_rec
-        nll = np.zeros((count, len(NLL_COLUMNS)))
+        nll = np.zeros((count, 3))      # nll, ess, p_hidden (xpl_nll)
         if with_nll:
             from inference.model import InferenceConfig
 
@@ -297,19 +302,21 @@ def score_split(model: str | Scorer, data: str, out: str, *, how: str = "sum", v
                     batch = encode_videos(scorer, file, start, stop)     # once, for both surprises
                     curves[:, start:stop] = torch.stack(_xpl_curves(scorer, batch)).numpy()
                     if with_nll:
-                        nll[start:stop, :3] = xpl_nll(scorer, batch, nll_config)
+                        nll[start:stop] = xpl_nll(scorer, batch, nll_config)
     with_rec = scorer.vae is not None
     if with_nll:
-        nll[:, 3] = nll[:, 0] - reference_nll(curves[2], 4 * size * size, nll_config.pixel_sigma)
+        nll_excess = nll[:, 0] - reference_nll(curves[2], 4 * size * size, nll_config.pixel_sigma)
+        nll = np.column_stack([nll, nll_excess])    # the order of NLL_COLUMNS
     s_img, s_dyn, s_rec = (aggregate(torch.from_numpy(c), how).numpy() for c in curves)
     total = aggregate(torch.from_numpy(curves[:2].sum(0)), how).numpy() if surprise != "nll" else nll[:, 0]
-    excess = aggregate(torch.from_numpy(curves[0] - curves[2] + curves[1]), how).numpy()
+    if with_rec:
+        excess_score = aggregate(torch.from_numpy(excess(*curves)), how).numpy()
     tmp = out.with_name(f".{out.name}.tmp")
     with open(tmp, "w", newline="") as handle:
         writer = csv.writer(handle)
         writer.writerow(SCORE_COLUMNS + (EXCESS_COLUMNS if with_rec else ()) + (NLL_COLUMNS if with_nll else ()))
         for i in range(count):
-            extra = [float(s_rec[i]), float(excess[i])] if with_rec else []
+            extra = [float(s_rec[i]), float(excess_score[i])] if with_rec else []
             extra += list(map(float, nll[i])) if with_nll else []
             writer.writerow([i, scorer.name, labels["scenario"][i], labels["setting"][i], int(labels["pair"][i]),
                              int(labels["member"][i]), bool(labels["possible"][i]), float(total[i]),
