@@ -64,6 +64,22 @@ def test_xpl_stage_learns_and_resumes_exactly(cache, tmp_path):
     assert state["config"]["xpl"]["reasoning"]["latent_dim"] == D and not model.training
 
 
+def test_a_shipped_checkpoint_trains_further_from_its_step(cache, tmp_path):
+    from xvoe.zoo import KEPT
+    first = torch.load(train_xpl(cache, tmp_path / "a", stage="plato", progress=False, **{**TINY, "steps": 40}),
+                       weights_only=False)
+    (tmp_path / "b").mkdir()
+    torch.save({key: first[key] for key in KEPT}, tmp_path / "b" / "plato.pt")   # what `xvoe ship` keeps
+    with pytest.warns(UserWarning, match="no optimiser state.*step 40"):
+        further = train_xpl(cache, tmp_path / "b", stage="plato", progress=False, resume=True, **TINY)
+    assert torch.load(further, weights_only=False)["step"] == 100
+    # the log starts where the shipped weights left off, not at a fresh model's loss
+    fresh, after = losses(tmp_path / "a", "plato"), losses(tmp_path / "b", "plato")
+    assert int(after[0]["step"]) == 45
+    loss = {int(row["step"]): float(row["loss"]) for row in fresh}
+    assert float(after[0]["loss"]) < min(loss[5], loss[20], loss[25])
+
+
 def test_plato_and_the_no_residual_ablation(cache, tmp_path):
     short = {**TINY, "steps": 5}
     plato = train_xpl(cache, tmp_path, stage="plato", progress=False, **short)

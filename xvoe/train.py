@@ -16,6 +16,7 @@ import csv
 import os
 import random
 import time
+import warnings
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -188,7 +189,8 @@ def fit(job: Job, config: TrainConfig, run_dir: str | os.PathLike, *, place: Dis
     """Train `job.model` for config.steps steps (or config.max_minutes), checkpointing as it goes.
 
     Returns the checkpoint path. With `resume`, the model, optimiser, step, RNG states and the
-    loss CSV continue from the checkpoint in run_dir, as if the run had never stopped.
+    loss CSV continue from the checkpoint in run_dir, as if the run had never stopped; from a
+    shipped checkpoint (weights only), the weights and step do, with a fresh optimiser.
     """
     place = place or Dist()
     run_dir = Path(run_dir)
@@ -201,10 +203,15 @@ def fit(job: Job, config: TrainConfig, run_dir: str | os.PathLike, *, place: Dis
     if resume and ckpt.exists():
         state = load_checkpoint(ckpt)
         model.load_state_dict(state["model"])
-        optimiser.load_state_dict(state["optimizer"])
         start, elapsed = state["step"], state.get("elapsed", 0.0)
-        set_rng_state(state["rng"])
-        meter.sums, meter.count = dict(state["meter"]["sums"]), state["meter"]["count"]
+        if "optimizer" in state:
+            optimiser.load_state_dict(state["optimizer"])
+            set_rng_state(state["rng"])
+            meter.sums, meter.count = dict(state["meter"]["sums"]), state["meter"]["count"]
+        elif place.main:
+            # a shipped checkpoint keeps weights only: train it further from its step
+            warnings.warn(f"{ckpt} holds no optimiser state (a shipped model?): Adam starts afresh at step "
+                          f"{start}", stacklevel=2)
     wrapped = model
     if place.world > 1:
         wrapped = nn.parallel.DistributedDataParallel(model, device_ids=[place.device] if place.device.type == "cuda"
