@@ -5,7 +5,7 @@
 Transformer 1 fills the frames in which a seen object is hidden (behind the wall). Here every
 pair of a generated test split is simulated again from the split's seed, rendered a second
 time without its walls, and encoded by the model's own perception: that gives each hidden
-object's latent as the encoder would have seen it. Each pair is then scored twice with the
+object's latent as the encoder would have seen it. Each pair is then scored three times with the
 same MSE score (`xvoe.score.latent_surprise`): with Transformer 1's fills (what `xvoe score`
 does), with those true latents in their place ("oracle"), and with true latents also where
 the wall hides an object only in part ("whole": the encoder's reading of a partly hidden
@@ -69,8 +69,8 @@ def true_latents(scorer, config: GenerateConfig, unit: int, stored: np.ndarray) 
 
 def score_pair(scorer, batch: dict, truth: torch.Tensor, seen_without_walls: torch.Tensor,
                partly_hidden: torch.Tensor) -> dict[str, np.ndarray]:
-    """Total score and s_dyn of both members with Transformer 1's fills, with the true latents
-    in the fills, and with them also in the entries `partly_hidden` (2, T, K) by a wall."""
+    """Total score, excess and s_dyn of both members with Transformer 1's fills, with the true
+    latents in the fills, and with them also in the entries `partly_hidden` (2, T, K) by a wall."""
     visible, occluder = batch["visible"], batch["occluder"]
     refined, _, occupied = explained_latents(scorer.xpl, batch["mean"], visible)
     hidden = ~visible & ~occluder[:, None, :] & seen_without_walls

@@ -76,8 +76,7 @@ def test_a_shipped_checkpoint_trains_further_from_its_step(cache, tmp_path):
     # the log starts where the shipped weights left off, not at a fresh model's loss
     fresh, after = losses(tmp_path / "a", "plato"), losses(tmp_path / "b", "plato")
     assert int(after[0]["step"]) == 45
-    loss = {int(row["step"]): float(row["loss"]) for row in fresh}
-    assert float(after[0]["loss"]) < min(loss[5], loss[20], loss[25])
+    assert float(after[0]["loss"]) < min(float(row["loss"]) for row in fresh if int(row["step"]) <= 25)
 
 
 def test_plato_and_the_no_residual_ablation(cache, tmp_path):
