@@ -19,6 +19,7 @@ from __future__ import annotations
 import csv
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TypeVar
 
 import numpy as np
 
@@ -182,6 +183,15 @@ def _settings(scores: dict[str, np.ndarray]) -> list[tuple[str, str]]:
 
 METRICS = ("comparative", "holistic", "relative")
 COMPONENTS = ("score", "s_img", "s_dyn", "excess", "nll", "nll_excess")    # the last three: when scored
+
+Curve = TypeVar("Curve")    # numpy arrays or torch tensors
+
+
+def excess(s_img: Curve, s_dyn: Curve, s_rec: Curve) -> Curve:
+    """Per-frame surprise beyond the perception's reconstruction of what it saw: s_img - s_rec
+    + s_dyn (the `excess` component). Here, without torch, so that curves saved by `xvoe score`
+    use it as the scorer does."""
+    return s_img - s_rec + s_dyn
 
 
 def metric_rows(scores: dict[str, np.ndarray], model: str, columns: tuple[str, ...] = COMPONENTS,

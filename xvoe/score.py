@@ -29,6 +29,7 @@ from typing import TYPE_CHECKING
 import torch
 from torch import Tensor
 
+from .metrics import excess
 from .models.perception import ComponentVAE
 from .models.phydnet import PhyDNet
 from .models.xpl import XPL
@@ -54,12 +55,6 @@ class Surprise:
     @property
     def excess(self) -> Tensor:
         return excess(self.s_img, self.s_dyn, self.s_rec)
-
-
-def excess(s_img: Tensor | np.ndarray, s_dyn: Tensor | np.ndarray, s_rec: Tensor | np.ndarray) -> Tensor | np.ndarray:
-    """Per-frame surprise beyond the perception's reconstruction of what it saw (tensors or
-    arrays alike): s_img - s_rec + s_dyn."""
-    return s_img - s_rec + s_dyn
 
 
 def decode_slots(vae: ComponentVAE, z: Tensor, occupied: Tensor) -> Tensor:

@@ -415,7 +415,7 @@ def plot_surprise_curves(scores: str | Path, data: str | Path | None, scenario: 
     the .curves.npz beside it); data: the test split that was scored, for the event frame (red
     line) and the frames where the wall stands (grey; lighter while it moves), or None for
     the curves alone. frame: a frame to mark (a cursor)."""
-    from .metrics import read_scores
+    from .metrics import excess, read_scores
 
     table = read_scores(scores)
     curves = Path(curves) if curves is not None else Path(scores).with_suffix(".curves.npz")
@@ -450,7 +450,7 @@ def plot_surprise_curves(scores: str | Path, data: str | Path | None, scenario: 
     model = str(table["model"][0]) if "model" in table else Path(scores).stem
     panels = [("s_img", s_img), ("s_dyn", s_dyn), ("s_img + s_dyn", s_img + s_dyn)]
     if s_rec is not None:
-        panels.append(("excess: s_img - s_rec + s_dyn", s_img - s_rec + s_dyn))
+        panels.append(("excess: s_img - s_rec + s_dyn", excess(s_img, s_dyn, s_rec)))
     fig, axes = plt.subplots(1, len(panels), figsize=(3.7 * len(panels), 3.4), sharex=True)
     t = np.arange(frames)
     for ax, (name, values) in zip(axes, panels):
