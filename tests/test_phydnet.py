@@ -11,6 +11,7 @@ from xvoe.generate import GenerateConfig, generate
 from xvoe.models.phydnet import (
     PhyDNet,
     PhyDNetConfig,
+    change_mask,
     derivative_targets,
     kernel_moments,
     kernels_with_moments,
@@ -103,6 +104,34 @@ def test_the_prediction_of_a_frame_never_sees_that_frame():
         torch.testing.assert_close(after[:, :t + 1], before[:, :t + 1], atol=1e-6, rtol=0)
         if t + 1 < 5:
             assert not torch.allclose(after[:, t + 1:], before[:, t + 1:])
+
+
+def test_the_change_weight_counts_changed_pixels_more_in_training_only():
+    frames = torch.zeros(1, 3, 4, 16, 16)
+    frames[0, 1, 3, 2, 5] = 0.5           # frame 1: one pixel's depth changes (and changes back at 2)
+    frames[0, 2, 0, 7, 7] = 1 / 255       # frame 2: a change below one uint8 level is not a change
+    mask = change_mask(frames)
+    assert mask.shape == (1, 2, 1, 16, 16) and mask.sum() == 2
+    assert mask[0, 0, 0, 2, 5] == 1 and mask[0, 1, 0, 2, 5] == 1 and mask[0, 1, 0, 7, 7] == 0
+
+    torch.manual_seed(0)
+    plain = PhyDNet(TINY)
+    weighted = PhyDNet(replace(TINY, change_weight=9.0))
+    weighted.load_state_dict(plain.state_dict())
+    frames = videos(1, 3)
+    frames[:, 2] = frames[:, 1]
+    frames[:, 2, :, :4, :4] = -frames[:, 1, :, :4, :4]          # frame 2 differs from 1 in a 4x4 corner
+    error = (plain(frames) - frames[:, 1:]).pow(2).detach()
+    changed = torch.zeros(1, 2, 1, 16, 16, dtype=torch.bool)
+    changed[:, 0] = True                                          # frame 1 is new noise everywhere
+    changed[:, 1, :, :4, :4] = True
+    # by hand: changed pixels count 10 times, unchanged ones once, averaged over channels too
+    by_hand = (error * changed).sum() * 10 + (error * ~changed).sum()
+    by_hand /= (changed.sum() * 10 + (~changed).sum()) * 4
+    terms = weighted.loss(frames)
+    torch.testing.assert_close(terms["loss"] - terms["moment"], by_hand)
+    torch.testing.assert_close(terms["prediction"], error.mean())     # logged as the plain MSE
+    torch.testing.assert_close(plain.surprise(frames), weighted.surprise(frames))
 
 
 def test_a_few_steps_lower_the_loss_on_a_tiny_batch():
