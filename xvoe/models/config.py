@@ -144,6 +144,11 @@ PRESETS: dict[str, Preset] = {
         # three scenarios and 89% in continuity (3,000 steps: 3-57%); about 100 minutes on one core
         # (docs/results.md)
         plato_train=TrainConfig(steps=60_000, batch_size=32, warmup_steps=100, decay_steps=15_000),
+        # the shipped PhyDNet: the changing pixels weighed 21 times in its training loss, 25 times the
+        # cpu preset's steps; predictive 90-99.5% in three scenarios (300 plain steps: 0-48.5%); about
+        # 2 hours on two threads (docs/results.md; the shipped run stopped at 7,479 steps, its time limit)
+        phydnet=PhyDNetConfig(change_weight=20.0),
+        phydnet_train=TrainConfig(steps=7500, batch_size=8, lr=2e-3, warmup_steps=100, decay_steps=2500),
     ),
     # The paper's sizes (appendix tables): 128x128, ViT encoder, D=32, 64-channel decoder; for GPUs.
     "paper": Preset(
