@@ -240,8 +240,9 @@ class PhyDNet(nn.Module):
 
 
 def change_mask(frames: Tensor, threshold: float = 2 / 255) -> Tensor:
-    """(B, T-1, 1, H, W): 1 where any channel of frame t+1 differs from frame t (frames in [-1, 1],
-    so the threshold is one uint8 level), else 0."""
+    """(B, T-1, 1, H, W): 1 where any channel of frame t+1 differs from frame t by more than the
+    threshold, else 0. Frames are in [-1, 1], so 2/255 is one uint8 level (a change of exactly one
+    level may fall on either side of it in float32; two levels or more always count)."""
     return ((frames[:, 1:] - frames[:, :-1]).abs().amax(dim=2, keepdim=True) > threshold).to(frames.dtype)
 
 
