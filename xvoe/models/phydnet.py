@@ -217,11 +217,15 @@ class PhyDNet(nn.Module):
             residual_out.append(x)
         return torch.stack(physics_out, 1), torch.stack(residual_out, 1)
 
+    def squared_error(self, frames: Tensor) -> Tensor:
+        """(B, T-1, C, H, W): the squared one-step prediction error of frames 1..T-1, which both
+        the training loss and the surprise are made of."""
+        return (self(frames) - frames[:, 1:]).pow(2)
+
     def loss(self, frames: Tensor) -> dict[str, Tensor]:
         """Training terms: next-frame MSE over frames 1..T-1 (weighted towards the pixels that
         change if `change_weight` > 0) plus the weighted moment loss; `prediction` is the plain MSE."""
-        target = frames[:, 1:]
-        error = (self(frames) - target).pow(2)
+        error = self.squared_error(frames)
         prediction = error.mean()
         fitted = prediction
         if self.config.change_weight > 0:
@@ -235,7 +239,7 @@ class PhyDNet(nn.Module):
     def surprise(self, frames: Tensor) -> Tensor:
         """Per-frame surprise (B, T): sum over pixels and channels of the squared one-step
         prediction error; 0 at frame 0, which nothing predicts."""
-        error = (self(frames) - frames[:, 1:]).pow(2).flatten(2).sum(2)
+        error = self.squared_error(frames).flatten(2).sum(2)
         return torch.cat([error.new_zeros(len(error), 1), error], dim=1)
 
 
