@@ -247,3 +247,29 @@ def test_pipeline_trains_and_scores_phydnet_without_perception(tmp_path, monkeyp
     assert "phydnet" in report and "| collision |" in report
     assert (tmp_path / "run" / "phydnet.pt").exists() and (tmp_path / "run" / "scores" / "phydnet.csv").exists()
     assert not (tmp_path / "run" / "perception.pt").exists()
+
+
+def test_plot_predictions_draws_each_frame_as_predicted_from_the_ones_before(splits):
+    import h5py
+    import matplotlib.pyplot as plt
+
+    from xvoe.models.perception import normalise, to_uint8
+    from xvoe.viz import plot_predictions, predicted_frames
+
+    torch.manual_seed(0)
+    net = PhyDNet(TINY).eval()
+    with h5py.File(splits[1]) as file:
+        rgbd = file["rgbd"][3]
+    predicted = predicted_frames(net, rgbd)
+    assert predicted.shape == rgbd.shape and predicted.dtype == np.uint8 and np.all(predicted[0] == 255)
+    np.testing.assert_array_equal(predicted[1:], to_uint8(net(normalise(torch.from_numpy(rgbd))[None])[0]).numpy())
+    changed = rgbd.copy()
+    changed[5:] = 0                                           # frames 0-4 alone make frames 1-5
+    np.testing.assert_array_equal(predicted_frames(net, changed)[:6], predicted[:6])
+    assert not np.array_equal(predicted_frames(net, changed)[6:], predicted[6:])
+    figure = plot_predictions(net, splits[1], 3)
+    surprise = net.surprise(normalise(torch.from_numpy(rgbd))[None])[0, 1:]
+    assert figure.axes[0].get_title().endswith(": " + " ".join(f"{value:.0f}" for value in surprise.tolist()))
+    plt.close(figure)
+    with pytest.raises(XvoeError, match="outside"):
+        plot_predictions(net, splits[1], 99)

@@ -510,3 +510,38 @@ def frame_rows(rows: list[tuple[str, np.ndarray]], title: str = "") -> plt.Figur
     draw_frame_rows(ax, [video for _, video in rows], [name for name, _ in rows], title)
     fig.tight_layout()
     return fig
+
+
+# --- a pixel predictor's view: PhyDNet's one-step predictions -----------------------------
+
+def predicted_frames(net, rgbd: np.ndarray) -> np.ndarray:
+    """PhyDNet's prediction of each frame of one video (T, H, W, 4) uint8 from the frames before
+    it, as uint8 of the same shape; frame 0, which nothing predicts, is blank (255)."""
+    import torch
+
+    from .models.perception import normalise, to_uint8
+
+    with torch.no_grad():
+        predicted = to_uint8(net(normalise(torch.from_numpy(np.ascontiguousarray(rgbd))[None]))[0]).numpy()
+    return np.concatenate([np.full_like(rgbd[:1], 255), predicted])
+
+
+def plot_predictions(model, data: str | Path, index: int) -> plt.Figure:
+    """Video `index` of a split file and a PhyDNet's one-step predictions under it: where the
+    predicted row parts from the observed one is what the model did not expect (its surprise
+    per frame, summed over pixels, in the title). `model`: a loaded PhyDNet or a checkpoint."""
+    from .train_phydnet import load_phydnet
+
+    net = load_phydnet(model)[0] if isinstance(model, (str, Path)) else model
+    with store.open_dataset(data) as file:
+        if not 0 <= index < file["rgbd"].shape[0]:
+            raise XvoeError(f"index {index} is outside {data}'s {file['rgbd'].shape[0]} videos")
+        rgbd = file["rgbd"][index]
+    import torch
+
+    from .models.perception import normalise
+
+    surprise = net.surprise(normalise(torch.from_numpy(rgbd))[None])[0, 1:]
+    per_frame = " ".join(f"{value:.0f}" for value in surprise.tolist())
+    return frame_rows([("observed", rgbd), ("predicted", predicted_frames(net, rgbd))],
+                      f"video {index}: surprise of frames 1-{len(rgbd) - 1}: {per_frame}")

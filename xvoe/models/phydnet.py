@@ -47,8 +47,8 @@ class PhyDNetConfig:
     lstm_kernel: int = 3
     # > 1: chrono initialisation of the ConvLSTM gates (Tallec & Ollivier, ICLR 2018) for memories
     # of up to this many frames; 0: PyTorch's default biases, whose forget gate halves the cell
-    # state each frame, so an error at the frame a wall lifts barely reaches the frames the cubes
-    # fell behind it, or the frame the wall came down (the lift's only clock)
+    # state each frame. Meant for permanence (cubes behind a wall for five frames); it did not
+    # bring their memory at 7,500 steps and cost accuracy elsewhere (docs/results.md), so 0
     lstm_chrono_frames: int = 0
     moment_weight: float = 1.0                      # weight of the moment loss
     # extra weight, in the training loss only, of the pixels that change from one frame to the
