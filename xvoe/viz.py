@@ -529,7 +529,11 @@ def predicted_frames(net, rgbd: np.ndarray) -> np.ndarray:
 def plot_predictions(model, data: str | Path, index: int) -> plt.Figure:
     """Video `index` of a split file and a PhyDNet's one-step predictions under it: where the
     predicted row parts from the observed one is what the model did not expect (its surprise
-    per frame, summed over pixels, in the title). `model`: a loaded PhyDNet or a checkpoint."""
+    per frame, summed over pixels, in the title). `model`: a loaded PhyDNet, or a checkpoint,
+    run directory or shipped name that `load_phydnet` takes."""
+    import torch
+
+    from .models.perception import normalise
     from .train_phydnet import load_phydnet
 
     net = load_phydnet(model)[0] if isinstance(model, (str, Path)) else model
@@ -537,10 +541,6 @@ def plot_predictions(model, data: str | Path, index: int) -> plt.Figure:
         if not 0 <= index < file["rgbd"].shape[0]:
             raise XvoeError(f"index {index} is outside {data}'s {file['rgbd'].shape[0]} videos")
         rgbd = file["rgbd"][index]
-    import torch
-
-    from .models.perception import normalise
-
     surprise = net.surprise(normalise(torch.from_numpy(rgbd))[None])[0, 1:]
     per_frame = " ".join(f"{value:.0f}" for value in surprise.tolist())
     return frame_rows([("observed", rgbd), ("predicted", predicted_frames(net, rgbd))],
