@@ -213,6 +213,35 @@ def test_stage_trains_resumes_exactly_and_loads(splits, tmp_path, tiny_preset):
         train_phydnet(splits[0], tmp_path / "d", progress=False, model_overrides={"image_size": 32})
 
 
+def test_a_focus_group_fills_its_share_of_each_batch_with_that_groups_wall_videos(splits):
+    import h5py
+
+    from xvoe.train_phydnet import VideoBatches
+
+    with h5py.File(splits[0]) as file:
+        groups, walls = file["group"].asstr()[:], file["has_wall"][:].astype(bool)
+    focus = np.flatnonzero((groups == "continuity") & walls)
+    assert 0 < len(focus) < len(groups)
+    batches = VideoBatches(str(splits[0]), image_size=16, batch_size=4, shards=1, seed=1, focus_group="continuity",
+                           focus_share=0.5)
+    for step in range(20):
+        tail = batches.batch(step)[2:]
+        assert all(any(torch.equal(video, batches.rgbd[row]) for row in focus) for video in tail)
+    plain = VideoBatches(str(splits[0]), image_size=16, batch_size=4, shards=1, seed=1)
+    mixed = torch.cat([plain.batch(step) for step in range(20)])
+    assert not all(any(torch.equal(video, plain.rgbd[row]) for row in focus) for video in mixed)
+    with pytest.raises(XvoeError, match=r"\[0, 1\]"):
+        VideoBatches(str(splits[0]), image_size=16, batch_size=4, shards=1, focus_group="continuity", focus_share=1.5)
+    with pytest.raises(XvoeError, match="needs a focus_group"):
+        VideoBatches(str(splits[0]), image_size=16, batch_size=4, shards=1, focus_share=0.5)
+    with pytest.raises(XvoeError, match="no training videos of group 'permanance'"):
+        VideoBatches(str(splits[0]), image_size=16, batch_size=4, shards=1, focus_group="permanance", focus_share=0.5)
+    with pytest.raises(XvoeError, match="no continuity videos with a wall in rows 3-6"):
+        VideoBatches(str(splits[0]), image_size=16, batch_size=4, shards=2, focus_group="continuity", focus_share=0.5)
+    with pytest.raises(XvoeError, match="needs a training split"):
+        VideoBatches(str(splits[1]), image_size=16, batch_size=4, shards=1, focus_group="continuity", focus_share=0.5)
+
+
 def test_the_name_resolves_and_scores_a_tiny_test_set(splits, tmp_path, tiny_preset):
     from xvoe.cli import main
     from xvoe.score import SCORE_COLUMNS, load_scorer

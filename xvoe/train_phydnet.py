@@ -35,23 +35,52 @@ STAGE = "phydnet"
 
 
 class VideoBatches:
-    """The shards of a split file that one process owns, in memory as uint8 RGBD, and its batches."""
+    """The shards of a split file that one process owns, in memory as uint8 RGBD, and its batches.
+
+    With `focus_group`, a `focus_share` of each shard's part of a batch is drawn from that
+    group's videos with a wall (the ones where a hidden object must be remembered), the rest
+    uniformly from all of the shard's videos.
+    """
 
     def __init__(self, path: str, *, image_size: int, batch_size: int, shards: int, rank: int = 0, world: int = 1,
-                 max_videos: int = 0, seed: int = 0):
+                 max_videos: int = 0, seed: int = 0, focus_group: str = "", focus_share: float = 0.0):
+        if not 0.0 <= focus_share <= 1.0:
+            raise XvoeError(f"focus_share must lie in [0, 1], not {focus_share}")
+        if focus_share and not focus_group:
+            raise XvoeError("focus_share needs a focus_group (e.g. permanence)")
         with store.open_dataset(path) as file:
             check_size(file, image_size, "PhyDNet")
             owned = owned_shards(path, file["rgbd"].shape[0], batch_size=batch_size, shards=shards, rank=rank,
                                  world=world, max_videos=max_videos)
             self.rgbd = torch.from_numpy(file["rgbd"][owned.start:owned.stop])
+            focus = focus_videos(file, focus_group, owned.start, owned.stop) if focus_share else None
         self.shards, self.bounds, self.per_shard = owned.shards, owned.bounds, owned.per_shard
         self.start, self.seed = owned.start, seed
+        self.focused = round(self.per_shard * focus_share)
+        self.focus = [] if focus is None else [focus[(focus >= start) & (focus < stop)] for start, stop in self.bounds]
+        for (start, stop), videos in zip(self.bounds, self.focus):
+            if not len(videos):
+                raise XvoeError(f"{path} has no {focus_group} videos with a wall in rows {start}-{stop}")
 
     def batch(self, step: int) -> Tensor:
         """uint8 videos (B, T, H, W, 4): the local part of the global batch of `step`."""
-        picks = [np.random.default_rng([self.seed, step, shard]).integers(start, stop, self.per_shard) - self.start
-                 for shard, (start, stop) in zip(self.shards, self.bounds)]
-        return self.rgbd[torch.from_numpy(np.concatenate(picks))]
+        picks = []
+        for i, (shard, (start, stop)) in enumerate(zip(self.shards, self.bounds)):
+            rng = np.random.default_rng([self.seed, step, shard])
+            picks.append(rng.integers(start, stop, self.per_shard - self.focused))
+            if self.focused:
+                picks.append(rng.choice(self.focus[i], self.focused))
+        return self.rgbd[torch.from_numpy(np.concatenate(picks) - self.start)]
+
+
+def focus_videos(file, group: str, start: int, stop: int) -> np.ndarray:
+    """Rows in [start, stop) of a training split's `group` videos that have a wall."""
+    if "group" not in file:
+        raise XvoeError("focus_group needs a training split (its `group` labels); this file has none")
+    groups = file["group"].asstr()[start:stop]
+    if group not in set(groups):
+        raise XvoeError(f"no training videos of group {group!r}; the groups are {sorted(set(groups))}")
+    return start + np.flatnonzero((groups == group) & file["has_wall"][start:stop].astype(bool))
 
 
 def phydnet_configs(preset_name: str, run_dir: Path, resume: bool, data: str | os.PathLike | None
@@ -84,7 +113,8 @@ def train_phydnet(data: str | os.PathLike | None, run_dir: str | os.PathLike, *,
     seed_everything(config.seed)
     batches = VideoBatches(data, image_size=model_config.image_size, batch_size=config.batch_size,
                            shards=config.data_shards, rank=place.rank, world=place.world,
-                           max_videos=config.max_videos, seed=config.seed)
+                           max_videos=config.max_videos, seed=config.seed, focus_group=config.focus_group,
+                           focus_share=config.focus_share)
     job = Job(STAGE, PhyDNetObjective(PhyDNet(model_config)), batches.batch,
               {"preset": preset_name, "phydnet": to_dict(model_config)}, meta={"data": str(Path(data).resolve())})
     return fit(job, config, run_dir, place=place, resume=resume, overwrite=overwrite, progress=progress)
