@@ -57,10 +57,13 @@ class VideoBatches:
         self.shards, self.bounds, self.per_shard = owned.shards, owned.bounds, owned.per_shard
         self.start, self.seed = owned.start, seed
         self.focused = round(self.per_shard * focus_share)
+        if focus_share and not self.focused:
+            raise XvoeError(f"focus_share {focus_share} of the {self.per_shard} videos each shard gives a batch "
+                            "rounds to none")
         self.focus = [] if focus is None else [focus[(focus >= start) & (focus < stop)] for start, stop in self.bounds]
         for (start, stop), videos in zip(self.bounds, self.focus):
             if not len(videos):
-                raise XvoeError(f"{path} has no {focus_group} videos with a wall in rows {start}-{stop}")
+                raise XvoeError(f"{path} has no {focus_group} videos with a wall in rows {start} to {stop - 1}")
 
     def batch(self, step: int) -> Tensor:
         """uint8 videos (B, T, H, W, 4): the local part of the global batch of `step`."""
