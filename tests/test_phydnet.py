@@ -302,5 +302,5 @@ def test_plot_predictions_draws_each_frame_as_predicted_from_the_ones_before(spl
     surprise = net.surprise(normalise(torch.from_numpy(rgbd))[None])[0, 1:]
     assert figure.axes[0].get_title().endswith(": " + " ".join(f"{value:.0f}" for value in surprise.tolist()))
     plt.close(figure)
-    with pytest.raises(XvoeError, match="outside"):
+    with pytest.raises(XvoeError, match="index 99 is out of range"):
         plot_predictions(net, splits[1], 99)

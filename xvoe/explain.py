@@ -20,7 +20,7 @@ from .data import check_size
 from .errors import XvoeError
 from .models.perception import to_uint8
 from .score import Scorer, composite, decode_slots, encode_videos, explained_latents
-from .viz import describe
+from .viz import check_index, describe
 
 
 @dataclass
@@ -60,9 +60,7 @@ def _read_video(scorer: Scorer, data: str, index: int) -> tuple[dict, np.ndarray
     if scorer.is_random:
         raise XvoeError("the random agent explains nothing; give a trained model")
     with store.open_dataset(data) as file:
-        count = file["rgbd"].shape[0]
-        if not 0 <= index < count:
-            raise XvoeError(f"index {index} is out of range: the file holds videos 0..{count - 1}")
+        check_index(file, index)
         check_size(file, scorer.vae.config.image_size, f"the model {scorer.name}")
         return encode_videos(scorer, file, index, index + 1), file["rgbd"][index], describe(file, index)
 

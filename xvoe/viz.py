@@ -30,11 +30,16 @@ def depth_to_rgb(depth: np.ndarray) -> np.ndarray:
     return np.repeat(grey[..., None], 3, axis=-1)
 
 
-def video_indices(file: h5py.File, index: int) -> list[int]:
-    """The videos to show for `index`: its whole pair in a test file, itself otherwise."""
+def check_index(file: h5py.File, index: int) -> None:
+    """An error unless `index` names a video of the split file."""
     count = file["rgbd"].shape[0]
     if not 0 <= index < count:
         raise XvoeError(f"index {index} is out of range: the file holds videos 0..{count - 1}")
+
+
+def video_indices(file: h5py.File, index: int) -> list[int]:
+    """The videos to show for `index`: its whole pair in a test file, itself otherwise."""
+    check_index(file, index)
     if file.attrs["split"] == "test":
         first = index - int(file["member"][index])
         return [first, first + 1]
@@ -538,8 +543,7 @@ def plot_predictions(model, data: str | Path, index: int) -> plt.Figure:
 
     net = load_phydnet(model)[0] if isinstance(model, (str, Path)) else model
     with store.open_dataset(data) as file:
-        if not 0 <= index < file["rgbd"].shape[0]:
-            raise XvoeError(f"index {index} is outside {data}'s {file['rgbd'].shape[0]} videos")
+        check_index(file, index)
         rgbd = file["rgbd"][index]
     surprise = net.surprise(normalise(torch.from_numpy(rgbd))[None])[0, 1:]
     per_frame = " ".join(f"{value:.0f}" for value in surprise.tolist())
