@@ -310,8 +310,37 @@ def test_wall_refill_hides_what_one_wall_would_hide(train_file, tmp_path):
     assert torch.equal(again.batch(3).refill, batches.batch(3).refill)
 
 
+def test_a_focus_group_fills_its_share_of_each_latent_batch(train_file, tmp_path):
+    """With focus_group, half of each batch (the second half) are that group's videos with a wall,
+    found through the split file the cache came from; at share 0 the batches are the uniform ones."""
+    import h5py
+
+    with h5py.File(train_file) as file:
+        groups, walls = file["group"].asstr()[:], file["has_wall"][:].astype(bool)
+    focus = np.flatnonzero((groups == "continuity") & walls)
+    assert 0 < len(focus) < len(groups)
+    cache = walled_cache(train_file, tmp_path / "latents.h5")
+    focused = LatentBatches(str(cache), batch_size=8, shards=1, seed=2, focus_group="continuity", focus_share=0.5)
+    plain = LatentBatches(str(cache), batch_size=8, shards=1, seed=2)
+    unfocused = LatentBatches(str(cache), batch_size=8, shards=1, seed=2, focus_group="continuity", focus_share=0.0)
+    videos = [focused.draw(step)[0].numpy() for step in range(20)]
+    assert all(np.isin(video[4:], focus).all() for video in videos)
+    uniform = np.concatenate([plain.draw(step)[0].numpy() for step in range(20)])
+    assert not np.isin(uniform, focus).all()
+    assert all(torch.equal(a, b) for a, b in zip(plain.draw(5), unfocused.draw(5)))
+    with pytest.raises(XvoeError, match="no training videos of group 'continuty'"):
+        LatentBatches(str(cache), batch_size=8, shards=1, focus_group="continuty", focus_share=0.5)
+    moved = tmp_path / "moved.h5"
+    cache.rename(moved)
+    (tmp_path / "elsewhere").mkdir()
+    with h5py.File(moved, "a") as file:
+        file.attrs["source"] = str(tmp_path / "elsewhere" / "train.h5")
+    with pytest.raises(XvoeError, match="focus_group needs the split file"):
+        LatentBatches(str(moved), batch_size=8, shards=1, focus_group="continuity", focus_share=0.5)
+
+
 def test_wall_refill_needs_the_split_the_cache_came_from(cache):
-    with pytest.raises(XvoeError, match="wall_refill needs the objects' places"):
+    with pytest.raises(XvoeError, match="wall_refill needs the split file"):
         LatentBatches(str(cache), batch_size=8, shards=1, wall_refill=0.5)
 
 

@@ -166,6 +166,52 @@ def owned_shards(path: str, videos: int, *, batch_size: int, shards: int, rank: 
     return Ownership(mine, [bounds[s] for s in mine], batch_size // shards)
 
 
+@dataclass
+class Focus:
+    """A share of each shard's part of a batch drawn from one group's training videos with a
+    wall (where a hidden object must be remembered), the rest uniformly from the shard; at
+    share 0 the draws are the uniform ones, byte for byte."""
+
+    rows: list[np.ndarray]   # per owned shard: its focus rows (file rows)
+    count: int               # how many of the shard's items per batch come from them
+
+    def draw(self, rng: np.random.Generator, index: int, start: int, stop: int, items: int) -> np.ndarray:
+        """File rows of `items` videos of owned shard `index` (rows start to stop)."""
+        rows = rng.integers(start, stop, items - self.count)
+        return np.concatenate([rows, rng.choice(self.rows[index], self.count)]) if self.count else rows
+
+
+def focus_on(path: str, owned: Ownership, group: str, share: float) -> Focus:
+    """The Focus of TrainConfig.focus_group / focus_share for the shards a process owns of the
+    training split at `path`."""
+    if not 0.0 <= share <= 1.0:
+        raise XvoeError(f"focus_share must lie in [0, 1], not {share}")
+    if share and not group:
+        raise XvoeError("focus_share needs a focus_group (e.g. permanence)")
+    count = round(owned.per_shard * share)
+    if share and not count:
+        raise XvoeError(f"focus_share {share} of the {owned.per_shard} videos each shard gives a batch rounds to none")
+    if not count:
+        return Focus([], 0)
+    with store.open_dataset(path) as file:
+        found = focus_videos(file, group, owned.start, owned.stop)
+    rows = [found[(found >= start) & (found < stop)] for start, stop in owned.bounds]
+    for (start, stop), videos in zip(owned.bounds, rows):
+        if not len(videos):
+            raise XvoeError(f"{path} has no {group} videos with a wall in rows {start} to {stop - 1}")
+    return Focus(rows, count)
+
+
+def focus_videos(file: h5py.File, group: str, start: int, stop: int) -> np.ndarray:
+    """Rows in [start, stop) of a training split's `group` videos that have a wall."""
+    if "group" not in file:
+        raise XvoeError("focus_group needs a training split (its `group` labels); this file has none")
+    groups = file["group"].asstr()[start:stop]
+    if group not in set(groups):
+        raise XvoeError(f"no training videos of group {group!r}; the groups are {sorted(set(groups))}")
+    return start + np.flatnonzero((groups == group) & file["has_wall"][start:stop].astype(bool))
+
+
 class ShardedFrames:
     """The shards of a split file that one training process owns, and its batches.
 

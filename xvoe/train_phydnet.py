@@ -16,7 +16,7 @@ import torch
 from torch import Tensor
 
 from . import store
-from .data import check_size, owned_shards
+from .data import check_size, focus_on, owned_shards
 from .errors import XvoeError
 from .models.config import TrainConfig, from_dict, override, preset, to_dict
 from .models.phydnet import PhyDNet, PhyDNetConfig, PhyDNetObjective
@@ -44,46 +44,20 @@ class VideoBatches:
 
     def __init__(self, path: str, *, image_size: int, batch_size: int, shards: int, rank: int = 0, world: int = 1,
                  max_videos: int = 0, seed: int = 0, focus_group: str = "", focus_share: float = 0.0):
-        if not 0.0 <= focus_share <= 1.0:
-            raise XvoeError(f"focus_share must lie in [0, 1], not {focus_share}")
-        if focus_share and not focus_group:
-            raise XvoeError("focus_share needs a focus_group (e.g. permanence)")
         with store.open_dataset(path) as file:
             check_size(file, image_size, "PhyDNet")
             owned = owned_shards(path, file["rgbd"].shape[0], batch_size=batch_size, shards=shards, rank=rank,
                                  world=world, max_videos=max_videos)
             self.rgbd = torch.from_numpy(file["rgbd"][owned.start:owned.stop])
-            focus = focus_videos(file, focus_group, owned.start, owned.stop) if focus_share else None
+        self.focus = focus_on(path, owned, focus_group, focus_share)
         self.shards, self.bounds, self.per_shard = owned.shards, owned.bounds, owned.per_shard
         self.start, self.seed = owned.start, seed
-        self.focused = round(self.per_shard * focus_share)
-        if focus_share and not self.focused:
-            raise XvoeError(f"focus_share {focus_share} of the {self.per_shard} videos each shard gives a batch "
-                            "rounds to none")
-        self.focus = [] if focus is None else [focus[(focus >= start) & (focus < stop)] for start, stop in self.bounds]
-        for (start, stop), videos in zip(self.bounds, self.focus):
-            if not len(videos):
-                raise XvoeError(f"{path} has no {focus_group} videos with a wall in rows {start} to {stop - 1}")
 
     def batch(self, step: int) -> Tensor:
         """uint8 videos (B, T, H, W, 4): the local part of the global batch of `step`."""
-        picks = []
-        for i, (shard, (start, stop)) in enumerate(zip(self.shards, self.bounds)):
-            rng = np.random.default_rng([self.seed, step, shard])
-            picks.append(rng.integers(start, stop, self.per_shard - self.focused))
-            if self.focused:
-                picks.append(rng.choice(self.focus[i], self.focused))
+        picks = [self.focus.draw(np.random.default_rng([self.seed, step, shard]), i, start, stop, self.per_shard)
+                 for i, (shard, (start, stop)) in enumerate(zip(self.shards, self.bounds))]
         return self.rgbd[torch.from_numpy(np.concatenate(picks) - self.start)]
-
-
-def focus_videos(file, group: str, start: int, stop: int) -> np.ndarray:
-    """Rows in [start, stop) of a training split's `group` videos that have a wall."""
-    if "group" not in file:
-        raise XvoeError("focus_group needs a training split (its `group` labels); this file has none")
-    groups = file["group"].asstr()[start:stop]
-    if group not in set(groups):
-        raise XvoeError(f"no training videos of group {group!r}; the groups are {sorted(set(groups))}")
-    return start + np.flatnonzero((groups == group) & file["has_wall"][start:stop].astype(bool))
 
 
 def phydnet_configs(preset_name: str, run_dir: Path, resume: bool, data: str | os.PathLike | None

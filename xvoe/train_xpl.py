@@ -19,7 +19,7 @@ import numpy as np
 import torch
 from torch import Tensor, nn
 
-from .data import owned_shards
+from .data import Focus, focus_on, owned_shards
 from .errors import XvoeError
 from .latents import open_latents
 from .models.config import TrainConfig, from_dict, override, preset, to_dict
@@ -69,12 +69,14 @@ class LatentBatches:
 
     def __init__(self, path: str, *, batch_size: int, shards: int, rank: int = 0, world: int = 1,
                  max_videos: int = 0, seed: int = 0, object_share: float = 0.5, walls: bool = False,
-                 wall_refill: float = 0.0, outside: bool = False):
+                 wall_refill: float = 0.0, outside: bool = False, focus_group: str = "", focus_share: float = 0.0):
         with open_latents(path) as file:
             owned = owned_shards(path, file["mean"].shape[0], batch_size=batch_size, shards=shards, rank=rank,
                                  world=world, max_videos=max_videos)
             self.mean = torch.from_numpy(file["mean"][owned.start:owned.stop])
             self.visible = torch.from_numpy(file["visible"][owned.start:owned.stop])
+        self.focus = focus_on(source_split(path, "focus_group"), owned, focus_group, focus_share) if focus_share \
+            else Focus([], 0)
         found = wall_slots(path, owned.start, owned.stop) if walls else None    # (read only when used)
         self.walls = torch.zeros_like(self.visible[:, 0]) if found is None else torch.from_numpy(found)
         self.wall_refill = wall_refill
@@ -93,9 +95,9 @@ class LatentBatches:
     def draw(self, step: int) -> tuple[Tensor, Tensor, Tensor, Tensor]:
         """The videos (local indices), slot orders, rebuilt slots and refill spans of a step."""
         videos, orders, hidden, refill = [], [], [], []
-        for shard, (start, stop) in zip(self.shards, self.bounds):
+        for i, (shard, (start, stop)) in enumerate(zip(self.shards, self.bounds)):
             rng = np.random.default_rng([self.seed, step, shard])
-            video = rng.integers(start, stop, self.per_shard) - self.start
+            video = self.focus.draw(rng, i, start, stop, self.per_shard) - self.start
             order = np.argsort(rng.random((self.per_shard, self.slots)), axis=1)
             videos.append(video)
             orders.append(order)
@@ -211,7 +213,8 @@ def train_xpl(latents: str | os.PathLike | None, run_dir: str | os.PathLike, *, 
     batches = LatentBatches(str(latents), batch_size=config.batch_size, shards=config.data_shards, rank=place.rank,
                             world=place.world, max_videos=config.max_videos, seed=config.seed,
                             walls=model_config.inert_walls or model_config.wall_refill > 0,
-                            wall_refill=model_config.wall_refill, outside=model_config.outside_refill)
+                            wall_refill=model_config.wall_refill, outside=model_config.outside_refill,
+                            focus_group=config.focus_group, focus_share=config.focus_share)
     job = Job(name, XPL(model_config), batches.batch, {"preset": preset_name, "xpl": to_dict(model_config)},
               meta={"latents": str(Path(latents).resolve())})
     return fit(job, config, run_dir, place=place, resume=resume, overwrite=overwrite, progress=progress)
@@ -350,6 +353,21 @@ class ProposalNetworks(nn.Module):
         return out
 
 
+def cache_source(latents: str) -> str | None:
+    """The split file a latent cache was encoded from, as the cache records it."""
+    with open_latents(latents) as file:
+        return file.attrs.get("source")
+
+
+def source_split(latents: str, needed_by: str) -> str:
+    """The split file a latent cache was encoded from; an error naming what needs it if it is gone."""
+    source = cache_source(latents)
+    if source is None or not Path(source).is_file():
+        raise XvoeError(f"{needed_by} needs the split file {source} the cache {latents} was encoded from, "
+                        "and it is missing")
+    return source
+
+
 def wall_slots(latents: str, start: int, stop: int) -> np.ndarray | None:
     """(N, K) bool: the slots that hold a wall, from the split file the cache was encoded
     from (its `kind` map); None, with a warning, when that file is gone."""
@@ -357,8 +375,7 @@ def wall_slots(latents: str, start: int, stop: int) -> np.ndarray | None:
 
     from . import store
 
-    with open_latents(latents) as file:
-        source = file.attrs.get("source")
+    source = cache_source(latents)
     if source is None or not Path(source).is_file():
         warnings.warn(f"the split file {source} the cache {latents} was encoded from is missing: "
                       "training goes on as if its videos had no walls", stacklevel=2)
@@ -372,12 +389,7 @@ def object_places(latents: str, start: int, stop: int) -> tuple[np.ndarray, np.n
     (N,) the event frame (-1 if none), from the split file the cache was encoded from."""
     from . import store
 
-    with open_latents(latents) as file:
-        source = file.attrs.get("source")
-    if source is None or not Path(source).is_file():
-        raise XvoeError(f"wall_refill needs the objects' places from the split file {source} the cache "
-                        f"{latents} was encoded from, and it is missing")
-    with store.open_dataset(source) as file:
+    with store.open_dataset(source_split(latents, "wall_refill")) as file:
         columns = list(file["states"].attrs["state_columns"])
         states = file["states"][start:stop][..., [columns.index(c) for c in ("x", "y", "size")]]
         scale = WORLD / file["rgbd"].shape[2]
