@@ -244,6 +244,20 @@ def test_a_focus_group_fills_its_share_of_each_batch_with_that_groups_wall_video
         VideoBatches(str(splits[1]), image_size=16, batch_size=4, shards=1, focus_group="continuity", focus_share=0.5)
 
 
+def test_the_command_line_sets_the_focus_and_the_learning_rate(splits, tmp_path, tiny_preset, capsys):
+    from xvoe.cli import main
+
+    run = tmp_path / "run"
+    assert main(["train", "--stage", "phydnet", "--data", str(splits[0]), "--out", str(run), "--quiet", "--steps", "2",
+                 "--lr", "0.004", "--focus-group", "continuity", "--focus-share", "0.5"]) == 0
+    train = torch.load(run / "phydnet.pt", weights_only=False)["train"]
+    assert (train["lr"], train["focus_group"], train["focus_share"], train["steps"]) == (0.004, "continuity", 0.5, 2)
+    assert main(["train", "--stage", "perception", "--data", str(splits[0]), "--out", str(tmp_path / "p"),
+                 "--focus-group", "continuity"]) == 2
+    assert "apply to the phydnet, xpl, plato stages, not perception" in capsys.readouterr().err
+    assert not (tmp_path / "p").exists()
+
+
 def test_the_name_resolves_and_scores_a_tiny_test_set(splits, tmp_path, tiny_preset):
     from xvoe.cli import main
     from xvoe.score import SCORE_COLUMNS, load_scorer

@@ -118,7 +118,11 @@ def _positive_float(text: str) -> float:
 def _train_overrides(args: argparse.Namespace) -> dict:
     """The TrainConfig fields the command line may change (None: keep the preset's)."""
     return {"steps": args.steps, "max_minutes": args.minutes, "batch_size": args.batch_size, "seed": args.seed,
-            "max_videos": args.max_videos}
+            "max_videos": args.max_videos, "lr": args.lr, "focus_group": args.focus_group,
+            "focus_share": args.focus_share}
+
+
+FOCUS_STAGES = ("phydnet", "xpl", "plato")     # the stages whose batches can focus on one group
 
 
 def cmd_ship(args: argparse.Namespace) -> None:
@@ -129,6 +133,9 @@ def cmd_ship(args: argparse.Namespace) -> None:
 
 
 def cmd_train(args: argparse.Namespace) -> None:
+    if (args.focus_group or args.focus_share is not None) and args.stage not in FOCUS_STAGES:
+        raise XvoeError(f"--focus-group and --focus-share apply to the {', '.join(FOCUS_STAGES)} stages, "
+                        f"not {args.stage}")
     if args.stage == "perception":
         from .train import train_perception
 
@@ -194,6 +201,11 @@ def add_train_parser(verbs) -> None:
     train.add_argument("--batch-size", type=_positive, help="frames (phydnet: videos) per step over all processes")
     train.add_argument("--max-videos", type=_positive, help="use only the first N videos of --data")
     train.add_argument("--seed", type=int, help="the seed of initialisation and batches (default 0)")
+    train.add_argument("--lr", type=_positive_float,
+                       help="peak learning rate (default: the preset's; it halves every decay_steps after warm-up)")
+    train.add_argument("--focus-group", help="phydnet, xpl, plato: draw --focus-share of each batch from this "
+                                             "group's training videos with a wall (e.g. permanence)")
+    train.add_argument("--focus-share", type=float, help="the share of each batch from --focus-group, in [0, 1]")
     train.add_argument("--resume", action="store_true", help="continue the run in --out where it stopped")
     train.add_argument("--overwrite", action="store_true", help="start again over an existing run or cache")
     train.add_argument("--model", help="encode: perception run or checkpoint (default: --out)")
