@@ -213,6 +213,34 @@ def test_stage_trains_resumes_exactly_and_loads(splits, tmp_path, tiny_preset):
         train_phydnet(splits[0], tmp_path / "d", progress=False, model_overrides={"image_size": 32})
 
 
+def test_an_interrupt_stops_after_its_step_and_the_run_resumes_exactly(splits, tmp_path, tiny_preset, monkeypatch):
+    """Ctrl-C (SIGINT) during step 2 lets that step finish: the checkpoint holds step 3, the handler
+    in place before is back, and the resumed run ends where an uninterrupted one does."""
+    import os
+    import signal
+
+    from xvoe.train_phydnet import VideoBatches, train_phydnet
+
+    straight = torch.load(train_phydnet(splits[0], tmp_path / "a", progress=False), weights_only=False)
+    before, draw = signal.getsignal(signal.SIGINT), VideoBatches.batch
+
+    def interrupted(self, step):
+        if step == 2:
+            os.kill(os.getpid(), signal.SIGINT)
+        return draw(self, step)
+
+    monkeypatch.setattr(VideoBatches, "batch", interrupted)
+    with pytest.raises(KeyboardInterrupt, match="stopped at step 3"):
+        train_phydnet(splits[0], tmp_path / "b", progress=False)
+    assert signal.getsignal(signal.SIGINT) is before
+    assert torch.load(tmp_path / "b" / "phydnet.pt", weights_only=False)["step"] == 3
+    monkeypatch.setattr(VideoBatches, "batch", draw)
+    resumed = torch.load(train_phydnet(None, tmp_path / "b", progress=False, resume=True), weights_only=False)
+    assert resumed["step"] == straight["step"] == 4
+    for name, value in straight["model"].items():
+        torch.testing.assert_close(value, resumed["model"][name], msg=name)
+
+
 def test_a_focus_group_fills_its_share_of_each_batch_with_that_groups_wall_videos(splits):
     import h5py
 

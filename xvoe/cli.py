@@ -336,8 +336,8 @@ def main(argv: list[str] | None = None) -> int:
     except XvoeError as error:
         print(f"xvoe {args.verb}: error: {error}", file=sys.stderr)
         return 2
-    except KeyboardInterrupt:
-        print(f"xvoe {args.verb}: interrupted; nothing half-written was left behind", file=sys.stderr)
+    except KeyboardInterrupt as stop:
+        print(f"xvoe {args.verb}: interrupted; {stop or 'nothing half-written was left behind'}", file=sys.stderr)
         return 130
     return 0
 

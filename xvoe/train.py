@@ -15,6 +15,8 @@ from __future__ import annotations
 import csv
 import os
 import random
+import signal
+import threading
 import time
 import warnings
 from collections.abc import Callable
@@ -243,36 +245,64 @@ def fit(job: Job, config: TrainConfig, run_dir: str | os.PathLike, *, place: Dis
     session = last_save = time.monotonic()
     items, began = 0, session - elapsed
     step = start
-    while step < config.steps:
-        if config.max_minutes and elapsed >= 60 * config.max_minutes:
-            break
-        for group in optimiser.param_groups:
-            group["lr"] = learning_rate(config, step)
-        batch = job.batches(step)
-        items += job.items(batch)
-        batch = batch.to(place.device) if hasattr(batch, "to") else batch
-        terms = wrapped(batch)
-        optimiser.zero_grad(set_to_none=True)
-        terms["loss"].backward()
-        if config.grad_clip:
-            nn.utils.clip_grad_norm_(model.parameters(), config.grad_clip)
-        optimiser.step()
-        step += 1
-        elapsed = time.monotonic() - began
-        meter.add({name: value.detach() for name, value in terms.items() if value.dim() == 0})
-        if step % config.log_every == 0:
-            table = log_row(table, step, meter.take())
-        bar.update(1)
-        if place.main and time.monotonic() - last_save >= 60 * config.checkpoint_minutes:
-            checkpoint(step)
-            last_save = time.monotonic()
+    with StopRequests(enabled=place.world == 1) as stop:
+        while step < config.steps and not stop.asked:
+            if config.max_minutes and elapsed >= 60 * config.max_minutes:
+                break
+            for group in optimiser.param_groups:
+                group["lr"] = learning_rate(config, step)
+            batch = job.batches(step)
+            items += job.items(batch)
+            batch = batch.to(place.device) if hasattr(batch, "to") else batch
+            terms = wrapped(batch)
+            optimiser.zero_grad(set_to_none=True)
+            terms["loss"].backward()
+            if config.grad_clip:
+                nn.utils.clip_grad_norm_(model.parameters(), config.grad_clip)
+            optimiser.step()
+            step += 1
+            elapsed = time.monotonic() - began
+            meter.add({name: value.detach() for name, value in terms.items() if value.dim() == 0})
+            if step % config.log_every == 0:
+                table = log_row(table, step, meter.take())
+            bar.update(1)
+            if place.main and time.monotonic() - last_save >= 60 * config.checkpoint_minutes:
+                checkpoint(step)
+                last_save = time.monotonic()
     bar.close()
     if meter.count:
         table = log_row(table, step, meter.means())
     checkpoint(step)
     if place.world > 1:
         dist.barrier()
+    if stop.asked:
+        raise KeyboardInterrupt(f"stopped at step {step}, which {ckpt} holds: resume to go on")
     return ckpt
+
+
+class StopRequests:
+    """While training alone in the main thread, Ctrl-C (or a Jupyter interrupt) and SIGTERM ask
+    the loop to stop after the step it is in, so that the last checkpoint holds that step and a
+    resumed run goes on exactly; a second request stops at once."""
+
+    def __init__(self, enabled: bool = True):
+        self.enabled = enabled and threading.current_thread() is threading.main_thread()
+        self.asked = False
+        self.previous: dict[int, Any] = {}
+
+    def __enter__(self) -> StopRequests:
+        if self.enabled:
+            self.previous = {number: signal.signal(number, self.ask) for number in (signal.SIGINT, signal.SIGTERM)}
+        return self
+
+    def ask(self, number: int, frame: Any) -> None:
+        if self.asked:
+            raise KeyboardInterrupt
+        self.asked = True
+
+    def __exit__(self, *exc: Any) -> None:
+        for number, handler in self.previous.items():
+            signal.signal(number, handler)
 
 
 # --- the perception stage -------------------------------------------------------------
