@@ -239,6 +239,11 @@ def test_an_interrupt_stops_after_its_step_and_the_run_resumes_exactly(splits, t
     assert resumed["step"] == straight["step"] == 4
     for name, value in straight["model"].items():
         torch.testing.assert_close(value, resumed["model"][name], msg=name)
+    again = torch.load(train_phydnet(None, tmp_path / "b", progress=False, resume=True, steps=5,
+                                     model_overrides={"change_weight": 3.0}), weights_only=False)
+    assert again["step"] == 5 and again["config"]["phydnet"]["change_weight"] == 3.0
+    with pytest.raises(XvoeError, match="only change_weight, moment_weight may change, not lstm_channels"):
+        train_phydnet(None, tmp_path / "b", progress=False, resume=True, model_overrides={"lstm_channels": (4,)})
 
 
 def test_a_focus_group_fills_its_share_of_each_batch_with_that_groups_wall_videos(splits):
