@@ -19,7 +19,7 @@ import numpy as np
 import torch
 from torch import Tensor, nn
 
-from .data import Focus, focus_on, owned_shards
+from .data import focus_on, owned_shards
 from .errors import XvoeError
 from .latents import open_latents
 from .models.config import TrainConfig, from_dict, override, preset, to_dict
@@ -75,8 +75,8 @@ class LatentBatches:
                                  world=world, max_videos=max_videos)
             self.mean = torch.from_numpy(file["mean"][owned.start:owned.stop])
             self.visible = torch.from_numpy(file["visible"][owned.start:owned.stop])
-        self.focus = focus_on(source_split(path, "focus_group"), owned, focus_group, focus_share) if focus_share \
-            else Focus([], 0)
+        split = source_split(path, "focus_group") if focus_share and focus_group else path   # read only when used
+        self.focus = focus_on(split, owned, focus_group, focus_share)
         found = wall_slots(path, owned.start, owned.stop) if walls else None    # (read only when used)
         self.walls = torch.zeros_like(self.visible[:, 0]) if found is None else torch.from_numpy(found)
         self.wall_refill = wall_refill
