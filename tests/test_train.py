@@ -118,6 +118,37 @@ def test_two_processes_under_torchrun_match_one_process(tiny_file, tmp_path):
     assert not torch.equal(initial["decoder.out.weight"], single["model"]["decoder.out.weight"])
 
 
+INTERRUPTED = """
+import os, signal, sys
+from xvoe.data import ShardedFrames
+from xvoe.train import train_perception
+draw = ShardedFrames.batch
+
+def interrupted(self, step):
+    if step == 2 and os.environ["RANK"] == "1":
+        os.kill(os.getpid(), signal.SIGINT)
+    return draw(self, step)
+
+ShardedFrames.batch = interrupted
+train_perception(sys.argv[1], sys.argv[2], steps=8, model_overrides={tiny!r}, progress=False, batch_size=8,
+                 data_shards=2, log_every=2, warmup_steps=2, threads=1)
+"""
+
+
+def test_an_interrupt_in_one_process_under_torchrun_stops_both_after_the_same_step(tiny_file, tmp_path):
+    """Only rank 1 gets Ctrl-C, during step 2: both processes finish that step and stop, and rank 0
+    checkpoints step 3 (were they to disagree, one would wait for the other's gradients until the
+    timeout)."""
+    script = tmp_path / "interrupted.py"
+    script.write_text(textwrap.dedent(INTERRUPTED.format(tiny=TINY)))
+    done = subprocess.run([sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc_per_node", "2",
+                           str(script), str(tiny_file), str(tmp_path / "run")], timeout=180, capture_output=True,
+                          text=True)
+    assert done.returncode != 0 and "stopped at step 3" in done.stderr
+    state = load_checkpoint(tmp_path / "run" / "perception.pt")
+    assert state["step"] == 3 and state["world"] == 2
+
+
 def test_cut_objects_do_not_depend_on_the_process_count(tiny_file):
     """The cuts are drawn shard by shard: two processes' halves are the one process's batch."""
     from xvoe.data import ShardedFrames

@@ -245,10 +245,9 @@ def fit(job: Job, config: TrainConfig, run_dir: str | os.PathLike, *, place: Dis
     session = last_save = time.monotonic()
     items, began = 0, session - elapsed
     step = start
-    with StopRequests(enabled=place.world == 1) as stop:
-        while step < config.steps and not stop.asked:
-            if config.max_minutes and elapsed >= 60 * config.max_minutes:
-                break
+    with StopRequests() as stop:
+        while step < config.steps and not stop.agreed(place, bool(config.max_minutes)
+                                                      and elapsed >= 60 * config.max_minutes):
             for group in optimiser.param_groups:
                 group["lr"] = learning_rate(config, step)
             batch = job.batches(step)
@@ -281,9 +280,11 @@ def fit(job: Job, config: TrainConfig, run_dir: str | os.PathLike, *, place: Dis
 
 
 class StopRequests:
-    """While training alone in the main thread, Ctrl-C (or a Jupyter interrupt) and SIGTERM ask
-    the loop to stop after the step it is in, so that the last checkpoint holds that step and a
-    resumed run goes on exactly; a second request stops at once."""
+    """In the main thread, Ctrl-C (or a Jupyter interrupt) and SIGTERM ask the loop to stop after
+    the step it is in, so that the last checkpoint holds that step and a resumed run goes on
+    exactly; a second request stops at once. Under torchrun the processes agree before each step
+    (a request or a time limit reached in one process stops them all there), so no process waits
+    in a gradient exchange that the others have left."""
 
     def __init__(self, enabled: bool = True):
         self.enabled = enabled and threading.current_thread() is threading.main_thread()
@@ -294,6 +295,15 @@ class StopRequests:
         if self.enabled:
             self.previous = {number: signal.signal(number, self.ask) for number in (signal.SIGINT, signal.SIGTERM)}
         return self
+
+    def agreed(self, place: Dist, out_of_time: bool) -> bool:
+        """Whether every process stops before the next step; `asked` then says whether a request
+        (in any process) made it stop."""
+        if place.world > 1:
+            flags = torch.tensor([float(self.asked), float(out_of_time)], device=place.device)
+            dist.all_reduce(flags, op=dist.ReduceOp.MAX)
+            self.asked, out_of_time = bool(flags[0]), bool(flags[1])
+        return self.asked or out_of_time
 
     def ask(self, number: int, frame: Any) -> None:
         if self.asked:
