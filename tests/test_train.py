@@ -62,6 +62,11 @@ def test_checkpoint_round_trip_and_exact_resume(tiny_file, tmp_path):
     assert [step for step, _ in logged] == ["2", "4", "6"]
     model, _ = load_perception(tmp_path / "straight")
     assert_same_tensors(model.state_dict(), straight["model"])
+    # the same model overrides again are no change; another network is refused, not ignored
+    assert load_checkpoint(run(tiny_file, tmp_path / "stopped", 7, resume=True))["step"] == 7
+    with pytest.raises(XvoeError, match="resumed perception run keeps its network.*not latent_dim"):
+        train_perception(tiny_file, tmp_path / "stopped", steps=8, resume=True, progress=False,
+                         model_overrides={**TINY, "latent_dim": 6})
 
 
 def test_an_existing_run_is_kept_unless_asked(tiny_file, tmp_path):

@@ -367,14 +367,16 @@ def train_perception(data: str | os.PathLike, run_dir: str | os.PathLike, *, pre
                      model_overrides: dict | None = None, **train_overrides: Any) -> Path:
     """What `xvoe train --stage perception` does; also works under torchrun."""
     from .data import ShardedFrames
-    from .models.config import override
+    from .models.config import override, override_resumed
     from .models.perception import ComponentVAE
 
     place = setup_distributed()
     run_dir = Path(run_dir)
     preset_name, model_config, config = perception_configs(preset_name, run_dir, resume, **train_overrides)
-    if model_overrides and not (resume and checkpoint_path(run_dir, "perception").exists()):
-        model_config = override(model_config, **model_overrides)
+    if resume and checkpoint_path(run_dir, "perception").exists():
+        model_config = override_resumed(model_config, model_overrides, what="perception run")
+    else:
+        model_config = override(model_config, **(model_overrides or {}))
     config = override(config, data_shards=config.data_shards or place.world)
     set_threads(config, int(os.environ.get("LOCAL_WORLD_SIZE", "1")))
     seed_everything(config.seed)

@@ -18,7 +18,7 @@ from torch import Tensor
 from . import store
 from .data import check_size, focus_on, owned_shards
 from .errors import XvoeError
-from .models.config import TrainConfig, from_dict, override, preset, to_dict
+from .models.config import TrainConfig, from_dict, override, override_resumed, preset, to_dict
 from .models.phydnet import PhyDNet, PhyDNetConfig, PhyDNetObjective
 from .train import (
     Job,
@@ -83,12 +83,10 @@ def train_phydnet(data: str | os.PathLike | None, run_dir: str | os.PathLike, *,
     place = setup_distributed()
     run_dir = Path(run_dir)
     preset_name, model_config, config, data = phydnet_configs(preset_name, run_dir, resume, data)
-    if model_overrides and resume and checkpoint_path(run_dir, STAGE).exists():
-        shaping = sorted(set(model_overrides) - set(LOSS_FIELDS))
-        if shaping:
-            raise XvoeError(f"a resumed PhyDNet keeps its network: of its config only {', '.join(LOSS_FIELDS)} "
-                            f"may change, not {', '.join(shaping)}")
-    model_config = override(model_config, **(model_overrides or {}))
+    if resume and checkpoint_path(run_dir, STAGE).exists():
+        model_config = override_resumed(model_config, model_overrides, LOSS_FIELDS, "PhyDNet")
+    else:
+        model_config = override(model_config, **(model_overrides or {}))
     config = override(config, **train_overrides)
     config = override(config, data_shards=config.data_shards or place.world)
     set_threads(config, int(os.environ.get("LOCAL_WORLD_SIZE", "1")))

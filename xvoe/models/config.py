@@ -217,3 +217,16 @@ def _dataclass_named(owner: type, annotation: Any) -> type | None:
 def override(config: Any, **changes: Any) -> Any:
     """A copy of `config` with the given fields changed; None values are ignored."""
     return replace(config, **{k: v for k, v in changes.items() if v is not None})
+
+
+def override_resumed(config: Any, changes: dict | None, may_change: tuple[str, ...] = (), what: str = "run") -> Any:
+    """`override` for the model config of a resumed run, which keeps its network: a change of any
+    field outside `may_change` is an error rather than silently ignored (a value equal to the
+    checkpoint's is not a change)."""
+    changes = {k: v for k, v in (changes or {}).items() if v is not None}
+    config = replace(config, **{k: v for k, v in changes.items() if k in may_change})
+    shaping = sorted(k for k, v in changes.items() if k not in may_change and replace(config, **{k: v}) != config)
+    if shaping:
+        allowed = f"only {', '.join(may_change)} may change" if may_change else "none of it may change"
+        raise XvoeError(f"a resumed {what} keeps its network: of its config {allowed}, not {', '.join(shaping)}")
+    return config
