@@ -213,6 +213,29 @@ def test_stage_trains_resumes_exactly_and_loads(splits, tmp_path, tiny_preset):
         train_phydnet(splits[0], tmp_path / "d", progress=False, model_overrides={"image_size": 32})
 
 
+def test_a_widened_lstm_kernel_predicts_the_same_and_trains_on(splits, tmp_path, tiny_preset):
+    """The 3x3 gates padded with zeros to 7x7 give the same predictions; the widened run resumes
+    from the source's step with a fresh optimiser, and its outer taps learn."""
+    from xvoe.train_phydnet import load_phydnet, train_phydnet, widen_run
+
+    source = train_phydnet(splits[0], tmp_path / "a", progress=False, model_overrides={"lstm_channels": (8, 8)})
+    widened = widen_run(source, tmp_path / "b", lstm_kernel=7)
+    (net, _), (wide, state) = load_phydnet(source), load_phydnet(widened)
+    assert wide.config == replace(net.config, lstm_kernel=7) and state["step"] == 4 and "optimizer" not in state
+    frames = videos(2, 6)
+    with torch.no_grad():
+        torch.testing.assert_close(wide(frames), net(frames), rtol=0, atol=1e-6)
+    with pytest.warns(UserWarning, match="Adam starts afresh at step 4"):
+        trained = torch.load(train_phydnet(None, tmp_path / "b", progress=False, resume=True, steps=6),
+                             weights_only=False)
+    gates = trained["model"]["net.lstm.1.gates.weight"]
+    assert trained["step"] == 6 and gates.shape[-2:] == (7, 7) and gates[..., 0, :].abs().sum() > 0
+    with pytest.raises(XvoeError, match="larger odd size, not 7 -> 5"):
+        widen_run(widened, tmp_path / "c", lstm_kernel=5)
+    with pytest.raises(XvoeError, match="exists"):
+        widen_run(source, tmp_path / "b", lstm_kernel=9)
+
+
 def test_an_interrupt_stops_after_its_step_and_the_run_resumes_exactly(splits, tmp_path, tiny_preset, monkeypatch):
     """Ctrl-C (SIGINT) during step 2 lets that step finish: the checkpoint holds step 3, the handler
     in place before is back, and the resumed run ends where an uninterrupted one does."""

@@ -19,13 +19,14 @@ from . import store
 from .data import check_size, focus_on, owned_shards
 from .errors import XvoeError
 from .models.config import TrainConfig, from_dict, override, override_resumed, preset, to_dict
-from .models.phydnet import PhyDNet, PhyDNetConfig, PhyDNetObjective
+from .models.phydnet import PhyDNet, PhyDNetConfig, PhyDNetObjective, widen_lstm_kernel
 from .train import (
     Job,
     checkpoint_path,
     fit,
     load_checkpoint,
     resolve_run,
+    save_checkpoint,
     seed_everything,
     set_threads,
     setup_distributed,
@@ -98,6 +99,23 @@ def train_phydnet(data: str | os.PathLike | None, run_dir: str | os.PathLike, *,
     job = Job(STAGE, PhyDNetObjective(PhyDNet(model_config)), batches.batch,
               {"preset": preset_name, "phydnet": to_dict(model_config)}, meta={"data": str(Path(data).resolve())})
     return fit(job, config, run_dir, place=place, resume=resume, overwrite=overwrite, progress=progress)
+
+
+def widen_run(source: str | os.PathLike, run_dir: str | os.PathLike, lstm_kernel: int) -> Path:
+    """Start RUN_DIR/phydnet.pt from a trained PhyDNet with its ConvLSTM kernel widened
+    (`widen_lstm_kernel`: the same predictions to begin with). The checkpoint keeps the source's
+    step, training config and data but no optimiser state, so `train_phydnet(None, run_dir,
+    resume=True)` trains it on with Adam afresh, as from a shipped model."""
+    net, state = load_phydnet(source)
+    target = checkpoint_path(run_dir, STAGE)
+    if target.exists():
+        raise XvoeError(f"{target} exists; widen into a new run directory")
+    wider = widen_lstm_kernel(net, lstm_kernel)
+    Path(run_dir).mkdir(parents=True, exist_ok=True)
+    kept = {key: state[key] for key in ("format", "stage", "train", "step", "meta") if key in state}
+    save_checkpoint(target, {**kept, "config": {**state["config"], "phydnet": to_dict(wider.config)},
+                             "model": PhyDNetObjective(wider).state_dict()})
+    return target
 
 
 def load_phydnet(model: str | os.PathLike, device: str | torch.device = "cpu") -> tuple[PhyDNet, dict]:

@@ -22,7 +22,7 @@ their one-hot targets, as in the paper.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import torch
 from torch import Tensor, nn
@@ -260,6 +260,25 @@ class PhyDNet(nn.Module):
         prediction error; 0 at frame 0, which nothing predicts."""
         error = self.squared_error(frames).flatten(2).sum(2)
         return torch.cat([error.new_zeros(len(error), 1), error], dim=1)
+
+
+@torch.no_grad()
+def widen_lstm_kernel(net: PhyDNet, kernel: int) -> PhyDNet:
+    """A copy of `net` whose ConvLSTM gates have `kernel` x `kernel` filters, the trained ones in
+    the centre and zeros around: the same predictions, but room to learn to carry what it
+    remembers further per frame (a 3x3 ConvLSTM on the 16x16 map moves a memory one cell a
+    frame; a cube falling behind a wall moves three)."""
+    old = net.config.lstm_kernel
+    if kernel < old or kernel % 2 == 0:
+        raise XvoeError(f"the ConvLSTM kernel can only widen to a larger odd size, not {old} -> {kernel}")
+    wider = PhyDNet(replace(net.config, lstm_kernel=kernel))
+    state = net.state_dict()
+    pad = (kernel - old) // 2
+    for i, _ in enumerate(net.lstm):
+        name = f"lstm.{i}.gates.weight"
+        state[name] = nn.functional.pad(state[name], (pad,) * 4)
+    wider.load_state_dict(state)
+    return wider.train(net.training)
 
 
 def change_mask(frames: Tensor, threshold: float = 2 / 255) -> Tensor:
