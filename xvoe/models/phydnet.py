@@ -44,6 +44,9 @@ class PhyDNetConfig:
     phycell_layers: int = 1
     gain_kernel: int = 3                            # the correction gain's convolution
     lstm_channels: tuple[int, ...] = (32,)          # ConvLSTM layers (the original: 128, 128, 64)
+    # a ConvLSTM layer moves what it remembers by (kernel - 1) / 2 cells a frame: at 3, one cell
+    # of the 16x16 map, slower than a cube falls behind a wall (~3 cells a frame); the original
+    # reaches 3 with its 3 stacked layers. `widen_lstm_kernel` widens a trained network's gates
     lstm_kernel: int = 3
     # > 1: chrono initialisation of the ConvLSTM gates (Tallec & Ollivier, ICLR 2018) for memories
     # of up to this many frames; 0: PyTorch's default biases, whose forget gate halves the cell
