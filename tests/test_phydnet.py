@@ -300,6 +300,26 @@ def test_a_focus_group_fills_its_share_of_each_batch_with_that_groups_wall_video
         VideoBatches(str(splits[1]), image_size=16, batch_size=4, shards=1, focus_group="continuity", focus_share=0.5)
 
 
+def test_a_focus_on_several_groups_draws_from_the_wall_videos_of_each(tmp_path):
+    import h5py
+
+    from xvoe.train_phydnet import VideoBatches
+
+    path = generate(GenerateConfig("train", videos=10, size=16, frames=10, seed=0), tmp_path / "train.h5", workers=1,
+                    progress=False)
+    with h5py.File(path) as file:
+        groups, walls = file["group"].asstr()[:], file["has_wall"][:].astype(bool)
+    kinds = {name: set(np.flatnonzero((groups == name) & walls)) for name in ("continuity", "permanence")}
+    assert all(kinds.values()) and (walls & ~np.isin(groups, list(kinds))).any()
+    batches = VideoBatches(str(path), image_size=16, batch_size=4, shards=1, seed=1,
+                           focus_group="continuity, permanence", focus_share=0.5)
+    drawn = {int(row) for step in range(40) for row in batches.focus.draw(np.random.default_rng(step), 0, 0, 10, 4)[2:]}
+    assert drawn == kinds["continuity"] | kinds["permanence"]
+    with pytest.raises(XvoeError, match="no training videos of group 'permanance'"):
+        VideoBatches(str(path), image_size=16, batch_size=4, shards=1, focus_group="continuity,permanance",
+                     focus_share=0.5)
+
+
 def test_the_command_line_sets_the_focus_and_the_learning_rate(splits, tmp_path, tiny_preset, capsys):
     from xvoe.cli import main
 

@@ -204,7 +204,8 @@ def add_train_parser(verbs) -> None:
     train.add_argument("--lr", type=_positive_float,
                        help="peak learning rate (default: the preset's; it halves every decay_steps after warm-up)")
     train.add_argument("--focus-group", help="phydnet, xpl, plato: draw --focus-share of each batch from this "
-                                             "group's training videos with a wall (e.g. permanence)")
+                                             "group's training videos with a wall (e.g. permanence; "
+                                             "several: permanence,continuity)")
     train.add_argument("--focus-share", type=float, help="the share of each batch from --focus-group, in [0, 1]")
     train.add_argument("--resume", action="store_true", help="continue the run in --out where it stopped")
     train.add_argument("--overwrite", action="store_true", help="start again over an existing run or cache")

@@ -203,13 +203,17 @@ def focus_on(path: str, owned: Ownership, group: str, share: float) -> Focus:
 
 
 def focus_videos(file: h5py.File, group: str, start: int, stop: int) -> np.ndarray:
-    """Rows in [start, stop) of a training split's `group` videos that have a wall."""
+    """Rows in [start, stop) of a training split's `group` videos that have a wall; `group` may
+    name several, comma-separated (permanence,continuity), to hold more than one kind of hidden
+    event in each batch."""
     if "group" not in file:
         raise XvoeError("focus_group needs a training split (its `group` labels); this file has none")
     groups = file["group"].asstr()[start:stop]
-    if group not in set(groups):
-        raise XvoeError(f"no training videos of group {group!r}; the groups are {sorted(set(groups))}")
-    return start + np.flatnonzero((groups == group) & file["has_wall"][start:stop].astype(bool))
+    wanted = [name.strip() for name in group.split(",")]
+    for name in wanted:
+        if name not in set(groups):
+            raise XvoeError(f"no training videos of group {name!r}; the groups are {sorted(set(groups))}")
+    return start + np.flatnonzero(np.isin(groups, wanted) & file["has_wall"][start:stop].astype(bool))
 
 
 class ShardedFrames:
