@@ -14,21 +14,20 @@ from __future__ import annotations
 
 import argparse
 
-import h5py
 import numpy as np
 import torch
 
+from xvoe import store
+from xvoe.data import focus_videos
 from xvoe.models.perception import normalise
 from xvoe.train_phydnet import load_phydnet
-from xvoe.zoo import shipped_path
 
 
 def permanence_videos(path: str, count: int) -> dict[str, np.ndarray]:
     """The first `count` permanence videos with a wall: frames, slot ids per pixel, which slots are
     cubes, and every slot's height (y, pixels down)."""
-    with h5py.File(path) as file:
-        groups, walls = file["group"].asstr()[:], file["has_wall"][:].astype(bool)
-        rows = np.flatnonzero((groups == "permanence") & walls)[:count]
+    with store.open_dataset(path) as file:
+        rows = focus_videos(file, "permanence", 0, len(file["group"]))[:count]
         if not len(rows):
             raise SystemExit(f"{path} has no permanence videos with a wall")
         columns = [str(name) for name in file["states"].attrs["state_columns"]]
@@ -42,9 +41,9 @@ def squared(guess: torch.Tensor, target: torch.Tensor) -> float:
     return (guess - target).pow(2).sum(0).mean().item()
 
 
-def cube_errors(predicted: torch.Tensor, videos: dict, frame: int) -> dict[str, list[float]]:
-    """Per cube: the prediction's error at its pixels in `frame`, split by whether it fell."""
-    frames = normalise(torch.from_numpy(videos["rgbd"]))
+def cube_errors(predicted: torch.Tensor, frames: torch.Tensor, videos: dict, frame: int) -> dict[str, list[float]]:
+    """Per cube: the prediction's error at its pixels in `frame`, split by whether it fell;
+    `frames` are the videos' normalised frames."""
     errors: dict[str, list[float]] = {"resting": [], "fallen": [], "fallen, to frame 0": []}
     for video, slot in zip(*np.nonzero(videos["cube"])):
         mask = torch.from_numpy(videos["ids"][video, frame] == slot + 1)
@@ -71,10 +70,10 @@ def main() -> None:
     videos = permanence_videos(args.data, args.videos)
     frames = normalise(torch.from_numpy(videos["rgbd"]))
     for model in args.model:
-        net, _ = load_phydnet(shipped_path(model, "phydnet") or model)
+        net, _ = load_phydnet(model)
         with torch.no_grad():
             predicted = torch.cat([net(frames[i:i + 32]) for i in range(0, len(frames), 32)])
-        errors = cube_errors(predicted, videos, args.frame)
+        errors = cube_errors(predicted, frames, videos, args.frame)
         print(model, f"frame {args.frame}:",
               " | ".join(f"{name} {np.mean(values):.3f} (n={len(values)})" for name, values in errors.items()))
 

@@ -209,10 +209,10 @@ def focus_videos(file: h5py.File, group: str, start: int, stop: int) -> np.ndarr
     if "group" not in file:
         raise XvoeError("focus_group needs a training split (its `group` labels); this file has none")
     groups = file["group"].asstr()[start:stop]
-    wanted = [name.strip() for name in group.split(",")]
+    present, wanted = set(groups), [name.strip() for name in group.split(",")]
     for name in wanted:
-        if name not in set(groups):
-            raise XvoeError(f"no training videos of group {name!r}; the groups are {sorted(set(groups))}")
+        if name not in present:
+            raise XvoeError(f"no training videos of group {name!r}; the groups are {sorted(present)}")
     return start + np.flatnonzero(np.isin(groups, wanted) & file["has_wall"][start:stop].astype(bool))
 
 
