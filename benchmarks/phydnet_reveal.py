@@ -18,6 +18,7 @@ import numpy as np
 import torch
 
 from xvoe import store
+from xvoe.metrics import pairs_table, pairwise_win
 from xvoe.models.perception import normalise
 from xvoe.train_phydnet import load_phydnet
 
@@ -27,33 +28,29 @@ def pair_rows(path: str, scenario: str, setting: str) -> tuple[np.ndarray, np.nd
     with store.open_dataset(path) as file:
         if "scenario" not in file:
             raise SystemExit(f"{path} is not a test split (no scenario labels)")
-        wanted = (store.strings(file, "scenario") == scenario) & (store.strings(file, "setting") == setting)
-        pair, member = file["pair"][:], file["member"][:]
-    rows = np.flatnonzero(wanted)
-    if not len(rows):
-        raise SystemExit(f"{path} has no {scenario} {setting} videos")
-    by_pair: dict[int, dict[int, int]] = {}
-    for row in rows:
-        by_pair.setdefault(int(pair[row]), {})[int(member[row])] = row
-    complete = [rows for rows in by_pair.values() if set(rows) == {0, 1}]
-    return np.array([r[0] for r in complete]), np.array([r[1] for r in complete])
+        labels = {"scenario": store.strings(file, "scenario"), "setting": store.strings(file, "setting"),
+                  "pair": file["pair"][:], "member": file["member"][:]}
+    labels["row"] = np.arange(len(labels["pair"]))
+    _, possible, impossible = pairs_table(labels, scenario, setting, "row")
+    if not len(possible):
+        raise SystemExit(f"{path} has no {scenario} {setting} pairs")
+    return possible, impossible
 
 
 def per_frame_surprise(model: str, path: str, rows: np.ndarray, batch: int = 32) -> np.ndarray:
-    """(len(rows), T) one-step prediction errors of a PhyDNet on the given rows."""
+    """(len(rows), T) one-step prediction errors of a PhyDNet on the given rows (read in
+    increasing order, as HDF5 wants them)."""
     net, _ = load_phydnet(model)
-    curves = []
+    ordered = np.unique(rows)
     with store.open_dataset(path) as file, torch.no_grad():
-        for start in range(0, len(rows), batch):
-            frames = normalise(torch.from_numpy(file["rgbd"][np.sort(rows[start:start + batch])]))
-            order = np.argsort(np.argsort(rows[start:start + batch]))
-            curves.append(net.surprise(frames)[torch.from_numpy(order)])
-    return torch.cat(curves).double().numpy()
+        curves = torch.cat([net.surprise(normalise(torch.from_numpy(file["rgbd"][ordered[start:start + batch]])))
+                            for start in range(0, len(ordered), batch)])
+    return curves.double().numpy()[np.searchsorted(ordered, rows)]
 
 
-def wins(difference: np.ndarray) -> np.ndarray:
-    """Comparative accuracy of each column: the impossible member higher; a tie counts a half."""
-    return (difference > 0).mean(0) + 0.5 * (difference == 0).mean(0)
+def wins(impossible: np.ndarray, possible: np.ndarray) -> np.ndarray:
+    """Comparative accuracy of each column (`xvoe metrics`' rule: a tie counts a half)."""
+    return pairwise_win(impossible, possible).mean(0)
 
 
 def main() -> None:
@@ -68,14 +65,15 @@ def main() -> None:
     possible, impossible = pair_rows(args.data, args.scenario, args.setting)
     for model in args.model:
         surprise = per_frame_surprise(model, args.data, np.concatenate([possible, impossible]))
-        difference = surprise[len(possible):] - surprise[:len(possible)]
+        first, second = surprise[:len(possible)], surprise[len(possible):]
+        difference = second - first
         print(f"{model}: {args.scenario} {args.setting}, {len(possible)} pairs")
         print("frame  mean difference  impossible higher  accuracy of the sum to here")
-        for frame, (mean, higher, total) in enumerate(zip(difference.mean(0), wins(difference),
-                                                          wins(difference.cumsum(1)))):
+        for frame, (mean, higher, total) in enumerate(zip(difference.mean(0), wins(second, first),
+                                                          wins(second.cumsum(1), first.cumsum(1)))):
             print(f"{frame:5d}  {mean:15.1f}  {100 * higher:17.1f}  {100 * total:27.1f}")
-        print(f"accuracy: sum {100 * wins(difference.sum(1, keepdims=True))[0]:.1f}, "
-              f"max {100 * wins((surprise[len(possible):].max(1) - surprise[:len(possible)].max(1))[:, None])[0]:.1f}")
+        print(f"accuracy: sum {100 * wins(second.sum(1), first.sum(1)):.1f}, "
+              f"max {100 * wins(second.max(1), first.max(1)):.1f}")
 
 
 if __name__ == "__main__":

@@ -85,7 +85,7 @@ def auc(positive: np.ndarray, negative: np.ndarray) -> float:
     return float(u / (len(positive) * len(negative)))
 
 
-def _pairs_table(scores: dict[str, np.ndarray], scenario: str, setting: str, column: str):
+def pairs_table(scores: dict[str, np.ndarray], scenario: str, setting: str, column: str):
     """Scores of member 0 and member 1 by pair index, for one setting."""
     mask = (scores["scenario"] == scenario) & (scores["setting"] == setting)
     pair, member, value = scores["pair"][mask].astype(int), scores["member"][mask].astype(int), scores[column][mask]
@@ -100,7 +100,7 @@ def comparative(scores: dict[str, np.ndarray], column: str = "score", rounds: in
     """Per setting: the share of pairs whose member 1 is more surprising than member 0."""
     out = {}
     for scenario, setting in _settings(scores):
-        _, first, second = _pairs_table(scores, scenario, setting, column)
+        _, first, second = pairs_table(scores, scenario, setting, column)
         out[scenario, setting] = _mean_by_unit(pairwise_win(second, first), np.arange(len(first)), rounds, seed)
     return out
 
@@ -122,7 +122,7 @@ def relative(scores: dict[str, np.ndarray], column: str = "score", rounds: int =
     of the same scenario and pair index; the share judged rightly."""
     out = {}
     for scenario, setting in _settings(scores):
-        pairs_s1, first, second = _pairs_table(scores, scenario, "S1", column)
+        pairs_s1, first, second = pairs_table(scores, scenario, "S1", column)
         threshold = dict(zip(pairs_s1, (first + second) / 2))
         mask = (scores["scenario"] == scenario) & (scores["setting"] == setting)
         pair = scores["pair"][mask].astype(int)
@@ -307,10 +307,10 @@ def disagreements(scores: dict[str, np.ndarray], columns: tuple[str, str] = SURP
     a, b = columns
     rows = []
     for scenario, setting in _settings(scores):
-        pairs, index_0, index_1 = _pairs_table(scores, scenario, setting, "index")
-        _, a_0, a_1 = _pairs_table(scores, scenario, setting, a)
-        _, b_0, b_1 = _pairs_table(scores, scenario, setting, b)
-        _, possible_0, possible_1 = _pairs_table(scores, scenario, setting, "possible")
+        pairs, index_0, index_1 = pairs_table(scores, scenario, setting, "index")
+        _, a_0, a_1 = pairs_table(scores, scenario, setting, a)
+        _, b_0, b_1 = pairs_table(scores, scenario, setting, b)
+        _, possible_0, possible_1 = pairs_table(scores, scenario, setting, "possible")
         says_a, says_b = verdict(a_0, a_1), verdict(b_0, b_1)
         truth = np.where(possible_0 == possible_1, -2, np.where(possible_0, 1, 0))    # -2: no right answer
         for i in np.flatnonzero(says_a != says_b):
@@ -340,7 +340,7 @@ def side_by_side(scores: dict[str, np.ndarray], rows: list[dict], model: str,
         second = index.get((metric, scenario, setting, b))
         if column != a or second is None:
             continue
-        pairs = len(_pairs_table(scores, scenario, setting, a)[0]) if setting else ""
+        pairs = len(pairs_table(scores, scenario, setting, a)[0]) if setting else ""
         table.append({"model": model, "metric": metric, "scenario": scenario, "setting": setting,
                       a: first["value"], f"{a}_low": first["low"], f"{a}_high": first["high"],
                       b: second["value"], f"{b}_low": second["low"], f"{b}_high": second["high"],
