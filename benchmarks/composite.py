@@ -13,8 +13,8 @@ import time
 import torch
 
 from inference.xpl_scene import XPLScene
-from xvoe import store
-from xvoe.score import encode_videos, load_scorer
+from xvoe.benchmark import store
+from xvoe.evaluation.score import encode_videos, load_scorer
 
 
 def main() -> None:

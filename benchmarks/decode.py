@@ -14,7 +14,7 @@ import time
 
 import torch
 
-from xvoe.score import load_scorer
+from xvoe.evaluation.score import load_scorer
 
 
 def per_call_ms(decode, z: torch.Tensor, repeats: int) -> float:

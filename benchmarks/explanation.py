@@ -24,10 +24,12 @@ import matplotlib.pyplot as plt
 import numpy as np
 import torch
 
-from xvoe import store
-from xvoe.explain import decoded_mask, iou, silhouette
+from xvoe.benchmark import store
+from xvoe.benchmark.videos import silhouette
+from xvoe.evaluation.explain import decoded_mask, iou
+from xvoe.evaluation.score import encode_videos, load_scorer
 from xvoe.models.reasoning import hide_slot
-from xvoe.score import composite, decode_slots, encode_videos, load_scorer
+from xvoe.models.slots import composite, decode_slots
 
 
 def pick(file, scenario: str, setting: str, member: int, limit: int) -> list[int]:

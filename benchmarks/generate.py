@@ -15,7 +15,7 @@ import tempfile
 import time
 from pathlib import Path
 
-from xvoe.generate import GenerateConfig, generate
+from xvoe.benchmark.generate import GenerateConfig, generate
 
 
 def cpu_seconds() -> float:

@@ -18,10 +18,10 @@ from pathlib import Path
 import h5py
 import torch
 
-from xvoe.data import visible_threshold
 from xvoe.errors import XvoeError
-from xvoe.latents import encode_means, picture_weights
-from xvoe.train import load_perception
+from xvoe.training.data import visible_threshold
+from xvoe.training.latents import encode_means, picture_weights
+from xvoe.training.perception import load_perception
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -11,7 +11,7 @@ import argparse
 import tempfile
 import time
 
-from xvoe import metrics
+from xvoe.evaluation import metrics
 
 
 def main() -> None:

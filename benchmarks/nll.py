@@ -30,11 +30,13 @@ import torch
 from tqdm.auto import tqdm
 
 from inference.model import InferenceConfig
-from xvoe import store
-from xvoe.data import check_size
+from inference.score import xpl_nll
+from xvoe.benchmark import store
 from xvoe.errors import XvoeError
-from xvoe.metrics import comparative
-from xvoe.score import encode_videos, load_scorer, mse_surprise, xpl_nll
+from xvoe.evaluation.metrics import comparative
+from xvoe.evaluation.score import encode_videos, load_scorer
+from xvoe.evaluation.surprise import mse_surprise
+from xvoe.training.data import check_size
 
 SETTINGS = [(scenario, setting) for setting in ("S1", "S3")
             for scenario in ("collision", "blocking", "permanence", "continuity")

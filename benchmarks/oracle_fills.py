@@ -28,15 +28,16 @@ import h5py
 import numpy as np
 import torch
 
-from xvoe import store
-from xvoe.data import visible_threshold
-from xvoe.generate import GenerateConfig, unit_rng
-from xvoe.latents import encode_frames
-from xvoe.metrics import pairwise_win
-from xvoe.render import render
-from xvoe.scenes import SCENARIOS, TEST_SETTINGS
-from xvoe.score import encode_videos, excess, explained_latents, latent_surprise, load_scorer
-from xvoe.world import WALL_KINDS
+from xvoe.benchmark import store
+from xvoe.benchmark.generate import GenerateConfig, unit_rng
+from xvoe.benchmark.render import render
+from xvoe.benchmark.scenes import SCENARIOS, TEST_SETTINGS
+from xvoe.benchmark.world import WALL_KINDS
+from xvoe.evaluation.metrics import excess, pairwise_win
+from xvoe.evaluation.score import encode_videos, load_scorer
+from xvoe.evaluation.surprise import explained_latents, latent_surprise
+from xvoe.training.data import visible_threshold
+from xvoe.training.latents import encode_frames
 
 PARTLY = 0.99    # an object whose visible share of pixels is under this is hidden in part (or whole)
 

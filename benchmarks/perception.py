@@ -20,13 +20,15 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from xvoe import store
-from xvoe.data import ShardedFrames, check_size, perception_batch, visible_threshold
+from xvoe.apps.figures import save_reconstructions
+from xvoe.benchmark import store
 from xvoe.errors import XvoeError
-from xvoe.latents import encode_means
-from xvoe.models.config import TrainConfig, from_dict
+from xvoe.models.config import from_dict
 from xvoe.models.perception import ComponentVAE, to_uint8
-from xvoe.train import load_perception
+from xvoe.training.data import ShardedFrames, check_size, perception_batch, visible_threshold
+from xvoe.training.latents import encode_means
+from xvoe.training.perception import load_perception
+from xvoe.training.presets import TrainConfig
 
 
 def psnr(error_sum: float, count: int) -> float:
@@ -178,7 +180,6 @@ def main(argv: list[str] | None = None) -> int:
           f"{train_config.batch_size} frames)")
     print(f"decoder throughput: {decode_throughput(model):.0f} object decodes/s (batch 32)")
     if args.figure:
-        from xvoe.viz import save_reconstructions
 
         print(f"figure: {save_reconstructions(model, rgbd, ids, args.figure)}")
     print(f"psnr={quality['rgb']:.1f} probe_r2={min(r2_x, r2_y):.3f}")

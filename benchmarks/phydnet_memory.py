@@ -17,10 +17,10 @@ import argparse
 import numpy as np
 import torch
 
-from xvoe import store
-from xvoe.data import focus_videos
+from xvoe.benchmark import store
 from xvoe.models.perception import normalise
-from xvoe.train_phydnet import load_phydnet
+from xvoe.training.data import focus_videos
+from xvoe.training.phydnet import load_phydnet
 
 
 def permanence_videos(path: str, count: int) -> dict[str, np.ndarray]:

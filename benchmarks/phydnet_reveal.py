@@ -17,10 +17,10 @@ import argparse
 import numpy as np
 import torch
 
-from xvoe import store
-from xvoe.metrics import pairs_table, pairwise_win
+from xvoe.benchmark import store
+from xvoe.evaluation.metrics import pairs_table, pairwise_win
 from xvoe.models.perception import normalise
-from xvoe.train_phydnet import load_phydnet
+from xvoe.training.phydnet import load_phydnet
 
 
 def pair_rows(path: str, scenario: str, setting: str) -> tuple[np.ndarray, np.ndarray]:

@@ -17,11 +17,11 @@ import resource
 import time
 from pathlib import Path
 
-from xvoe.generate import GenerateConfig, generate
-from xvoe.metrics import comparative, holistic, read_scores
-from xvoe.models.config import preset
-from xvoe.pipeline import PipelineConfig, run_pipeline
-from xvoe.score import score_split
+from xvoe.apps.pipeline import PipelineConfig, run_pipeline
+from xvoe.benchmark.generate import GenerateConfig, generate
+from xvoe.evaluation.metrics import comparative, holistic, read_scores
+from xvoe.evaluation.score import score_split
+from xvoe.training.presets import preset
 
 FRESH_SEED = 12345
 

@@ -17,8 +17,8 @@ from torch import Tensor, nn
 
 from xvoe.models.dynamics import DynamicsState
 from xvoe.models.perception import ComponentVAE
+from xvoe.models.slots import push_behind, scene_layers
 from xvoe.models.xpl import XPL
-from xvoe.score import push_behind, scene_layers
 
 
 class XPLScene(nn.Module):

@@ -2,8 +2,8 @@ import numpy as np
 import pytest
 from hypothesis import settings
 
-from xvoe import store
-from xvoe.generate import GenerateConfig, generate
+from xvoe.benchmark import store
+from xvoe.benchmark.generate import GenerateConfig, generate
 
 # Property tests draw the same examples on every run: a red CI run can be replayed.
 settings.register_profile("xvoe", derandomize=True, deadline=None, database=None)

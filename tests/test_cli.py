@@ -4,7 +4,7 @@ import sys
 
 import pytest
 
-from xvoe.cli import main
+from xvoe.apps.cli import main
 
 
 def run_cli(*args):

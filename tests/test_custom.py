@@ -2,10 +2,10 @@
 import numpy as np
 import pytest
 
-from xvoe import custom, store
+from xvoe.benchmark import custom, store
+from xvoe.benchmark.render import STATE_COLUMNS
+from xvoe.benchmark.videos import find_pair
 from xvoe.errors import XvoeError
-from xvoe.render import STATE_COLUMNS
-from xvoe.viz import find_pair
 
 SPEED = 50.0
 

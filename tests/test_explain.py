@@ -1,8 +1,9 @@
 """Explanation masks against ground-truth silhouettes."""
 import numpy as np
 
-from xvoe.explain import decoded_mask, iou, silhouette
-from xvoe.render import STATE_COLUMNS
+from xvoe.benchmark.render import STATE_COLUMNS
+from xvoe.benchmark.videos import silhouette
+from xvoe.evaluation.explain import decoded_mask, iou
 
 
 def test_silhouette_matches_the_rendered_ids(test_data):

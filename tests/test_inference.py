@@ -9,7 +9,7 @@ import torch
 from pyro.util import check_model_guide_match
 
 from inference.importance import importance
-from inference.model import HiddenObjectModel, InferenceConfig, LinearGaussianScene, Proposal
+from inference.model import HiddenObjectModel, InferenceConfig, LinearGaussianScene, Proposal, fuse
 
 
 @pytest.fixture(autouse=True)
@@ -213,10 +213,7 @@ def test_a_widened_proposal_becomes_the_models_own_prior():
 
 
 def test_fuse_is_the_product_of_two_gaussians():
-    from inference.model import fuse
-
     loc, scale = fuse(torch.tensor([0.0, 1.0]), torch.tensor([1.0, 0.1]), torch.tensor([2.0, 1.0]),
                       torch.tensor([1.0, 0.3]))
     torch.testing.assert_close(loc, torch.tensor([1.0, 1.0]))
     torch.testing.assert_close(scale, torch.tensor([0.5 ** 0.5, (1 / (100 + 1 / 0.09)) ** 0.5]))
-

@@ -6,12 +6,14 @@ import numpy as np
 import pytest
 import torch
 
-from xvoe.data import masked_inputs, visible_threshold
+from xvoe.benchmark.generate import GenerateConfig, generate
 from xvoe.errors import XvoeError
-from xvoe.generate import GenerateConfig, generate
-from xvoe.latents import encode_split, open_latents, read_latents, sha256_of
 from xvoe.models.perception import normalise
-from xvoe.train import load_perception, train_perception
+from xvoe.training.data import masked_inputs, visible_threshold
+from xvoe.training.latents import encode_split, open_latents, picture_weights, read_latents, sha256_of
+from xvoe.training.perception import load_perception, train_perception
+from xvoe.training.presets import PRESETS
+from xvoe.training.xpl import cache_picture_weights, train_xpl
 
 TINY = dict(image_size=16, broadcast_size=4, latent_dim=4, cnn_channels=(8, 8), cnn_hidden=16, decoder_channels=8)
 
@@ -79,10 +81,7 @@ def test_a_split_file_is_not_a_cache(trained):
 def test_the_xpl_stage_weighs_latents_by_the_pictures_of_the_caches_perception(trained, tmp_path, monkeypatch):
     from dataclasses import replace
 
-    import xvoe.train_xpl as stage
-    from xvoe.latents import picture_weights
-    from xvoe.models.config import PRESETS
-    from xvoe.train_xpl import cache_picture_weights, train_xpl
+    import xvoe.training.xpl as stage
 
     data, run_dir = trained
     cache = encode_split(run_dir, data, tmp_path / "latents.h5", progress=False)

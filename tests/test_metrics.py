@@ -7,8 +7,20 @@ import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
+from xvoe.apps.report import report
+from xvoe.benchmark.generate import GenerateConfig, generate
 from xvoe.errors import XvoeError
-from xvoe.metrics import auc, comparative, holistic, read_scores, relative
+from xvoe.evaluation.metrics import (
+    auc,
+    comparative,
+    disagreements,
+    has_both_surprises,
+    holistic,
+    metric_rows,
+    read_scores,
+    relative,
+    side_by_side,
+)
 
 
 def table(rows):
@@ -115,8 +127,6 @@ def write_scores(path, scores, model):
 
 
 def test_report_writes_table_and_figures(tmp_path):
-    from xvoe.metrics import report
-
     write_scores(tmp_path / "a.csv", random_scores(seed=1, signal=2.0), "strong")
     write_scores(tmp_path / "b.csv", random_scores(seed=2, signal=0.0), "chance")
     written = report([tmp_path / "a.csv", tmp_path / "b.csv"], tmp_path / "report", rounds=50)
@@ -150,8 +160,6 @@ BOTH = with_nll([
 
 
 def test_disagreements_hand_case():
-    from xvoe.metrics import disagreements
-
     rows = disagreements(BOTH)
     found = {(r["setting"], r["pair"]): (r["score_says"], r["nll_says"], r["right"]) for r in rows}
     assert found == {("S1", 1): ("member 1", "member 0", "score"), ("S1", 2): ("member 0", "member 1", "nll"),
@@ -161,8 +169,6 @@ def test_disagreements_hand_case():
 
 
 def test_side_by_side_table_counts_disagreeing_pairs():
-    from xvoe.metrics import has_both_surprises, metric_rows, side_by_side
-
     assert has_both_surprises(BOTH)
     assert not has_both_surprises({**BOTH, "nll": BOTH["score"]})     # --surprise nll: score is the NLL
     table_rows = side_by_side(BOTH, metric_rows(BOTH, "m", rounds=20), "m")
@@ -173,8 +179,6 @@ def test_side_by_side_table_counts_disagreeing_pairs():
 
 
 def test_report_compares_the_two_surprises_and_draws_disagreements(test_data, test_file, tmp_path):
-    from xvoe.metrics import report
-
     rng = np.random.default_rng(0)
     count = len(test_data["pair"])
     path = tmp_path / "both.csv"
@@ -189,7 +193,6 @@ def test_report_compares_the_two_surprises_and_draws_disagreements(test_data, te
     rows = list(csv.DictReader(open(tmp_path / "report" / "disagreements-both.csv")))
     assert rows and all(r["score_says"] != r["nll_says"] for r in rows)
     other = tmp_path / "other.h5"
-    from xvoe.generate import GenerateConfig, generate
 
     generate(GenerateConfig("test", pairs=1, size=16, seed=3), other, workers=1, progress=False)
     with pytest.raises(XvoeError, match="does not hold the videos"):

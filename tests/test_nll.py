@@ -8,11 +8,19 @@ import torch
 from conftest import randomise_dynamics_head
 from pyro.util import check_model_guide_match
 
-from inference.model import InferenceConfig
-from inference.surprise import nll_surprise
-from xvoe.models.config import PerceptionConfig
+from inference.explain import nll_explanation
+from inference.importance import importance
+from inference.model import HiddenObjectModel, InferenceConfig, Proposal
+from inference.surprise import BRANCH_SAMPLES, defensive, hidden_posterior, nll_surprise, refine_out_of_sight
+from inference.xpl_scene import XPLScene
+from xvoe.apps.cli import main
+from xvoe.apps.figures import plot_explanation
+from xvoe.apps.zoo import available
+from xvoe.benchmark import store
+from xvoe.benchmark.generate import GenerateConfig, generate
+from xvoe.evaluation.score import encode_videos, load_scorer, score_split
 from xvoe.models.dynamics import DynamicsConfig
-from xvoe.models.perception import ComponentVAE
+from xvoe.models.perception import ComponentVAE, PerceptionConfig
 from xvoe.models.reasoning import ReasoningConfig
 from xvoe.models.xpl import XPL, XPLConfig
 
@@ -61,8 +69,6 @@ def test_without_a_free_slot_no_hidden_object_is_proposed():
 
 
 def test_the_guide_leaves_samples_to_both_branches_of_existence():
-    from inference.surprise import BRANCH_SAMPLES, defensive
-
     assert float(defensive(torch.tensor(0.999), 64)) == pytest.approx(1 - BRANCH_SAMPLES / 64)
     assert float(defensive(torch.tensor(0.0001), 64)) == pytest.approx(BRANCH_SAMPLES / 64)
     assert float(defensive(torch.tensor(0.3), 64)) == pytest.approx(0.3)
@@ -80,8 +86,6 @@ def encoded(hidden_free=True):
 def test_nll_explanation_shapes_and_probabilities(hidden_free):
     import matplotlib.pyplot as plt
 
-    from xvoe.explain import nll_explanation
-    from xvoe.viz import plot_explanation
 
     vae, xpl = tiny_models()
     explanation = nll_explanation(vae, xpl, encoded(hidden_free), particles=16, title="tiny")
@@ -101,8 +105,6 @@ def test_nll_explanation_shapes_and_probabilities(hidden_free):
 
 
 def test_hidden_posterior_weights_the_particles_that_hold_an_object():
-    from inference.surprise import hidden_posterior
-
     vae, xpl = tiny_models()
     pyro.set_rng_seed(0)
     result = nll_surprise(vae, xpl, *video(), InferenceConfig(particles=32))
@@ -119,10 +121,6 @@ def test_hidden_posterior_weights_the_particles_that_hold_an_object():
 @pytest.fixture(scope="module")
 def shipped(tmp_path_factory):
     """The shipped xpl model and a small test split at its resolution, from a seed it never saw."""
-    from xvoe.generate import GenerateConfig, generate
-    from xvoe.score import load_scorer
-    from xvoe.zoo import available
-
     if "xpl" not in available():
         pytest.skip("no shipped xpl model in xvoe/weights")
     scorer = load_scorer("xpl")
@@ -136,9 +134,6 @@ def test_shipped_model_ranks_the_impossible_member_above_the_expected_one_in_con
     wall): the shipped model's MSE score picks the impossible member in 95% of the default
     split's pairs, and its NLL (16 particles) in 5 of these 5 pairs (blocking S1: 4 of 5,
     collision S1: 5 of 5; permanence S1, where the MSE score is at 40%: 0 of 5)."""
-    from xvoe import store
-    from xvoe.score import encode_videos
-
     scorer, path = shipped
     pyro.set_rng_seed(0)
     with store.open_dataset(path) as file:
@@ -155,9 +150,6 @@ def test_shipped_model_ranks_the_impossible_member_above_the_expected_one_in_con
 
 
 def test_cli_explain_with_the_nll_posterior(shipped, tmp_path, capsys):
-    from xvoe import store
-    from xvoe.cli import main
-
     scorer, path = shipped
     with store.open_dataset(path) as file:
         chosen = (store.strings(file, "scenario") == "blocking") & (store.strings(file, "setting") == "S2")
@@ -172,9 +164,6 @@ def test_cli_explain_with_the_nll_posterior(shipped, tmp_path, capsys):
 
 def test_nll_scores_are_the_same_bytes_from_the_same_seed(tmp_path):
     """The importance samples of `xvoe score --surprise both` come from the scorer's seed."""
-    from xvoe.generate import GenerateConfig, generate
-    from xvoe.score import load_scorer, score_split
-
     scorer = load_scorer("xpl")
     data = generate(GenerateConfig("test", pairs=1, size=scorer.image_size, seed=5), tmp_path / "t.h5",
                     workers=1, progress=False)
@@ -187,8 +176,6 @@ def test_the_scene_steps_the_dynamics_once_per_frame_and_matches_a_full_run():
     """The hidden slot's transition carries the dynamics' state from one call to the next
     (the model asks frame by frame); it must equal running the dynamics over the whole prefix,
     also when the history is not a continuation of the last call."""
-    from inference.xpl_scene import XPLScene
-
     vae, xpl = tiny_models()
     randomise_dynamics_head(xpl.dynamics)
     _, mean, visible, background, _ = video()
@@ -208,8 +195,6 @@ def test_the_scene_steps_the_dynamics_once_per_frame_and_matches_a_full_run():
 
 
 def test_the_scene_composites_a_hidden_picture_as_the_full_softmax_does():
-    from inference.xpl_scene import XPLScene
-
     vae, xpl = tiny_models()
     _, mean, visible, background, _ = video()
     with torch.no_grad():
@@ -222,8 +207,6 @@ def test_the_scene_composites_a_hidden_picture_as_the_full_softmax_does():
 
 def tiny_scene():
     """The tiny video's scene with slot 3 free for a hidden object."""
-    from inference.xpl_scene import XPLScene
-
     vae, xpl = tiny_models()
     frames, mean, visible, background, occluder = video()
     with torch.no_grad():
@@ -234,8 +217,6 @@ def tiny_scene():
 def test_the_pixel_likelihood_is_the_gaussian_density_of_every_particles_frames():
     """Particles without a hidden object are scored once; each must still get the density of
     its own full render."""
-    from inference.model import HiddenObjectModel
-
     scene, frames = tiny_scene()
     model = HiddenObjectModel(scene, InferenceConfig(pixel_sigma=0.3))
     trajectory, alive = torch.randn(5, T, D), torch.tensor([True, False, True, False, False])
@@ -251,10 +232,6 @@ def test_the_pixel_likelihood_is_the_gaussian_density_of_every_particles_frames(
 def test_the_seen_objects_motion_is_observed_only_where_the_encoder_saw_them():
     """Transformer 1's fills feed the dynamics but are not data: the seen_motion site's density
     is the Gaussian one summed over the (frame, slot) entries the encoder saw, and nothing else."""
-    from inference.importance import importance
-    from inference.model import HiddenObjectModel, Proposal
-    from inference.xpl_scene import XPLScene
-
     vae, xpl = tiny_models()
     randomise_dynamics_head(xpl.dynamics)
     frames, mean, visible, background, occluder = video()
@@ -293,8 +270,6 @@ def extra_nats(scene, loc, frames, sigma):
 
 
 def test_moving_the_proposal_out_of_sight_lowers_its_cost_and_leaves_hidden_frames_alone():
-    from inference.surprise import refine_out_of_sight
-
     scene, frames = tiny_scene()
     torch.manual_seed(3)
     loc = torch.randn(T, D)

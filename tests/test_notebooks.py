@@ -12,6 +12,8 @@ import pytest
 from nbclient import NotebookClient
 from nbclient.exceptions import CellExecutionError
 
+from xvoe.apps import zoo
+
 NOTEBOOKS = Path(__file__).resolve().parent.parent / "notebooks"
 SMALLEST = {
     "01_explanations.ipynb": "PAIRS = 1\nPARTICLES = 8",
@@ -36,8 +38,6 @@ def test_notebook_is_stored_without_outputs(name):
 
 @pytest.mark.parametrize("name", sorted(SMALLEST))
 def test_notebook_runs_top_to_bottom(name, tmp_path, monkeypatch):
-    from xvoe import zoo
-
     assert "xpl" in zoo.available(), "the notebooks need the shipped model xvoe/weights/xpl.pt (xvoe ship RUN_DIR)"
     monkeypatch.setenv("OMP_NUM_THREADS", "1")       # the kernel inherits it: one core per notebook
     monkeypatch.setenv("MPLBACKEND", "module://matplotlib_inline.backend_inline")

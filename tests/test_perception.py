@@ -2,10 +2,11 @@ import numpy as np
 import pytest
 import torch
 
-from xvoe.data import masked_inputs, perception_batch
 from xvoe.errors import XvoeError
-from xvoe.models.config import PerceptionConfig, from_dict, preset, to_dict
-from xvoe.models.perception import BLANK, BLANK_DEPTH, ComponentVAE, normalise, visible_centroid
+from xvoe.models.config import from_dict, to_dict
+from xvoe.models.perception import BLANK, BLANK_DEPTH, ComponentVAE, PerceptionConfig, normalise, visible_centroid
+from xvoe.training.data import cut_objects, cut_plan, masked_inputs, perception_batch
+from xvoe.training.presets import preset
 
 TINY = dict(latent_dim=4, cnn_channels=(8, 8), cnn_hidden=16, decoder_channels=8, vit_patch=4, vit_width=16,
             vit_layers=1, vit_heads=2, vit_mlp=32, vit_head_hidden=16)
@@ -186,8 +187,6 @@ def test_latent_sensitivity_is_the_decoders_squared_jacobian(where):
 
 
 def test_cut_objects_blank_one_side_of_the_chosen_objects_only():
-    from xvoe.data import cut_objects, cut_plan
-
     objects = torch.tensor(BLANK).view(1, 4, 1, 1).repeat(3, 1, 12, 12)
     objects[:, :, 2:8, 3:9] = -0.5                             # a 6x6 object in each image
     plan = np.array([[1, 0, 0.5], [1, 3, 0.5], [0, 0, 0.5]])   # right half goes; top half goes; untouched

@@ -6,8 +6,13 @@ import numpy as np
 import pytest
 import torch
 
+from xvoe.apps.cli import main
+from xvoe.apps.figures import plot_predictions, predicted_frames
+from xvoe.apps.pipeline import PipelineConfig, run_pipeline
+from xvoe.benchmark.generate import GenerateConfig, generate
 from xvoe.errors import XvoeError
-from xvoe.generate import GenerateConfig, generate
+from xvoe.evaluation.score import SCORE_COLUMNS, load_scorer
+from xvoe.models.perception import normalise, to_uint8
 from xvoe.models.phydnet import (
     PhyDNet,
     PhyDNetConfig,
@@ -16,6 +21,8 @@ from xvoe.models.phydnet import (
     kernel_moments,
     kernels_with_moments,
 )
+from xvoe.training.phydnet import VideoBatches, load_phydnet, train_phydnet, widen_run
+from xvoe.training.presets import PRESETS, TrainConfig
 
 TINY = PhyDNetConfig(image_size=16, encoder_channels=(8, 8, 8), phycell_kernel=5, lstm_channels=(8,))
 TRAIN = {"steps": 4, "batch_size": 2, "warmup_steps": 1, "log_every": 1, "threads": 1}
@@ -185,14 +192,10 @@ def splits(tmp_path_factory):
 
 @pytest.fixture
 def tiny_preset(monkeypatch):
-    from xvoe.models.config import PRESETS, TrainConfig
-
     monkeypatch.setitem(PRESETS, "cpu", replace(PRESETS["cpu"], phydnet=TINY, phydnet_train=TrainConfig(**TRAIN)))
 
 
 def test_stage_trains_resumes_exactly_and_loads(splits, tmp_path, tiny_preset):
-    from xvoe.train_phydnet import VideoBatches, load_phydnet, train_phydnet
-
     straight = train_phydnet(splits[0], tmp_path / "a", progress=False)
     train_phydnet(splits[0], tmp_path / "b", progress=False, steps=2)
     resumed = train_phydnet(None, tmp_path / "b", progress=False, resume=True, steps=4)
@@ -216,8 +219,6 @@ def test_stage_trains_resumes_exactly_and_loads(splits, tmp_path, tiny_preset):
 def test_a_widened_lstm_kernel_predicts_the_same_and_trains_on(splits, tmp_path, tiny_preset):
     """The 3x3 gates padded with zeros to 7x7 give the same predictions; the widened run resumes
     from the source's step with a fresh optimiser, and its outer taps learn."""
-    from xvoe.train_phydnet import load_phydnet, train_phydnet, widen_run
-
     source = train_phydnet(splits[0], tmp_path / "a", progress=False, model_overrides={"lstm_channels": (8, 8)})
     widened = widen_run(source, tmp_path / "b", lstm_kernel=7)
     (net, _), (wide, state) = load_phydnet(source), load_phydnet(widened)
@@ -242,7 +243,6 @@ def test_an_interrupt_stops_after_its_step_and_the_run_resumes_exactly(splits, t
     import os
     import signal
 
-    from xvoe.train_phydnet import VideoBatches, train_phydnet
 
     straight = torch.load(train_phydnet(splits[0], tmp_path / "a", progress=False), weights_only=False)
     before, draw = signal.getsignal(signal.SIGINT), VideoBatches.batch
@@ -272,7 +272,6 @@ def test_an_interrupt_stops_after_its_step_and_the_run_resumes_exactly(splits, t
 def test_a_focus_group_fills_its_share_of_each_batch_with_that_groups_wall_videos(splits):
     import h5py
 
-    from xvoe.train_phydnet import VideoBatches
 
     with h5py.File(splits[0]) as file:
         groups, walls = file["group"].asstr()[:], file["has_wall"][:].astype(bool)
@@ -303,7 +302,6 @@ def test_a_focus_group_fills_its_share_of_each_batch_with_that_groups_wall_video
 def test_a_focus_on_several_groups_draws_from_the_wall_videos_of_each(tmp_path):
     import h5py
 
-    from xvoe.train_phydnet import VideoBatches
 
     path = generate(GenerateConfig("train", videos=10, size=16, frames=10, seed=0), tmp_path / "train.h5", workers=1,
                     progress=False)
@@ -321,8 +319,6 @@ def test_a_focus_on_several_groups_draws_from_the_wall_videos_of_each(tmp_path):
 
 
 def test_the_command_line_sets_the_focus_and_the_learning_rate(splits, tmp_path, tiny_preset, capsys):
-    from xvoe.cli import main
-
     run = tmp_path / "run"
     assert main(["train", "--stage", "phydnet", "--data", str(splits[0]), "--out", str(run), "--quiet", "--steps", "2",
                  "--lr", "0.004", "--focus-group", "continuity", "--focus-share", "0.5"]) == 0
@@ -335,9 +331,6 @@ def test_the_command_line_sets_the_focus_and_the_learning_rate(splits, tmp_path,
 
 
 def test_the_name_resolves_and_scores_a_tiny_test_set(splits, tmp_path, tiny_preset):
-    from xvoe.cli import main
-    from xvoe.score import SCORE_COLUMNS, load_scorer
-
     run = tmp_path / "run"
     assert main(["train", "--stage", "phydnet", "--data", str(splits[0]), "--out", str(run), "--quiet"]) == 0
     assert load_scorer(str(run / "phydnet")).name == "phydnet"
@@ -356,9 +349,6 @@ def test_the_name_resolves_and_scores_a_tiny_test_set(splits, tmp_path, tiny_pre
 
 
 def test_pipeline_trains_and_scores_phydnet_without_perception(tmp_path, monkeypatch):
-    from xvoe.models.config import PRESETS, TrainConfig
-    from xvoe.pipeline import PipelineConfig, run_pipeline
-
     tiny = replace(PRESETS["cpu"], phydnet=replace(TINY, image_size=PRESETS["cpu"].perception.image_size),
                    phydnet_train=TrainConfig(**TRAIN))
     monkeypatch.setitem(PRESETS, "cpu", tiny)
@@ -374,8 +364,6 @@ def test_plot_predictions_draws_each_frame_as_predicted_from_the_ones_before(spl
     import h5py
     import matplotlib.pyplot as plt
 
-    from xvoe.models.perception import normalise, to_uint8
-    from xvoe.viz import plot_predictions, predicted_frames
 
     torch.manual_seed(0)
     net = PhyDNet(TINY).eval()

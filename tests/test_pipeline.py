@@ -3,9 +3,13 @@ from dataclasses import replace
 
 import pytest
 
+from inference.model import InferenceConfig
+from inference.score import reference_nll
+from xvoe.apps.pipeline import PipelineConfig, compare_models, run_pipeline
+from xvoe.benchmark import store
 from xvoe.errors import XvoeError
-from xvoe.models.config import PRESETS, TrainConfig
-from xvoe.pipeline import PipelineConfig, run_pipeline
+from xvoe.evaluation.score import score_split
+from xvoe.training.presets import PRESETS, TrainConfig
 
 
 @pytest.fixture
@@ -48,7 +52,6 @@ def test_tiny_pipeline_runs_end_to_end_and_skips_done_stages(tmp_path, tiny_cpu_
     # the Pyro model's surprise beside the paper's, on the same run
     import csv
 
-    from xvoe.score import score_split
     out = score_split(str(run / "xpl.pt"), str(run / "data" / "test.h5"), str(tmp_path / "both.csv"),
                       surprise="both", particles=4, progress=False)
     rows = list(csv.DictReader(open(out)))
@@ -64,9 +67,6 @@ def test_tiny_pipeline_runs_end_to_end_and_skips_done_stages(tmp_path, tiny_cpu_
     assert all(0 <= float(r["s_rec"]) for r in rows) and any(float(r["s_rec"]) > 0 for r in rows)
     assert "excess" in {r.split(",")[2] for r in open(run / "report" / "metrics.csv").read().split()[1:]}
     # the NLL's excess: less the NLL of a reference drawing only what was seen
-    from inference.model import InferenceConfig
-    from xvoe import store
-    from xvoe.score import reference_nll
 
     with store.open_dataset(run / "data" / "test.h5") as file:
         size = file["rgbd"].shape[2]
@@ -84,8 +84,6 @@ def test_pipeline_refuses_unknown_models():
 
 
 def test_report_compares_models_with_their_numbers():
-    from xvoe.pipeline import compare_models
-
     def row(model, scenario, setting, value, low=0.0, high=1.0):
         return {"metric": "comparative", "model": model, "scenario": scenario, "setting": setting,
                 "value": value, "low": low, "high": high}

@@ -2,12 +2,15 @@
 import pytest
 import torch
 
-from xvoe.models.config import PerceptionConfig
+from inference.score import reference_nll
+from xvoe.errors import XvoeError
+from xvoe.evaluation.score import SCORE_COLUMNS, score_split
+from xvoe.evaluation.surprise import aggregate, latent_surprise, mse_surprise
 from xvoe.models.dynamics import DynamicsConfig
-from xvoe.models.perception import ComponentVAE
+from xvoe.models.perception import ComponentVAE, PerceptionConfig
 from xvoe.models.reasoning import ReasoningConfig
+from xvoe.models.slots import BEHIND, WALL_PIXEL, behind_walls, composite, decode_slots, scene_layers
 from xvoe.models.xpl import XPL, XPLConfig
-from xvoe.score import aggregate, composite, decode_slots, mse_surprise
 
 B, T, K, D = 2, 5, 4, 6
 
@@ -99,8 +102,6 @@ def test_random_agent_scores_a_split(test_file, tmp_path):
 
     import numpy as np
 
-    from xvoe.errors import XvoeError
-    from xvoe.score import SCORE_COLUMNS, score_split
 
     out = score_split("random", str(test_file), str(tmp_path / "random.csv"), progress=False)
     rows = list(csv.DictReader(open(out)))
@@ -118,16 +119,11 @@ def test_random_agent_scores_a_split(test_file, tmp_path):
 
 
 def test_scores_need_a_test_split(train_file, tmp_path):
-    from xvoe.errors import XvoeError
-    from xvoe.score import score_split
-
     with pytest.raises(XvoeError, match="test split"):
         score_split("random", str(train_file), str(tmp_path / "x.csv"), progress=False)
 
 
 def test_objects_unseen_in_a_frame_stay_behind_the_walls_there():
-    from xvoe.score import BEHIND, behind_walls
-
     layers = torch.ones(1, 2, 3, 4, 2, 2)                   # far everywhere: depth 1
     layers[0, :, 0, 3, 0, :] = -0.5                         # slot 0, a wall, covers the top row
     layers[0, :, 1, 3] = -0.8                               # slot 1 decodes in front of it, everywhere
@@ -146,8 +142,6 @@ def test_objects_unseen_in_a_frame_stay_behind_the_walls_there():
 def test_a_wall_is_drawn_only_in_the_frames_it_was_seen(models):
     """Nothing hides a wall (the nearest lane): unseen, it is out of the picture, whatever
     Transformer 1 fills it with; so its fill costs no pixels and hides nothing."""
-    from xvoe.score import WALL_PIXEL, scene_layers
-
     vae, xpl = models
     mean, visible, background, occluder = scene(moving=False)
     visible[:, 3:, 0] = False                              # the wall (slot 0) is lifted away at frame 3
@@ -179,8 +173,6 @@ def test_the_excess_keeps_a_fill_drawn_where_nothing_was_seen(models):
     """An object seen, then hidden with no wall in front of it: Transformer 1's fill draws it
     in the open. s_rec (the seen entries alone) matches frames without it; s_img pays the
     fill, and so does the excess, by the same amount, however noisy the picture elsewhere."""
-    from xvoe.score import latent_surprise
-
     vae, xpl = models
     mean, visible, background, occluder = scene(moving=False)
     occluder[:] = False                                   # no wall to hide behind
@@ -207,7 +199,6 @@ def test_the_reference_nll_is_the_gaussian_density_of_the_seen_drawing(models):
     seen entries, sigma^2) summed over every pixel of every frame, from the s_rec curve alone."""
     import numpy as np
 
-    from xvoe.score import latent_surprise, reference_nll
 
     vae, xpl = models
     mean, visible, background, occluder = scene(moving=False)

@@ -3,11 +3,11 @@ import matplotlib
 import numpy as np
 import pytest
 
-matplotlib.use("Agg")
+from xvoe.benchmark import custom, store
+from xvoe.errors import XvoeError
+from xvoe.evaluation.score import score_split
 
-from xvoe import store, viz  # noqa: E402
-from xvoe.errors import XvoeError  # noqa: E402
-from xvoe.score import score_split  # noqa: E402
+matplotlib.use("Agg")
 
 
 @pytest.fixture(scope="module")
@@ -75,7 +75,6 @@ def test_scores_without_curves_or_from_other_data_are_refused(scored, test_file,
         viz.plot_surprise_curves(lonely, test_file, "collision", "S1", 0)
     with pytest.raises(XvoeError, match="frame 15 is out of range"):
         viz.plot_surprise_curves(scored, test_file, "collision", "S1", 0, frame=15)
-    from xvoe import custom
     other = custom.make_pair([custom.ball(4, vx=50), custom.ball(34)], custom.pass_through(0, 1))
     mine = other.save(tmp_path / "mine.h5", size=32)
     with pytest.raises(XvoeError, match="does not match"):

@@ -7,12 +7,16 @@ import textwrap
 import pytest
 import torch
 
-from xvoe.cli import main
+from xvoe.apps.cli import main
+from xvoe.benchmark.generate import GenerateConfig, generate
 from xvoe.errors import XvoeError
-from xvoe.generate import GenerateConfig, generate
-from xvoe.models.config import PerceptionConfig, TrainConfig, from_dict, override, preset
-from xvoe.models.perception import ComponentVAE
-from xvoe.train import learning_rate, load_checkpoint, load_perception, seed_everything, train_perception
+from xvoe.models.config import from_dict, override
+from xvoe.models.perception import ComponentVAE, PerceptionConfig
+from xvoe.training.checkpoints import load_checkpoint
+from xvoe.training.data import ShardedFrames
+from xvoe.training.loop import learning_rate, seed_everything
+from xvoe.training.perception import load_perception, train_perception
+from xvoe.training.presets import TrainConfig, preset
 
 TINY = dict(image_size=16, broadcast_size=4, latent_dim=4, cnn_channels=(8, 8), cnn_hidden=16, decoder_channels=8)
 TRAIN = dict(batch_size=4, log_every=2, warmup_steps=2, threads=1)
@@ -156,8 +160,6 @@ def test_an_interrupt_in_one_process_under_torchrun_stops_both_after_the_same_st
 
 def test_cut_objects_do_not_depend_on_the_process_count(tiny_file):
     """The cuts are drawn shard by shard: two processes' halves are the one process's batch."""
-    from xvoe.data import ShardedFrames
-
     common = dict(image_size=16, latent_dim=4, batch_size=8, shards=2, seed=3, cut_share=0.5)
     whole = ShardedFrames(str(tiny_file), **common).batch(5)
     halves = [ShardedFrames(str(tiny_file), rank=r, world=2, **common).batch(5) for r in (0, 1)]

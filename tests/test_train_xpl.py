@@ -3,10 +3,28 @@ import numpy as np
 import pytest
 import torch
 
+from xvoe.apps.zoo import KEPT
+from xvoe.benchmark import store
+from xvoe.benchmark.scenes.behind import WALL_HALF_WIDTH
+from xvoe.benchmark.world import WORLD
 from xvoe.errors import XvoeError
-from xvoe.latents import Latents, write_latents
-from xvoe.train_xpl import LatentBatches, load_xpl, object_places, outside_picture, train_xpl
-from xvoe.world import WORLD
+from xvoe.models.dynamics import DynamicsConfig
+from xvoe.models.reasoning import ReasoningConfig
+from xvoe.models.xpl import XPL, XPLConfig
+from xvoe.training.latents import Latents, write_latents
+from xvoe.training.presets import PRESETS, TrainConfig
+from xvoe.training.xpl import (
+    LatentBatches,
+    ProposalBatch,
+    ProposalNetworks,
+    bridge_hidden,
+    load_xpl,
+    object_places,
+    outside_picture,
+    train_proposal,
+    train_xpl,
+    wall_stays,
+)
 
 N, T, K, D = 32, 8, 4, 6
 TINY = {"steps": 100, "batch_size": 32, "lr": 3e-3, "warmup_steps": 1, "log_every": 5}
@@ -37,8 +55,7 @@ def tiny_preset(monkeypatch):
     """Shrink the cpu preset's networks so that a stage trains in a second."""
     from dataclasses import replace
 
-    import xvoe.train_xpl as stage
-    from xvoe.models.config import PRESETS
+    import xvoe.training.xpl as stage
 
     cpu = PRESETS["cpu"]
     reasoning = replace(cpu.xpl.reasoning, width=16, layers=1, heads=2, mlp=16)
@@ -65,7 +82,6 @@ def test_xpl_stage_learns_and_resumes_exactly(cache, tmp_path):
 
 
 def test_a_shipped_checkpoint_trains_further_from_its_step(cache, tmp_path):
-    from xvoe.zoo import KEPT
     first = torch.load(train_xpl(cache, tmp_path / "a", stage="plato", progress=False, **{**TINY, "steps": 40}),
                        weights_only=False)
     (tmp_path / "b").mkdir()
@@ -94,8 +110,7 @@ def test_a_preset_can_train_plato_longer_than_xpl(cache, tmp_path, monkeypatch):
     """Preset.plato_train, where set, is the plato stage's training; the other stages keep xpl_train."""
     from dataclasses import replace
 
-    import xvoe.train_xpl as stage
-    from xvoe.models.config import TrainConfig
+    import xvoe.training.xpl as stage
 
     base = stage.preset("cpu")
     xpl_train = TrainConfig(**{**TINY, "steps": 3})
@@ -145,8 +160,6 @@ def test_transformer2_is_asked_for_seen_objects_often(tmp_path):
 
 
 def test_the_proposal_stage_trains_transformer2_alone_and_overlays_xpl(cache, tmp_path):
-    from xvoe.train_xpl import train_proposal
-
     with pytest.raises(XvoeError, match="train the xpl stage first"):
         train_proposal(tmp_path, cache, progress=False)
     train_xpl(cache, tmp_path, progress=False, **{**TINY, "steps": 20})
@@ -170,8 +183,6 @@ def test_the_proposal_stage_trains_transformer2_alone_and_overlays_xpl(cache, tm
 
 
 def test_the_proposal_stage_resumes_exactly(cache, tmp_path):
-    from xvoe.train_xpl import train_proposal
-
     for run in ("a", "b"):
         train_xpl(cache, tmp_path / run, progress=False, **{**TINY, "steps": 10})
     straight = train_proposal(tmp_path / "a", progress=False, **{**TINY, "steps": 30})
@@ -183,8 +194,6 @@ def test_the_proposal_stage_resumes_exactly(cache, tmp_path):
 
 
 def test_wall_stays_fills_the_frames_the_wall_was_away_from_the_nearest_seen_one():
-    from xvoe.train_xpl import wall_stays
-
     mean = torch.arange(2 * 5 * 3, dtype=torch.float32).reshape(2, 5, 3, 1)
     visible = torch.zeros(2, 5, 3, dtype=torch.bool)
     visible[0, 2:4, 1] = True             # video 0: the wall (slot 1) is down in frames 2 and 3
@@ -198,8 +207,6 @@ def test_wall_stays_fills_the_frames_the_wall_was_away_from_the_nearest_seen_one
 
 
 def test_bridge_hidden_interpolates_between_seen_frames_and_holds_beyond_them():
-    from xvoe.train_xpl import bridge_hidden
-
     mean = torch.arange(6, dtype=torch.float32).view(1, 6, 1, 1).repeat(1, 1, 3, 2)
     mean[0, 2:4, 0] = 99.0                     # what the encoder made of a hidden object: no measurement
     visible = torch.zeros(1, 6, 3, dtype=torch.bool)
@@ -214,11 +221,6 @@ def test_bridge_hidden_interpolates_between_seen_frames_and_holds_beyond_them():
 def test_transformer2_never_sees_the_slot_it_rebuilds_not_even_through_transformer1():
     """In the proposal stage the rebuilt slot is emptied before Transformer 1 refines the
     others: what stood there may change freely without changing the loss (only the target may)."""
-    from xvoe.models.dynamics import DynamicsConfig
-    from xvoe.models.reasoning import ReasoningConfig
-    from xvoe.models.xpl import XPL, XPLConfig
-    from xvoe.train_xpl import ProposalBatch, ProposalNetworks
-
     torch.manual_seed(0)
     xpl = XPL(XPLConfig(reasoning=ReasoningConfig(latent_dim=D, slots=K, frames=T, width=16, layers=1, heads=2,
                                                   mlp=16),
@@ -244,8 +246,6 @@ def test_transformer2_never_sees_the_slot_it_rebuilds_not_even_through_transform
 
 
 def test_the_proposal_stage_refuses_torchrun(tmp_path, monkeypatch):
-    from xvoe.train_xpl import train_proposal
-
     monkeypatch.setenv("WORLD_SIZE", "2")
     with pytest.raises(XvoeError, match="without torchrun"):
         train_proposal(tmp_path)
@@ -254,7 +254,7 @@ def test_the_proposal_stage_refuses_torchrun(tmp_path, monkeypatch):
 def test_weighing_by_picture_needs_a_cache_that_names_its_perception(cache, tmp_path, monkeypatch):
     from dataclasses import replace
 
-    import xvoe.train_xpl as stage
+    import xvoe.training.xpl as stage
 
     small = stage.preset("cpu")                     # the tiny preset of the autouse fixture
     monkeypatch.setattr(stage, "preset", lambda name: replace(small, xpl=replace(small.xpl, weigh_by_picture=True)))
@@ -264,8 +264,6 @@ def test_weighing_by_picture_needs_a_cache_that_names_its_perception(cache, tmp_
 
 def walled_cache(train_file, path):
     """A cache of the training split's visibility (latents all zero) that names the split."""
-    from xvoe import store
-
     with store.open_dataset(train_file) as file:
         columns = list(file["states"].attrs["state_columns"])
         visible = file["states"][..., columns.index("visible")] > 0.25
@@ -282,9 +280,6 @@ def test_wall_refill_hides_what_one_wall_would_hide(train_file, tmp_path):
     within one wall's width and in frames before the last two, from which the wall is gone; every
     hidden object is still seen somewhere; and in wall-less collision videos the wall often hides
     both balls at the event, as the test walls do."""
-    from xvoe import store
-    from xvoe.scenes.behind import WALL_HALF_WIDTH
-
     cache = walled_cache(train_file, tmp_path / "latents.h5")
     batches = LatentBatches(str(cache), batch_size=32, shards=1, seed=2, walls=True, wall_refill=1.0)
     places, events = object_places(str(cache), 0, len(batches.visible))

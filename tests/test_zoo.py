@@ -2,9 +2,9 @@
 import pytest
 import torch
 
-import xvoe.zoo as zoo
+import xvoe.apps.zoo as zoo
 from xvoe.errors import XvoeError
-from xvoe.score import load_scorer
+from xvoe.evaluation.score import load_scorer
 
 
 def test_the_default_model_is_shipped_within_budget():

@@ -1,5 +1,1 @@
-"""The XPL networks and their size presets."""
-from .config import PRESETS, PerceptionConfig, Preset, TrainConfig, preset
-from .perception import ComponentVAE, PerceptionBatch
-
-__all__ = ["PRESETS", "ComponentVAE", "PerceptionBatch", "PerceptionConfig", "Preset", "TrainConfig", "preset"]
+"""The networks (layer 2): perception, XPL's Transformers and dynamics, PhyDNet, and slot compositing."""

@@ -30,12 +30,69 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor, nn
 
-from .config import PerceptionConfig
+from ..errors import XvoeError
 
 BLANK_DEPTH = 1.5                                   # beyond the far plane (255 -> 1.0)
 BLANK = (1.0, 1.0, 1.0, BLANK_DEPTH)                # RGB white, depth past the background
 MEAN_RANGE = 3.0                                    # mean = 6*sigmoid(a) - 3
 STD_SCALE = 3.0                                     # std = 3*sigmoid(b)
+
+
+@dataclass(frozen=True)
+class PerceptionConfig:
+    """The Component VAE: per-object encoder, spatial broadcast decoder, depth compositor."""
+
+    image_size: int = 32            # frames are image_size x image_size RGBD
+    latent_dim: int = 16            # D: size of each object's latent
+    encoder: str = "cnn"            # "cnn" (small, for CPUs) or "vit" (the paper's)
+    # small CNN encoder: channels of its stride-2 5x5 convolutions, then an MLP
+    cnn_channels: tuple[int, ...] = (32, 32, 64, 64)
+    cnn_hidden: int = 128
+    cnn_coords: bool = True         # pixel coordinates as extra input channels (CoordConv)
+    # ViT encoder (paper: 8-pixel patches at 128 px, width 256, 6 layers, 8 heads, MLP 1024, head 512)
+    vit_patch: int = 8
+    vit_width: int = 256
+    vit_layers: int = 6
+    vit_heads: int = 8
+    vit_mlp: int = 1024
+    vit_head_hidden: int = 512
+    # spatial broadcast decoder: broadcast grid, then stride-2 transposed convs up to image_size
+    broadcast_size: int = 8
+    decoder_channels: int = 32
+    decoder_kernel: int = 5
+    decoder_extra_convs: int = 0    # stride-1 convs after the upsampling (paper: 1)
+    # latents 0 and 1 are the object's (x, y): the decoder draws relative to them and the encoder
+    # starts them at the visible pixels' centroid (off in the paper; off in checkpoints made before it)
+    where_latents: bool = False
+    # frame coordinates ([-1, 1]) per unit of those two latents: 0.5 spans the frame over +-2 of the
+    # means' +-3, so that a pixel's move weighs more in the later stages' latent losses
+    where_scale: float = 0.5
+    # the per-object loss leaves out the other objects' pixels, where this one may stand hidden, so
+    # a partly hidden object is decoded whole (its latents then say where it is, not its visible part)
+    amodal: bool = False
+    # share of the object images the encoder sees with a random side cut off while the loss asks for
+    # the whole object: it learns where a partly hidden object is, and to draw it whole
+    cut_share: float = 0.0
+    # likelihood and prior
+    sigma: float = 0.05             # pixel standard deviation of the Gaussian likelihood
+    beta: float = 0.5               # weight of the KL to N(0, I)
+    object_loss_weight: float = 1.0  # per-object masked reconstruction, next to the composite
+    theta_init: float = 1.0         # compositing temperature |theta|, learned
+    std_init: float = 0.05          # posterior std the encoder starts from (before training)
+
+    def __post_init__(self) -> None:
+        if self.encoder not in ("cnn", "vit"):
+            raise XvoeError(f"encoder must be 'cnn' or 'vit', not {self.encoder!r}")
+        ratio = self.image_size // self.broadcast_size
+        if self.image_size % self.broadcast_size or ratio & (ratio - 1):
+            raise XvoeError(f"image_size {self.image_size} must be broadcast_size {self.broadcast_size} "
+                            "times a power of two")
+        if self.encoder == "vit" and self.image_size % self.vit_patch:
+            raise XvoeError(f"image_size {self.image_size} is not a multiple of vit_patch {self.vit_patch}")
+        if self.where_latents and self.latent_dim < 3:
+            raise XvoeError(f"where_latents needs latent_dim >= 3 (two for position), not {self.latent_dim}")
+        if self.encoder == "vit" and self.vit_width % self.vit_heads:
+            raise XvoeError(f"vit_width {self.vit_width} is not a multiple of vit_heads {self.vit_heads}")
 
 
 def blank_like(images: Tensor) -> Tensor:

@@ -28,6 +28,7 @@ import torch
 from torch import Tensor, nn
 
 from ..errors import XvoeError
+from .perception import normalise
 
 
 @dataclass(frozen=True)
@@ -299,6 +300,4 @@ class PhyDNetObjective(nn.Module):
         self.net = net
 
     def forward(self, videos: Tensor) -> dict[str, Tensor]:
-        from .perception import normalise
-
         return self.net.loss(normalise(videos))

@@ -15,22 +15,14 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from . import store
+from ..benchmark import store
+from ..errors import XvoeError
+from ..models.config import from_dict, override, override_resumed, to_dict
+from ..models.phydnet import PhyDNet, PhyDNetConfig, PhyDNetObjective, widen_lstm_kernel
+from .checkpoints import load_checkpoint, resolve_run, save_checkpoint
 from .data import check_size, focus_on, owned_shards
-from .errors import XvoeError
-from .models.config import TrainConfig, from_dict, override, override_resumed, preset, to_dict
-from .models.phydnet import PhyDNet, PhyDNetConfig, PhyDNetObjective, widen_lstm_kernel
-from .train import (
-    Job,
-    checkpoint_path,
-    fit,
-    load_checkpoint,
-    resolve_run,
-    save_checkpoint,
-    seed_everything,
-    set_threads,
-    setup_distributed,
-)
+from .loop import Job, checkpoint_path, fit, seed_everything, set_threads, setup_distributed
+from .presets import TrainConfig, preset
 
 STAGE = "phydnet"
 LOSS_FIELDS = ("change_weight", "moment_weight")   # PhyDNetConfig fields a resumed run may change

@@ -20,7 +20,7 @@ from pathlib import Path
 import h5py
 import numpy as np
 
-from .errors import XvoeError
+from ..errors import XvoeError
 from .render import DEPTH_FAR, STATE_COLUMNS, Video
 from .world import KIND_NAMES, MAX_SLOTS, WALL_KINDS
 

@@ -16,9 +16,9 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from . import store
-from .errors import XvoeError
-from .models.perception import BLANK, PerceptionBatch, normalise
+from ..benchmark import store
+from ..errors import XvoeError
+from ..models.perception import BLANK, PerceptionBatch, normalise
 
 BLANK_SEED = 1 << 20      # the shard number of the blank input's noise (shared by all processes)
 CUT_SEED = 1 << 21        # the stream of the cuts of each shard's object images

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import hashlib
 import os
+import warnings
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
@@ -19,25 +20,19 @@ import numpy as np
 import torch
 from torch import Tensor, nn
 
+from ..benchmark import store
+from ..benchmark.scenes.behind import WALL_HALF_WIDTH, WALL_HEIGHT
+from ..benchmark.world import FLOOR, WORLD
+from ..errors import XvoeError
+from ..models.config import from_dict, override, to_dict
+from ..models.reasoning import hide_slot
+from ..models.xpl import XPL, XPLConfig, permute_slots
+from .checkpoints import load_checkpoint, resolve_run
 from .data import focus_on, owned_shards
-from .errors import XvoeError
-from .latents import open_latents
-from .models.config import TrainConfig, from_dict, override, preset, to_dict
-from .models.reasoning import hide_slot
-from .models.xpl import XPL, XPLConfig, permute_slots
-from .scenes.behind import WALL_HALF_WIDTH, WALL_HEIGHT
-from .train import (
-    Dist,
-    Job,
-    checkpoint_path,
-    fit,
-    load_checkpoint,
-    resolve_run,
-    seed_everything,
-    set_threads,
-    setup_distributed,
-)
-from .world import FLOOR, WORLD
+from .latents import encode_split, open_latents, picture_weights
+from .loop import Dist, Job, checkpoint_path, fit, seed_everything, set_threads, setup_distributed
+from .perception import load_perception
+from .presets import TrainConfig, preset
 
 STAGES = ("xpl", "plato")
 PROPOSAL_OBJECT_SHARE = 0.5   # the proposal stage rebuilds a seen object this often (else any slot); as
@@ -223,9 +218,6 @@ def train_xpl(latents: str | os.PathLike | None, run_dir: str | os.PathLike, *, 
 def cache_picture_weights(latents: str | os.PathLike, videos: int = 200) -> tuple[float, ...]:
     """XPLConfig.latent_weights for a latent cache: each latent's picture sensitivity under the
     perception module that made the cache (recorded in it), over their mean."""
-    from .latents import picture_weights
-    from .train import load_perception
-
     with open_latents(latents) as file:
         source = file.attrs.get("perception_checkpoint")
         if source is None:
@@ -243,8 +235,6 @@ def latent_cache_for(data: str | os.PathLike, run_dir: str | os.PathLike, percep
                      progress: bool = True) -> Path:
     """The latent cache to train on: `data` itself if it is one; for a split file, the cache
     RUN_DIR/latents-NAME.h5, encoded first with the run's perception module if missing."""
-    from .latents import encode_split
-
     data = Path(data)
     try:
         open_latents(data).close()
@@ -371,9 +361,6 @@ def source_split(latents: str, needed_by: str) -> str:
 def wall_slots(latents: str, start: int, stop: int) -> np.ndarray | None:
     """(N, K) bool: the slots that hold a wall, from the split file the cache was encoded
     from (its `kind` map); None, with a warning, when that file is gone."""
-    import warnings
-
-    from . import store
 
     source = cache_source(latents)
     if source is None or not Path(source).is_file():
@@ -387,8 +374,6 @@ def wall_slots(latents: str, start: int, stop: int) -> np.ndarray | None:
 def object_places(latents: str, start: int, stop: int) -> tuple[np.ndarray, np.ndarray]:
     """(N, T, K, 3) float32: each slot's centre x, y (up) and size (radius or half side) in world units, per frame, and
     (N,) the event frame (-1 if none), from the split file the cache was encoded from."""
-    from . import store
-
     with store.open_dataset(source_split(latents, "wall_refill")) as file:
         columns = list(file["states"].attrs["state_columns"])
         states = file["states"][start:stop][..., [columns.index(c) for c in ("x", "y", "size")]]

@@ -13,6 +13,7 @@ checkpoint, so an interrupted pipeline loses at most a few minutes of work.
 """
 from __future__ import annotations
 
+import csv
 import multiprocessing
 import os
 import time
@@ -20,12 +21,23 @@ from collections.abc import Callable
 from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING
 
-from .errors import XvoeError
+import matplotlib.pyplot as plt
+import torch
 
-if TYPE_CHECKING:
-    from .models.config import Preset
+from ..benchmark import store
+from ..benchmark.generate import GenerateConfig, generate
+from ..errors import XvoeError
+from ..evaluation.explain import explain
+from ..evaluation.score import load_scorer, score_split
+from ..training.latents import encode_split
+from ..training.loop import checkpoint_path
+from ..training.perception import train_perception
+from ..training.phydnet import train_phydnet
+from ..training.presets import PRESETS, Preset, preset
+from ..training.xpl import train_proposal, train_xpl
+from .figures import plot_explanation
+from .report import report
 
 MODELS = ("xpl", "xpl-noresidual", "plato", "phydnet", "random")      # longest to train and score first
 TRAINED = {"xpl": ("xpl", True), "plato": ("plato", True), "xpl-noresidual": ("xpl", False)}
@@ -81,12 +93,6 @@ class Stages:
 
 def run_pipeline(config: PipelineConfig) -> Path:
     """Everything, end to end; returns the path of report.md."""
-    from .generate import GenerateConfig, generate
-    from .latents import encode_split
-    from .metrics import report
-    from .models.config import preset
-    from .train import checkpoint_path, train_perception
-
     size = preset(config.preset).perception.image_size
     run_dir = Path(config.out)
     run_dir.mkdir(parents=True, exist_ok=True)
@@ -137,11 +143,6 @@ def run_files(run_dir: Path) -> tuple[Path, Path, Path]:
 
 def _model_stages(config: PipelineConfig, model: str, stages: Stages, bars: bool, score: bool = True) -> None:
     """Train (with the proposal stage for xpl) and score one model, skipping what is done."""
-    from .score import score_split
-    from .train import checkpoint_path
-    from .train_phydnet import train_phydnet
-    from .train_xpl import train_proposal, train_xpl
-
     run_dir = Path(config.out)
     train_data, test_data, latents = run_files(run_dir)
     if model in TRAINED:
@@ -169,9 +170,6 @@ def _lane(config: PipelineConfig, sizes: Preset, model: str, threads: int) -> No
     caller's preset `sizes` (no progress bars: lanes would draw over each other; each stage's
     start is printed). Scoring is left to the caller: it uses every core well (on one thread
     beside another lane it took twice as long)."""
-    import torch
-
-    from .models.config import PRESETS
 
     PRESETS[config.preset] = sizes
     os.environ["OMP_NUM_THREADS"] = str(threads)
@@ -189,12 +187,6 @@ def _remove(directory: Path, *patterns: str) -> None:
 
 def _explanations(run_dir: Path, test_data: Path, models: tuple[str, ...]) -> None:
     """The paper's Fig. 7/8 for the first pair of blocking S2 and collision S3, member 0."""
-    import matplotlib.pyplot as plt
-
-    from . import store
-    from .explain import explain
-    from .score import load_scorer
-    from .viz import plot_explanation
 
     _remove(run_dir / "report", "explanation-*.png")
     if "xpl" not in models:
@@ -248,8 +240,6 @@ def compare_models(rows: list[dict]) -> list[str]:
 
 def write_report(run_dir: Path, config: PipelineConfig) -> Path:
     """report.md: the holistic and comparative tables and the figures."""
-    import csv
-
     rows = list(csv.DictReader(open(run_dir / "report" / "metrics.csv")))
     lines = [f"# xvoe pipeline report: {run_dir.name}", "",
              f"Preset `{config.preset}`, {config.train_videos} training videos, {config.pairs} test pairs per "

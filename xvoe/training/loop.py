@@ -30,10 +30,10 @@ import torch.distributed as dist
 from torch import nn
 from tqdm.auto import tqdm
 
-from .errors import XvoeError
-from .models.config import TrainConfig, to_dict
-
-CHECKPOINT_FORMAT = 1
+from ..errors import XvoeError
+from ..models.config import to_dict
+from .checkpoints import CHECKPOINT_FORMAT, load_checkpoint, save_checkpoint
+from .presets import TrainConfig
 
 
 @dataclass
@@ -114,31 +114,6 @@ def seed_everything(seed: int) -> None:
     random.seed(seed)
     np.random.seed(seed)
     torch.manual_seed(seed)
-
-
-def save_checkpoint(path: Path, state: dict) -> None:
-    """Write to a temporary name and rename: an interrupted save never leaves a broken checkpoint."""
-    tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
-    try:
-        torch.save(state, tmp)
-        os.replace(tmp, path)
-    finally:
-        if tmp.exists():
-            tmp.unlink()
-
-
-def load_checkpoint(path: str | os.PathLike) -> dict:
-    """A checkpoint written by this loop, or a one-line error."""
-    path = Path(path)
-    if not path.is_file():
-        raise XvoeError(f"{path}: no such checkpoint")
-    try:
-        state = torch.load(path, map_location="cpu", weights_only=False)
-    except Exception as error:  # noqa: BLE001 - any unreadable file gets the same one-line message
-        raise XvoeError(f"{path} is not a readable xvoe checkpoint ({type(error).__name__})") from None
-    if not isinstance(state, dict) or state.get("format") != CHECKPOINT_FORMAT:
-        raise XvoeError(f"{path} is not an xvoe checkpoint of format {CHECKPOINT_FORMAT}")
-    return state
 
 
 class CsvLog:
@@ -316,75 +291,3 @@ class StopRequests:
 
 
 # --- the perception stage -------------------------------------------------------------
-
-def resolve_run(model: str | os.PathLike, stage: str = "perception") -> Path:
-    """A checkpoint from a file, a run directory holding STAGE.pt, a run name under runs/, or
-    the name of a shipped model (xvoe.zoo)."""
-    from .zoo import SHIPPED, WEIGHTS
-
-    path = Path(model)
-    candidates = [path, path / f"{stage}.pt", Path("runs") / path / f"{stage}.pt"]
-    if str(model) in SHIPPED:
-        candidates.append(WEIGHTS / f"{stage}.pt")
-    for candidate in candidates:
-        if candidate.is_file():
-            return candidate
-    raise XvoeError(f"no {stage} checkpoint at {model} (tried {', '.join(map(str, candidates))})")
-
-
-def load_perception(model: str | os.PathLike, device: str | torch.device = "cpu"):
-    """The trained ComponentVAE of a checkpoint (in eval mode) and the checkpoint's contents."""
-    from .models.config import PerceptionConfig, from_dict
-    from .models.perception import ComponentVAE
-
-    path = resolve_run(model)
-    state = load_checkpoint(path)
-    if state["stage"] != "perception":
-        raise XvoeError(f"{path} is a {state['stage']} checkpoint, not a perception one")
-    vae = ComponentVAE(from_dict(PerceptionConfig, state["config"]["perception"]))
-    vae.load_state_dict(state["model"])
-    state["path"] = str(path)
-    return vae.to(device).eval(), state
-
-
-def perception_configs(preset_name: str, run_dir: Path, resume: bool, **train_overrides: Any):
-    """Model and training configs: the checkpoint's when resuming, else the preset's, with overrides."""
-    from .models.config import PerceptionConfig, from_dict, override, preset
-
-    ckpt = checkpoint_path(run_dir, "perception")
-    if resume and ckpt.exists():
-        state = load_checkpoint(ckpt)
-        model_config = from_dict(PerceptionConfig, state["config"]["perception"])
-        train_config, preset_name = from_dict(TrainConfig, state["train"]), state["config"]["preset"]
-    else:
-        chosen = preset(preset_name)
-        model_config, train_config = chosen.perception, chosen.perception_train
-    return preset_name, model_config, override(train_config, **train_overrides)
-
-
-def train_perception(data: str | os.PathLike, run_dir: str | os.PathLike, *, preset_name: str = "cpu",
-                     resume: bool = False, overwrite: bool = False, progress: bool = True,
-                     model_overrides: dict | None = None, **train_overrides: Any) -> Path:
-    """What `xvoe train --stage perception` does; also works under torchrun."""
-    from .data import ShardedFrames
-    from .models.config import override, override_resumed
-    from .models.perception import ComponentVAE
-
-    place = setup_distributed()
-    run_dir = Path(run_dir)
-    preset_name, model_config, config = perception_configs(preset_name, run_dir, resume, **train_overrides)
-    if resume and checkpoint_path(run_dir, "perception").exists():
-        model_config = override_resumed(model_config, model_overrides, what="perception run")
-    else:
-        model_config = override(model_config, **(model_overrides or {}))
-    config = override(config, data_shards=config.data_shards or place.world)
-    set_threads(config, int(os.environ.get("LOCAL_WORLD_SIZE", "1")))
-    seed_everything(config.seed)
-    model = ComponentVAE(model_config)
-    frames = ShardedFrames(str(data), image_size=model_config.image_size, latent_dim=model_config.latent_dim,
-                           batch_size=config.batch_size, shards=config.data_shards, rank=place.rank,
-                           world=place.world, max_videos=config.max_videos, seed=config.seed,
-                           cut_share=model_config.cut_share)
-    job = Job("perception", model, frames.batch, {"preset": preset_name, "perception": to_dict(model_config)},
-              items=lambda batch: batch.images, meta={"data": str(Path(data).resolve())})
-    return fit(job, config, run_dir, place=place, resume=resume, overwrite=overwrite, progress=progress)

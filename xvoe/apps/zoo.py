@@ -11,19 +11,11 @@ from pathlib import Path
 
 import torch
 
-WEIGHTS = Path(__file__).parent / "weights"
-SHIPPED = ("xpl", "plato", "xpl-noresidual", "phydnet")
+from ..errors import XvoeError
+from ..training.checkpoints import SHIPPED, WEIGHTS, load_checkpoint, shipped_path
+
 BUDGET_BYTES = 25 * 2**20      # all shipped checkpoints together
 KEPT = ("format", "stage", "step", "config", "model", "train", "meta")
-
-
-def shipped_path(name: str, stage: str | None = None) -> Path | None:
-    """The shipped checkpoint of model `name` for `stage` (the model's own by default;
-    "perception" for the perception module XPL-family models share), or None."""
-    if name not in SHIPPED:
-        return None
-    path = WEIGHTS / f"{stage or name}.pt"
-    return path if path.is_file() else None
 
 
 def available() -> list[str]:
@@ -32,9 +24,6 @@ def available() -> list[str]:
 
 def ship(run_dir: str | os.PathLike, out: str | os.PathLike = WEIGHTS) -> list[Path]:
     """Copy the run's checkpoints into `out`, stripped to weights, config and step."""
-    from .errors import XvoeError
-    from .train import load_checkpoint
-
     run_dir, out = Path(run_dir), Path(out)
     stages = [s for s in ("perception", *SHIPPED, "proposal") if (run_dir / f"{s}.pt").is_file()]
     if "perception" not in stages or "xpl" not in stages:

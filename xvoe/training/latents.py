@@ -26,8 +26,11 @@ import numpy as np
 import torch
 from tqdm.auto import tqdm
 
-from . import store
-from .errors import XvoeError
+from ..benchmark import store
+from ..errors import XvoeError
+from ..models.perception import normalise
+from .data import check_size, masked_inputs, visible_threshold
+from .perception import load_perception
 
 LATENTS_VERSION = 1
 ARRAYS = ("mean", "std", "visible", "present", "pixels", "background_mean", "background_std")
@@ -92,9 +95,6 @@ def read_latents(path: str | os.PathLike) -> Latents:
 @torch.no_grad()
 def encode_frames(model, rgbd: np.ndarray, ids: np.ndarray, slots: int) -> dict[str, np.ndarray]:
     """Posteriors of every slot and of the background for frames (B,H,W,4), ids (B,H,W)."""
-    from .data import masked_inputs
-    from .models.perception import normalise
-
     device = model.theta.device
     frames = normalise(torch.as_tensor(rgbd)).to(device)
     parts = masked_inputs(frames, torch.as_tensor(ids).to(device), slots)
@@ -131,9 +131,6 @@ def encode_split(model_ref: str | os.PathLike, data: str | os.PathLike, out: str
                  videos_per_batch: int = 16, overwrite: bool = False, progress: bool = True,
                  device: str | torch.device | None = None) -> Path:
     """What `xvoe train --stage encode` does: encode every frame of a split into a latent cache."""
-    from .data import check_size, visible_threshold
-    from .train import load_perception
-
     device = device or ("cuda" if torch.cuda.is_available() else "cpu")
     model, state = load_perception(model_ref, device)
     with store.open_dataset(data) as file:

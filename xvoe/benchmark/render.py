@@ -138,3 +138,5 @@ def _span(centers: np.ndarray, low: float, high: float) -> slice:
     first = max(0, math.ceil(low * scale - 0.5))
     last = min(len(centers) - 1, math.floor(high * scale - 0.5))
     return slice(first, max(first, last + 1))
+
+

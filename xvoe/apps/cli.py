@@ -6,7 +6,24 @@ import os
 import sys
 from pathlib import Path
 
-from .errors import XvoeError
+import matplotlib.pyplot as plt
+
+from inference.explain import explain_nll
+
+from ..benchmark.generate import GenerateConfig, generate, merge
+from ..errors import XvoeError
+from ..evaluation.explain import explain
+from ..evaluation.score import load_scorer, score_split
+from ..training.checkpoints import WEIGHTS, load_checkpoint
+from ..training.latents import encode_split
+from ..training.loop import checkpoint_path
+from ..training.perception import train_perception
+from ..training.phydnet import train_phydnet
+from ..training.xpl import latent_cache_for, train_proposal, train_xpl
+from .figures import plot_explanation, show
+from .pipeline import PipelineConfig, run_pipeline
+from .report import report
+from .zoo import ship
 
 
 class _Parser(argparse.ArgumentParser):
@@ -39,8 +56,6 @@ def _default_workers() -> int:
 
 
 def cmd_generate(args: argparse.Namespace) -> None:
-    from .generate import GenerateConfig, generate, merge
-
     if args.merge:
         out = merge(args.merge, args.out, overwrite=args.overwrite, progress=not args.quiet)
     else:
@@ -54,26 +69,17 @@ def cmd_generate(args: argparse.Namespace) -> None:
 
 
 def cmd_show(args: argparse.Namespace) -> None:
-    from .viz import show
-
     out = args.out or Path(args.file).with_suffix(f".{args.index}.png").name
     print(show(args.file, args.index, out))
 
 
 def cmd_score(args: argparse.Namespace) -> None:
-    from .score import score_split
-
     print(score_split(args.model, args.data, args.out, how=args.aggregate, videos_per_batch=args.batch,
                       surprise=args.surprise, particles=args.particles, overwrite=args.overwrite,
                       progress=not args.quiet))
 
 
 def cmd_explain(args: argparse.Namespace) -> None:
-    import matplotlib.pyplot as plt
-
-    from .explain import explain, explain_nll
-    from .score import load_scorer
-    from .viz import plot_explanation
 
     if Path(args.out).suffix.lower() != ".png":
         raise XvoeError(f"--out must end in .png, not {Path(args.out).suffix or 'nothing'}")
@@ -91,16 +97,12 @@ def cmd_explain(args: argparse.Namespace) -> None:
 
 
 def cmd_pipeline(args: argparse.Namespace) -> None:
-    from .pipeline import PipelineConfig, run_pipeline
-
     models = tuple(m.strip() for m in args.models.split(",") if m.strip())
     print(run_pipeline(PipelineConfig(args.out, args.preset, args.train_videos, args.pairs, models, args.seed,
                                       args.workers, not args.quiet, args.jobs)))
 
 
 def cmd_metrics(args: argparse.Namespace) -> None:
-    from .metrics import report
-
     for path in report(args.scores, args.out, rounds=args.rounds, seed=args.seed, data=args.data):
         print(path)
 
@@ -126,8 +128,6 @@ FOCUS_STAGES = ("phydnet", "xpl", "plato")     # the stages whose batches can fo
 
 
 def cmd_ship(args: argparse.Namespace) -> None:
-    from .zoo import WEIGHTS, ship
-
     for path in ship(args.run_dir, args.out or WEIGHTS):
         print(f"{path}  {path.stat().st_size / 2**20:.1f} MB")
 
@@ -137,20 +137,17 @@ def cmd_train(args: argparse.Namespace) -> None:
         raise XvoeError(f"--focus-group and --focus-share apply to the {', '.join(FOCUS_STAGES)} stages, "
                         f"not {args.stage}")
     if args.stage == "perception":
-        from .train import train_perception
 
         if args.data is None and not args.resume:
             raise XvoeError("--data is required (the training split file)")
         data = args.data
         if data is None:
-            from .train import checkpoint_path, load_checkpoint
 
             data = load_checkpoint(checkpoint_path(args.out, "perception"))["meta"]["data"]
         overrides = _train_overrides(args)
         print(train_perception(data, args.out, preset_name=args.preset, resume=args.resume,
                                overwrite=args.overwrite, progress=not args.quiet, **overrides))
     elif args.stage == "phydnet":
-        from .train_phydnet import train_phydnet
 
         if args.data is None and not args.resume:
             raise XvoeError("--data is required (the training split file)")
@@ -158,7 +155,6 @@ def cmd_train(args: argparse.Namespace) -> None:
         print(train_phydnet(args.data, args.out, preset_name=args.preset, resume=args.resume,
                             overwrite=args.overwrite, progress=not args.quiet, **overrides))
     elif args.stage == "encode":
-        from .latents import encode_split
 
         if args.data is None:
             raise XvoeError("--data is required (the split file to encode)")
@@ -166,12 +162,10 @@ def cmd_train(args: argparse.Namespace) -> None:
         print(encode_split(args.model or args.out, args.data, cache, overwrite=args.overwrite,
                            progress=not args.quiet))
     elif args.stage == "proposal":
-        from .train_xpl import train_proposal
 
         print(train_proposal(args.out, args.data, resume=args.resume, overwrite=args.overwrite,
                              progress=not args.quiet, **_train_overrides(args)))
     else:
-        from .train_xpl import latent_cache_for, train_xpl
 
         if args.data is None and not args.resume:
             raise XvoeError("--data is required (a latent cache, or the training split to encode first)")

@@ -17,8 +17,8 @@ from pathlib import Path
 import numpy as np
 from tqdm.auto import tqdm
 
+from ..errors import XvoeError
 from . import store
-from .errors import XvoeError
 from .render import render
 from .scenes import SCENARIOS, TEST_SETTINGS, TRAINING_GROUPS
 

@@ -23,7 +23,7 @@ from typing import TypeVar
 
 import numpy as np
 
-from .errors import XvoeError
+from ..errors import XvoeError
 
 REQUIRED = ("index", "scenario", "setting", "pair", "member", "possible")
 IDEAL_COMPARATIVE = {"S1": 1.0, "S2": 0.5, "S3": 1.0}
@@ -220,68 +220,6 @@ def model_name(path: str | Path, scores: dict[str, np.ndarray]) -> str:
     return Path(path).stem
 
 
-def report(paths: list[str | Path], out_dir: str | Path, rounds: int = 1000, seed: int = 0,
-           data: str | Path | None = None) -> list[Path]:
-    """What `xvoe metrics` does: the table (CSV and JSON) and the figures, for one or more
-    models' scores files. A scores file holding both surprise definitions (`xvoe score
-    --surprise both`) also gets them side by side (surprise-MODEL.csv) and the pairs they
-    judge differently (disagreements-MODEL.csv); with `data`, the test split the scores
-    came from, a figure of a few of those pairs too."""
-    import matplotlib.pyplot as plt
-
-    from . import viz
-
-    rows = []
-    names = []
-    compared = {}
-    for path in paths:
-        scores = read_scores(path)
-        name = model_name(path, scores)
-        if name in names:
-            raise XvoeError(f"two scores files name the model {name!r}; give each model its own name")
-        names.append(name)
-        rows += metric_rows(scores, name, rounds=rounds, seed=seed)
-        if has_both_surprises(scores):
-            compared[name] = scores
-    written = list(write_table(rows, out_dir))
-    figures = {"holistic.png": viz.plot_holistic(rows), "comparative.png": viz.plot_comparative(rows)}
-    for name in names:
-        if any(r["model"] == name and r["column"] != "score" for r in rows):
-            figures[f"components-{name}.png"] = viz.plot_components(rows, name)
-    for name, scores in compared.items():
-        differ = disagreements(scores)
-        written.append(write_csv(side_by_side(scores, rows, name), Path(out_dir) / f"surprise-{name}.csv"))
-        written.append(write_csv(differ, Path(out_dir) / f"disagreements-{name}.csv", DISAGREEMENT_FIELDS))
-        if data is not None and differ:
-            figures[f"disagreements-{name}.png"] = _disagreement_figure(data, scores, differ)
-    for filename, figure in figures.items():
-        figure.savefig(Path(out_dir) / filename, dpi=90)
-        plt.close(figure)
-        written.append(Path(out_dir) / filename)
-    return written
-
-
-def write_table(rows: list[dict], out_dir: str | Path) -> tuple[Path, Path]:
-    """metrics.csv and metrics.json in out_dir."""
-    import json
-
-    out_dir = Path(out_dir)
-    out_dir.mkdir(parents=True, exist_ok=True)
-    csv_path, json_path = out_dir / "metrics.csv", out_dir / "metrics.json"
-    write_csv(rows, csv_path)
-    json_path.write_text(json.dumps(rows, indent=1))
-    return csv_path, json_path
-
-
-def write_csv(rows: list[dict], path: Path, fields: tuple[str, ...] | None = None) -> Path:
-    """Rows of dicts as a CSV (a header alone when there are none, from `fields`)."""
-    with open(path, "w", newline="") as handle:
-        writer = csv.DictWriter(handle, list(fields or rows[0]))
-        writer.writeheader()
-        writer.writerows(rows)
-    return path
-
-
 # --- the two surprise definitions, compared -------------------------------------------------
 
 SURPRISES = ("score", "nll")     # the MSE score (`xvoe score --surprise both`) and the NLL
@@ -347,28 +285,3 @@ def side_by_side(scores: dict[str, np.ndarray], rows: list[dict], model: str,
                       "difference": second["value"] - first["value"], "ideal": first["ideal"],
                       "pairs": pairs, "disagreeing_pairs": differ.get((scenario, setting), 0) if setting else ""})
     return table
-
-
-def _disagreement_figure(data: str | Path, scores: dict[str, np.ndarray], differ: list[dict]):
-    """The example figure of disagreeing pairs, from the test split the scores came from."""
-    from . import store, viz
-
-    with store.open_dataset(data) as file:
-        if not _same_videos(file, scores):
-            raise XvoeError(f"{data} does not hold the videos these scores were made from; give the test split "
-                            "that was scored")
-        return viz.plot_disagreements(file, differ)
-
-
-def _same_videos(file, scores: dict[str, np.ndarray]) -> bool:
-    """Whether an open test split holds, video by video, the labels of a scores table."""
-    from . import store
-
-    order = np.argsort(scores["index"])
-    if file["rgbd"].shape[0] != len(order):
-        return False
-    for name in ("scenario", "setting", "pair", "member"):
-        stored = store.strings(file, name) if name in ("scenario", "setting") else file[name][:]
-        if not np.array_equal(stored, scores[name][order].astype(stored.dtype)):
-            return False
-    return True

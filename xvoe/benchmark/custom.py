@@ -28,8 +28,8 @@ from pathlib import Path
 
 import numpy as np
 
+from ..errors import XvoeError
 from . import store, world
-from .errors import XvoeError
 from .physics import Take, run
 from .render import Video, render
 from .world import Edit, Scene, Thing, ball, cube, wall

@@ -10,10 +10,17 @@ from pathlib import Path
 import h5py
 import matplotlib.pyplot as plt
 import numpy as np
+import torch
 from matplotlib.patches import Rectangle
+from PIL import Image
 
-from . import store
-from .errors import XvoeError
+from ..benchmark import store
+from ..benchmark.videos import _labels_of, _pair_rows, check_index, describe, video_indices, wall_lowered
+from ..errors import XvoeError
+from ..evaluation.metrics import excess, read_scores
+from ..models.perception import normalise, to_uint8
+from ..training.data import perception_batch
+from ..training.phydnet import load_phydnet
 
 ID_COLORS = (np.array(plt.get_cmap("tab10").colors) * 255).astype(np.uint8)
 ID_PALETTE = np.vstack([[[0, 0, 0]], ID_COLORS[:9]]).astype(np.uint8)   # 0 = background
@@ -28,31 +35,6 @@ def depth_to_rgb(depth: np.ndarray) -> np.ndarray:
     """Grey depth picture, near surfaces bright."""
     grey = 255 - depth
     return np.repeat(grey[..., None], 3, axis=-1)
-
-
-def check_index(file: h5py.File, index: int) -> None:
-    """An error unless `index` names a video of the split file."""
-    count = file["rgbd"].shape[0]
-    if not 0 <= index < count:
-        raise XvoeError(f"index {index} is out of range: the file holds videos 0..{count - 1}")
-
-
-def video_indices(file: h5py.File, index: int) -> list[int]:
-    """The videos to show for `index`: its whole pair in a test file, itself otherwise."""
-    check_index(file, index)
-    if file.attrs["split"] == "test":
-        first = index - int(file["member"][index])
-        return [first, first + 1]
-    return [index]
-
-
-def describe(file: h5py.File, index: int) -> str:
-    if file.attrs["split"] == "test":
-        label = "possible" if file["possible"][index] else "impossible"
-        return (f"{file['scenario'].asstr()[index]} {file['setting'].asstr()[index]} "
-                f"pair {file['pair'][index]} member {file['member'][index]} ({label})")
-    has_wall = "with wall" if file["has_wall"][index] else "no wall"
-    return f"train video {index}: {file['group'].asstr()[index]}, {has_wall}"
 
 
 def contact_sheet(rgbd: np.ndarray, ids: np.ndarray, titles: list[str],
@@ -105,8 +87,6 @@ def show_video(file: h5py.File, index: int) -> plt.Figure:
 
 def save_gif(file: h5py.File, index: int, out: str | Path, zoom: int = 3, frame_ms: int = 150) -> Path:
     """An animated GIF: RGB, depth and ids side by side, pair members one above the other."""
-    from PIL import Image
-
     indices = video_indices(file, index)
     strips = []
     for i in indices:
@@ -162,10 +142,6 @@ def reconstruction_sheet(frames: np.ndarray, composite: np.ndarray, inputs: np.n
 def save_reconstructions(model, rgbd: np.ndarray, ids: np.ndarray, out: str | Path, rows: int = 4,
                          seed: int = 0) -> Path:
     """Draw `reconstruction_sheet` for a few frames of (V,T,H,W,4) videos with the most objects."""
-    import torch
-
-    from .data import perception_batch
-    from .models.perception import to_uint8
 
     size, slots = rgbd.shape[2], max(1, int(ids.max(initial=0)))
     flat_rgbd, flat_ids = rgbd.reshape(-1, size, size, 4), ids.reshape(-1, size, size)
@@ -359,58 +335,6 @@ def plot_disagreements(file: h5py.File, rows: list[dict], examples: int = 4) -> 
 
 # --- surprise over frames, and frames side by side ----------------------------------------
 
-def find_pair(file: h5py.File, scenario: str, setting: str, pair: int) -> tuple[int, int]:
-    """The video indices of member 0 and member 1 of a test pair, or a one-line error naming
-    what the file holds."""
-    if file.attrs["split"] != "test":
-        raise XvoeError(f"{file.filename} is a {file.attrs['split']} split; pairs live in test splits")
-    return _pair_rows(store.strings(file, "scenario"), store.strings(file, "setting"), file["pair"][:],
-                      file["member"][:], scenario, setting, pair, str(file.filename))
-
-
-def _pair_rows(scenarios, settings, pairs, members, scenario: str, setting: str, pair: int,
-               where: str) -> tuple[int, int]:
-    """Rows of member 0 and 1 of (scenario, setting, pair) among label columns."""
-    scenarios, settings = np.asarray(scenarios).astype(str), np.asarray(settings).astype(str)
-    known = list(dict.fromkeys(scenarios))
-    if scenario not in known:
-        raise XvoeError(f"{where} holds no scenario {scenario!r}; it holds {', '.join(known)}")
-    held = list(dict.fromkeys(settings[scenarios == scenario]))
-    if setting not in held:
-        raise XvoeError(f"{where} holds no setting {setting!r} of {scenario}; it holds {', '.join(held)}")
-    chosen = (scenarios == scenario) & (settings == setting)
-    pairs, members = np.asarray(pairs).astype(int), np.asarray(members).astype(int)
-    rows = [np.flatnonzero(chosen & (pairs == pair) & (members == m)) for m in (0, 1)]
-    if any(len(r) != 1 for r in rows):
-        have = np.unique(pairs[chosen])
-        raise XvoeError(f"{where} holds no pair {pair} of {scenario} {setting}; its pairs are "
-                        f"{have.min()}..{have.max()}")
-    return int(rows[0][0]), int(rows[1][0])
-
-
-def _labels_of(file: h5py.File, index: int) -> tuple[str, str, int]:
-    return file["scenario"].asstr()[index], file["setting"].asstr()[index], int(file["pair"][index])
-
-
-def wall_lowered(file: h5py.File, index: int) -> np.ndarray:
-    """How far the wall is lowered into view at each frame (T,) of video `index`, from its saved
-    states: 1 where a wall stands on the floor, 0 where it is lifted out of the picture or
-    there is none (with several walls, the lowest)."""
-    from .world import FLOOR, WORLD
-
-    walls = np.flatnonzero(store.wall_mask(file, index, index + 1)[0])
-    frames, size = file["rgbd"].shape[1], file["rgbd"].shape[2]
-    if walls.size == 0:
-        return np.zeros(frames)
-    columns = list(file["states"].attrs["state_columns"])
-    states = file["states"][index][:, walls]
-    bottom = states[..., columns.index("y")] + states[..., columns.index("height")] / 2   # pixels, y down
-    raised = (size - bottom) * (WORLD / size) - FLOOR           # world units above the floor
-    lowered = np.clip(1.0 - raised / (WORLD - FLOOR), 0.0, 1.0)
-    lowered = np.where(states[..., columns.index("present")] > 0, np.round(lowered, 6), 0.0)
-    return lowered.max(axis=1)
-
-
 def plot_surprise_curves(scores: str | Path, data: str | Path | None, scenario: str, setting: str, pair: int, *,
                          curves: str | Path | None = None, frame: int | None = None) -> plt.Figure:
     """Per-frame surprise of the two members of a test pair: s_img, s_dyn and their sum, and
@@ -420,8 +344,6 @@ def plot_surprise_curves(scores: str | Path, data: str | Path | None, scenario: 
     the .curves.npz beside it); data: the test split that was scored, for the event frame (red
     line) and the frames where the wall stands (grey; lighter while it moves), or None for
     the curves alone. frame: a frame to mark (a cursor)."""
-    from .metrics import excess, read_scores
-
     table = read_scores(scores)
     curves = Path(curves) if curves is not None else Path(scores).with_suffix(".curves.npz")
     if not curves.is_file():
@@ -484,23 +406,6 @@ def plot_surprise_curves(scores: str | Path, data: str | Path | None, scenario: 
     return fig
 
 
-def true_objects(file: h5py.File, index: int) -> np.ndarray:
-    """The ground truth without the wall: each ball and cube of video `index` drawn from its
-    saved states in its own colour on white, hidden or not (T, H, W, 4) uint8, the last
-    channel 255 (far). Objects overlapping each other are drawn in slot order."""
-    from .explain import silhouette
-
-    names = list(file.attrs["kind_names"])
-    columns = list(file["states"].attrs["state_columns"])
-    frames, size = file["rgbd"].shape[1], file["rgbd"].shape[2]
-    states, colors = file["states"][index], file["color"][index]
-    picture = np.full((frames, size, size, 4), 255, np.uint8)
-    for slot, kind in enumerate(file["kind"][index]):
-        if names[kind] in ("ball", "cube"):
-            picture[..., :3][silhouette(states[:, slot], columns, names[kind], size)] = colors[slot]
-    return picture
-
-
 def frame_rows(rows: list[tuple[str, np.ndarray]], title: str = "") -> plt.Figure:
     """Named rows of frames side by side, each (T, H, W, C) with C >= 3 (RGB first), all of one
     size: `Explanation.rows()` plus rows of one's own (e.g. `true_objects`) make a comparison."""
@@ -522,9 +427,6 @@ def frame_rows(rows: list[tuple[str, np.ndarray]], title: str = "") -> plt.Figur
 def predicted_frames(net, rgbd: np.ndarray) -> np.ndarray:
     """PhyDNet's prediction of each frame of one video (T, H, W, 4) uint8 from the frames before
     it, as uint8 of the same shape; frame 0, which nothing predicts, is blank (255)."""
-    import torch
-
-    from .models.perception import normalise, to_uint8
 
     with torch.no_grad():
         predicted = to_uint8(net(normalise(torch.from_numpy(np.ascontiguousarray(rgbd))[None]))[0]).numpy()
@@ -536,10 +438,6 @@ def plot_predictions(model, data: str | Path, index: int) -> plt.Figure:
     predicted row parts from the observed one is what the model did not expect (its surprise
     per frame, summed over pixels, in the title). `model`: a loaded PhyDNet, or a checkpoint,
     run directory or shipped name that `load_phydnet` takes."""
-    import torch
-
-    from .models.perception import normalise
-    from .train_phydnet import load_phydnet
 
     net = load_phydnet(model)[0] if isinstance(model, (str, Path)) else model
     with store.open_dataset(data) as file:

@@ -1,0 +1,74 @@
+"""What the Pyro model believes is behind the wall: the importance-weighted hidden object,
+with the posterior probability that it exists and the effective sample size of the weights."""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+from xvoe.errors import XvoeError
+from xvoe.evaluation.explain import Explanation, _pictures, _read_video
+from xvoe.evaluation.score import Scorer
+from xvoe.models.perception import to_uint8
+
+from .model import InferenceConfig
+from .surprise import hidden_posterior, nll_surprise
+
+
+@dataclass
+class NLLExplanation(Explanation):
+    p_hidden: float = 0.0       # posterior probability that a hidden object exists
+    ess: float = 0.0            # effective sample size of the importance weights
+    nll: float = 0.0            # the video's surprise, -log p(video), nats
+    particles: int = 0          # importance samples drawn
+    holding: int = 0            # of them, those that held a hidden object
+    holding_ess: float = 0.0    # the effective sample size among those
+
+    def rows(self) -> list[tuple[str, np.ndarray]]:
+        if self.holding == 0:
+            label = "nothing hidden" if self.slot < 0 else "no sample held one"
+        else:
+            label = f"if it exists:\nmean of {self.holding} samples\n(ESS {self.holding_ess:.1f})"
+        behind = "behind the wall" if self.holding == 0 else "behind the wall,\nif it exists"
+        return [("observed", self.observed), (behind, self.behind_wall), (label, self.hidden_object)]
+
+
+def explain_nll(scorer: Scorer, data: str, index: int, particles: int = 64, seed: int = 0) -> NLLExplanation:
+    """What `xvoe explain --surprise nll` draws: the Pyro model's explanation posterior."""
+    if not scorer.is_random and (scorer.xpl is None or not scorer.xpl.config.use_reasoning):
+        raise XvoeError(f"the NLL explanation needs an XPL model with reasoning; {scorer.name} has none")
+    video, rgbd, title = _read_video(scorer, data, index)
+    return nll_explanation(scorer.vae, scorer.xpl, video, particles, title, rgbd, seed)
+
+
+@torch.no_grad()
+def nll_explanation(vae, xpl, video: dict, particles: int, title: str = "", observed: np.ndarray | None = None,
+                    seed: int = 0) -> NLLExplanation:
+    """The explanation posterior of one encoded video (`encode_videos` of one video): the
+    importance-weighted mean of the particles that hold a hidden object, decoded frame by
+    frame. The mean, not the best particle: where one particle takes all the weight (a broad
+    proposal) the two are the same, and where many share it the mean does not hang on one
+    lucky draw; the ESS among them, in the row's label, tells which case it is.
+
+    The samples come from `seed`, without touching the global random state."""
+    one = {name: value[0] for name, value in video.items()}
+    with torch.random.fork_rng(devices=[]):
+        torch.manual_seed(seed)
+        result = nll_surprise(vae, xpl, one["frames"], one["mean"], one["visible"], one["background"],
+                              one["occluder"], InferenceConfig(particles=particles))
+    posterior = hidden_posterior(result)
+    refined = xpl.refine(video["mean"], video["visible"])
+    occupied = video["visible"].any(dim=1)
+    slot = result.hidden_slot if posterior is not None else -1
+    if posterior is not None:
+        refined[0, :, slot] = posterior.mean
+        occupied[0, slot] = True
+    behind, alone = _pictures(vae, refined, occupied, video, slot)
+    observed = to_uint8(video["frames"][0]).numpy() if observed is None else observed
+    heading = f"{title}\n" if title else ""
+    heading += (f"NLL {result.nll:.0f} nats, p(hidden object) = {result.p_hidden:.2f}, "
+                f"ESS {result.ess:.1f} of {particles}")
+    holding = (posterior.holding, posterior.ess) if posterior is not None else (0, 0.0)
+    return NLLExplanation(observed, behind, alone, result.hidden_slot, heading, result.p_hidden, result.ess,
+                          result.nll, particles, *holding)

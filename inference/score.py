@@ -1,0 +1,52 @@
+"""The NLL columns of a score file: -log p(video) under the Pyro model, its ESS, p(hidden
+object), and the NLL less that of a reference drawing only what was seen."""
+from __future__ import annotations
+
+import numpy as np
+from torch import Tensor
+
+from xvoe.errors import XvoeError
+from xvoe.evaluation.score import Scorer
+
+from .model import InferenceConfig, pixel_log_normaliser
+from .surprise import nll_surprise
+
+
+def reference_nll(s_rec: np.ndarray, pixels: int, sigma: float) -> np.ndarray:
+    """-log N(frames | the perception's drawing of what it saw, sigma^2) per video, from its
+    s_rec curve (N, T) and the pixels of one frame: the NLL of a reference that draws the seen
+    objects and nothing else, under the Pyro model's pixel likelihood. The NLL less this is a
+    log-likelihood ratio (nll_excess): the pixels of the seen objects that the perception
+    misses, the same under every hypothesis, cancel, as in the excess score."""
+    return s_rec.sum(axis=1) / (2 * sigma ** 2) + pixel_log_normaliser(pixels * s_rec.shape[1], sigma)
+
+
+def xpl_nll(scorer: Scorer, batch: dict[str, Tensor], config: InferenceConfig) -> list[tuple[float, float, float]]:
+    """(nll, ess, p_hidden) of each encoded video (`encode_videos`) under the Pyro hidden-object model."""
+    results = []
+    for i in range(len(batch["mean"])):
+        found = nll_surprise(scorer.vae, scorer.xpl, batch["frames"][i], batch["mean"][i], batch["visible"][i],
+                             batch["background"][i], batch["occluder"][i], config)
+        results.append((found.nll, found.ess, found.p_hidden))
+    return results
+
+
+class NLLColumns:
+    """The columns nll, ess, p_hidden and nll_excess of a score file (xvoe.evaluation.score's
+    ExtraColumns): one Pyro estimate per video, from the batch the MSE score encoded."""
+
+    names = ("nll", "ess", "p_hidden", "nll_excess")
+
+    def __init__(self, particles: int = 64):
+        self.config = InferenceConfig(particles=particles)
+
+    def check(self, scorer: Scorer) -> None:
+        if scorer.xpl is None or not scorer.xpl.config.use_reasoning:
+            raise XvoeError(f"the NLL surprise needs an XPL model with reasoning; {scorer.name} has none")
+
+    def batch(self, scorer: Scorer, videos: dict[str, Tensor]) -> np.ndarray:
+        return np.array(xpl_nll(scorer, videos, self.config), dtype=float).reshape(-1, 3)
+
+    def finish(self, values: np.ndarray, curves: np.ndarray, size: int) -> np.ndarray:
+        nll_excess = values[:, 0] - reference_nll(curves[2], 4 * size * size, self.config.pixel_sigma)
+        return np.column_stack([values, nll_excess])

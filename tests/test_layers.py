@@ -1,0 +1,149 @@
+"""The import contract of ../shared/DESIGN.md section 2: layers import downhill only, at the
+top of a module, with no cycle; the benchmark layer needs no torch."""
+from __future__ import annotations
+
+import ast
+import subprocess
+import sys
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parent.parent
+PACKAGES = ("xvoe", "inference")
+# lowest first; a module's layer is that of the longest prefix listed
+LAYERS = {
+    "xvoe.errors": 0,
+    "xvoe.allocator": 0,
+    "xvoe.benchmark": 1,
+    "xvoe.models": 2,
+    "xvoe.training": 3,
+    "xvoe.evaluation": 4,
+    "inference": 5,
+    "xvoe.apps": 6,
+    "xvoe.__main__": 6,
+    "xvoe": 6,          # the package itself: the public API, the top
+}
+
+
+def layer_of(module: str, layers: dict[str, int] = LAYERS) -> int:
+    owners = [prefix for prefix in layers if module == prefix or module.startswith(prefix + ".")]
+    if not owners:
+        raise AssertionError(f"{module} belongs to no layer; add it to LAYERS")
+    return layers[max(owners, key=len)]
+
+
+def module_name(path: Path, root: Path) -> str:
+    parts = path.relative_to(root).with_suffix("").parts
+    return ".".join(parts[:-1] if parts[-1] == "__init__" else parts)
+
+
+def internal_imports(path: Path, root: Path, packages: tuple[str, ...]) -> list[tuple[str, int, bool]]:
+    """(imported module, line, at module level) for every import of the packages in one file."""
+    name = module_name(path, root)
+    package = name if path.name == "__init__.py" else name.rpartition(".")[0]
+    tree = ast.parse(path.read_text())
+    top_level = {id(node) for node in tree.body}
+    found = []
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Import):
+            targets = [alias.name for alias in node.names]
+        elif isinstance(node, ast.ImportFrom):
+            if node.level:
+                base = package.split(".")[: len(package.split(".")) - node.level + 1]
+                stem = ".".join(base + ([node.module] if node.module else []))
+            else:
+                stem = node.module or ""
+            # `from pkg import sub` imports the submodule when there is one
+            targets = [f"{stem}.{a.name}" if (root / f"{stem}.{a.name}".replace(".", "/")).with_suffix(".py").exists()
+                       or (root / f"{stem}.{a.name}".replace(".", "/") / "__init__.py").exists() else stem
+                       for a in node.names]
+        else:
+            continue
+        for target in targets:
+            if target.split(".")[0] in packages:
+                found.append((target, node.lineno, id(node) in top_level))
+    return found
+
+
+def import_graph(root: Path, packages: tuple[str, ...]) -> dict[str, list[tuple[str, int, bool]]]:
+    return {module_name(path, root): internal_imports(path, root, packages)
+            for package in packages for path in sorted((root / package).rglob("*.py"))}
+
+
+def violations(root: Path, packages: tuple[str, ...], layers: dict[str, int]) -> list[str]:
+    """Every upward import, import inside a function or class, and cycle, one line each."""
+    graph = import_graph(root, packages)
+    found = []
+    for module, imports in graph.items():
+        for target, line, top in imports:
+            if layer_of(target, layers) > layer_of(module, layers):
+                found.append(f"{module}:{line} imports {target}, a higher layer")
+            if not top:
+                found.append(f"{module}:{line} imports {target} inside a function or class")
+    edges = {m: {t for t, _, _ in imports if t in graph and t != m} for m, imports in graph.items()}
+    found += [f"import cycle: {' -> '.join(cycle)}" for cycle in cycles(edges)]
+    return found
+
+
+def cycles(edges: dict[str, set[str]]) -> list[list[str]]:
+    """The strongly connected components of more than one module (Tarjan)."""
+    index, low, stack, on_stack, result = {}, {}, [], set(), []
+
+    def visit(node: str) -> None:
+        index[node] = low[node] = len(index)
+        stack.append(node)
+        on_stack.add(node)
+        for nxt in edges.get(node, ()):
+            if nxt not in index:
+                visit(nxt)
+                low[node] = min(low[node], low[nxt])
+            elif nxt in on_stack:
+                low[node] = min(low[node], index[nxt])
+        if low[node] == index[node]:
+            component = []
+            while True:
+                member = stack.pop()
+                on_stack.discard(member)
+                component.append(member)
+                if member == node:
+                    break
+            if len(component) > 1:
+                result.append(sorted(component))
+
+    for node in sorted(edges):
+        if node not in index:
+            visit(node)
+    return result
+
+
+def test_the_package_keeps_its_layers():
+    assert violations(ROOT, PACKAGES, LAYERS) == []
+
+
+def plant(root: Path, files: dict[str, str]) -> Path:
+    for name, text in files.items():
+        path = root / name
+        path.parent.mkdir(parents=True, exist_ok=True)
+        path.write_text(text)
+    return root
+
+
+def test_an_upward_import_is_caught(tmp_path):
+    root = plant(tmp_path, {"pkg/__init__.py": "", "pkg/low.py": "from .high import thing\n",
+                            "pkg/high.py": "thing = 1\n"})
+    found = violations(root, ("pkg",), {"pkg": 9, "pkg.low": 0, "pkg.high": 1})
+    assert found == ["pkg.low:1 imports pkg.high, a higher layer"]
+
+
+def test_an_import_inside_a_function_and_a_cycle_are_caught(tmp_path):
+    root = plant(tmp_path, {"pkg/__init__.py": "", "pkg/a.py": "from pkg import b\n",
+                            "pkg/b.py": "def f():\n    from . import a\n"})
+    found = violations(root, ("pkg",), {"pkg": 0})
+    assert "pkg.b:2 imports pkg.a inside a function or class" in found
+    assert "import cycle: pkg.a -> pkg.b" in found
+
+
+def test_the_benchmark_layer_runs_without_torch():
+    code = ("import sys; import xvoe.benchmark.generate, xvoe.benchmark.custom, xvoe.benchmark.videos; "
+            "print('torch' in sys.modules)")
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True, cwd=ROOT)
+    assert done.stdout.strip() == "False"

@@ -1,0 +1,85 @@
+"""What the model believes is behind the wall: decoded refined latents of one video.
+
+For each frame: the observed frame; the decoded scene with the occluder's slot left out
+(Transformer 1's filled-in objects and Transformer 2's explanation, seen through the wall);
+and the explanation object alone (the never-visible slot Transformer 2 proposed).
+
+The NLL's explanation, the Pyro model's posterior, is inference.explain.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+from ..benchmark import store
+from ..benchmark.videos import check_index, describe
+from ..errors import XvoeError
+from ..models.perception import to_uint8
+from ..models.slots import composite, decode_slots
+from ..training.data import check_size
+from .score import Scorer, encode_videos
+from .surprise import explained_latents
+
+
+@dataclass
+class Explanation:
+    observed: np.ndarray        # (T, H, W, 4) uint8
+    behind_wall: np.ndarray     # (T, H, W, 4) uint8: the scene without the occluder
+    hidden_object: np.ndarray   # (T, H, W, 4) uint8: the explanation alone, on the blank
+    slot: int                   # the explained slot, -1 if every slot was seen
+    title: str
+
+    def rows(self) -> list[tuple[str, np.ndarray]]:
+        """What a figure draws, one labelled row of frames each."""
+        return [("observed", self.observed), ("behind the wall", self.behind_wall),
+                ("explanation" if self.slot >= 0 else "nothing hidden", self.hidden_object)]
+
+
+def _read_video(scorer: Scorer, data: str, index: int) -> tuple[dict, np.ndarray, str]:
+    """Video `index` of a split file, encoded for the scorer; its frames (T, H, W, 4); its title."""
+    if scorer.is_random:
+        raise XvoeError("the random agent explains nothing; give a trained model")
+    with store.open_dataset(data) as file:
+        check_index(file, index)
+        check_size(file, scorer.vae.config.image_size, f"the model {scorer.name}")
+        return encode_videos(scorer, file, index, index + 1), file["rgbd"][index], describe(file, index)
+
+
+def _pictures(vae, refined: torch.Tensor, occupied: torch.Tensor, video: dict,
+              slot: int) -> tuple[np.ndarray, np.ndarray]:
+    """The scene behind the wall (occluder left out) and slot `slot` alone (-1: the blank), uint8."""
+    layers = decode_slots(vae, refined, occupied)
+    background_pictures = vae.decode(video["background"][0])[None]
+    behind = composite(vae, background_pictures, layers, occupied & ~video["occluder"])
+    if slot >= 0:
+        alone = layers[0, :, slot]
+    else:
+        alone = vae.blank()[0].expand(refined.shape[1], *layers.shape[-3:])
+    return to_uint8(behind[0]).numpy(), to_uint8(alone).numpy()
+
+
+@torch.no_grad()
+def explain(scorer: Scorer, data: str, index: int) -> Explanation:
+    video, rgbd, title = _read_video(scorer, data, index)
+    refined, slot, occupied = explained_latents(scorer.xpl, video["mean"], video["visible"])
+    behind, alone = _pictures(scorer.vae, refined, occupied, video, int(slot[0]))
+    return Explanation(rgbd, behind, alone, int(slot[0]), title)
+
+
+# --- measuring explanations against the ground truth --------------------------------------
+
+OBJECT_DEPTH_LIMIT = 0.75   # normalised depth: decoded objects lie near 0, the blank at 1.5
+
+
+def decoded_mask(pictures: np.ndarray | torch.Tensor) -> np.ndarray:
+    """Where a decoded object (..., 4, H, W), in normalised units, draws something."""
+    depth = torch.as_tensor(pictures)[..., 3, :, :]
+    return (depth < OBJECT_DEPTH_LIMIT).numpy()
+
+
+def iou(a: np.ndarray, b: np.ndarray) -> float:
+    """Intersection over union of two boolean masks; 1 when both are empty."""
+    union = np.logical_or(a, b).sum()
+    return float(np.logical_and(a, b).sum() / union) if union else 1.0

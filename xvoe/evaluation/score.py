@@ -1,0 +1,196 @@
+"""Scoring a test split with a trained model: one CSV row per video and the per-frame curves.
+
+Decoding is the cost, so videos are encoded once per batch and every column (the MSE terms,
+and any a higher layer adds, such as the NLL's) is computed from that one encoding.
+
+The PhyDNet baseline predicts pixels, not latents: its per-frame surprise is the squared
+error of its one-step prediction summed over pixels (0 at frame 0). It is written in the
+s_dyn column and curve; s_img is all zeros for it.
+"""
+from __future__ import annotations
+
+import csv
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Protocol
+
+import numpy as np
+import torch
+from torch import Tensor
+from tqdm.auto import tqdm
+
+from ..benchmark import store
+from ..errors import XvoeError
+from ..models.perception import ComponentVAE, normalise
+from ..models.phydnet import PhyDNet
+from ..models.xpl import XPL
+from ..training.checkpoints import SHIPPED, WEIGHTS, shipped_path
+from ..training.data import check_size, visible_threshold
+from ..training.latents import encode_frames
+from ..training.perception import load_perception
+from ..training.phydnet import load_phydnet
+from ..training.xpl import load_xpl
+from .metrics import excess
+from .surprise import aggregate, mse_surprise
+
+SCORE_COLUMNS = ("index", "model", "scenario", "setting", "pair", "member", "possible", "score", "s_img", "s_dyn")
+EXCESS_COLUMNS = ("s_rec", "excess")    # models with a perception module: XPL, its ablation, PLATO
+XPL_STAGES = ("xpl", "plato", "xpl-noresidual")
+STAGES = (*XPL_STAGES, "phydnet")
+
+
+@dataclass
+class Scorer:
+    """A trained model ready to score: the perception module and one dynamics stage, or PhyDNet."""
+
+    name: str
+    vae: ComponentVAE | None
+    xpl: XPL | None
+    seed: int = 0                 # the random agent's scores, and the NLL's importance samples
+    phydnet: PhyDNet | None = None
+
+    @property
+    def is_random(self) -> bool:
+        return self.vae is None and self.phydnet is None
+
+    @property
+    def image_size(self) -> int:
+        return (self.phydnet or self.vae).config.image_size
+
+
+def load_scorer(model: str, device: str = "cpu") -> Scorer:
+    """`random`, a shipped model's name (xvoe.zoo), a run directory (its xpl.pt), a stage checkpoint (xpl.pt, plato.pt,
+    xpl-noresidual.pt with perception.pt beside it; phydnet.pt), or RUN_DIR/STAGE."""
+    if model == "random":
+        return Scorer("random", None, None)
+
+    path = Path(model)
+    if model in SHIPPED and not path.exists():
+        if shipped_path(model) is None:
+            raise XvoeError(f"the model {model} is not shipped with this copy of xvoe; train it with xvoe pipeline")
+        run_dir, stage = WEIGHTS, model
+    elif path.is_file():
+        run_dir, stage = path.parent, path.stem
+    elif path.name in STAGES and (path.parent / f"{path.name}.pt").is_file():
+        run_dir, stage = path.parent, path.name
+    else:
+        run_dir, stage = path, "xpl"
+    if stage not in STAGES:
+        raise XvoeError(f"{model} is not a model to score with: give a run directory, one of "
+                        f"{', '.join(s + '.pt' for s in STAGES)}, or 'random'")
+    if stage == "phydnet":
+        return Scorer(stage, None, None, phydnet=load_phydnet(run_dir / "phydnet.pt", device)[0])
+    vae, _ = load_perception(run_dir, device)
+    xpl, _ = load_xpl(run_dir, stage, device)
+    return Scorer(stage, vae, xpl)
+
+
+class ExtraColumns(Protocol):
+    """Columns that a higher layer adds to a score file (the NLL's: inference.score.NLLColumns):
+    checked against the scorer, computed batch by batch from the encoded videos, finished once
+    every video is in."""
+
+    names: tuple[str, ...]
+
+    def check(self, scorer: Scorer) -> None:
+        """A one-line XvoeError if the scorer cannot give these columns."""
+
+    def batch(self, scorer: Scorer, videos: dict[str, Tensor]) -> np.ndarray:
+        """Per-video values (B, C) of a batch of `encode_videos`."""
+
+    def finish(self, values: np.ndarray, curves: np.ndarray, size: int) -> np.ndarray:
+        """The columns (N, len(names)) from every batch's values (N, C), the curves (3, N, T)
+        s_img, s_dyn and s_rec, and the frame size."""
+
+
+def score_split(model: str | Scorer, data: str, out: str, *, how: str = "sum", videos_per_batch: int = 16,
+                extra: ExtraColumns | None = None, score_column: str = "score", overwrite: bool = False,
+                progress: bool = True) -> Path:
+    """One CSV row per test video, and the per-frame surprise curves (s_img, s_dyn: (N, T);
+    s_rec too for a model with a perception module) in an .npz beside it. Models with a
+    perception module also get the columns s_rec and excess (xvoe.evaluation.surprise).
+    `extra` adds columns after these; `score_column` names one of them to be the score
+    instead of the MSE score."""
+    if how not in ("sum", "max"):
+        raise XvoeError(f"--aggregate must be sum or max, not {how!r}")
+    if score_column != "score" and (extra is None or score_column not in extra.names):
+        raise XvoeError(f"the score column must be 'score' or one of the extra columns, not {score_column!r}")
+    scorer = load_scorer(model) if isinstance(model, str) else model
+    if extra is not None:
+        extra.check(scorer)
+    out = Path(out)
+    if out.exists() and not overwrite:
+        raise XvoeError(f"{out} exists; pass --overwrite to replace it")
+    out.parent.mkdir(parents=True, exist_ok=True)
+    with store.open_dataset(data) as file:
+        if file.attrs["split"] != "test":
+            raise XvoeError(f"{data} is a {file.attrs['split']} split; scores need a test split")
+        count, frames_count, size = file["rgbd"].shape[:3]
+        labels = {name: (store.strings(file, name) if name in ("scenario", "setting") else file[name][:])
+                  for name in ("scenario", "setting", "pair", "member", "possible")}
+        curves = np.zeros((3, count, frames_count))     # s_img, s_dyn, s_rec
+        values = [] if extra is not None else None
+        if scorer.is_random:
+            curves[:2] = np.random.default_rng(scorer.seed).random((2, count, frames_count))
+        else:
+            check_size(file, scorer.image_size, f"the model {scorer.name}")
+            with torch.random.fork_rng(devices=[]):     # random draws of extra columns come from the scorer's seed
+                torch.manual_seed(scorer.seed)
+                for start in tqdm(range(0, count, videos_per_batch), desc=f"score {scorer.name}", unit="batch",
+                                  disable=not progress):
+                    stop = min(count, start + videos_per_batch)
+                    if scorer.phydnet is not None:
+                        curves[:2, start:stop] = torch.stack(_phydnet_curves(scorer, file, start, stop)).numpy()
+                        continue
+                    batch = encode_videos(scorer, file, start, stop)     # once, for every column
+                    curves[:, start:stop] = torch.stack(_xpl_curves(scorer, batch)).numpy()
+                    if values is not None:
+                        values.append(extra.batch(scorer, batch))
+    with_rec = scorer.vae is not None
+    added = extra.finish(np.concatenate(values), curves, size) if extra is not None else np.zeros((count, 0))
+    s_img, s_dyn, s_rec = (aggregate(torch.from_numpy(c), how).numpy() for c in curves)
+    if score_column == "score":
+        total = aggregate(torch.from_numpy(curves[:2].sum(0)), how).numpy()
+    else:
+        total = added[:, extra.names.index(score_column)]
+    if with_rec:
+        excess_score = aggregate(torch.from_numpy(excess(*curves)), how).numpy()
+    tmp = out.with_name(f".{out.name}.tmp")
+    with open(tmp, "w", newline="") as handle:
+        writer = csv.writer(handle)
+        writer.writerow(SCORE_COLUMNS + (EXCESS_COLUMNS if with_rec else ()) + (extra.names if extra else ()))
+        for i in range(count):
+            row_extra = [float(s_rec[i]), float(excess_score[i])] if with_rec else []
+            row_extra += list(map(float, added[i]))
+            writer.writerow([i, scorer.name, labels["scenario"][i], labels["setting"][i], int(labels["pair"][i]),
+                             int(labels["member"][i]), bool(labels["possible"][i]), float(total[i]),
+                             float(s_img[i]), float(s_dyn[i])] + row_extra)
+    named = {"s_img": curves[0], "s_dyn": curves[1]} | ({"s_rec": curves[2]} if with_rec else {})
+    np.savez_compressed(out.with_suffix(".curves.npz"), **named)
+    tmp.replace(out)
+    return out
+
+
+def encode_videos(scorer: Scorer, file, start: int, stop: int) -> dict[str, Tensor]:
+    """Videos [start, stop) of an open test split, encoded: frames, latents, visibility, walls."""
+    _, frames_count, size = file["rgbd"].shape[:3]
+    rgbd, ids = file["rgbd"][start:stop], file["ids"][start:stop]
+    encoded = encode_frames(scorer.vae, rgbd.reshape(-1, size, size, 4), ids.reshape(-1, size, size),
+                            file["states"].shape[2])
+    shaped = {k: torch.from_numpy(v).reshape(stop - start, frames_count, *v.shape[1:]) for k, v in encoded.items()}
+    return {"frames": normalise(torch.from_numpy(rgbd)), "mean": shaped["mean"],
+            "visible": shaped["pixels"] > visible_threshold(size), "background": shaped["background_mean"],
+            "occluder": torch.from_numpy(store.wall_mask(file, start, stop))}
+
+
+def _xpl_curves(scorer: Scorer, batch: dict[str, Tensor]) -> tuple[Tensor, Tensor, Tensor]:
+    """s_img, s_dyn and s_rec (B, T) of encoded videos (`encode_videos`) under XPL or PLATO."""
+    surprise = mse_surprise(scorer.vae, scorer.xpl, batch["frames"], batch["mean"], batch["visible"],
+                            batch["background"], batch["occluder"])
+    return surprise.s_img, surprise.s_dyn, surprise.s_rec
+
+
+def _phydnet_curves(scorer: Scorer, file, start: int, stop: int) -> tuple[Tensor, Tensor]:
+    """Zeros and PhyDNet's one-step pixel error (B, T) of videos [start, stop) of an open test split."""
+    error = scorer.phydnet.surprise(normalise(torch.from_numpy(file["rgbd"][start:stop])))
+    return torch.zeros_like(error), error

@@ -1,0 +1,65 @@
+"""Checkpoints on disk: writing them safely, reading them with a clear error, finding them.
+
+A checkpoint is a dict saved by torch (format, stage, step, config, model, optimiser, train,
+meta). The shipped models are checkpoints too, in the package's weights directory, so that a
+name such as `xpl` resolves wherever a run directory does.
+"""
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import torch
+
+from ..errors import XvoeError
+
+CHECKPOINT_FORMAT = 1
+WEIGHTS = Path(__file__).resolve().parent.parent / "weights"
+SHIPPED = ("xpl", "plato", "xpl-noresidual", "phydnet")
+
+
+def save_checkpoint(path: Path, state: dict) -> None:
+    """Write to a temporary name and rename: an interrupted save never leaves a broken checkpoint."""
+    tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
+    try:
+        torch.save(state, tmp)
+        os.replace(tmp, path)
+    finally:
+        if tmp.exists():
+            tmp.unlink()
+
+
+def load_checkpoint(path: str | os.PathLike) -> dict:
+    """A checkpoint written by this loop, or a one-line error."""
+    path = Path(path)
+    if not path.is_file():
+        raise XvoeError(f"{path}: no such checkpoint")
+    try:
+        state = torch.load(path, map_location="cpu", weights_only=False)
+    except Exception as error:  # noqa: BLE001 - any unreadable file gets the same one-line message
+        raise XvoeError(f"{path} is not a readable xvoe checkpoint ({type(error).__name__})") from None
+    if not isinstance(state, dict) or state.get("format") != CHECKPOINT_FORMAT:
+        raise XvoeError(f"{path} is not an xvoe checkpoint of format {CHECKPOINT_FORMAT}")
+    return state
+
+
+def resolve_run(model: str | os.PathLike, stage: str = "perception") -> Path:
+    """A checkpoint from a file, a run directory holding STAGE.pt, a run name under runs/, or
+    the name of a shipped model (`SHIPPED`)."""
+    path = Path(model)
+    candidates = [path, path / f"{stage}.pt", Path("runs") / path / f"{stage}.pt"]
+    if str(model) in SHIPPED:
+        candidates.append(WEIGHTS / f"{stage}.pt")
+    for candidate in candidates:
+        if candidate.is_file():
+            return candidate
+    raise XvoeError(f"no {stage} checkpoint at {model} (tried {', '.join(map(str, candidates))})")
+
+
+def shipped_path(name: str, stage: str | None = None) -> Path | None:
+    """The shipped checkpoint of model `name` for `stage` (the model's own by default;
+    "perception" for the perception module XPL-family models share), or None."""
+    if name not in SHIPPED:
+        return None
+    path = WEIGHTS / f"{stage or name}.pt"
+    return path if path.is_file() else None

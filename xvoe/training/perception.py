@@ -1,0 +1,65 @@
+"""The perception stage: training the Component VAE on a split's frames, and loading it."""
+from __future__ import annotations
+
+import os
+from pathlib import Path
+from typing import Any
+
+import torch
+
+from ..errors import XvoeError
+from ..models.config import from_dict, override, override_resumed, to_dict
+from ..models.perception import ComponentVAE, PerceptionConfig
+from .checkpoints import load_checkpoint, resolve_run
+from .data import ShardedFrames
+from .loop import Job, checkpoint_path, fit, seed_everything, set_threads, setup_distributed
+from .presets import TrainConfig, preset
+
+
+def load_perception(model: str | os.PathLike, device: str | torch.device = "cpu"):
+    """The trained ComponentVAE of a checkpoint (in eval mode) and the checkpoint's contents."""
+    path = resolve_run(model)
+    state = load_checkpoint(path)
+    if state["stage"] != "perception":
+        raise XvoeError(f"{path} is a {state['stage']} checkpoint, not a perception one")
+    vae = ComponentVAE(from_dict(PerceptionConfig, state["config"]["perception"]))
+    vae.load_state_dict(state["model"])
+    state["path"] = str(path)
+    return vae.to(device).eval(), state
+
+
+def perception_configs(preset_name: str, run_dir: Path, resume: bool, **train_overrides: Any):
+    """Model and training configs: the checkpoint's when resuming, else the preset's, with overrides."""
+    ckpt = checkpoint_path(run_dir, "perception")
+    if resume and ckpt.exists():
+        state = load_checkpoint(ckpt)
+        model_config = from_dict(PerceptionConfig, state["config"]["perception"])
+        train_config, preset_name = from_dict(TrainConfig, state["train"]), state["config"]["preset"]
+    else:
+        chosen = preset(preset_name)
+        model_config, train_config = chosen.perception, chosen.perception_train
+    return preset_name, model_config, override(train_config, **train_overrides)
+
+
+def train_perception(data: str | os.PathLike, run_dir: str | os.PathLike, *, preset_name: str = "cpu",
+                     resume: bool = False, overwrite: bool = False, progress: bool = True,
+                     model_overrides: dict | None = None, **train_overrides: Any) -> Path:
+    """What `xvoe train --stage perception` does; also works under torchrun."""
+    place = setup_distributed()
+    run_dir = Path(run_dir)
+    preset_name, model_config, config = perception_configs(preset_name, run_dir, resume, **train_overrides)
+    if resume and checkpoint_path(run_dir, "perception").exists():
+        model_config = override_resumed(model_config, model_overrides, what="perception run")
+    else:
+        model_config = override(model_config, **(model_overrides or {}))
+    config = override(config, data_shards=config.data_shards or place.world)
+    set_threads(config, int(os.environ.get("LOCAL_WORLD_SIZE", "1")))
+    seed_everything(config.seed)
+    model = ComponentVAE(model_config)
+    frames = ShardedFrames(str(data), image_size=model_config.image_size, latent_dim=model_config.latent_dim,
+                           batch_size=config.batch_size, shards=config.data_shards, rank=place.rank,
+                           world=place.world, max_videos=config.max_videos, seed=config.seed,
+                           cut_share=model_config.cut_share)
+    job = Job("perception", model, frames.batch, {"preset": preset_name, "perception": to_dict(model_config)},
+              items=lambda batch: batch.images, meta={"data": str(Path(data).resolve())})
+    return fit(job, config, run_dir, place=place, resume=resume, overwrite=overwrite, progress=progress)
