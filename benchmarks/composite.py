@@ -14,7 +14,7 @@ import torch
 
 from inference.xpl_scene import XPLScene
 from xvoe.benchmark import store
-from xvoe.evaluation.score import encode_videos, load_scorer
+from xvoe.evaluation.score import encode_videos, load_model
 
 
 def main() -> None:
@@ -28,7 +28,7 @@ def main() -> None:
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
     torch.manual_seed(0)
-    scorer = load_scorer(args.model)
+    scorer = load_model(args.model)
     with store.open_dataset(args.data) as file:
         video = encode_videos(scorer, file, args.index, args.index + 1)
     with torch.no_grad():

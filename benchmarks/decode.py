@@ -14,7 +14,7 @@ import time
 
 import torch
 
-from xvoe.evaluation.score import load_scorer
+from xvoe.evaluation.score import load_model
 
 
 def per_call_ms(decode, z: torch.Tensor, repeats: int) -> float:
@@ -33,7 +33,7 @@ def main() -> None:
     parser.add_argument("--repeats", type=int, default=5)
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
-    vae = load_scorer(args.model).vae
+    vae = load_model(args.model).vae
     z = torch.randn(args.latents, vae.config.latent_dim, generator=torch.Generator().manual_seed(0))
     with torch.inference_mode():
         whole_ms = per_call_ms(vae.decoder, z, args.repeats)

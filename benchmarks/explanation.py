@@ -27,7 +27,7 @@ import torch
 from xvoe.benchmark import store
 from xvoe.benchmark.videos import silhouette
 from xvoe.evaluation.explain import decoded_mask, iou
-from xvoe.evaluation.score import encode_videos, load_scorer
+from xvoe.evaluation.score import encode_videos, load_model
 from xvoe.models.reasoning import hide_slot
 from xvoe.models.slots import composite, decode_slots
 
@@ -122,7 +122,7 @@ def main() -> None:
     parser.add_argument("--figure", help="where to draw Fig. 5b (PNG)")
     args = parser.parse_args()
     torch.set_num_threads(2)
-    scorer = load_scorer(args.model)
+    scorer = load_model(args.model)
     start = time.perf_counter()
     with store.open_dataset(args.data) as file:
         names, columns = list(file.attrs["kind_names"]), list(file["states"].attrs["state_columns"])

@@ -34,7 +34,7 @@ from inference.score import xpl_nll
 from xvoe.benchmark import store
 from xvoe.errors import XvoeError
 from xvoe.evaluation.metrics import comparative
-from xvoe.evaluation.score import encode_videos, load_scorer
+from xvoe.evaluation.score import encode_videos, load_model
 from xvoe.evaluation.surprise import mse_surprise
 from xvoe.training.data import check_size
 
@@ -82,7 +82,7 @@ def score_range(scorer, file, start: int, stop: int, config: InferenceConfig) ->
 
 
 def label(rows: list[dict], file) -> dict[str, np.ndarray]:
-    """The scored rows as a scores table (the columns xvoe.metrics reads)."""
+    """The scored rows as a scores table (the columns xvoe.read_scores reads)."""
     index = np.array([r["index"] for r in rows])
     table = {"index": index, "scenario": store.strings(file, "scenario")[index],
              "setting": store.strings(file, "setting")[index]}
@@ -131,7 +131,7 @@ def main() -> None:
 def run(args: argparse.Namespace) -> None:
     torch.set_num_threads(args.threads)
     pyro.set_rng_seed(args.seed)
-    scorer = load_scorer(args.model)
+    scorer = load_model(args.model)
     if scorer.xpl is None or not scorer.xpl.config.use_reasoning:
         raise XvoeError(f"the NLL surprise needs an XPL model with reasoning; {scorer.name} has none")
     config = InferenceConfig(particles=args.particles, motion_sigma=args.motion_sigma, pixel_sigma=args.pixel_sigma,

@@ -6,7 +6,7 @@ Transformer 1 fills the frames in which a seen object is hidden (behind the wall
 pair of a generated test split is simulated again from the split's seed, rendered a second
 time without its walls, and encoded by the model's own perception: that gives each hidden
 object's latent as the encoder would have seen it. Each pair is then scored three times with the
-same MSE score (`xvoe.score.latent_surprise`): with Transformer 1's fills (what `xvoe score`
+same MSE score (`xvoe.evaluation.surprise.latent_surprise`): with Transformer 1's fills (what `xvoe score`
 does), with those true latents in their place ("oracle"), and with true latents also where
 the wall hides an object only in part ("whole": the encoder's reading of a partly hidden
 object replaced too). Where the oracle column is far above the first, the fills are what the
@@ -34,7 +34,7 @@ from xvoe.benchmark.render import render
 from xvoe.benchmark.scenes import SCENARIOS, TEST_SETTINGS
 from xvoe.benchmark.world import WALL_KINDS
 from xvoe.evaluation.metrics import excess, pairwise_win
-from xvoe.evaluation.score import encode_videos, load_scorer
+from xvoe.evaluation.score import encode_videos, load_model
 from xvoe.evaluation.surprise import explained_latents, latent_surprise
 from xvoe.training.data import visible_threshold
 from xvoe.training.latents import encode_frames
@@ -103,7 +103,7 @@ def main() -> None:
     parser.add_argument("--threads", type=int, default=2)
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
-    scorer = load_scorer(args.model)
+    scorer = load_model(args.model)
     if scorer.is_random or scorer.xpl is None:
         raise SystemExit("--model must be an XPL run or shipped model (it fills with Transformer 1)")
     start = time.perf_counter()

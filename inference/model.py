@@ -54,28 +54,22 @@ class Scene(Protocol):
 @dataclass(frozen=True)
 class InferenceConfig:
     prior_hidden: float = 0.5       # p: prior probability that a hidden object exists
-    # standard deviation of the pixel likelihood. The reconstruction's own RMS error is about
-    # 0.09, but its errors come in blobs, not independent pixels, and at 0.1 the 61,440 pixel
-    # terms drown the seen objects' motion. Chosen on the whole default test split and confirmed
-    # on a fresh one, with the seen objects' motion scored where the encoder saw them: at 0.5 the
-    # NLL ranks the pairs of all 7 S1/S3 settings at least as well as the MSE score, at 0.4 of 6
-    # (blocking S1 one pair short; docs/results.md)
+    # standard deviation of the pixel likelihood: wider than the reconstruction's RMS error, whose
+    # errors come in blobs, so that the pixel terms do not drown the seen objects' motion
+    # (docs/decisions.md, "NLL pixel sigma")
     pixel_sigma: float = 0.5
     transition_sigma: float = 0.1   # standard deviation of the hidden object's dynamics
     # standard deviation of the seen objects' latents around the dynamics: the dynamics' own RMS
-    # one-step error per latent on the default run's training latents, 0.19 (docs/results.md)
+    # one-step error per latent (docs/decisions.md, "NLL motion sigma")
     motion_sigma: float = 0.2
     particles: int = 64
     refine_steps: int = 5           # gradient steps on the proposal's mean (surprise.refine_out_of_sight)
     refine_rate: float = 0.1        # their Adam learning rate
     refine_tolerance: float = 1.0   # nats a frame of the proposal's mean may cost before it is moved
     guide_follows_dynamics: bool = True   # fuse each frame's proposal with the dynamics' step
-    # Transformer 2's scales are multiplied by this before the fusion. After the first frame they
-    # are each frame's marginal uncertainty, not fresh evidence about that frame, and taken at face
-    # value they pull every particle off the dynamics' step at a cost of 30-100 nats; in the first
-    # frame they are narrower than what the video leaves open (a never-seen object's colour), and
-    # the missed volume cost about 17 nats. 3 was chosen on the default test split and confirmed
-    # on a fresh one (docs/results.md)
+    # Transformer 2's scales are multiplied by this before the fusion: they are each frame's
+    # marginal uncertainty, not fresh evidence about that frame, and too narrow for what a video
+    # leaves open (docs/decisions.md, "NLL proposal widening")
     proposal_widening: float = 3.0
 
 

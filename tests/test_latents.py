@@ -1,4 +1,4 @@
-"""The latent cache: what `xvoe train --stage encode` writes and the later stages read."""
+"""The latent cache: what `xvoe encode` writes and the later stages read."""
 import json
 
 import h5py

@@ -8,6 +8,7 @@ import torch
 from conftest import randomise_dynamics_head
 from pyro.util import check_model_guide_match
 
+import xvoe
 from inference.explain import nll_explanation
 from inference.importance import importance
 from inference.model import HiddenObjectModel, InferenceConfig, Proposal
@@ -15,10 +16,10 @@ from inference.surprise import BRANCH_SAMPLES, defensive, hidden_posterior, nll_
 from inference.xpl_scene import XPLScene
 from xvoe.apps.cli import main
 from xvoe.apps.figures import plot_explanation
-from xvoe.apps.zoo import available
+from xvoe.apps.zoo import available_models
 from xvoe.benchmark import store
 from xvoe.benchmark.generate import GenerateConfig, generate
-from xvoe.evaluation.score import encode_videos, load_scorer, score_split
+from xvoe.evaluation.score import encode_videos, load_model
 from xvoe.models.dynamics import DynamicsConfig
 from xvoe.models.perception import ComponentVAE, PerceptionConfig
 from xvoe.models.reasoning import ReasoningConfig
@@ -121,9 +122,9 @@ def test_hidden_posterior_weights_the_particles_that_hold_an_object():
 @pytest.fixture(scope="module")
 def shipped(tmp_path_factory):
     """The shipped xpl model and a small test split at its resolution, from a seed it never saw."""
-    if "xpl" not in available():
+    if "xpl" not in available_models():
         pytest.skip("no shipped xpl model in xvoe/weights")
-    scorer = load_scorer("xpl")
+    scorer = load_model("xpl")
     path = generate(GenerateConfig("test", pairs=5, size=scorer.image_size, seed=11),
                     tmp_path_factory.mktemp("shipped") / "t.h5", workers=1, progress=False)
     return scorer, path
@@ -164,10 +165,10 @@ def test_cli_explain_with_the_nll_posterior(shipped, tmp_path, capsys):
 
 def test_nll_scores_are_the_same_bytes_from_the_same_seed(tmp_path):
     """The importance samples of `xvoe score --surprise both` come from the scorer's seed."""
-    scorer = load_scorer("xpl")
+    scorer = load_model("xpl")
     data = generate(GenerateConfig("test", pairs=1, size=scorer.image_size, seed=5), tmp_path / "t.h5",
                     workers=1, progress=False)
-    first, second = (score_split(scorer, str(data), str(tmp_path / name), surprise="both", particles=8,
+    first, second = (xvoe.score(scorer, str(data), str(tmp_path / name), surprise="both", particles=8,
                                  progress=False).read_bytes() for name in ("a.csv", "b.csv"))
     assert first == second
 

@@ -38,7 +38,7 @@ def test_notebook_is_stored_without_outputs(name):
 
 @pytest.mark.parametrize("name", sorted(SMALLEST))
 def test_notebook_runs_top_to_bottom(name, tmp_path, monkeypatch):
-    assert "xpl" in zoo.available(), "the notebooks need the shipped model xvoe/weights/xpl.pt (xvoe ship RUN_DIR)"
+    assert "xpl" in zoo.available_models(), "the notebooks need xvoe/weights/xpl.pt (xvoe ship RUN_DIR)"
     monkeypatch.setenv("OMP_NUM_THREADS", "1")       # the kernel inherits it: one core per notebook
     monkeypatch.setenv("MPLBACKEND", "module://matplotlib_inline.backend_inline")
     notebook = nbformat.read(NOTEBOOKS / name, as_version=4)

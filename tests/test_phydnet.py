@@ -11,7 +11,7 @@ from xvoe.apps.figures import plot_predictions, predicted_frames
 from xvoe.apps.pipeline import PipelineConfig, run_pipeline
 from xvoe.benchmark.generate import GenerateConfig, generate
 from xvoe.errors import XvoeError
-from xvoe.evaluation.score import SCORE_COLUMNS, load_scorer
+from xvoe.evaluation.score import SCORE_COLUMNS, load_model
 from xvoe.models.perception import normalise, to_uint8
 from xvoe.models.phydnet import (
     PhyDNet,
@@ -320,20 +320,22 @@ def test_a_focus_on_several_groups_draws_from_the_wall_videos_of_each(tmp_path):
 
 def test_the_command_line_sets_the_focus_and_the_learning_rate(splits, tmp_path, tiny_preset, capsys):
     run = tmp_path / "run"
-    assert main(["train", "--stage", "phydnet", "--data", str(splits[0]), "--out", str(run), "--quiet", "--steps", "2",
+    assert main(["train", "phydnet", "--data", str(splits[0]), "--out", str(run), "--quiet", "--steps", "2",
                  "--lr", "0.004", "--focus-group", "continuity", "--focus-share", "0.5"]) == 0
     train = torch.load(run / "phydnet.pt", weights_only=False)["train"]
     assert (train["lr"], train["focus_group"], train["focus_share"], train["steps"]) == (0.004, "continuity", 0.5, 2)
-    assert main(["train", "--stage", "perception", "--data", str(splits[0]), "--out", str(tmp_path / "p"),
-                 "--focus-group", "continuity"]) == 2
-    assert "apply to the phydnet, xpl, plato stages, not perception" in capsys.readouterr().err
+    with pytest.raises(SystemExit) as stop:     # perception takes no focus: the flag is not its own
+        main(["train", "perception", "--data", str(splits[0]), "--out", str(tmp_path / "p"),
+              "--focus-group", "continuity"])
+    assert stop.value.code == 2
+    assert "unrecognized arguments: --focus-group continuity" in capsys.readouterr().err
     assert not (tmp_path / "p").exists()
 
 
 def test_the_name_resolves_and_scores_a_tiny_test_set(splits, tmp_path, tiny_preset):
     run = tmp_path / "run"
-    assert main(["train", "--stage", "phydnet", "--data", str(splits[0]), "--out", str(run), "--quiet"]) == 0
-    assert load_scorer(str(run / "phydnet")).name == "phydnet"
+    assert main(["train", "phydnet", "--data", str(splits[0]), "--out", str(run), "--quiet"]) == 0
+    assert load_model(str(run / "phydnet")).name == "phydnet"
     out = tmp_path / "phydnet.csv"
     assert main(["score", "--model", str(run / "phydnet.pt"), "--data", str(splits[1]), "--out", str(out),
                  "--quiet"]) == 0

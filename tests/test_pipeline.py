@@ -3,12 +3,12 @@ from dataclasses import replace
 
 import pytest
 
+import xvoe
 from inference.model import InferenceConfig
 from inference.score import reference_nll
 from xvoe.apps.pipeline import PipelineConfig, compare_models, run_pipeline
 from xvoe.benchmark import store
 from xvoe.errors import XvoeError
-from xvoe.evaluation.score import score_split
 from xvoe.training.presets import PRESETS, TrainConfig
 
 
@@ -52,7 +52,7 @@ def test_tiny_pipeline_runs_end_to_end_and_skips_done_stages(tmp_path, tiny_cpu_
     # the Pyro model's surprise beside the paper's, on the same run
     import csv
 
-    out = score_split(str(run / "xpl.pt"), str(run / "data" / "test.h5"), str(tmp_path / "both.csv"),
+    out = xvoe.score(str(run / "xpl.pt"), str(run / "data" / "test.h5"), str(tmp_path / "both.csv"),
                       surprise="both", particles=4, progress=False)
     rows = list(csv.DictReader(open(out)))
     assert {"nll", "ess", "p_hidden"} <= set(rows[0])
@@ -74,7 +74,7 @@ def test_tiny_pipeline_runs_end_to_end_and_skips_done_stages(tmp_path, tiny_cpu_
     np.testing.assert_allclose([float(r["nll_excess"]) for r in rows], [float(r["nll"]) for r in rows] - reference,
                                rtol=1e-9, atol=1e-6)
     with pytest.raises(XvoeError, match="NLL surprise needs"):
-        score_split(str(run / "plato.pt"), str(run / "data" / "test.h5"), str(tmp_path / "x.csv"),
+        xvoe.score(str(run / "plato.pt"), str(run / "data" / "test.h5"), str(tmp_path / "x.csv"),
                     surprise="nll", progress=False)
 
 

@@ -2,9 +2,10 @@
 import pytest
 import torch
 
+import xvoe
 from inference.score import reference_nll
 from xvoe.errors import XvoeError
-from xvoe.evaluation.score import SCORE_COLUMNS, score_split
+from xvoe.evaluation.score import SCORE_COLUMNS
 from xvoe.evaluation.surprise import aggregate, latent_surprise, mse_surprise
 from xvoe.models.dynamics import DynamicsConfig
 from xvoe.models.perception import ComponentVAE, PerceptionConfig
@@ -103,24 +104,24 @@ def test_random_agent_scores_a_split(test_file, tmp_path):
     import numpy as np
 
 
-    out = score_split("random", str(test_file), str(tmp_path / "random.csv"), progress=False)
+    out = xvoe.score("random", str(test_file), str(tmp_path / "random.csv"), progress=False)
     rows = list(csv.DictReader(open(out)))
     assert tuple(rows[0]) == SCORE_COLUMNS and len(rows) == 176
     assert rows[1]["member"] == "1" and rows[0]["model"] == "random"
     curves = np.load(out.with_suffix(".curves.npz"))
     assert curves["s_img"].shape == (176, 15)
     np.testing.assert_allclose([float(r["score"]) for r in rows], (curves["s_img"] + curves["s_dyn"]).sum(1))
-    again = score_split("random", str(test_file), str(tmp_path / "again.csv"), progress=False)
+    again = xvoe.score("random", str(test_file), str(tmp_path / "again.csv"), progress=False)
     assert open(out).read() == open(again).read()
     with pytest.raises(XvoeError, match="exists"):
-        score_split("random", str(test_file), str(out), progress=False)
+        xvoe.score("random", str(test_file), str(out), progress=False)
     with pytest.raises(XvoeError, match="not a model"):
-        score_split(str(tmp_path / "random.csv"), str(test_file), str(tmp_path / "x.csv"), progress=False)
+        xvoe.score(str(tmp_path / "random.csv"), str(test_file), str(tmp_path / "x.csv"), progress=False)
 
 
 def test_scores_need_a_test_split(train_file, tmp_path):
     with pytest.raises(XvoeError, match="test split"):
-        score_split("random", str(train_file), str(tmp_path / "x.csv"), progress=False)
+        xvoe.score("random", str(train_file), str(tmp_path / "x.csv"), progress=False)
 
 
 def test_objects_unseen_in_a_frame_stay_behind_the_walls_there():

@@ -1,11 +1,11 @@
-"""Surprise curves of a chosen pair (xvoe.viz.plot_surprise_curves) and their helpers."""
+"""Surprise curves of a chosen pair (xvoe.plot_surprise_curves) and their helpers."""
 import matplotlib
 import numpy as np
 import pytest
 
-from xvoe.benchmark import custom, store
+import xvoe
+from xvoe.benchmark import custom, store, videos
 from xvoe.errors import XvoeError
-from xvoe.evaluation.score import score_split
 
 matplotlib.use("Agg")
 
@@ -13,24 +13,24 @@ matplotlib.use("Agg")
 @pytest.fixture(scope="module")
 def scored(test_file, tmp_path_factory):
     out = tmp_path_factory.mktemp("scores") / "random.csv"
-    return score_split("random", str(test_file), str(out), progress=False)
+    return xvoe.score("random", str(test_file), str(out), progress=False)
 
 
 def test_the_curves_of_a_pair_are_drawn_and_written(scored, test_file, tmp_path):
-    fig = viz.plot_surprise_curves(scored, test_file, "collision", "S3", 2, frame=5)
+    fig = xvoe.plot_surprise_curves(scored, test_file, "collision", "S3", 2, frame=5)
     out = tmp_path / "curves.png"
     fig.savefig(out)
     assert out.stat().st_size > 10_000
     axes = fig.axes
     assert [ax.get_title().splitlines()[0] for ax in axes] == ["s_img", "s_dyn", "s_img + s_dyn"]
     with np.load(scored.with_suffix(".curves.npz")) as curves, store.open_dataset(test_file) as file:
-        first, second = viz.find_pair(file, "collision", "S3", 2)
+        first, second = xvoe.find_pair(file, "collision", "S3", 2)
         drawn = [line.get_ydata() for line in axes[2].get_lines() if len(line.get_ydata()) > 2]
         np.testing.assert_allclose(drawn[0], curves["s_img"][first] + curves["s_dyn"][first])
         np.testing.assert_allclose(drawn[1], curves["s_img"][second] + curves["s_dyn"][second])
         event = int(file["event_frame"][first])
     assert any(list(line.get_xdata()) == [event, event] and line.get_color() == "red" for line in axes[0].get_lines())
-    viz.plot_surprise_curves(scored, None, "permanence", "S2", 0)       # the curves alone
+    xvoe.plot_surprise_curves(scored, None, "permanence", "S2", 0)       # the curves alone
 
 
 def test_curves_with_the_perception_error_add_the_excess_panel(scored, test_file, tmp_path):
@@ -38,20 +38,20 @@ def test_curves_with_the_perception_error_add_the_excess_panel(scored, test_file
         s_img, s_dyn = saved["s_img"], saved["s_dyn"]
     s_rec = 0.5 * s_img
     np.savez(tmp_path / "rec.npz", s_img=s_img, s_dyn=s_dyn, s_rec=s_rec)
-    fig = viz.plot_surprise_curves(scored, None, "collision", "S3", 2, curves=tmp_path / "rec.npz")
+    fig = xvoe.plot_surprise_curves(scored, None, "collision", "S3", 2, curves=tmp_path / "rec.npz")
     assert [ax.get_title().splitlines()[0] for ax in fig.axes] == ["s_img", "s_dyn", "s_img + s_dyn",
                                                                    "excess: s_img - s_rec + s_dyn"]
     with store.open_dataset(test_file) as file:
-        first, _ = viz.find_pair(file, "collision", "S3", 2)
+        first, _ = xvoe.find_pair(file, "collision", "S3", 2)
     drawn = [line.get_ydata() for line in fig.axes[3].get_lines() if len(line.get_ydata()) > 2]
     np.testing.assert_allclose(drawn[0], s_img[first] - s_rec[first] + s_dyn[first])
 
 
 def test_wall_timetables_read_back_from_the_states(test_file):
     with store.open_dataset(test_file) as file:
-        s1 = viz.wall_lowered(file, viz.find_pair(file, "blocking", "S1", 0)[0])
-        s2 = viz.wall_lowered(file, viz.find_pair(file, "blocking", "S2", 0)[1])
-        s3 = viz.wall_lowered(file, viz.find_pair(file, "continuity", "S3", 0)[0])
+        s1 = videos.wall_lowered(file, xvoe.find_pair(file, "blocking", "S1", 0)[0])
+        s2 = videos.wall_lowered(file, xvoe.find_pair(file, "blocking", "S2", 0)[1])
+        s3 = videos.wall_lowered(file, xvoe.find_pair(file, "continuity", "S3", 0)[0])
     standing = np.arange(3, 12)
     assert list(np.flatnonzero(s1 == 1)) == list(standing) and s1[0] == 0 and s1[-1] == 0 and 0 < s1[2] < 1
     assert (s2 == 1).all()
@@ -65,17 +65,17 @@ def test_wall_timetables_read_back_from_the_states(test_file):
 ])
 def test_a_bad_pair_gets_a_clear_error(scored, test_file, scenario, setting, pair, message):
     with pytest.raises(XvoeError, match=message):
-        viz.plot_surprise_curves(scored, test_file, scenario, setting, pair)
+        xvoe.plot_surprise_curves(scored, test_file, scenario, setting, pair)
 
 
 def test_scores_without_curves_or_from_other_data_are_refused(scored, test_file, tmp_path):
     lonely = tmp_path / "lonely.csv"
     lonely.write_text(scored.read_text())
     with pytest.raises(XvoeError, match="writes the curves beside"):
-        viz.plot_surprise_curves(lonely, test_file, "collision", "S1", 0)
+        xvoe.plot_surprise_curves(lonely, test_file, "collision", "S1", 0)
     with pytest.raises(XvoeError, match="frame 15 is out of range"):
-        viz.plot_surprise_curves(scored, test_file, "collision", "S1", 0, frame=15)
+        xvoe.plot_surprise_curves(scored, test_file, "collision", "S1", 0, frame=15)
     other = custom.make_pair([custom.ball(4, vx=50), custom.ball(34)], custom.pass_through(0, 1))
     mine = other.save(tmp_path / "mine.h5", size=32)
     with pytest.raises(XvoeError, match="does not match"):
-        viz.plot_surprise_curves(scored, mine, "collision", "S1", 0)
+        xvoe.plot_surprise_curves(scored, mine, "collision", "S1", 0)

@@ -90,7 +90,7 @@ def test_learning_rate_warms_up_then_halves():
 def test_data_at_another_resolution_is_refused(tiny_file, tmp_path, capsys):
     with pytest.raises(XvoeError, match="16x16 frames but the model works at 32x32"):
         train_perception(tiny_file, tmp_path, steps=1, progress=False)
-    code = main(["train", "--stage", "perception", "--data", str(tiny_file), "--out", str(tmp_path / "cli"),
+    code = main(["train", "perception", "--data", str(tiny_file), "--out", str(tmp_path / "cli"),
                  "--steps", "1", "--quiet"])
     assert code == 2
     error = capsys.readouterr().err.strip()
@@ -99,7 +99,7 @@ def test_data_at_another_resolution_is_refused(tiny_file, tmp_path, capsys):
 
 SCRIPT = """
 import sys
-from xvoe.train import train_perception
+from xvoe.training.perception import train_perception
 train_perception(sys.argv[1], sys.argv[2], steps=4, model_overrides={tiny!r}, progress=False, batch_size=8,
                  data_shards=2, log_every=2, warmup_steps=2, threads=1)
 """
@@ -129,8 +129,8 @@ def test_two_processes_under_torchrun_match_one_process(tiny_file, tmp_path):
 
 INTERRUPTED = """
 import os, signal, sys
-from xvoe.data import ShardedFrames
-from xvoe.train import train_perception
+from xvoe.training.data import ShardedFrames
+from xvoe.training.perception import train_perception
 draw = ShardedFrames.batch
 
 def interrupted(self, step):

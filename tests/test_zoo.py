@@ -3,15 +3,16 @@ import pytest
 import torch
 
 import xvoe.apps.zoo as zoo
+import xvoe.training.checkpoints as checkpoints
 from xvoe.errors import XvoeError
-from xvoe.evaluation.score import load_scorer
+from xvoe.evaluation.score import load_model
 
 
 def test_the_default_model_is_shipped_within_budget():
-    assert "xpl" in zoo.available()
+    assert "xpl" in zoo.available_models()
     total = sum(p.stat().st_size for p in zoo.WEIGHTS.glob("*.pt"))
     assert total <= zoo.BUDGET_BYTES
-    scorer = load_scorer("xpl")
+    scorer = load_model("xpl")
     assert scorer.vae is not None and scorer.xpl.config.use_reasoning
 
 
@@ -29,13 +30,13 @@ def test_shipping_keeps_the_weights_and_drops_the_optimiser(tmp_path, monkeypatc
     original = torch.load(zoo.WEIGHTS / "xpl.pt", weights_only=False)
     for name, value in original["model"].items():
         torch.testing.assert_close(slim["model"][name], value)
-    monkeypatch.setattr(zoo, "WEIGHTS", tmp_path / "weights")
-    assert load_scorer("xpl").name == "xpl"
+    monkeypatch.setattr(checkpoints, "WEIGHTS", tmp_path / "weights")
+    assert load_model("xpl").name == "xpl"
 
 
 def test_unshipped_names_and_runs_give_one_line_errors(tmp_path, monkeypatch):
-    monkeypatch.setattr(zoo, "WEIGHTS", tmp_path)
+    monkeypatch.setattr(checkpoints, "WEIGHTS", tmp_path)
     with pytest.raises(XvoeError, match="not shipped"):
-        load_scorer("plato")
+        load_model("plato")
     with pytest.raises(XvoeError, match="no perception.pt and xpl.pt"):
         zoo.ship(tmp_path)

@@ -1,3 +1,62 @@
-"""xvoe: the X-VoE benchmark and the XPL intuitive-physics model in PyTorch and Pyro."""
+"""xvoe: the X-VoE benchmark and the XPL intuitive-physics model in PyTorch and Pyro.
+
+The public API, one import for notebooks, scripts and the command line alike:
+
+    import xvoe
+    xvoe.generate(xvoe.GenerateConfig(split="test", pairs=20, size=32, seed=7), "test.h5")
+    scorer = xvoe.load_model("xpl")                       # a shipped name or a run directory
+    xvoe.score(scorer, "test.h5", "xpl.csv")              # surprise="nll" for the Pyro model's
+    xvoe.report(["xpl.csv"], "report")                    # the paper's metrics and figures
+    xvoe.plot_explanation(xvoe.explain(scorer, "test.h5", 160))
+
+The layers underneath (xvoe.benchmark, models, training, evaluation, inference, xvoe.apps)
+are importable too; this table names what a user needs. Names load on first use, so that
+`import xvoe` and the benchmark layer stay free of torch.
+"""
+from __future__ import annotations
+
+import importlib
+from typing import Any
 
 __version__ = "0.1.0"
+
+_HOMES = {
+    "xvoe.errors": ("XvoeError",),
+    "xvoe.benchmark.generate": ("GenerateConfig", "generate", "merge"),
+    "xvoe.benchmark.scenes": ("SCENARIOS", "TEST_SETTINGS"),
+    "xvoe.benchmark.store": ("open_dataset",),
+    "xvoe.benchmark.videos": ("describe", "find_pair", "true_objects"),
+    "xvoe.training.presets": ("PRESETS", "preset", "stage_settings"),
+    "xvoe.training.perception": ("train_perception",),
+    "xvoe.training.latents": ("encode_split",),
+    "xvoe.training.xpl": ("train_xpl", "train_proposal", "latent_cache_for"),
+    "xvoe.training.phydnet": ("train_phydnet",),
+    "xvoe.evaluation.score": ("Scorer", "load_model"),
+    "xvoe.evaluation.metrics": ("read_scores", "metric_rows", "comparative", "holistic", "relative",
+                                "disagreements"),
+    "xvoe.apps.verbs": ("score", "explain"),
+    "xvoe.apps.report": ("report",),
+    "xvoe.apps.zoo": ("available_models", "ship"),
+    "xvoe.apps.pipeline": ("PipelineConfig", "run_pipeline"),
+    "xvoe.apps.figures": ("show", "show_video", "save_gif", "save_figure", "frame_rows", "plot_explanation",
+                          "plot_comparative", "plot_components", "plot_holistic", "plot_disagreements",
+                          "plot_surprise_curves", "plot_predictions"),
+}
+_MODULES = {"custom": "xvoe.benchmark.custom"}     # make your own VoE event: xvoe.custom.make_pair(...)
+_HOME_OF = {name: module for module, names in _HOMES.items() for name in names}
+__all__ = sorted([*_HOME_OF, *_MODULES])
+
+
+def __getattr__(name: str) -> Any:
+    if name in _MODULES:
+        value = importlib.import_module(_MODULES[name])
+    elif name in _HOME_OF:
+        value = getattr(importlib.import_module(_HOME_OF[name]), name)
+    else:
+        raise AttributeError(f"module 'xvoe' has no attribute {name!r}")
+    globals()[name] = value
+    return value
+
+
+def __dir__() -> list[str]:
+    return sorted(set(globals()) | set(__all__))

@@ -6,24 +6,9 @@ import os
 import sys
 from pathlib import Path
 
-import matplotlib.pyplot as plt
+import xvoe
 
-from inference.explain import explain_nll
-
-from ..benchmark.generate import GenerateConfig, generate, merge
 from ..errors import XvoeError
-from ..evaluation.explain import explain
-from ..evaluation.score import load_scorer, score_split
-from ..training.checkpoints import WEIGHTS, load_checkpoint
-from ..training.latents import encode_split
-from ..training.loop import checkpoint_path
-from ..training.perception import train_perception
-from ..training.phydnet import train_phydnet
-from ..training.xpl import latent_cache_for, train_proposal, train_xpl
-from .figures import plot_explanation, show
-from .pipeline import PipelineConfig, run_pipeline
-from .report import report
-from .zoo import ship
 
 
 class _Parser(argparse.ArgumentParser):
@@ -57,53 +42,44 @@ def _default_workers() -> int:
 
 def cmd_generate(args: argparse.Namespace) -> None:
     if args.merge:
-        out = merge(args.merge, args.out, overwrite=args.overwrite, progress=not args.quiet)
+        out = xvoe.merge(args.merge, args.out, overwrite=args.overwrite, progress=not args.quiet)
     else:
         if args.split is None:
             raise XvoeError("--split is required (train or test) unless --merge is given")
-        config = GenerateConfig(split=args.split, videos=args.videos, pairs=args.pairs, size=args.size,
+        config = xvoe.GenerateConfig(split=args.split, videos=args.videos, pairs=args.pairs, size=args.size,
                                 frames=args.frames, seed=args.seed)
-        out = generate(config, args.out, workers=args.workers, shard=args.shard,
+        out = xvoe.generate(config, args.out, workers=args.workers, shard=args.shard,
                        overwrite=args.overwrite, progress=not args.quiet)
     print(out)
 
 
 def cmd_show(args: argparse.Namespace) -> None:
     out = args.out or Path(args.file).with_suffix(f".{args.index}.png").name
-    print(show(args.file, args.index, out))
+    print(xvoe.show(args.file, args.index, out))
 
 
 def cmd_score(args: argparse.Namespace) -> None:
-    print(score_split(args.model, args.data, args.out, how=args.aggregate, videos_per_batch=args.batch,
-                      surprise=args.surprise, particles=args.particles, overwrite=args.overwrite,
-                      progress=not args.quiet))
+    print(xvoe.score(args.model, args.data, args.out, surprise=args.surprise, particles=args.particles,
+                     how=args.aggregate, videos_per_batch=args.batch, overwrite=args.overwrite,
+                     progress=not args.quiet))
 
 
 def cmd_explain(args: argparse.Namespace) -> None:
-
     if Path(args.out).suffix.lower() != ".png":
         raise XvoeError(f"--out must end in .png, not {Path(args.out).suffix or 'nothing'}")
-    scorer = load_scorer(args.model)
-    if scorer.phydnet is not None:
-        raise XvoeError("PhyDNet predicts pixels and has no hidden object to draw; give an XPL run")
-    if args.surprise == "nll":
-        explanation = explain_nll(scorer, args.data, args.index, particles=args.particles, seed=args.seed)
-    else:
-        explanation = explain(scorer, args.data, args.index)
-    figure = plot_explanation(explanation)
-    figure.savefig(args.out, dpi=100, bbox_inches="tight")
-    plt.close(figure)
-    print(args.out)
+    explanation = xvoe.explain(args.model, args.data, args.index, surprise=args.surprise, particles=args.particles,
+                               seed=args.seed)
+    print(xvoe.save_figure(xvoe.plot_explanation(explanation), args.out))
 
 
 def cmd_pipeline(args: argparse.Namespace) -> None:
     models = tuple(m.strip() for m in args.models.split(",") if m.strip())
-    print(run_pipeline(PipelineConfig(args.out, args.preset, args.train_videos, args.pairs, models, args.seed,
+    print(xvoe.run_pipeline(xvoe.PipelineConfig(args.out, args.preset, args.train_videos, args.pairs, models, args.seed,
                                       args.workers, not args.quiet, args.jobs)))
 
 
 def cmd_metrics(args: argparse.Namespace) -> None:
-    for path in report(args.scores, args.out, rounds=args.rounds, seed=args.seed, data=args.data):
+    for path in xvoe.report(args.scores, args.out, rounds=args.rounds, seed=args.seed, data=args.data):
         print(path)
 
 
@@ -117,100 +93,119 @@ def _positive_float(text: str) -> float:
     return value
 
 
-def _train_overrides(args: argparse.Namespace) -> dict:
-    """The TrainConfig fields the command line may change (None: keep the preset's)."""
-    return {"steps": args.steps, "max_minutes": args.minutes, "batch_size": args.batch_size, "seed": args.seed,
-            "max_videos": args.max_videos, "lr": args.lr, "focus_group": args.focus_group,
-            "focus_share": args.focus_share}
-
-
-FOCUS_STAGES = ("phydnet", "xpl", "plato")     # the stages whose batches can focus on one group
-
-
 def cmd_ship(args: argparse.Namespace) -> None:
-    for path in ship(args.run_dir, args.out or WEIGHTS):
+    for path in xvoe.ship(args.run_dir, args.out):
         print(f"{path}  {path.stat().st_size / 2**20:.1f} MB")
 
 
+# --- training: one subcommand per stage, each with its own flags --------------------------
+
+def _train_overrides(args: argparse.Namespace, stage: str) -> tuple[dict, dict]:
+    """The TrainConfig fields the flags and `--set` change (None: keep the preset's), and the model's."""
+    train, model = xvoe.stage_settings(stage, args.set)
+    flags = {"steps": args.steps, "max_minutes": args.minutes, "batch_size": args.batch_size, "seed": args.seed,
+             "max_videos": args.max_videos, "lr": args.lr, "focus_group": getattr(args, "focus_group", None),
+             "focus_share": getattr(args, "focus_share", None)}
+    return {**train, **{k: v for k, v in flags.items() if v is not None}}, model
+
+
 def cmd_train(args: argparse.Namespace) -> None:
-    if (args.focus_group or args.focus_share is not None) and args.stage not in FOCUS_STAGES:
-        raise XvoeError(f"--focus-group and --focus-share apply to the {', '.join(FOCUS_STAGES)} stages, "
-                        f"not {args.stage}")
-    if args.stage == "perception":
-
-        if args.data is None and not args.resume:
-            raise XvoeError("--data is required (the training split file)")
-        data = args.data
-        if data is None:
-
-            data = load_checkpoint(checkpoint_path(args.out, "perception"))["meta"]["data"]
-        overrides = _train_overrides(args)
-        print(train_perception(data, args.out, preset_name=args.preset, resume=args.resume,
-                               overwrite=args.overwrite, progress=not args.quiet, **overrides))
-    elif args.stage == "phydnet":
-
-        if args.data is None and not args.resume:
-            raise XvoeError("--data is required (the training split file)")
-        overrides = _train_overrides(args)
-        print(train_phydnet(args.data, args.out, preset_name=args.preset, resume=args.resume,
-                            overwrite=args.overwrite, progress=not args.quiet, **overrides))
-    elif args.stage == "encode":
-
-        if args.data is None:
-            raise XvoeError("--data is required (the split file to encode)")
-        cache = args.cache or Path(args.out) / f"latents-{Path(args.data).stem}.h5"
-        print(encode_split(args.model or args.out, args.data, cache, overwrite=args.overwrite,
-                           progress=not args.quiet))
-    elif args.stage == "proposal":
-
-        print(train_proposal(args.out, args.data, resume=args.resume, overwrite=args.overwrite,
-                             progress=not args.quiet, **_train_overrides(args)))
+    stage = args.stage
+    train, model = _train_overrides(args, stage)
+    common = {"resume": args.resume, "overwrite": args.overwrite, "progress": not args.quiet}
+    if stage != "proposal" and args.data is None and not args.resume:
+        raise XvoeError("--data is required to start a run (the training split, or for xpl and plato its latent "
+                        "cache)")
+    if stage == "proposal":
+        print(xvoe.train_proposal(args.out, args.data, **common, **train))
+        return
+    common |= {"preset_name": args.preset, "model_overrides": model}
+    if stage == "perception":
+        print(xvoe.train_perception(args.data, args.out, **common, **train))
+    elif stage == "phydnet":
+        print(xvoe.train_phydnet(args.data, args.out, **common, **train))
     else:
+        cache = None
+        if args.data:
+            cache = xvoe.latent_cache_for(args.data, args.out, args.perception, progress=not args.quiet)
+        print(xvoe.train_xpl(cache, args.out, stage=stage, residual=not getattr(args, "no_residual", False),
+                             stop_gradient=not getattr(args, "no_stop_gradient", False), **common, **train))
 
-        if args.data is None and not args.resume:
-            raise XvoeError("--data is required (a latent cache, or the training split to encode first)")
-        cache = latent_cache_for(args.data, args.out, args.model, progress=not args.quiet) if args.data else None
-        overrides = _train_overrides(args)
-        print(train_xpl(cache, args.out, stage=args.stage, preset_name=args.preset, residual=not args.no_residual,
-                        stop_gradient=not args.no_stop_gradient, resume=args.resume, overwrite=args.overwrite,
-                        progress=not args.quiet, **overrides))
+
+def cmd_encode(args: argparse.Namespace) -> None:
+    cache = args.cache or Path(args.out) / f"latents-{Path(args.data).stem}.h5"
+    print(xvoe.encode_split(args.model or args.out, args.data, cache, overwrite=args.overwrite,
+                            progress=not args.quiet))
+
+
+STAGE_HELP = {
+    "perception": "the Component VAE, on a training split's frames",
+    "xpl": "Transformers 1 and 2 and the dynamics, on the latent cache (a split is encoded first)",
+    "plato": "the PLATO baseline: the dynamics alone, on the latent cache",
+    "proposal": "Transformer 2 and the existence head further, on hidden objects (after xpl)",
+    "phydnet": "the PhyDNet baseline, on a training split's pixels",
+}
+FOCUS_STAGES = ("phydnet", "xpl", "plato")     # the stages whose batches can focus on one group
 
 
 def add_train_parser(verbs) -> None:
     train = verbs.add_parser(
-        "train", help="train a stage of the XPL model (perception, encode, xpl, proposal, plato) or PhyDNet",
-        description="Train one stage into a run directory (STAGE.pt checkpoint and STAGE.csv losses). "
-                    "Runs unchanged under torchrun --nproc_per_node N (not the proposal stage). The encode "
-                    "stage writes the latent cache of a split with a trained perception module; the proposal "
-                    "stage trains the run's Transformer 2 further on hidden objects (proposal.pt, loaded "
-                    "with xpl.pt from then on).")
-    train.add_argument("--stage", required=True,
-                       choices=("perception", "encode", "xpl", "proposal", "plato", "phydnet"))
-    train.add_argument("--data", help="the split file (HDF5) to train on or to encode")
-    train.add_argument("--out", required=True, help="the run directory")
-    train.add_argument("--preset", default="cpu",
-                       help="model and training sizes: cpu (default), cpu-broadcast or paper")
-    train.add_argument("--steps", type=_positive, help="training steps (default: the preset's)")
-    train.add_argument("--minutes", type=_positive_float, help="stop after this many minutes of training")
-    train.add_argument("--batch-size", type=_positive, help="frames (phydnet: videos) per step over all processes")
-    train.add_argument("--max-videos", type=_positive, help="use only the first N videos of --data")
-    train.add_argument("--seed", type=int, help="the seed of initialisation and batches (default 0)")
-    train.add_argument("--lr", type=_positive_float,
-                       help="peak learning rate (default: the preset's; it halves every decay_steps after warm-up)")
-    train.add_argument("--focus-group", help="phydnet, xpl, plato: draw --focus-share of each batch from this "
-                                             "group's training videos with a wall (e.g. permanence; "
-                                             "several: permanence,continuity)")
-    train.add_argument("--focus-share", type=float, help="the share of each batch from --focus-group, in [0, 1]")
-    train.add_argument("--resume", action="store_true", help="continue the run in --out where it stopped")
-    train.add_argument("--overwrite", action="store_true", help="start again over an existing run or cache")
-    train.add_argument("--model", help="encode: perception run or checkpoint (default: --out)")
-    train.add_argument("--cache", help="encode: the latent cache to write (default: OUT/latents-DATA.h5)")
-    train.add_argument("--no-residual", action="store_true",
-                       help="xpl: predict the next latent, not its change (the paper's ablation)")
-    train.add_argument("--no-stop-gradient", action="store_true",
-                       help="xpl: let the dynamics loss reach Transformer 1 through the target too")
-    train.add_argument("--quiet", action="store_true", help="no progress bar")
-    train.set_defaults(run=cmd_train)
+        "train", help="train one stage of the XPL model, or a baseline, into a run directory",
+        description="xvoe train STAGE: one stage into a run directory (STAGE.pt checkpoint and STAGE.csv "
+                    "losses). Each stage runs unchanged under torchrun --nproc_per_node N (not proposal).")
+    stages = train.add_subparsers(dest="stage", required=True, metavar="STAGE", parser_class=_Parser)
+    for stage, help_text in STAGE_HELP.items():
+        parser = stages.add_parser(stage, help=help_text, description=f"Train {help_text}.")
+        if stage == "proposal":
+            parser.add_argument("--data", help="the latent cache (default: the one the run's xpl stage used)")
+        elif stage in ("xpl", "plato"):
+            parser.add_argument("--data", help="the latent cache, or a training split to encode into one first")
+            parser.add_argument("--perception", help="the perception run that encodes a split (default: --out)")
+        else:
+            parser.add_argument("--data", help="the training split file (HDF5)")
+        parser.add_argument("--out", required=True, help="the run directory")
+        if stage != "proposal":
+            parser.add_argument("--preset", default="cpu",
+                                help="model and training sizes: cpu (default), cpu-broadcast or paper")
+        parser.add_argument("--steps", type=_positive, help="training steps (default: the preset's)")
+        parser.add_argument("--minutes", type=_positive_float, help="stop after this many minutes of training")
+        parser.add_argument("--batch-size", type=_positive,
+                            help="videos per step over all processes" if stage == "phydnet"
+                            else "frames per step over all processes" if stage == "perception"
+                            else "videos per step")
+        parser.add_argument("--max-videos", type=_positive, help="use only the first N videos of --data")
+        parser.add_argument("--seed", type=int, help="the seed of initialisation and batches (default 0)")
+        parser.add_argument("--lr", type=_positive_float,
+                            help="peak learning rate (default: the preset's; it halves every decay_steps)")
+        if stage in FOCUS_STAGES:
+            parser.add_argument("--focus-group", help="draw --focus-share of each batch from this group's training "
+                                                      "videos with a wall (e.g. permanence; several: "
+                                                      "permanence,continuity)")
+            parser.add_argument("--focus-share", type=float, help="the share of each batch from --focus-group")
+        if stage == "xpl":
+            parser.add_argument("--no-residual", action="store_true",
+                                help="predict the next latent, not its change (the paper's ablation)")
+            parser.add_argument("--no-stop-gradient", action="store_true",
+                                help="let the dynamics loss reach Transformer 1 through the target too")
+        parser.add_argument("--set", action="append", default=[], metavar="FIELD=VALUE",
+                            help="change any field of a fresh run's TrainConfig or model config (repeatable; "
+                                 "train.FIELD or model.FIELD where both have it; model.dynamics.hidden=256 "
+                                 "reaches a nested one); a resumed run keeps its network")
+        parser.add_argument("--resume", action="store_true", help="continue the run in --out where it stopped")
+        parser.add_argument("--overwrite", action="store_true", help="start again over an existing run")
+        parser.add_argument("--quiet", action="store_true", help="no progress bar")
+        parser.set_defaults(run=cmd_train)
+
+    encode = verbs.add_parser("encode", help="encode a split into a latent cache with a trained perception module",
+                              description="Encode every frame of a split into a latent cache (HDF5), which the "
+                                          "xpl, plato and proposal stages train on.")
+    encode.add_argument("--data", required=True, help="the split file to encode")
+    encode.add_argument("--out", required=True, help="the run directory (its perception.pt unless --model)")
+    encode.add_argument("--model", help="a perception run or checkpoint (default: --out)")
+    encode.add_argument("--cache", help="the latent cache to write (default: OUT/latents-DATA.h5)")
+    encode.add_argument("--overwrite", action="store_true", help="replace the cache if it exists")
+    encode.add_argument("--quiet", action="store_true", help="no progress bar")
+    encode.set_defaults(run=cmd_encode)
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -310,7 +305,7 @@ def build_parser() -> argparse.ArgumentParser:
     pipeline.add_argument("--workers", type=_positive, default=_default_workers(), help="generation workers")
     pipeline.add_argument("--jobs", type=int, default=1,
                           help="models trained side by side, the cores shared out (0: one per core; default 1: "
-                               "one at a time; 2 lanes were 11%% faster and held 3 times the memory)")
+                               "one at a time); more lanes hold more memory")
     pipeline.add_argument("--quiet", action="store_true", help="no progress bars")
     pipeline.set_defaults(run=cmd_pipeline)
 

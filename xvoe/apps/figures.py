@@ -26,6 +26,13 @@ ID_COLORS = (np.array(plt.get_cmap("tab10").colors) * 255).astype(np.uint8)
 ID_PALETTE = np.vstack([[[0, 0, 0]], ID_COLORS[:9]]).astype(np.uint8)   # 0 = background
 
 
+def save_figure(figure: plt.Figure, out: str | Path, dpi: int = 100) -> Path:
+    """Write a figure (PNG, ...) and close it, so that a loop of them holds no memory."""
+    figure.savefig(out, dpi=dpi, bbox_inches="tight")
+    plt.close(figure)
+    return Path(out)
+
+
 def ids_to_rgb(ids: np.ndarray) -> np.ndarray:
     """Colour a slot-id map: black background, one fixed colour per slot."""
     return ID_PALETTE[np.minimum(ids, len(ID_PALETTE) - 1)]

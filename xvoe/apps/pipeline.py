@@ -29,7 +29,7 @@ from ..benchmark import store
 from ..benchmark.generate import GenerateConfig, generate
 from ..errors import XvoeError
 from ..evaluation.explain import explain
-from ..evaluation.score import load_scorer, score_split
+from ..evaluation.score import load_model, score_split
 from ..training.latents import encode_split
 from ..training.loop import checkpoint_path
 from ..training.perception import train_perception
@@ -53,8 +53,8 @@ class PipelineConfig:
     seed: int = 0
     workers: int = 2
     progress: bool = True
-    jobs: int = 1       # models trained side by side, each with cores/jobs threads (0: one per core); more
-                        # memory: two lanes held 8.4 GB together against 2.6 GB one at a time (docs/results.md)
+    jobs: int = 1       # models trained side by side, each with cores/jobs threads (0: one per core); they hold
+                        # more memory together (docs/decisions.md, "Pipeline lanes")
 
     def __post_init__(self) -> None:
         unknown = [m for m in self.models if m not in MODELS]
@@ -191,7 +191,7 @@ def _explanations(run_dir: Path, test_data: Path, models: tuple[str, ...]) -> No
     _remove(run_dir / "report", "explanation-*.png")
     if "xpl" not in models:
         return
-    scorer = load_scorer(str(run_dir / "xpl.pt"))
+    scorer = load_model(str(run_dir / "xpl.pt"))
     with store.open_dataset(test_data) as file:
         scenario, setting = store.strings(file, "scenario"), store.strings(file, "setting")
         member = file["member"][:]

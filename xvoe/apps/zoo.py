@@ -18,13 +18,13 @@ BUDGET_BYTES = 25 * 2**20      # all shipped checkpoints together
 KEPT = ("format", "stage", "step", "config", "model", "train", "meta")
 
 
-def available() -> list[str]:
+def available_models() -> list[str]:
     return [name for name in SHIPPED if shipped_path(name)]
 
 
-def ship(run_dir: str | os.PathLike, out: str | os.PathLike = WEIGHTS) -> list[Path]:
+def ship(run_dir: str | os.PathLike, out: str | os.PathLike | None = None) -> list[Path]:
     """Copy the run's checkpoints into `out`, stripped to weights, config and step."""
-    run_dir, out = Path(run_dir), Path(out)
+    run_dir, out = Path(run_dir), Path(out or WEIGHTS)
     stages = [s for s in ("perception", *SHIPPED, "proposal") if (run_dir / f"{s}.pt").is_file()]
     if "perception" not in stages or "xpl" not in stages:
         raise XvoeError(f"{run_dir} holds no perception.pt and xpl.pt to ship")

@@ -10,7 +10,7 @@ s_dyn column and curve; s_img is all zeros for it.
 from __future__ import annotations
 
 import csv
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Protocol
 
@@ -24,7 +24,7 @@ from ..errors import XvoeError
 from ..models.perception import ComponentVAE, normalise
 from ..models.phydnet import PhyDNet
 from ..models.xpl import XPL
-from ..training.checkpoints import SHIPPED, WEIGHTS, shipped_path
+from ..training.checkpoints import SHIPPED, shipped_path
 from ..training.data import check_size, visible_threshold
 from ..training.latents import encode_frames
 from ..training.perception import load_perception
@@ -57,18 +57,28 @@ class Scorer:
     def image_size(self) -> int:
         return (self.phydnet or self.vae).config.image_size
 
+    def without_reasoning(self) -> Scorer:
+        """The same perception and dynamics with both Transformers off: a predictive-only
+        observer, PLATO's kind, made from this model (for a class without a shipped PLATO)."""
+        if self.xpl is None:
+            raise XvoeError(f"{self.name} has no XPL model to take the reasoning out of")
+        bare = XPL(replace(self.xpl.config, use_reasoning=False))
+        bare.dynamics.load_state_dict(self.xpl.dynamics.state_dict())
+        return Scorer(f"{self.name} without reasoning", self.vae, bare.eval())
 
-def load_scorer(model: str, device: str = "cpu") -> Scorer:
-    """`random`, a shipped model's name (xvoe.zoo), a run directory (its xpl.pt), a stage checkpoint (xpl.pt, plato.pt,
+
+def load_model(model: str, device: str = "cpu") -> Scorer:
+    """`random`, a shipped model's name (`SHIPPED`), a run directory (its xpl.pt), a stage checkpoint (xpl.pt, plato.pt,
     xpl-noresidual.pt with perception.pt beside it; phydnet.pt), or RUN_DIR/STAGE."""
     if model == "random":
         return Scorer("random", None, None)
 
     path = Path(model)
     if model in SHIPPED and not path.exists():
-        if shipped_path(model) is None:
+        shipped = shipped_path(model)
+        if shipped is None:
             raise XvoeError(f"the model {model} is not shipped with this copy of xvoe; train it with xvoe pipeline")
-        run_dir, stage = WEIGHTS, model
+        run_dir, stage = shipped.parent, model
     elif path.is_file():
         run_dir, stage = path.parent, path.stem
     elif path.name in STAGES and (path.parent / f"{path.name}.pt").is_file():
@@ -115,7 +125,7 @@ def score_split(model: str | Scorer, data: str, out: str, *, how: str = "sum", v
         raise XvoeError(f"--aggregate must be sum or max, not {how!r}")
     if score_column != "score" and (extra is None or score_column not in extra.names):
         raise XvoeError(f"the score column must be 'score' or one of the extra columns, not {score_column!r}")
-    scorer = load_scorer(model) if isinstance(model, str) else model
+    scorer = load_model(model) if isinstance(model, str) else model
     if extra is not None:
         extra.check(scorer)
     out = Path(out)

@@ -45,8 +45,19 @@ def _nested_dataclass(annotation: Any) -> type | None:
 
 
 def override(config: Any, **changes: Any) -> Any:
-    """A copy of `config` with the given fields changed; None values are ignored."""
-    return replace(config, **{k: v for k, v in changes.items() if v is not None})
+    """A copy of `config` with the given fields changed; None values are ignored. A dotted
+    name (`dynamics.hidden`) changes a field of a nested config."""
+    flat = {k: v for k, v in changes.items() if v is not None and "." not in k}
+    nested: dict[str, dict[str, Any]] = {}
+    for key, value in changes.items():
+        if value is not None and "." in key:
+            head, _, rest = key.partition(".")
+            nested.setdefault(head, {})[rest] = value
+    for head, inner in nested.items():
+        if head not in {f.name for f in fields(config)} or not is_dataclass(getattr(config, head)):
+            raise XvoeError(f"{type(config).__name__} has no nested config {head!r}")
+        flat[head] = override(getattr(config, head), **inner)
+    return replace(config, **flat)
 
 
 def override_resumed(config: Any, changes: dict | None, may_change: tuple[str, ...] = (), what: str = "run") -> Any:
@@ -54,9 +65,49 @@ def override_resumed(config: Any, changes: dict | None, may_change: tuple[str, .
     field outside `may_change` is an error rather than silently ignored (a value equal to the
     checkpoint's is not a change)."""
     changes = {k: v for k, v in (changes or {}).items() if v is not None}
-    config = replace(config, **{k: v for k, v in changes.items() if k in may_change})
-    shaping = sorted(k for k, v in changes.items() if k not in may_change and replace(config, **{k: v}) != config)
+    config = override(config, **{k: v for k, v in changes.items() if k in may_change})
+    shaping = sorted(k for k, v in changes.items() if k not in may_change and override(config, **{k: v}) != config)
     if shaping:
         allowed = f"only {', '.join(may_change)} may change" if may_change else "none of it may change"
         raise XvoeError(f"a resumed {what} keeps its network: of its config {allowed}, not {', '.join(shaping)}")
     return config
+
+
+def field_type(cls: type, name: str) -> Any:
+    """The type of a field of a config dataclass, a dotted name reaching into nested configs."""
+    head, _, rest = name.partition(".")
+    hints = typing.get_type_hints(cls) if is_dataclass(cls) else {}
+    if head not in hints:
+        known = ", ".join(sorted(hints)) or "none"
+        raise XvoeError(f"{cls.__name__} has no field {head!r} (its fields: {known})")
+    if not rest:
+        return hints[head]
+    nested = _nested_dataclass(hints[head])
+    if nested is None:
+        raise XvoeError(f"{cls.__name__}.{head} is not a nested config")
+    return field_type(nested, rest)
+
+
+def parse_value(kind: Any, text: str) -> Any:
+    """A command-line string as a value of a config field's type (`none` for an optional one;
+    a tuple as comma-separated items)."""
+    if isinstance(kind, types.UnionType) or typing.get_origin(kind) is typing.Union:
+        options = [a for a in typing.get_args(kind) if a is not type(None)]
+        if text.lower() == "none" and len(options) < len(typing.get_args(kind)):
+            return None
+        return parse_value(options[0], text)
+    if typing.get_origin(kind) is tuple:
+        item = typing.get_args(kind)[0] if typing.get_args(kind) else str
+        return tuple(parse_value(item, part) for part in text.split(",") if part.strip())
+    if kind is bool:
+        if text.lower() in ("true", "yes", "1"):
+            return True
+        if text.lower() in ("false", "no", "0"):
+            return False
+        raise XvoeError(f"expected true or false, not {text!r}")
+    if kind in (int, float, str):
+        try:
+            return kind(text)
+        except ValueError:
+            raise XvoeError(f"expected {'a whole number' if kind is int else 'a number'}, not {text!r}") from None
+    raise XvoeError(f"a field of type {kind} cannot be set from the command line")

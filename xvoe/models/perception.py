@@ -20,7 +20,7 @@ objects out of each object's own loss (`amodal`), so that a partly hidden object
 say where the object is, not where its visible part is. Position is then linear in the
 latents by construction, for every kind of object alike. Per unit, these two latents move the
 picture hundreds of times more than the others, so the later stages weigh their latent losses
-by that (XPLConfig.weigh_by_picture; docs/results.md).
+by that (XPLConfig.weigh_by_picture; docs/decisions.md, "Where latents and picture weights").
 """
 from __future__ import annotations
 
@@ -295,8 +295,8 @@ class ComponentVAE(nn.Module):
         """RGBD pictures (N,4,H,W) of latents (N,D), each object alone on the blank.
 
         Without gradients the latents go through in chunks: a thousand at once make
-        feature maps of half a gigabyte that fall out of the CPU caches; chunks of 64 decode
-        the same pictures 1.1 to 2.6 times faster (docs/results.md)."""
+        feature maps of half a gigabyte that fall out of the CPU caches (docs/decisions.md,
+        "Decoding in chunks")."""
         if torch.is_grad_enabled() or len(z) <= self.DECODE_CHUNK:
             return self.decoder(z)
         return torch.cat([self.decoder(chunk) for chunk in z.split(self.DECODE_CHUNK)])

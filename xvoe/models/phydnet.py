@@ -39,7 +39,7 @@ class PhyDNetConfig:
     channels: int = 4                               # RGBD
     # encoder: a stride-1 conv to the first width, then one stride-2 conv per further width;
     # the decoder mirrors it. The last width is the feature map the two branches work on: 16x16,
-    # as in the original at 64x64 (an 8x8 map had a 3x higher loss after 120 steps of 8 videos)
+    # as in the original at 64x64 (docs/decisions.md, "PhyDNet's feature map")
     encoder_channels: tuple[int, ...] = (16, 32)
     phycell_kernel: int = 7                         # k: k^2 derivative filters up to order k-1
     phycell_layers: int = 1
@@ -47,12 +47,13 @@ class PhyDNetConfig:
     lstm_channels: tuple[int, ...] = (32,)          # ConvLSTM layers (the original: 128, 128, 64)
     # a ConvLSTM layer moves what it remembers by (kernel - 1) / 2 cells a frame: at 3, one cell
     # of the 16x16 map, slower than a cube falls behind a wall (~3 cells a frame); the original
-    # reaches 3 with its 3 stacked layers. `widen_lstm_kernel` widens a trained network's gates
+    # reaches 3 with its 3 stacked layers (docs/decisions.md, "PhyDNet's ConvLSTM kernel").
+    # `widen_lstm_kernel` widens a trained network's gates
     lstm_kernel: int = 3
     # > 1: chrono initialisation of the ConvLSTM gates (Tallec & Ollivier, ICLR 2018) for memories
     # of up to this many frames; 0: PyTorch's default biases, whose forget gate halves the cell
-    # state each frame. Meant for permanence (cubes behind a wall for five frames); it did not
-    # bring their memory at 7,500 steps and cost accuracy elsewhere (docs/results.md), so 0
+    # state each frame. Off: it brought no memory of hidden cubes and cost accuracy elsewhere
+    # (docs/decisions.md, "PhyDNet without chrono initialisation")
     lstm_chrono_frames: int = 0
     moment_weight: float = 1.0                      # weight of the moment loss
     # extra weight, in the training loss only, of the pixels that change from one frame to the

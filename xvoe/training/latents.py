@@ -130,7 +130,7 @@ def picture_weights(model, mean: torch.Tensor, visible: torch.Tensor, objects: i
 def encode_split(model_ref: str | os.PathLike, data: str | os.PathLike, out: str | os.PathLike, *,
                  videos_per_batch: int = 16, overwrite: bool = False, progress: bool = True,
                  device: str | torch.device | None = None) -> Path:
-    """What `xvoe train --stage encode` does: encode every frame of a split into a latent cache."""
+    """What `xvoe encode` does: encode every frame of a split into a latent cache."""
     device = device or ("cuda" if torch.cuda.is_available() else "cpu")
     model, state = load_perception(model_ref, device)
     with store.open_dataset(data) as file:

@@ -41,12 +41,17 @@ def perception_configs(preset_name: str, run_dir: Path, resume: bool, **train_ov
     return preset_name, model_config, override(train_config, **train_overrides)
 
 
-def train_perception(data: str | os.PathLike, run_dir: str | os.PathLike, *, preset_name: str = "cpu",
+def train_perception(data: str | os.PathLike | None, run_dir: str | os.PathLike, *, preset_name: str = "cpu",
                      resume: bool = False, overwrite: bool = False, progress: bool = True,
                      model_overrides: dict | None = None, **train_overrides: Any) -> Path:
-    """What `xvoe train --stage perception` does; also works under torchrun."""
+    """What `xvoe train perception` does; also works under torchrun. A resumed run may leave
+    out `data`: it trains on the split it started on."""
     place = setup_distributed()
     run_dir = Path(run_dir)
+    if data is None:
+        if not (resume and checkpoint_path(run_dir, "perception").exists()):
+            raise XvoeError("--data is required to start a run (the training split file)")
+        data = load_checkpoint(checkpoint_path(run_dir, "perception"))["meta"]["data"]
     preset_name, model_config, config = perception_configs(preset_name, run_dir, resume, **train_overrides)
     if resume and checkpoint_path(run_dir, "perception").exists():
         model_config = override_resumed(model_config, model_overrides, what="perception run")

@@ -1,6 +1,6 @@
 """The PhyDNet baseline's training stage: next-frame prediction on the training split's pixels.
 
-`xvoe train --stage phydnet --data train.h5 --out RUN_DIR` writes RUN_DIR/phydnet.pt and
+`xvoe train phydnet --data train.h5 --out RUN_DIR` writes RUN_DIR/phydnet.pt and
 phydnet.csv through the shared loop. A batch is a set of whole videos; which ones is drawn
 from a generator seeded by (seed, step, shard), so a resumed or multi-process run sees the
 same batches as one uninterrupted process.
@@ -72,7 +72,7 @@ def phydnet_configs(preset_name: str, run_dir: Path, resume: bool, data: str | o
 def train_phydnet(data: str | os.PathLike | None, run_dir: str | os.PathLike, *, preset_name: str = "cpu",
                   resume: bool = False, overwrite: bool = False, progress: bool = True,
                   model_overrides: dict | None = None, **train_overrides: Any) -> Path:
-    """What `xvoe train --stage phydnet` does (also under torchrun); returns RUN_DIR/phydnet.pt."""
+    """What `xvoe train phydnet` does (also under torchrun); returns RUN_DIR/phydnet.pt."""
     place = setup_distributed()
     run_dir = Path(run_dir)
     preset_name, model_config, config, data = phydnet_configs(preset_name, run_dir, resume, data)

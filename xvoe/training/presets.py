@@ -4,9 +4,10 @@ A `Preset` holds one config per stage, so that a run at one scale is one name.
 """
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, fields
 
 from ..errors import XvoeError
+from ..models.config import field_type, parse_value
 from ..models.dynamics import DynamicsConfig
 from ..models.perception import PerceptionConfig
 from ..models.phydnet import PhyDNetConfig
@@ -48,18 +49,16 @@ class Preset:
     perception: PerceptionConfig = field(default_factory=PerceptionConfig)
     perception_train: TrainConfig = field(default_factory=TrainConfig)
     xpl: XPLConfig = field(default_factory=XPLConfig)
-    # about 6 minutes on 2 cores (0.25 s a step)
     xpl_train: TrainConfig = field(default_factory=lambda: TrainConfig(steps=1500, batch_size=32, warmup_steps=100,
                                                                        decay_steps=1000))
-    # Transformer 2 and the existence head trained further on hidden objects (the proposal stage);
-    # about 0.1 s a step on one core
+    # Transformer 2 and the existence head trained further on hidden objects (the proposal stage)
     proposal_train: TrainConfig = field(default_factory=lambda: TrainConfig(steps=4000, batch_size=32,
                                                                             warmup_steps=100, decay_steps=1500))
     # the PLATO baseline's training (None: xpl_train's). Without Transformer 1 it predicts the
     # raw latents directly, and every visible object costs its prediction error in every frame:
     # trained no longer than XPL, that cost outweighs the violations of the predictive settings
     plato_train: TrainConfig | None = None
-    # the PhyDNet baseline: batch_size counts videos; ~4-5 minutes on one CPU thread
+    # the PhyDNet baseline: batch_size counts videos
     phydnet: PhyDNetConfig = field(default_factory=PhyDNetConfig)
     phydnet_train: TrainConfig = field(default_factory=lambda: TrainConfig(steps=300, batch_size=8, lr=3e-3,
                                                                            warmup_steps=20, decay_steps=300))
@@ -69,7 +68,7 @@ PRESETS: dict[str, Preset] = {
     # 2 CPU cores: 32x32 frames, a small CNN encoder and a light decoder. Each object's position is two
     # latents the decoder draws from (found whole behind walls: amodal, cut_share), and the later
     # stages weigh each latent by how much it moves the picture; walls are inert in the dynamics
-    # (docs/results.md).
+    # (docs/decisions.md, "The cpu preset").
     "cpu": Preset(
         name="cpu",
         perception=PerceptionConfig(where_latents=True, amodal=True, cut_share=0.25),
@@ -77,21 +76,18 @@ PRESETS: dict[str, Preset] = {
     ),
     # The cpu preset before where latents: the whole latent broadcast, every latent weighed alike;
     # walls inert in the dynamics, Transformer 1 trained by the refill loss alone, its fills of
-    # objects outside the picture included, and the XPL stage (xpl-noresidual too) trained 8 times
-    # as long as in cpu: with the last two, collision S3 rose from 65 to 99 (docs/results.md). The
-    # shipped models were trained with it (their checkpoints hold the full config).
+    # objects outside the picture included, and a longer XPL stage (docs/decisions.md, "The
+    # cpu-broadcast preset and the shipped models").
     "cpu-broadcast": Preset(
         name="cpu-broadcast",
         perception=PerceptionConfig(),
         xpl=XPLConfig(inert_walls=True, stop_input_gradient=True, outside_refill=True),
         xpl_train=TrainConfig(steps=12_000, batch_size=32, warmup_steps=100, decay_steps=8000),
-        # the shipped PLATO: trained 5x as long as XPL, its predictive accuracy reaches 97-100% in
-        # three scenarios and 89% in continuity (3,000 steps: 3-57%); about 100 minutes on one core
-        # (docs/results.md)
+        # PLATO's predictive accuracy grows with its training time (docs/decisions.md, "PLATO's
+        # training length")
         plato_train=TrainConfig(steps=60_000, batch_size=32, warmup_steps=100, decay_steps=15_000),
-        # the shipped PhyDNet: the changing pixels weighed 21 times in its training loss, 25 times the
-        # cpu preset's steps; predictive 90-99.5% in three scenarios (300 plain steps: 0-48.5%); about
-        # 2 hours on two threads (docs/results.md; the shipped run stopped at 7,479 steps, its time limit)
+        # the changing pixels weighed more in PhyDNet's training loss, and trained longer
+        # (docs/decisions.md, "PhyDNet's loss weight on changing pixels")
         phydnet=PhyDNetConfig(change_weight=20.0),
         phydnet_train=TrainConfig(steps=7500, batch_size=8, lr=2e-3, warmup_steps=100, decay_steps=2500),
     ),
@@ -122,3 +118,30 @@ def preset(name: str) -> Preset:
     if name not in PRESETS:
         raise XvoeError(f"unknown preset {name!r}; choose one of {', '.join(PRESETS)}")
     return PRESETS[name]
+
+
+MODEL_CONFIGS = {"perception": PerceptionConfig, "xpl": XPLConfig, "plato": XPLConfig, "phydnet": PhyDNetConfig}
+
+
+def stage_settings(stage: str, assignments: list[str]) -> tuple[dict, dict]:
+    """`--set FIELD=VALUE` as typed overrides of the stage's TrainConfig and model config.
+    A field is looked up in TrainConfig, then in the model's config; `train.` or `model.`
+    before it picks one, and a dotted name reaches a nested config (`model.dynamics.hidden`)."""
+    train, model = {}, {}
+    owners = {"train": TrainConfig, "model": MODEL_CONFIGS.get(stage)}
+    for text in assignments:
+        name, equals, value = text.partition("=")
+        if not equals or not name:
+            raise XvoeError(f"--set takes FIELD=VALUE, not {text!r}")
+        where, _, rest = name.partition(".")
+        if where in owners and rest:
+            chosen = where
+            name = rest
+        else:
+            chosen = "train" if name.partition(".")[0] in {f.name for f in fields(TrainConfig)} else "model"
+        config = owners[chosen]
+        if config is None:
+            raise XvoeError(f"the {stage} stage builds no network of its own: only TrainConfig fields may be set")
+        target = train if chosen == "train" else model
+        target[name] = parse_value(field_type(config, name), value)
+    return train, model

@@ -1,7 +1,7 @@
 """The XPL and PLATO training stages, on the latent cache, through the shared loop.
 
-`xvoe train --stage xpl` trains Transformer 1 and the dynamics jointly on the dynamics loss
-and Transformer 2 on Transformer 1's refined latents; `--stage plato` trains the dynamics
+`xvoe train xpl` trains Transformer 1 and the dynamics jointly on the dynamics loss
+and Transformer 2 on Transformer 1's refined latents; `xvoe train plato` trains the dynamics
 alone (no residual) on the raw means; `--no-residual` gives the paper's ablation (Fig. 5a).
 Every random choice of a step (which videos, the slot order, the slot Transformer 2 must
 rebuild) is drawn from a generator seeded by (seed, step, shard), as for perception, so a
@@ -24,7 +24,7 @@ from ..benchmark import store
 from ..benchmark.scenes.behind import WALL_HALF_WIDTH, WALL_HEIGHT
 from ..benchmark.world import FLOOR, WORLD
 from ..errors import XvoeError
-from ..models.config import from_dict, override, to_dict
+from ..models.config import from_dict, override, override_resumed, to_dict
 from ..models.reasoning import hide_slot
 from ..models.xpl import XPL, XPLConfig, permute_slots
 from .checkpoints import load_checkpoint, resolve_run
@@ -37,8 +37,8 @@ from .presets import TrainConfig, preset
 STAGES = ("xpl", "plato")
 PROPOSAL_OBJECT_SHARE = 0.5   # the proposal stage rebuilds a seen object this often (else any slot); as
                               # in the joint stage: more, and Transformer 2 fills empty slots with objects
-PROPOSAL_BETA = 0.5   # the proposal stage's loss is the beta-NLL: with the plain NLL (beta 0) a hard
-                      # latent's scale grows and its mean stops learning (hidden_iou 0.36 against 0.54)
+PROPOSAL_BETA = 0.5   # the proposal stage's loss is the beta-NLL: with the plain NLL a hard latent's scale
+                      # grows and its mean stops learning (docs/decisions.md, "Proposal loss: beta-NLL")
 
 
 @dataclass
@@ -177,9 +177,11 @@ def stage_config(base: XPLConfig, stage: str, residual: bool, stop_gradient: boo
 
 def train_xpl(latents: str | os.PathLike | None, run_dir: str | os.PathLike, *, stage: str = "xpl",
               preset_name: str = "cpu", residual: bool = True, stop_gradient: bool = True,
-              resume: bool = False, overwrite: bool = False, progress: bool = True, **train_overrides: Any) -> Path:
-    """What `xvoe train --stage xpl|plato` does (also under torchrun). The checkpoint is
-    RUN_DIR/STAGE.pt, or xpl-noresidual.pt for the ablation."""
+              resume: bool = False, overwrite: bool = False, progress: bool = True, model_overrides: dict | None = None,
+              **train_overrides: Any) -> Path:
+    """What `xvoe train xpl|plato` does (also under torchrun). The checkpoint is RUN_DIR/STAGE.pt,
+    or xpl-noresidual.pt for the ablation. `model_overrides` change XPLConfig fields of a fresh
+    run (dotted names reach nested configs); a resumed run keeps its network."""
     if stage not in STAGES:
         raise XvoeError(f"stage must be one of {STAGES}, not {stage!r}")
     name = stage if residual or stage == "plato" else "xpl-noresidual"
@@ -191,13 +193,15 @@ def train_xpl(latents: str | os.PathLike | None, run_dir: str | os.PathLike, *, 
         model_config = from_dict(XPLConfig, state["config"]["xpl"])
         config, preset_name = from_dict(TrainConfig, state["train"]), state["config"]["preset"]
         latents = latents or state["meta"]["latents"]
+        model_config = override_resumed(model_config, model_overrides, what=f"{name} run")
     elif latents is None:
         raise XvoeError(f"nothing to resume in {run_dir}: give the latent cache to start a run")
     else:
         chosen = preset(preset_name)
         with open_latents(latents) as file:
             shape = file["mean"].shape[1:]
-        model_config = stage_config(chosen.xpl, stage, residual, stop_gradient, shape)
+        model_config = override(stage_config(chosen.xpl, stage, residual, stop_gradient, shape),
+                                **(model_overrides or {}))
         if model_config.weigh_by_picture and not model_config.latent_weights:
             model_config = replace(model_config, latent_weights=cache_picture_weights(latents))
         config = chosen.plato_train if stage == "plato" and chosen.plato_train else chosen.xpl_train
@@ -222,7 +226,7 @@ def cache_picture_weights(latents: str | os.PathLike, videos: int = 200) -> tupl
         source = file.attrs.get("perception_checkpoint")
         if source is None:
             raise XvoeError(f"{latents} does not say which perception module made it, and weigh_by_picture "
-                            "needs it; encode the split with `xvoe train --stage encode`")
+                            "needs it; encode the split with `xvoe encode`")
         mean, visible = torch.tensor(file["mean"][:videos]), torch.tensor(file["visible"][:videos])
     if not Path(source).is_file():
         raise XvoeError(f"{latents} was made by {source}, which is gone; the latent weights need it")
@@ -297,7 +301,8 @@ def bridge_hidden(mean: Tensor, visible: Tensor) -> Tensor:
 
     Transformer 2 learns the hidden object in every frame from this. Transformer 1's fills
     would do for the seen frames only: they serve the dynamics, not the truth, and move a
-    cube behind a wall next to the ball it stops (an object's width off; docs/results.md);
+    cube behind a wall next to the ball it stops (docs/decisions.md, "Proposal targets bridge the
+    hidden spans");
     scored on seen frames alone, Transformer 2 proposes nothing in the frames a wall covers.
     A static object is held exactly; one moving behind a wall is bridged at constant speed."""
     before, after = seen_neighbours(visible)
@@ -420,7 +425,7 @@ def fingerprint(state: dict[str, Tensor], prefixes: tuple[str, ...] = ("transfor
 
 def train_proposal(run_dir: str | os.PathLike, latents: str | os.PathLike | None = None, *, resume: bool = False,
                    overwrite: bool = False, progress: bool = True, **train_overrides: Any) -> Path:
-    """What `xvoe train --stage proposal` does: train Transformer 2 and the existence head of
+    """What `xvoe train proposal` does: train Transformer 2 and the existence head of
     RUN_DIR/xpl.pt further on -log q(hidden object | the rest), on objects hidden in every
     frame of the training videos (the simulator's trajectories, encoded), into
     RUN_DIR/proposal.pt. In the joint stage they get one step in each of the XPL's few steps
@@ -468,7 +473,7 @@ def load_xpl(model: str | os.PathLike, stage: str = "xpl", device: str | torch.d
         extra = load_checkpoint(tuned)
         if extra["meta"].get("xpl_fingerprint") != fingerprint(state["model"]):
             raise XvoeError(f"{tuned} was trained on another xpl.pt than {path}; retrain it "
-                            "(xvoe train --stage proposal --overwrite) or move it away")
+                            "(xvoe train proposal --overwrite) or move it away")
         xpl.load_state_dict(extra["model"], strict=False)
         state["proposal"] = str(tuned)
     state["path"] = str(path)

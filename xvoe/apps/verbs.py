@@ -1,0 +1,50 @@
+"""Scoring and explaining with either definition of surprise, as one call each.
+
+The MSE score and its explanation live in xvoe.evaluation; the NLL's in inference, the layer
+above it. These choose between them by name, for the command line, the pipeline, the
+notebooks and a user's own script alike.
+"""
+from __future__ import annotations
+
+from pathlib import Path
+
+from inference.explain import explain_nll
+from inference.score import NLLColumns
+
+from ..errors import XvoeError
+from ..evaluation.explain import Explanation
+from ..evaluation.explain import explain as explain_mse
+from ..evaluation.score import Scorer, load_model, score_split
+
+SURPRISES = ("mse", "nll", "both")
+
+
+def score(model: str | Scorer, data: str | Path, out: str | Path, *, surprise: str = "mse", particles: int = 64,
+          how: str = "sum", videos_per_batch: int = 16, overwrite: bool = False, progress: bool = True) -> Path:
+    """Score every video of a test split into a CSV (and the per-frame curves beside it).
+
+    surprise: "mse", the paper's score; "nll", -log p(video) under the Pyro model (the score
+    column is the NLL; the columns nll, ess, p_hidden and nll_excess are added); "both", the
+    MSE score with the NLL's columns beside it. model: a name (`xpl`, `random`, ...), a run
+    directory, a checkpoint, or a loaded `Scorer`."""
+    if surprise not in SURPRISES:
+        raise XvoeError(f"--surprise must be mse, nll or both, not {surprise!r}")
+    extra = NLLColumns(particles) if surprise != "mse" else None
+    return score_split(model, str(data), str(out), how=how, videos_per_batch=videos_per_batch, extra=extra,
+                       score_column="nll" if surprise == "nll" else "score", overwrite=overwrite,
+                       progress=progress)
+
+
+def explain(model: str | Scorer, data: str | Path, index: int, *, surprise: str = "mse", particles: int = 64,
+            seed: int = 0) -> Explanation:
+    """What the model believes is behind the wall in video `index`: Transformer 2's proposal
+    (surprise "mse") or the Pyro model's posterior (surprise "nll", from `particles`
+    importance samples drawn from `seed`)."""
+    scorer = load_model(model) if isinstance(model, str) else model
+    if scorer.phydnet is not None:
+        raise XvoeError("PhyDNet predicts pixels and has no hidden object to draw; give an XPL run")
+    if surprise == "nll":
+        return explain_nll(scorer, str(data), index, particles=particles, seed=seed)
+    if surprise != "mse":
+        raise XvoeError(f"--surprise must be mse or nll, not {surprise!r}")
+    return explain_mse(scorer, str(data), index)
