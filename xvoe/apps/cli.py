@@ -3,16 +3,24 @@ from __future__ import annotations
 
 import argparse
 import os
+import re
+import signal
 import sys
 from pathlib import Path
 
 import xvoe
 
 from ..errors import XvoeError
+from ..outputs import claim_directory, claim_file
 
 
 class _Parser(argparse.ArgumentParser):
     """argparse, but a bad argument gives one line (and exit code 2), not the whole usage."""
+
+    def __init__(self, *args, **kwargs):
+        super().__init__(*args, **kwargs)
+        # a value such as -1/2 (for --shard) is a value to check, not an unknown option
+        self._negative_number_matcher = re.compile(r"^-\d+$|^-\d*\.\d+$|^-\d+/\d+$")
 
     def error(self, message: str) -> None:
         self.exit(2, f"{self.prog}: error: {message} (see {self.prog} --help)\n")
@@ -23,6 +31,8 @@ def _shard(text: str) -> tuple[int, int]:
         index, count = (int(v) for v in text.split("/"))
     except ValueError:
         raise argparse.ArgumentTypeError(f"expected I/N (part I of N, counted from 0), not {text!r}") from None
+    if not 0 <= index < count:
+        raise argparse.ArgumentTypeError(f"expected I/N with 0 <= I < N, not {text!r}")
     return index, count
 
 
@@ -42,6 +52,8 @@ def _default_workers() -> int:
 
 def cmd_generate(args: argparse.Namespace) -> None:
     if args.merge:
+        if args.split is not None:
+            raise XvoeError("--merge joins shards as they were generated; leave out --split")
         out = xvoe.merge(args.merge, args.out, overwrite=args.overwrite, progress=not args.quiet)
     else:
         if args.split is None:
@@ -55,7 +67,7 @@ def cmd_generate(args: argparse.Namespace) -> None:
 
 def cmd_show(args: argparse.Namespace) -> None:
     out = args.out or Path(args.file).with_suffix(f".{args.index}.png").name
-    print(xvoe.show(args.file, args.index, out))
+    print(xvoe.show(args.file, args.index, out, overwrite=args.overwrite))
 
 
 def cmd_score(args: argparse.Namespace) -> None:
@@ -67,6 +79,7 @@ def cmd_score(args: argparse.Namespace) -> None:
 def cmd_explain(args: argparse.Namespace) -> None:
     if Path(args.out).suffix.lower() != ".png":
         raise XvoeError(f"--out must end in .png, not {Path(args.out).suffix or 'nothing'}")
+    claim_file(args.out, args.overwrite)
     explanation = xvoe.explain(args.model, args.data, args.index, surprise=args.surprise, particles=args.particles,
                                seed=args.seed)
     print(xvoe.save_figure(xvoe.plot_explanation(explanation), args.out))
@@ -79,7 +92,8 @@ def cmd_pipeline(args: argparse.Namespace) -> None:
 
 
 def cmd_metrics(args: argparse.Namespace) -> None:
-    for path in xvoe.report(args.scores, args.out, rounds=args.rounds, seed=args.seed, data=args.data):
+    for path in xvoe.report(args.scores, args.out, rounds=args.rounds, seed=args.seed, data=args.data,
+                            overwrite=args.overwrite):
         print(path)
 
 
@@ -111,6 +125,7 @@ def _train_overrides(args: argparse.Namespace, stage: str) -> tuple[dict, dict]:
 
 def cmd_train(args: argparse.Namespace) -> None:
     stage = args.stage
+    claim_directory(args.out, make=False)       # a bad --out is found before any data is read
     train, model = _train_overrides(args, stage)
     common = {"resume": args.resume, "overwrite": args.overwrite, "progress": not args.quiet}
     if stage != "proposal" and args.data is None and not args.resume:
@@ -236,6 +251,7 @@ def build_parser() -> argparse.ArgumentParser:
     show.add_argument("file", help="an xvoe HDF5 file")
     show.add_argument("--index", type=int, default=0, help="video index (a test video shows its pair)")
     show.add_argument("--out", help="fig.png or anim.gif (default: FILE.INDEX.png here)")
+    show.add_argument("--overwrite", action="store_true", help="replace --out if it exists")
     show.set_defaults(run=cmd_show)
 
     add_train_parser(verbs)
@@ -273,10 +289,11 @@ def build_parser() -> argparse.ArgumentParser:
                               "importance-weighted hidden object with p(hidden object) and the ESS")
     explain.add_argument("--particles", type=_positive, default=64, help="importance samples (nll)")
     explain.add_argument("--seed", type=int, default=0, help="seed of the importance samples (nll)")
+    explain.add_argument("--overwrite", action="store_true", help="replace --out if it exists")
     explain.set_defaults(run=cmd_explain)
 
     metrics = verbs.add_parser("metrics", help="comparative, holistic and relative metrics with figures",
-                               description="The paper's metrics with bootstrap 95%% intervals, for the total "
+                               description="The paper's metrics with bootstrap 95% intervals, for the total "
                                            "score and each component, of one or more models' scores files: "
                                            "metrics.csv, metrics.json and the figures in --out. Scores holding "
                                            "both the MSE score and the NLL also get them side by side "
@@ -288,6 +305,7 @@ def build_parser() -> argparse.ArgumentParser:
     metrics.add_argument("--seed", type=int, default=0, help="seed of the bootstrap")
     metrics.add_argument("--data", help="the test split that was scored: with scores of both surprise definitions "
                                         "(xvoe score --surprise both), draws pairs they judge differently")
+    metrics.add_argument("--overwrite", action="store_true", help="replace a report already in --out")
     metrics.set_defaults(run=cmd_metrics)
 
     pipeline = verbs.add_parser("pipeline", help="generate, train, score and report, end to end",
@@ -321,15 +339,23 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
+    previous = signal.signal(signal.SIGTERM, _interrupt)   # so that a kill cleans up as Ctrl-C does
     try:
         args.run(args)
     except XvoeError as error:
         print(f"xvoe {args.verb}: error: {error}", file=sys.stderr)
         return 2
     except KeyboardInterrupt as stop:
-        print(f"xvoe {args.verb}: interrupted; {stop or 'nothing half-written was left behind'}", file=sys.stderr)
+        print(f"xvoe {args.verb}: interrupted; {str(stop) or 'nothing half-written was left behind'}",
+              file=sys.stderr)
         return 130
+    finally:
+        signal.signal(signal.SIGTERM, previous)
     return 0
+
+
+def _interrupt(number: int, frame) -> None:
+    raise KeyboardInterrupt
 
 
 if __name__ == "__main__":

@@ -19,6 +19,7 @@ from ..benchmark.videos import _labels_of, _pair_rows, check_index, describe, vi
 from ..errors import XvoeError
 from ..evaluation.metrics import excess, read_scores
 from ..models.perception import normalise, to_uint8
+from ..outputs import atomic_paths, claim_file
 from ..training.data import perception_batch
 from ..training.phydnet import load_phydnet
 
@@ -27,10 +28,15 @@ ID_PALETTE = np.vstack([[[0, 0, 0]], ID_COLORS[:9]]).astype(np.uint8)   # 0 = ba
 
 
 def save_figure(figure: plt.Figure, out: str | Path, dpi: int = 100) -> Path:
-    """Write a figure (PNG, ...) and close it, so that a loop of them holds no memory."""
-    figure.savefig(out, dpi=dpi, bbox_inches="tight")
-    plt.close(figure)
-    return Path(out)
+    """Write a figure (its format from the suffix of `out`) whole or not at all, and close it,
+    so that a loop of them holds no memory."""
+    out = Path(out)
+    try:
+        with atomic_paths(out) as (tmp,):
+            figure.savefig(tmp, format=out.suffix.lstrip(".").lower() or "png", dpi=dpi, bbox_inches="tight")
+    finally:
+        plt.close(figure)
+    return out
 
 
 def ids_to_rgb(ids: np.ndarray) -> np.ndarray:
@@ -102,24 +108,25 @@ def save_gif(file: h5py.File, index: int, out: str | Path, zoom: int = 3, frame_
     movie = np.concatenate(strips, axis=1)
     movie = movie.repeat(zoom, axis=1).repeat(zoom, axis=2)
     images = [Image.fromarray(frame) for frame in movie]
-    images[0].save(out, save_all=True, append_images=images[1:], duration=frame_ms, loop=0)
+    with atomic_paths(Path(out)) as (tmp,):
+        images[0].save(tmp, format="GIF", save_all=True, append_images=images[1:], duration=frame_ms, loop=0)
     return Path(out)
 
 
-def show(path: str | Path, index: int, out: str | Path | None = None) -> Path | plt.Figure:
-    """What `xvoe show` does: a PNG contact sheet or a GIF, chosen by the suffix of `out`."""
+def show(path: str | Path, index: int, out: str | Path | None = None, overwrite: bool = False) -> Path | plt.Figure:
+    """What `xvoe show` does: a PNG contact sheet or a GIF, chosen by the suffix of `out`
+    (no `out`: the figure)."""
     suffix = Path(out).suffix.lower() if out is not None else None
     if suffix not in (None, ".png", ".gif"):
         raise XvoeError(f"--out must end in .png or .gif, not {suffix or 'nothing'}")
     with store.open_dataset(path) as file:
+        check_index(file, index)
+        if out is not None:
+            claim_file(out, overwrite)
         if suffix == ".gif":
             return save_gif(file, index, out)
         fig = show_video(file, index)
-    if out is None:
-        return fig
-    fig.savefig(out, dpi=100, bbox_inches="tight")
-    plt.close(fig)
-    return Path(out)
+    return fig if out is None else save_figure(fig, out)
 
 
 def reconstruction_sheet(frames: np.ndarray, composite: np.ndarray, inputs: np.ndarray, decoded: np.ndarray,

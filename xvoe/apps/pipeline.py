@@ -30,6 +30,7 @@ from ..benchmark.generate import GenerateConfig, generate
 from ..errors import XvoeError
 from ..evaluation.explain import explain
 from ..evaluation.score import load_model, score_split
+from ..outputs import claim_directory
 from ..training.latents import encode_split
 from ..training.loop import checkpoint_path
 from ..training.perception import train_perception
@@ -57,6 +58,8 @@ class PipelineConfig:
                         # more memory together (docs/decisions.md, "Pipeline lanes")
 
     def __post_init__(self) -> None:
+        if not self.models:
+            raise XvoeError(f"--models names no model; choose from {', '.join(MODELS)}")
         unknown = [m for m in self.models if m not in MODELS]
         if unknown:
             raise XvoeError(f"unknown model(s) {', '.join(unknown)}; choose from {', '.join(MODELS)}")
@@ -94,8 +97,7 @@ class Stages:
 def run_pipeline(config: PipelineConfig) -> Path:
     """Everything, end to end; returns the path of report.md."""
     size = preset(config.preset).perception.image_size
-    run_dir = Path(config.out)
-    run_dir.mkdir(parents=True, exist_ok=True)
+    run_dir = claim_directory(config.out)
     (run_dir / "data").mkdir(exist_ok=True)
     stages = Stages(run_dir, config.progress)
     train_data, test_data, latents = run_files(run_dir)
@@ -128,8 +130,7 @@ def run_pipeline(config: PipelineConfig) -> Path:
     models = ",".join(config.models)    # a rerun with more models redoes what covers them all
 
     def metrics() -> None:
-        _remove(run_dir / "report", "holistic.png", "comparative.png", "components-*.png", "disagreements-*.png")
-        report(scores, run_dir / "report", seed=config.seed)
+        report(scores, run_dir / "report", seed=config.seed, overwrite=True)
 
     stages.run("metrics", metrics, key=models)
     stages.run("explanations", lambda: _explanations(run_dir, test_data, config.models), key=models)

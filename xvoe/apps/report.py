@@ -6,7 +6,6 @@ import csv
 import json
 from pathlib import Path
 
-import matplotlib.pyplot as plt
 import numpy as np
 
 from ..benchmark import store
@@ -20,11 +19,16 @@ from ..evaluation.metrics import (
     read_scores,
     side_by_side,
 )
+from ..outputs import claim_directory
 from . import figures
+
+# what a report writes, so that a rerun into the same directory leaves nothing of the last one
+REPORT_FILES = ("metrics.csv", "metrics.json", "holistic.png", "comparative.png", "components-*.png",
+                "disagreements-*.png", "surprise-*.csv", "disagreements-*.csv")
 
 
 def report(paths: list[str | Path], out_dir: str | Path, rounds: int = 1000, seed: int = 0,
-           data: str | Path | None = None) -> list[Path]:
+           data: str | Path | None = None, overwrite: bool = False) -> list[Path]:
     """What `xvoe metrics` does: the table (CSV and JSON) and the figures, for one or more
     models' scores files. A scores file holding both surprise definitions (`xvoe score
     --surprise both`) also gets them side by side (surprise-MODEL.csv) and the pairs they
@@ -42,6 +46,14 @@ def report(paths: list[str | Path], out_dir: str | Path, rounds: int = 1000, see
         rows += metric_rows(scores, name, rounds=rounds, seed=seed)
         if has_both_surprises(scores):
             compared[name] = scores
+    if not rows:
+        raise XvoeError("the scores hold no test pairs to measure")
+    out_dir = claim_directory(out_dir)
+    earlier = [p for pattern in REPORT_FILES for p in out_dir.glob(pattern)]
+    if earlier and not overwrite:
+        raise XvoeError(f"{out_dir} holds a report already ({earlier[0].name}); pass --overwrite to replace it")
+    for path in earlier:
+        path.unlink()
     written = list(write_table(rows, out_dir))
     drawn = {"holistic.png": figures.plot_holistic(rows), "comparative.png": figures.plot_comparative(rows)}
     for name in names:
@@ -54,9 +66,7 @@ def report(paths: list[str | Path], out_dir: str | Path, rounds: int = 1000, see
         if data is not None and differ:
             drawn[f"disagreements-{name}.png"] = _disagreement_figure(data, scores, differ)
     for filename, figure in drawn.items():
-        figure.savefig(Path(out_dir) / filename, dpi=90)
-        plt.close(figure)
-        written.append(Path(out_dir) / filename)
+        written.append(figures.save_figure(figure, out_dir / filename, dpi=90))
     return written
 
 

@@ -6,12 +6,14 @@ without the optimiser state, so that they load with no download and stay small.
 """
 from __future__ import annotations
 
+import io
 import os
 from pathlib import Path
 
 import torch
 
 from ..errors import XvoeError
+from ..outputs import atomic_paths, claim_directory
 from ..training.checkpoints import SHIPPED, WEIGHTS, load_checkpoint, shipped_path
 
 BUDGET_BYTES = 25 * 2**20      # all shipped checkpoints together
@@ -23,24 +25,35 @@ def available_models() -> list[str]:
 
 
 def ship(run_dir: str | os.PathLike, out: str | os.PathLike | None = None) -> list[Path]:
-    """Copy the run's checkpoints into `out`, stripped to weights, config and step."""
-    run_dir, out = Path(run_dir), Path(out or WEIGHTS)
+    """Copy the run's checkpoints into `out`, stripped to weights, config and step: every one
+    or none (each is read and the budget checked before any is written). The paths of the
+    machine it was trained on stay behind."""
+    run_dir = Path(run_dir)
+    if not run_dir.is_dir():
+        raise XvoeError(f"{run_dir}: no such run directory")
     stages = [s for s in ("perception", *SHIPPED, "proposal") if (run_dir / f"{s}.pt").is_file()]
     if "perception" not in stages or "xpl" not in stages:
         raise XvoeError(f"{run_dir} holds no perception.pt and xpl.pt to ship")
-    out.mkdir(parents=True, exist_ok=True)
-    written = []
-    for stage in stages:
-        state = load_checkpoint(run_dir / f"{stage}.pt")
-        slim = {key: state[key] for key in KEPT if key in state}
-        slim["meta"] = {**slim.get("meta", {}), "shipped_from": str(run_dir.resolve())}
-        target = out / f"{stage}.pt"
-        partial = target.with_suffix(".pt.tmp")
-        torch.save(slim, partial)
-        os.replace(partial, target)
-        written.append(target)
-    total = sum(p.stat().st_size for p in out.glob("*.pt"))
+    claim_directory(out or WEIGHTS, make=False)
+    slim = {stage: _slim(load_checkpoint(run_dir / f"{stage}.pt"), run_dir.name) for stage in stages}
+    kept = sum(p.stat().st_size for p in Path(out or WEIGHTS).glob("*.pt") if p.stem not in slim)
+    total = kept + sum(len(data) for data in slim.values())
     if total > BUDGET_BYTES:
-        raise XvoeError(f"shipped checkpoints take {total / 2**20:.1f} MB, "
-                        f"over the {BUDGET_BYTES / 2**20:.0f} MB budget")
-    return written
+        raise XvoeError(f"shipped checkpoints would take {total / 2**20:.1f} MB, "
+                        f"over the {BUDGET_BYTES / 2**20:.0f} MB budget; nothing was written")
+    out = claim_directory(out or WEIGHTS)
+    targets = [out / f"{stage}.pt" for stage in slim]
+    with atomic_paths(*targets) as temporaries:
+        for temporary, data in zip(temporaries, slim.values()):
+            temporary.write_bytes(data)
+    return targets
+
+
+def _slim(state: dict, run_name: str) -> bytes:
+    """A checkpoint's weights, config and step, serialised; its meta without absolute paths."""
+    slim = {key: state[key] for key in KEPT if key in state}
+    meta = {k: v for k, v in slim.get("meta", {}).items() if not (isinstance(v, str) and os.path.isabs(v))}
+    slim["meta"] = meta | {"shipped_from": run_name}
+    buffer = io.BytesIO()
+    torch.save(slim, buffer)
+    return buffer.getvalue()

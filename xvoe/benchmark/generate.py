@@ -9,7 +9,10 @@ settings can be compared pair by pair.
 """
 from __future__ import annotations
 
+import ctypes
+import ctypes.util
 import multiprocessing
+import signal
 from dataclasses import asdict, dataclass
 from functools import partial
 from pathlib import Path
@@ -124,8 +127,19 @@ def _map(function, items: range, workers: int):
         yield from map(function, items)
         return
     chunk = max(1, min(64, len(items) // (workers * 8)))
-    with multiprocessing.get_context("fork").Pool(workers) as pool:
+    with multiprocessing.get_context("fork").Pool(workers, initializer=_worker_follows_parent) as pool:
         yield from pool.imap(function, items, chunksize=chunk)
+
+
+def _worker_follows_parent() -> None:
+    """A worker leaves Ctrl-C to the parent (which stops the pool and removes its half-written
+    file) and dies with it when it is killed, instead of printing a broken pipe's traceback."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    try:
+        libc = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6", use_errno=True)
+        libc.prctl(1, signal.SIGTERM)       # PR_SET_PDEATHSIG: Linux only
+    except (OSError, AttributeError):
+        pass
 
 
 def merge(parts: list[str | Path], out: str | Path, overwrite: bool = False, progress: bool = True) -> Path:

@@ -21,6 +21,7 @@ import h5py
 import numpy as np
 
 from ..errors import XvoeError
+from ..outputs import atomic_paths, claim_file
 from .render import DEPTH_FAR, STATE_COLUMNS, Video
 from .world import KIND_NAMES, MAX_SLOTS, WALL_KINDS
 
@@ -100,19 +101,9 @@ class Writer:
 @contextmanager
 def atomic_file(path: str | os.PathLike, overwrite: bool = False) -> Iterator[h5py.File]:
     """An HDF5 file open for writing under a temporary name, renamed to `path` on success."""
-    path = Path(path)
-    if path.exists() and not overwrite:
-        raise XvoeError(f"{path} exists; pass --overwrite to replace it")
-    if not path.parent.exists():
-        raise XvoeError(f"directory {path.parent} does not exist")
-    tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
-    try:
-        with h5py.File(tmp, "w", track_order=False) as file:
-            yield file
-        os.replace(tmp, path)
-    finally:
-        if tmp.exists():
-            tmp.unlink()
+    path = claim_file(path, overwrite)
+    with atomic_paths(path) as (tmp,), h5py.File(tmp, "w", track_order=False) as file:
+        yield file
 
 
 def write_attributes(file: h5py.File, split: str, config: dict, seed: int) -> None:
@@ -128,6 +119,8 @@ def write_attributes(file: h5py.File, split: str, config: dict, seed: int) -> No
 def open_hdf5(path: str | os.PathLike) -> h5py.File:
     """An HDF5 file open for reading, or a one-line error if it is missing or not HDF5."""
     path = Path(path)
+    if path.is_dir():
+        raise XvoeError(f"{path} is a directory, not a file")
     if not path.is_file():
         raise XvoeError(f"{path}: no such file")
     try:
@@ -136,17 +129,64 @@ def open_hdf5(path: str | os.PathLike) -> h5py.File:
         raise XvoeError(f"{path} is not an HDF5 file") from None
 
 
-def open_dataset(path: str | os.PathLike) -> h5py.File:
-    """Open an xvoe split file for reading, or say in one line why it is not one."""
+def open_dataset(path: str | os.PathLike, split: str | None = None) -> h5py.File:
+    """Open an xvoe split file for reading, or say in one line why it is not one (`schema_problem`);
+    with `split`, it must be that split."""
     file = open_hdf5(path)
     version = file.attrs.get("xvoe_schema")
     if version is None:
+        problem = "is not an xvoe dataset (no xvoe_schema attribute)"
+    elif int(version) != SCHEMA_VERSION:
+        problem = f"has xvoe schema version {int(version)}; this xvoe reads version {SCHEMA_VERSION}"
+    else:
+        problem = schema_problem(file)
+    if problem is None and split is not None and file.attrs["split"] != split:
+        problem = (f"is a {file.attrs['split']} split; this needs a {split} split"
+                   + (" (training on impossible events is refused)" if split == "train" else ""))
+    if problem is not None:
         file.close()
-        raise XvoeError(f"{path} is not an xvoe dataset (no xvoe_schema attribute)")
-    if int(version) != SCHEMA_VERSION:
-        file.close()
-        raise XvoeError(f"{path} has xvoe schema version {int(version)}; this xvoe reads version {SCHEMA_VERSION}")
+        raise XvoeError(f"{path} {problem}")
     return file
+
+
+# the datasets of every split: (dims, numpy kind) per dataset
+ARRAYS = {"rgbd": (5, "u"), "ids": (4, "u"), "states": (4, "f"), "kind": (2, "i"), "color": (3, "u")}
+LABEL_KINDS = {"scenario": "O", "setting": "O", "group": "O", "possible": "b", "has_wall": "b",
+               "pair": "i", "member": "i", "event_frame": "i"}
+
+
+def schema_problem(file: h5py.File) -> str | None:
+    """What makes an open HDF5 file not a valid split, in a few words, or None: the split
+    attribute, every dataset there with the right rank and type, the frames RGBD, one row per
+    video in every dataset and label. Shapes and types only: no video is read."""
+    split = file.attrs.get("split")
+    if split not in SPLITS:
+        return f"has no valid split attribute (found {split!r}; expected train or test)"
+    for name in ("kind_names", "config"):
+        if name not in file.attrs:
+            return f"has no {name} attribute"
+    labels = TEST_LABELS if split == "test" else TRAIN_LABELS
+    for name, (dims, kind) in ARRAYS.items():
+        if name not in file or not isinstance(file[name], h5py.Dataset):
+            return f"has no {name} dataset"
+        if file[name].ndim != dims or file[name].dtype.kind not in (kind, "i" if kind == "u" else kind):
+            return f"has a {name} dataset of shape {file[name].shape} and type {file[name].dtype}, not {dims}-D {kind}"
+    count, frames, height, width, channels = file["rgbd"].shape
+    if channels != 4 or height != width:
+        return f"holds {height}x{width} frames of {channels} channels; xvoe frames are square RGBD (4)"
+    expected = {"ids": (count, frames, height, width), "states": (count, frames), "kind": (count,),
+                "color": (count,)}
+    for name, shape in expected.items():
+        if file[name].shape[:len(shape)] != shape:
+            return f"has a {name} dataset of shape {file[name].shape}, which does not match rgbd {file['rgbd'].shape}"
+    for name in labels:
+        if name not in file or not isinstance(file[name], h5py.Dataset):
+            return f"has no {name} label (a {split} split has {', '.join(labels)})"
+        found = "O" if h5py.check_string_dtype(file[name].dtype) else file[name].dtype.kind
+        if file[name].shape != (count,) or found != LABEL_KINDS[name]:
+            return (f"has a {name} label of shape {file[name].shape} and type {file[name].dtype}; "
+                    f"expected one per video ({count}) of kind {LABEL_KINDS[name]}")
+    return None
 
 
 def config_of(file: h5py.File) -> dict:

@@ -24,6 +24,7 @@ from ..errors import XvoeError
 from ..models.perception import ComponentVAE, normalise
 from ..models.phydnet import PhyDNet
 from ..models.xpl import XPL
+from ..outputs import atomic_paths, claim_file
 from ..training.checkpoints import SHIPPED, shipped_path
 from ..training.data import check_size, visible_threshold
 from ..training.latents import encode_frames
@@ -128,13 +129,11 @@ def score_split(model: str | Scorer, data: str, out: str, *, how: str = "sum", v
     scorer = load_model(model) if isinstance(model, str) else model
     if extra is not None:
         extra.check(scorer)
-    out = Path(out)
-    if out.exists() and not overwrite:
-        raise XvoeError(f"{out} exists; pass --overwrite to replace it")
-    out.parent.mkdir(parents=True, exist_ok=True)
-    with store.open_dataset(data) as file:
-        if file.attrs["split"] != "test":
-            raise XvoeError(f"{data} is a {file.attrs['split']} split; scores need a test split")
+    with store.open_dataset(data, split="test"):
+        pass
+    out = claim_file(out, overwrite)
+    curves_path = claim_file(out.with_suffix(".curves.npz"), overwrite, what="the curves beside --out")
+    with store.open_dataset(data, split="test") as file:
         count, frames_count, size = file["rgbd"].shape[:3]
         labels = {name: (store.strings(file, name) if name in ("scenario", "setting") else file[name][:])
                   for name in ("scenario", "setting", "pair", "member", "possible")}
@@ -165,8 +164,11 @@ def score_split(model: str | Scorer, data: str, out: str, *, how: str = "sum", v
         total = added[:, extra.names.index(score_column)]
     if with_rec:
         excess_score = aggregate(torch.from_numpy(excess(*curves)), how).numpy()
-    tmp = out.with_name(f".{out.name}.tmp")
-    with open(tmp, "w", newline="") as handle:
+    # the CSV and its curves are one result: the CSV, which names the curves, is renamed last
+    with atomic_paths(curves_path, out) as (curves_tmp, tmp), open(tmp, "w", newline="") as handle:
+        named = {"s_img": curves[0], "s_dyn": curves[1]} | ({"s_rec": curves[2]} if with_rec else {})
+        with open(curves_tmp, "wb") as curves_file:
+            np.savez_compressed(curves_file, **named)
         writer = csv.writer(handle)
         writer.writerow(SCORE_COLUMNS + (EXCESS_COLUMNS if with_rec else ()) + (extra.names if extra else ()))
         for i in range(count):
@@ -175,9 +177,6 @@ def score_split(model: str | Scorer, data: str, out: str, *, how: str = "sum", v
             writer.writerow([i, scorer.name, labels["scenario"][i], labels["setting"][i], int(labels["pair"][i]),
                              int(labels["member"][i]), bool(labels["possible"][i]), float(total[i]),
                              float(s_img[i]), float(s_dyn[i])] + row_extra)
-    named = {"s_img": curves[0], "s_dyn": curves[1]} | ({"s_rec": curves[2]} if with_rec else {})
-    np.savez_compressed(out.with_suffix(".curves.npz"), **named)
-    tmp.replace(out)
     return out
 
 

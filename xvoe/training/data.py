@@ -226,7 +226,7 @@ class ShardedFrames:
 
     def __init__(self, path: str, *, image_size: int, latent_dim: int, batch_size: int, shards: int,
                  rank: int = 0, world: int = 1, max_videos: int = 0, seed: int = 0, cut_share: float = 0.0):
-        with store.open_dataset(path) as file:
+        with store.open_dataset(path, split="train") as file:
             check_size(file, image_size)
             videos = file["rgbd"].shape[0]
             self.slots = int(file["states"].shape[2])

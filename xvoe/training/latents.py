@@ -29,6 +29,7 @@ from tqdm.auto import tqdm
 from ..benchmark import store
 from ..errors import XvoeError
 from ..models.perception import normalise
+from ..outputs import claim_file
 from .data import check_size, masked_inputs, visible_threshold
 from .perception import load_perception
 
@@ -133,6 +134,9 @@ def encode_split(model_ref: str | os.PathLike, data: str | os.PathLike, out: str
     """What `xvoe encode` does: encode every frame of a split into a latent cache."""
     device = device or ("cuda" if torch.cuda.is_available() else "cpu")
     model, state = load_perception(model_ref, device)
+    with store.open_dataset(data):
+        pass
+    claim_file(out, overwrite)
     with store.open_dataset(data) as file:
         check_size(file, model.config.image_size, f"the checkpoint {state['path']}")
         count, frames, size = file["rgbd"].shape[:3]

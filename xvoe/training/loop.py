@@ -32,6 +32,7 @@ from tqdm.auto import tqdm
 
 from ..errors import XvoeError
 from ..models.config import to_dict
+from ..outputs import claim_directory
 from .checkpoints import CHECKPOINT_FORMAT, load_checkpoint, save_checkpoint
 from .presets import TrainConfig
 
@@ -170,7 +171,7 @@ def fit(job: Job, config: TrainConfig, run_dir: str | os.PathLike, *, place: Dis
     shipped checkpoint (weights only), the weights and step do, with a fresh optimiser.
     """
     place = place or Dist()
-    run_dir = Path(run_dir)
+    run_dir = claim_directory(run_dir)
     ckpt, log = checkpoint_path(run_dir, job.stage), log_path(run_dir, job.stage)
     if ckpt.exists() and not (resume or overwrite):
         raise XvoeError(f"{ckpt} exists; pass --resume to continue it or --overwrite to start again")

@@ -38,7 +38,7 @@ class VideoBatches:
 
     def __init__(self, path: str, *, image_size: int, batch_size: int, shards: int, rank: int = 0, world: int = 1,
                  max_videos: int = 0, seed: int = 0, focus_group: str = "", focus_share: float = 0.0):
-        with store.open_dataset(path) as file:
+        with store.open_dataset(path, split="train") as file:
             check_size(file, image_size, "PhyDNet")
             owned = owned_shards(path, file["rgbd"].shape[0], batch_size=batch_size, shards=shards, rank=rank,
                                  world=world, max_videos=max_videos)

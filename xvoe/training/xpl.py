@@ -10,6 +10,7 @@ resumed or multi-process run sees the same batches.
 from __future__ import annotations
 
 import hashlib
+import json
 import os
 import warnings
 from dataclasses import dataclass, field, replace
@@ -200,6 +201,8 @@ def train_xpl(latents: str | os.PathLike | None, run_dir: str | os.PathLike, *, 
         chosen = preset(preset_name)
         with open_latents(latents) as file:
             shape = file["mean"].shape[1:]
+            if file.attrs.get("source_split") == "test":
+                raise XvoeError(f"{latents} was encoded from a test split; training on impossible events is refused")
         model_config = override(stage_config(chosen.xpl, stage, residual, stop_gradient, shape),
                                 **(model_overrides or {}))
         if model_config.weigh_by_picture and not model_config.latent_weights:
@@ -246,9 +249,28 @@ def latent_cache_for(data: str | os.PathLike, run_dir: str | os.PathLike, percep
     except XvoeError:
         pass
     cache = Path(run_dir) / f"latents-{data.stem}.h5"
-    if not cache.exists():
+    if cache.exists():
+        check_cache_source(cache, data)
+    else:
+        with store.open_dataset(data, split="train"):
+            pass
         encode_split(perception or run_dir, data, cache, progress=progress)
     return cache
+
+
+def check_cache_source(cache: str | os.PathLike, data: str | os.PathLike) -> None:
+    """An error unless the latent cache was encoded from this very split: the same path, and
+    the same generation config and video count (a file regenerated under the old name is
+    another split)."""
+    with open_latents(cache) as file:
+        source, recorded = file.attrs.get("source", ""), json.loads(file.attrs.get("config", "{}")).get("data")
+        videos = file["mean"].shape[0]
+    with store.open_dataset(data) as split:
+        same = (source == str(Path(data).resolve()) and recorded == store.config_of(split)
+                and videos == split["rgbd"].shape[0])
+    if not same:
+        raise XvoeError(f"{cache} was encoded from {source or 'an unknown split'}, not from {data} as it is now; "
+                        f"remove it or encode again with xvoe encode --overwrite")
 
 
 @dataclass

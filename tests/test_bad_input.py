@@ -1,0 +1,195 @@
+"""Bad input never crashes or lies: every verb, fed a malformed input, exits with code 2 and
+one line on stderr naming the problem, and writes or changes nothing."""
+from __future__ import annotations
+
+import hashlib
+import os
+import shutil
+from pathlib import Path
+
+import h5py
+import numpy as np
+import pytest
+from hypothesis import HealthCheck, given
+from hypothesis import settings as hypothesis_settings
+from hypothesis import strategies as st
+
+from xvoe.apps.cli import main
+from xvoe.benchmark import store
+from xvoe.errors import XvoeError
+from xvoe.outputs import remove_stale_temporaries
+from xvoe.training.latents import Latents, write_latents
+
+
+def snapshot(root: Path) -> dict[str, str]:
+    """Every file and folder under root (hidden ones too), a file with its hash."""
+    return {str(p.relative_to(root)): hashlib.sha256(p.read_bytes()).hexdigest() if p.is_file() else "folder"
+            for p in sorted(root.rglob("*"))}
+
+
+def run(args: list[str], capsys) -> tuple[int, str]:
+    """`xvoe ARGS` in this process: its exit code and stderr. Any exception other than the
+    parser's exit is a traceback a user would see, and fails the test."""
+    try:
+        code = main(args)
+    except SystemExit as stop:
+        code = stop.code
+    return code, capsys.readouterr().err
+
+
+def mutate(source: Path, target: Path, change) -> Path:
+    shutil.copy(source, target)
+    with h5py.File(target, "r+") as file:
+        change(file)
+    return target
+
+
+def _replace(file, name, data):
+    del file[name]
+    file.create_dataset(name, data=data)
+
+
+MALFORMED = {
+    "no-rgbd": lambda f: f.__delitem__("rgbd"),
+    "no-states": lambda f: f.__delitem__("states"),
+    "no-scenario": lambda f: f.__delitem__("scenario"),
+    "no-split": lambda f: f.attrs.__delitem__("split"),
+    "rgb-only": lambda f: _replace(f, "rgbd", f["rgbd"][..., :3]),
+    "integer-scenario": lambda f: _replace(f, "scenario", np.zeros(f["scenario"].shape[0], np.int64)),
+    "fewer-videos": lambda f: _replace(f, "rgbd", f["rgbd"][:10]),
+}
+
+
+@pytest.fixture(scope="module")
+def files(test_file, train_file, tmp_path_factory):
+    """The malformed splits, made once, in a folder of their own."""
+    root = tmp_path_factory.mktemp("malformed")
+    made = {name: mutate(test_file, root / f"{name}.h5", change) for name, change in MALFORMED.items()}
+    return made | {"test": test_file, "train": train_file}
+
+
+def case_lines(files, tmp: Path) -> list[tuple[list[str], str]]:
+    """(arguments, what the error must say) for every verb and bad input."""
+    cases = []
+    for name in MALFORMED:
+        bad = str(files[name])
+        cases += [
+            (["show", bad, "--out", str(tmp / "s.png")], bad),
+            (["score", "--model", "random", "--data", bad, "--out", str(tmp / "s.csv")], bad),
+            (["explain", "--model", "xpl", "--data", bad, "--out", str(tmp / "e.png")], bad),
+            (["train", "perception", "--data", bad, "--out", str(tmp / "run"), "--steps", "1", "--quiet"], bad),
+            (["encode", "--model", "xpl", "--data", bad, "--out", str(tmp / "run"), "--quiet"], bad),
+        ]
+    test, train = str(files["test"]), str(files["train"])
+    a_file = tmp / "a-file"
+    a_file.write_text("not a directory")
+    (tmp / "taken.csv").write_text("earlier scores")
+    (tmp / "taken.curves.npz").write_text("earlier curves")
+    (tmp / "taken.png").write_text("earlier picture")
+    (tmp / "report").mkdir()
+    (tmp / "report" / "metrics.csv").write_text("earlier report")
+    (tmp / "corrupt").mkdir()
+    for stage in ("perception", "xpl"):
+        (tmp / "corrupt" / f"{stage}.pt").write_bytes(b"not a checkpoint")
+    cases += [
+        (["generate", "--split", "test", "--pairs", "1", "--out", str(tmp), "--overwrite", "--quiet"],
+         "is a directory"),
+        (["generate", "--split", "test", "--pairs", "1", "--out", "", "--quiet"], "--out is empty"),
+        (["generate", "--split", "test", "--merge", test, "--out", str(tmp / "m.h5")], "leave out --split"),
+        (["generate", "--split", "test", "--shard", "-1/2", "--out", str(tmp / "g.h5")], "0 <= I < N"),
+        (["show", str(tmp), "--out", str(tmp / "s.png")], "is a directory"),
+        (["show", test, "--out", str(tmp / "taken.png")], "--overwrite"),
+        (["show", test, "--index", "5000", "--out", str(tmp / "s.png")], "out of range"),
+        (["explain", "--model", "xpl", "--data", test, "--out", str(tmp / "taken.png")], "--overwrite"),
+        (["score", "--model", "random", "--data", test, "--out", str(tmp / "taken.csv")], "--overwrite"),
+        (["score", "--model", "random", "--data", train, "--out", str(tmp / "s.csv")], "test split"),
+        (["score", "--model", "random", "--data", test, "--out", str(tmp / "taken.png").replace(".png", ".csv")
+          .replace("taken", "fresh"), "--aggregate", "mean"], "invalid choice"),
+        (["metrics", str(tmp / "nowhere.csv"), "--out", str(tmp / "r")], "no such file"),
+        (["train", "perception", "--data", test, "--out", str(tmp / "run"), "--quiet"], "training on impossible"),
+        (["train", "phydnet", "--data", test, "--out", str(tmp / "run"), "--quiet"], "training on impossible"),
+        (["train", "perception", "--data", train, "--out", str(a_file), "--steps", "1", "--quiet"], "is a file"),
+        (["train", "xpl", "--data", train, "--out", str(tmp / "run"), "--set", "nonsense=1"], "no field"),
+        (["train", "xpl", "--data", train, "--out", str(tmp / "run"), "--set", "steps=many"], "whole number"),
+        (["pipeline", "--out", str(tmp / "p"), "--models", ""], "names no model"),
+        (["pipeline", "--out", str(a_file), "--models", "random", "--train-videos", "2", "--pairs", "1"],
+         "is a file"),
+        (["ship", str(tmp / "corrupt"), "--out", str(tmp / "weights")], "not a readable xvoe checkpoint"),
+        (["ship", str(tmp / "nowhere"), "--out", str(tmp / "weights")], "no such run directory"),
+    ]
+    return cases
+
+
+def test_every_bad_input_gets_one_line_exit_2_and_changes_nothing(files, tmp_path, capsys, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    tried = 0
+    for args, needle in case_lines(files, tmp_path):
+        before = snapshot(tmp_path)
+        code, err = run(args, capsys)
+        assert code == 2, (args, err)
+        assert len(err.strip().splitlines()) == 1 and needle in err, (args, err)
+        assert "Traceback" not in err
+        assert snapshot(tmp_path) == before, args
+        tried += 1
+    assert tried == 5 * len(MALFORMED) + 21
+
+
+def test_a_stale_latent_cache_of_another_split_is_refused(files, tmp_path, capsys):
+    run_dir = tmp_path / "run"
+    run_dir.mkdir()
+    arrays = {name: np.zeros((2, 1, 1), np.float32) for name in ("mean", "std", "visible", "present", "pixels",
+                                                                   "background_mean", "background_std")}
+    config = '{"data": {"split": "train", "videos": 7}}'
+    write_latents(run_dir / "latents-train.h5", Latents(**arrays, attrs={"source": "/elsewhere/train.h5",
+                                                                          "source_split": "train",
+                                                                          "config": config}))
+    before = snapshot(tmp_path)
+    code, err = run(["train", "xpl", "--data", str(files["train"]), "--out", str(run_dir), "--steps", "2"], capsys)
+    assert code == 2 and "was encoded from /elsewhere/train.h5" in err
+    assert snapshot(tmp_path) == before
+
+
+def test_a_scores_file_and_its_curves_are_written_together(files, tmp_path):
+    out = tmp_path / "r.csv"
+    assert main(["score", "--model", "random", "--data", str(files["test"]), "--out", str(out), "--quiet"]) == 0
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["r.csv", "r.curves.npz"]
+    out.unlink()      # the curves alone still block a new result without --overwrite
+    assert main(["score", "--model", "random", "--data", str(files["test"]), "--out", str(out), "--quiet"]) == 2
+    assert not out.exists()
+
+
+def test_a_rerun_report_leaves_nothing_of_the_last_one(files, tmp_path):
+    scores = tmp_path / "random.csv"
+    assert main(["score", "--model", "random", "--data", str(files["test"]), "--out", str(scores), "--quiet"]) == 0
+    report = tmp_path / "report"
+    assert main(["metrics", str(scores), "--out", str(report), "--rounds", "10"]) == 0
+    (report / "components-gone.png").write_bytes(b"a figure of a model no longer reported")
+    assert main(["metrics", str(scores), "--out", str(report), "--rounds", "10"]) == 2
+    assert main(["metrics", str(scores), "--out", str(report), "--rounds", "10", "--overwrite"]) == 0
+    assert not (report / "components-gone.png").exists() and (report / "metrics.csv").exists()
+
+
+def test_temporaries_of_dead_processes_are_removed(tmp_path):
+    target = tmp_path / "t.h5"
+    dead, alive = tmp_path / ".t.h5.tmp-999999999", tmp_path / f".t.h5.tmp-{os.getpid()}"
+    dead.write_bytes(b"half")
+    alive.write_bytes(b"being written")
+    remove_stale_temporaries(target)
+    assert not dead.exists() and alive.exists()
+
+
+@hypothesis_settings(max_examples=25, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(drop=st.sampled_from(["rgbd", "ids", "states", "kind", "color", "scenario", "setting", "pair", "member",
+                             "possible", "event_frame"]),
+       how=st.sampled_from(["delete", "truncate", "retype"]))
+def test_any_broken_dataset_is_named_on_opening(files, tmp_path, drop, how):
+    def change(file):
+        if how == "delete":
+            del file[drop]
+        elif how == "truncate":
+            _replace(file, drop, file[drop][:3])
+        else:
+            _replace(file, drop, np.full(file[drop].shape[:1] + (2,), 1.5))
+    path = mutate(files["test"], tmp_path / f"{drop}-{how}.h5", change)
+    with pytest.raises(XvoeError, match=drop):
+        store.open_dataset(path).close()

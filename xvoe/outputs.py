@@ -1,0 +1,100 @@
+"""Where results go: checked before the work starts, written whole or not at all.
+
+Every verb that writes claims its outputs first (`claim_file`, `claim_directory`), so a bad
+path costs a one-line error and no work; files are written under a temporary name beside the
+target and renamed over it at the end (`atomic_paths`), so an interruption leaves the old
+file or none, never half a new one.
+"""
+from __future__ import annotations
+
+import os
+import re
+from collections.abc import Iterator
+from contextlib import contextmanager
+from pathlib import Path
+
+from .errors import XvoeError
+
+
+def claim_file(path: str | os.PathLike, overwrite: bool = False, *, what: str = "--out") -> Path:
+    """`path` as a file that can be written now: a name, not a directory, absent unless
+    `overwrite`, in a directory that exists (made here) and can be written."""
+    if str(path).strip() == "":
+        raise XvoeError(f"{what} is empty; give a file name")
+    path = Path(path)
+    if path.is_dir():
+        raise XvoeError(f"{path} is a directory; {what} needs a file name")
+    if path.exists() and not overwrite:
+        raise XvoeError(f"{path} exists; pass --overwrite to replace it")
+    _writable_directory(path.parent)
+    return path
+
+
+def claim_directory(path: str | os.PathLike, *, what: str = "--out", make: bool = True) -> Path:
+    """`path` as a directory to write into: not a file, writable, and made if missing (unless
+    `make` is false: a check before the work, which writes nothing)."""
+    if str(path).strip() == "":
+        raise XvoeError(f"{what} is empty; give a directory")
+    path = Path(path)
+    if path.exists() and not path.is_dir():
+        raise XvoeError(f"{path} is a file; {what} needs a directory")
+    _writable_directory(path, make)
+    return path
+
+
+def _writable_directory(directory: Path, make: bool = True) -> None:
+    existing = directory
+    while not existing.exists():
+        if existing.parent == existing:
+            break
+        existing = existing.parent
+    if not existing.is_dir():
+        raise XvoeError(f"cannot write under {directory}: {existing} is a file")
+    if not os.access(existing, os.W_OK | os.X_OK):
+        raise XvoeError(f"cannot write to {existing}: permission denied")
+    if not make:
+        return
+    try:
+        directory.mkdir(parents=True, exist_ok=True)
+    except OSError as error:
+        raise XvoeError(f"cannot make the directory {directory}: {error.strerror}") from None
+
+
+def temporary_name(path: Path) -> Path:
+    """The name a file is written under before it takes `path`'s place (this process's)."""
+    return path.with_name(f".{path.name}.tmp-{os.getpid()}")
+
+
+def remove_stale_temporaries(path: Path) -> None:
+    """Delete the temporary files of `path` left by processes that are gone (killed with -9)."""
+    pattern = re.compile(rf"^\.{re.escape(path.name)}\.tmp-(\d+)$")
+    for candidate in path.parent.glob(f".{path.name}.tmp-*"):
+        match = pattern.match(candidate.name)
+        if match and not _alive(int(match.group(1))):
+            candidate.unlink(missing_ok=True)
+
+
+def _alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True
+    return True
+
+
+@contextmanager
+def atomic_paths(*paths: Path) -> Iterator[list[Path]]:
+    """Temporary names for `paths`, renamed over them in order when the block succeeds and
+    removed when it fails. Put the file that readers look for first last: it is the commit."""
+    for path in paths:
+        remove_stale_temporaries(path)
+    temporaries = [temporary_name(path) for path in paths]
+    try:
+        yield temporaries
+        for temporary, path in zip(temporaries, paths):
+            os.replace(temporary, path)
+    finally:
+        for temporary in temporaries:
+            temporary.unlink(missing_ok=True)
