@@ -2,6 +2,7 @@
 one line on stderr naming the problem, and writes or changes nothing."""
 from __future__ import annotations
 
+import csv
 import hashlib
 import os
 import shutil
@@ -17,6 +18,7 @@ from hypothesis import strategies as st
 from xvoe.apps.cli import main
 from xvoe.benchmark import store
 from xvoe.errors import XvoeError
+from xvoe.evaluation.metrics import read_scores, score_problem
 from xvoe.outputs import remove_stale_temporaries
 from xvoe.training.latents import Latents, write_latents
 
@@ -193,3 +195,96 @@ def test_any_broken_dataset_is_named_on_opening(files, tmp_path, drop, how):
     path = mutate(files["test"], tmp_path / f"{drop}-{how}.h5", change)
     with pytest.raises(XvoeError, match=drop):
         store.open_dataset(path).close()
+
+
+# --- score files from anywhere ----------------------------------------------------------
+
+def write_scores(path: Path, rows: list[dict]) -> Path:
+    fields = list(rows[0]) if rows else ["index", "score"]
+    with open(path, "w", newline="") as handle:
+        writer = csv.DictWriter(handle, fields)
+        writer.writeheader()
+        writer.writerows(rows)
+    return path
+
+
+@pytest.fixture(scope="module")
+def labelled(files):
+    """A good scores table of the test split, as rows."""
+    with store.open_dataset(files["test"]) as file:
+        labels = {name: (store.strings(file, name) if name in ("scenario", "setting") else file[name][:])
+                  for name in ("scenario", "setting", "pair", "member", "possible")}
+    rng = np.random.default_rng(0)
+    return [{"index": i, "scenario": labels["scenario"][i], "setting": labels["setting"][i],
+             "pair": int(labels["pair"][i]), "member": int(labels["member"][i]),
+             "possible": bool(labels["possible"][i]), "score": float(rng.random())}
+            for i in range(len(labels["pair"]))]
+
+
+def with_change(rows: list[dict], change) -> list[dict]:
+    rows = [dict(r) for r in rows]
+    change(rows)
+    return rows
+
+
+BAD_SCORES = {
+    "one NaN": (lambda rows: rows[3].update(score="nan"), "not a finite number"),
+    "all NaN": (lambda rows: [r.update(score="nan") for r in rows], "not a finite number"),
+    "members all 0": (lambda rows: [r.update(member=0) for r in rows], "same member twice"),
+    "possible maybe": (lambda rows: rows[0].update(possible="maybe"), "possible must be true or false"),
+    "duplicate row": (lambda rows: rows.append(dict(rows[5])), "more than one row"),
+    "pair without partner": (lambda rows: rows.pop(1), "has one member"),
+    "unknown scenario": (lambda rows: [r.update(scenario="juggling") for r in rows[:2]], "unknown scenario"),
+    "non-numeric score": (lambda rows: rows[2].update(score="high"), "not a number"),
+    "no score column": (lambda rows: [r.pop("score") for r in rows], "no column(s) score"),
+}
+
+
+def test_every_bad_scores_file_gets_one_line_exit_2_and_writes_nothing(labelled, files, tmp_path, capsys):
+    cases = [(write_scores(tmp_path / f"{name}.csv", with_change(labelled, change)), [], needle)
+             for name, (change, needle) in BAD_SCORES.items()]
+    binary = tmp_path / "binary.csv"
+    binary.write_bytes(bytes(range(256)) * 4)
+    cases.append((binary, [], "not a CSV text file"))
+    just_scores = write_scores(tmp_path / "just.csv", [{"index": r["index"], "score": r["score"]} for r in labelled])
+    cases.append((just_scores, [], "give --data"))
+    other = tmp_path / "other.h5"
+    main(["generate", "--split", "test", "--pairs", "7", "--seed", "4", "--out", str(other), "--quiet"])
+    cases.append((write_scores(tmp_path / "good.csv", labelled), ["--data", str(other)], "does not hold the videos"))
+    missing = write_scores(tmp_path / "missing.csv", [{"index": r["index"], "score": r["score"]} for r in labelled][1:])
+    cases.append((missing, ["--data", str(files["test"])], "video 0 is missing"))
+    for path, extra, needle in cases:
+        before = snapshot(tmp_path)
+        code, err = run(["metrics", str(path), "--out", str(tmp_path / "report"), "--rounds", "5", *extra], capsys)
+        assert code == 2 and len(err.strip().splitlines()) == 1 and needle in err, (path.name, err)
+        assert snapshot(tmp_path) == before
+
+
+def test_index_and_score_alone_are_joined_with_the_split(labelled, files, tmp_path):
+    just = write_scores(tmp_path / "just.csv", [{"index": r["index"], "score": r["score"]} for r in labelled[::-1]])
+    joined = read_scores(just, files["test"])
+    full = read_scores(write_scores(tmp_path / "full.csv", labelled))
+    order = np.argsort(joined["index"])
+    for name in ("scenario", "setting", "pair", "member", "possible", "score"):
+        assert np.array_equal(joined[name][order], full[name]), name
+
+
+@hypothesis_settings(max_examples=40, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(edits=st.lists(st.tuples(st.integers(0, 200), st.sampled_from(["index", "scenario", "setting", "pair",
+                                                                       "member", "possible", "score"]),
+                                st.sampled_from(["", "nan", "inf", "-1", "0", "1", "2.5", "x", "S9", "true",
+                                                 "collision", "1e400"])), max_size=4),
+       drop=st.integers(0, 300))
+def test_a_randomly_broken_scores_file_is_read_whole_or_refused_in_one_line(labelled, tmp_path, edits, drop):
+    rows = [dict(r) for r in labelled]
+    for row, column, value in edits:
+        rows[row % len(rows)][column] = value
+    if drop < len(rows):
+        rows.pop(drop)
+    path = write_scores(tmp_path / "random.csv", rows)
+    try:
+        scores = read_scores(path)
+    except XvoeError as error:
+        assert "\n" not in str(error)
+    else:
+        assert score_problem(scores) is None

@@ -38,7 +38,7 @@ def report(paths: list[str | Path], out_dir: str | Path, rounds: int = 1000, see
     names = []
     compared = {}
     for path in paths:
-        scores = read_scores(path)
+        scores = read_scores(path, data)
         name = model_name(path, scores)
         if name in names:
             raise XvoeError(f"two scores files name the model {name!r}; give each model its own name")
@@ -90,21 +90,7 @@ def write_csv(rows: list[dict], path: Path, fields: tuple[str, ...] | None = Non
 
 
 def _disagreement_figure(data: str | Path, scores: dict[str, np.ndarray], differ: list[dict]):
-    """The example figure of disagreeing pairs, from the test split the scores came from."""
+    """The example figure of disagreeing pairs, from the test split the scores came from (its
+    labels were checked against the scores when they were read)."""
     with store.open_dataset(data) as file:
-        if not _same_videos(file, scores):
-            raise XvoeError(f"{data} does not hold the videos these scores were made from; give the test split "
-                            "that was scored")
         return figures.plot_disagreements(file, differ)
-
-
-def _same_videos(file, scores: dict[str, np.ndarray]) -> bool:
-    """Whether an open test split holds, video by video, the labels of a scores table."""
-    order = np.argsort(scores["index"])
-    if file["rgbd"].shape[0] != len(order):
-        return False
-    for name in ("scenario", "setting", "pair", "member"):
-        stored = store.strings(file, name) if name in ("scenario", "setting") else file[name][:]
-        if not np.array_equal(stored, scores[name][order].astype(stored.dtype)):
-            return False
-    return True

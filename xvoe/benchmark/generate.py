@@ -175,5 +175,8 @@ def merge(parts: list[str | Path], out: str | Path, overwrite: bool = False, pro
 def _shard_of(path, file) -> tuple[int, int]:
     if "shard" not in file.attrs:
         raise XvoeError(f"{path} is not a shard (it was not written with --shard)")
-    index, count = (int(v) for v in str(file.attrs["shard"]).split("/"))
+    try:
+        index, count = (int(v) for v in str(file.attrs["shard"]).split("/"))
+    except ValueError:
+        raise XvoeError(f"{path} has a shard attribute {file.attrs['shard']!r}, not I/N") from None
     return index, count

@@ -23,9 +23,12 @@ from typing import TypeVar
 
 import numpy as np
 
+from ..benchmark import store
+from ..benchmark.scenes import SCENARIOS
 from ..errors import XvoeError
 
 REQUIRED = ("index", "scenario", "setting", "pair", "member", "possible")
+SCORE_NAMES = ("score", "s_img", "s_dyn", "s_rec", "excess", "nll", "ess", "p_hidden", "nll_excess")
 IDEAL_COMPARATIVE = {"S1": 1.0, "S2": 0.5, "S3": 1.0}
 
 
@@ -36,31 +39,128 @@ class Estimate:
     high: float
 
 
-def read_scores(path: str | Path) -> dict[str, np.ndarray]:
-    """A scores CSV as columns of numpy arrays; refuses a file without the label columns."""
+def read_scores(path: str | Path, data: str | Path | None = None) -> dict[str, np.ndarray]:
+    """A scores CSV as columns of numpy arrays, checked (`score_problem`). With `data`, the
+    test split that was scored, the CSV needs only `index` and `score` (any other columns
+    too): the labels are joined from the split, and labels the CSV carries must be the
+    split's. Every refusal is one line naming the problem."""
     path = Path(path)
+    if path.is_dir():
+        raise XvoeError(f"{path} is a directory, not a scores file")
     if not path.is_file():
         raise XvoeError(f"{path}: no such file")
-    with open(path, newline="") as handle:
-        rows = list(csv.DictReader(handle))
-    if not rows:
+    try:
+        with open(path, newline="", encoding="utf-8") as handle:
+            rows = list(csv.DictReader(handle))
+    except (UnicodeDecodeError, csv.Error):
+        raise XvoeError(f"{path} is not a CSV text file") from None
+    if not rows or not rows[0]:
         raise XvoeError(f"{path} holds no scores")
-    missing = [c for c in REQUIRED if c not in rows[0]]
+    needed = ("index", "score") if data is not None else (*REQUIRED, "score")
+    missing = [c for c in needed if c not in rows[0]]
     if missing:
-        raise XvoeError(f"{path} is not a scores file: no column(s) {', '.join(missing)}")
+        hint = "" if data is not None else " (or give --data, the scored split, to join its labels)"
+        raise XvoeError(f"{path} is not a scores file: no column(s) {', '.join(missing)}{hint}")
     columns: dict[str, np.ndarray] = {}
     for name in rows[0]:
-        values = [row[name] for row in rows]
+        values = [row[name] if row[name] is not None else "" for row in rows]
         if name in ("scenario", "setting", "model"):
             columns[name] = np.array(values)
         elif name == "possible":
-            columns[name] = np.array([v.strip().lower() in ("1", "true") for v in values])
+            flags = [v.strip().lower() for v in values]
+            unknown = sorted(set(flags) - {"1", "0", "true", "false"})
+            if unknown:
+                raise XvoeError(f"{path}: possible must be true or false, not {unknown[0]!r}")
+            columns[name] = np.array([v in ("1", "true") for v in flags])
         else:
             try:
                 columns[name] = np.array(values, dtype=float)
             except ValueError:
+                if name in ("index", "pair", "member", "score"):
+                    bad = next(v for v in values if not _is_number(v))
+                    raise XvoeError(f"{path}: {name} holds {bad!r}, not a number") from None
                 columns[name] = np.array(values)
+    if data is not None:
+        columns = _join_labels(path, columns, data)
+    problem = score_problem(columns)
+    if problem:
+        raise XvoeError(f"{path}: {problem}")
     return columns
+
+
+def _is_number(text: str) -> bool:
+    try:
+        float(text)
+    except ValueError:
+        return False
+    return True
+
+
+def _join_labels(path: Path, columns: dict[str, np.ndarray], data: str | Path) -> dict[str, np.ndarray]:
+    """The split's labels for the CSV's rows; an error for an index outside the split, a
+    missing video, or a label that differs from the split's (scores of another split)."""
+    index = columns["index"]
+    with store.open_dataset(data, split="test") as file:
+        count = file["rgbd"].shape[0]
+        labels = {name: (store.strings(file, name) if name in ("scenario", "setting") else file[name][:])
+                  for name in REQUIRED[1:]}
+    if np.any(index != np.round(index)) or np.any(index < 0) or np.any(index >= count):
+        raise XvoeError(f"{data} does not hold the videos these scores were made from: {path} names videos "
+                        f"{int(index.min())}..{int(index.max())}, the split holds 0..{count - 1}")
+    rows = index.astype(int)
+    if len(np.unique(rows)) != len(rows):
+        raise XvoeError(f"{path}: video {_first_duplicate(rows)} has more than one row")
+    if len(rows) != count:
+        absent = np.setdiff1d(np.arange(count), rows)
+        raise XvoeError(f"{path} scores {len(rows)} of the {count} videos of {data} (video {absent[0]} is missing)")
+    for name, values in labels.items():
+        joined = values[rows]
+        if name in columns and not np.array_equal(columns[name].astype(joined.dtype), joined):
+            raise XvoeError(f"{data} does not hold the videos these scores were made from: the {name} labels "
+                            f"of {path} differ")
+        columns[name] = joined.astype(float) if name in ("pair", "member") else joined    # as read from a CSV
+    return columns
+
+
+def _first_duplicate(values: np.ndarray) -> int:
+    found, counts = np.unique(values, return_counts=True)
+    return int(found[counts > 1][0])
+
+
+def score_problem(scores: dict[str, np.ndarray]) -> str | None:
+    """What makes a scores table unusable by the metrics, in a few words, or None: indices
+    whole and unique, finite numeric scores, members 0 and 1 of every pair exactly once,
+    known settings."""
+    index = scores["index"]
+    if index.dtype.kind != "f" or np.any(index != np.round(index)):
+        return "index must hold whole numbers"
+    if len(np.unique(index)) != len(index):
+        return f"video {_first_duplicate(index.astype(int))} has more than one row"
+    for name in (c for c in scores if c in SCORE_NAMES):
+        values = scores[name]
+        if values.dtype.kind != "f":
+            return f"{name} must hold numbers"
+        if not np.all(np.isfinite(values)):
+            return f"{name} of video {int(index[np.flatnonzero(~np.isfinite(values))[0]])} is not a finite number"
+    unknown = sorted(set(scores["scenario"]) - set(SCENARIOS) - {"custom"})
+    if unknown:
+        return f"unknown scenario {unknown[0]!r} (the scenarios are {', '.join(SCENARIOS)}, and custom)"
+    unknown = sorted(set(scores["setting"]) - set(IDEAL_COMPARATIVE))
+    if unknown:
+        return f"unknown setting {unknown[0]!r} (the settings are S1, S2, S3)"
+    members = scores["member"]
+    if members.dtype.kind != "f" or not set(np.unique(members)) <= {0.0, 1.0}:
+        return "member must be 0 or 1"
+    keys = list(zip(scores["scenario"], scores["setting"], scores["pair"], members))
+    if len(set(keys)) != len(keys):
+        return "a pair holds the same member twice"
+    groups: dict[tuple, int] = {}
+    for scenario, setting, pair, _ in keys:
+        groups[scenario, setting, pair] = groups.get((scenario, setting, pair), 0) + 1
+    lonely = next((group for group, size in groups.items() if size != 2), None)
+    if lonely is not None:
+        return f"{lonely[0]} {lonely[1]} pair {int(lonely[2])} has one member; every pair needs both"
+    return None
 
 
 def pairwise_win(a: np.ndarray, b: np.ndarray) -> np.ndarray:
