@@ -207,12 +207,13 @@ class HiddenTrajectory:
 
     def move(self, t: int, state: Particles, beta: Tensor, generator: torch.Generator | None,
              runs: int) -> tuple[Particles, Tensor]:
-        """A random-walk Metropolis move of frame t's draws, invariant for q^(1-beta) (p L)^beta:
-        steps scaled by the spread of each run's particles (2.38 / sqrt(D), the optimal
-        scaling for a Gaussian target). The history is untouched."""
+        """A random-walk Metropolis move of frame t's draws, invariant for q^(1-beta) (p L)^beta,
+        the history untouched. Its steps are the proposal's scale times 1.19 / sqrt(D) (half
+        the optimal scaling for a Gaussian target, which the likelihood narrows): a function of
+        the particle's past alone, so the move is reversible; steps scaled by the population's
+        spread depend on the particle itself and biased the evidence with few particles."""
         z = state.trajectory[:, -1]
-        spread = z.reshape(runs, -1, z.shape[-1]).std(dim=1).clamp_min(1e-3) * (2.38 / math.sqrt(z.shape[-1]))
-        step = spread.repeat_interleave(len(z) // runs, dim=0)
+        step = state.guide[1] * (1.19 / math.sqrt(z.shape[-1]))
         candidate = z + step * torch.randn(z.shape, generator=generator, dtype=z.dtype)
         moved = self.evaluate(t, candidate, state.prior, state.guide, state.before)
         log_ratio = (moved.log_q + beta * moved.increment) - (state.log_q + beta * state.increment)
