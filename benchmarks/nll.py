@@ -130,6 +130,10 @@ def main() -> None:
     parser.add_argument("--smc-moves", type=int, default=InferenceConfig.smc_moves,
                         help="Metropolis moves per tempering level within a frame, 0: no tempering "
                              f"(default {InferenceConfig.smc_moves})")
+    parser.add_argument("--smc-first", type=int, default=InferenceConfig.smc_first,
+                        help="SMC particles of the first frame, resampled down to --particles (0: as many; "
+                             f"default {InferenceConfig.smc_first})")
+    parser.add_argument("--rows", help="also write each video's figures to this CSV")
     parser.add_argument("--smc-pilot", type=int, default=InferenceConfig.smc_pilot,
                         help=f"particles of the SMC's pilot run, 0: none (default {InferenceConfig.smc_pilot})")
     parser.add_argument("--motion-sigma", type=float, default=InferenceConfig.motion_sigma,
@@ -165,7 +169,7 @@ def run(args: argparse.Namespace) -> None:
                              refine_steps=args.refine_steps,
                              refine_rate=args.refine_rate, proposal_widening=args.proposal_widening,
                              guide_follows_dynamics=not args.independent_guide, method=args.method,
-                             smc_moves=args.smc_moves, smc_pilot=args.smc_pilot)
+                             smc_moves=args.smc_moves, smc_pilot=args.smc_pilot, smc_first=args.smc_first)
     rows, nll_seconds, mse_seconds = [], 0.0, 0.0
     with store.open_dataset(args.data) as file:
         check_size(file, scorer.image_size, f"the model {scorer.name}")
@@ -179,6 +183,13 @@ def run(args: argparse.Namespace) -> None:
             rows += scored
             nll_seconds, mse_seconds = nll_seconds + nll_time, mse_seconds + mse_time
         table = label(rows, file)
+    if args.rows:
+        import csv
+
+        with open(args.rows, "w", newline="") as handle:
+            writer = csv.DictWriter(handle, fieldnames=list(rows[0]))
+            writer.writeheader()
+            writer.writerows(rows)
     report(table, args, nll_seconds, mse_seconds)
 
 
@@ -189,6 +200,7 @@ def report(table: dict[str, np.ndarray], args: argparse.Namespace, nll_seconds: 
     print(f"model {args.model}, {args.data}: {videos} videos ({args.pairs if args.pairs < 1_000_000 else 'all'} "
           f"pairs per setting), method {args.method}, {args.particles} particles, seeds {args.seeds}, "
           f"{args.threads} thread(s), smc moves {args.smc_moves}, smc pilot {args.smc_pilot}, "
+          f"smc first frame {args.smc_first}, "
           f"{'independent' if args.independent_guide else 'dynamics-fused'} guide, motion sigma {args.motion_sigma}, "
           f"pixel sigma {args.pixel_sigma}, {args.refine_steps} steps out of sight at rate {args.refine_rate}, "
           f"proposal widening {args.proposal_widening}")

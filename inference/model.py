@@ -90,6 +90,7 @@ class InferenceConfig:
     # than exp(-margin) and the full run is skipped (most videos show every object)
     smc_pilot: int = 16
     smc_pilot_margin: float = 30.0
+    smc_first: int = 0     # particles of the SMC's first frame, resampled down to `particles` (0: as many)
 
 
 def pixel_log_normaliser(pixels: int, sigma: float) -> float:

@@ -40,14 +40,15 @@ class SequentialModel(Protocol):
     def select(self, state: Any, index: Tensor) -> Any: ...
 
 
-def systematic_resample(weights: Tensor, generator: torch.Generator | None = None) -> Tensor:
-    """Ancestor indices (R, N) from normalised weights (R, N): one uniform per row, N evenly
-    spaced points through the cumulative weights. Particle i is kept floor(N w_i) or
-    ceil(N w_i) times, N w_i in expectation: the weights' mean is kept, with less noise than
+def systematic_resample(weights: Tensor, generator: torch.Generator | None = None, count: int | None = None) -> Tensor:
+    """Ancestor indices (R, M) from normalised weights (R, N), M = count or N: one uniform per
+    row, M evenly spaced points through the cumulative weights. Particle i is kept floor(M w_i)
+    or ceil(M w_i) times, M w_i in expectation: the weights' mean is kept, with less noise than
     multinomial draws."""
     runs, particles = weights.shape
+    count = particles if count is None else count
     offset = torch.rand(runs, 1, generator=generator, dtype=torch.float64)
-    points = (offset + torch.arange(particles, dtype=torch.float64)) / particles
+    points = (offset + torch.arange(count, dtype=torch.float64)) / count
     cumulative = weights.to(torch.float64).cumsum(dim=1)
     cumulative = cumulative / cumulative[:, -1:]           # a sum of 1 - 1e-16 must not leave a point past the end
     return torch.searchsorted(cumulative, points).clamp_max(particles - 1)
@@ -80,7 +81,8 @@ class SMCRun:
 
 
 def run_smc(model: SequentialModel, particles: int, runs: int = 1, threshold: float = 0.5,
-            generator: torch.Generator | None = None, moves: int = 0, max_levels: int = 40) -> SMCRun:
+            generator: torch.Generator | None = None, moves: int = 0, max_levels: int = 40,
+            first: int | None = None) -> SMCRun:
     """`runs` independent particle filters of `particles` particles each, stepped together.
 
     After frame t, a run whose ESS is under threshold * particles is resampled and its mean
@@ -91,7 +93,13 @@ def run_smc(model: SequentialModel, particles: int, runs: int = 1, threshold: fl
     threshold is taken in tempered levels instead, w^beta with beta from 0 to 1 chosen so that
     each level keeps the threshold's ESS, each followed by resampling and `moves` Metropolis
     moves of the frame's draw that leave the level's target invariant: a frame that one
-    particle would win outright is crossed by many (an adaptive SMC sampler within the frame)."""
+    particle would win outright is crossed by many (an adaptive SMC sampler within the frame).
+
+    first > particles: the first frame is drawn `first` times per run, its mean weight taken
+    into the evidence, and `particles` of them kept by systematic resampling: more starting
+    points where the first frame decides most (where the object may start out of sight)."""
+    if first is not None and first > particles:
+        return _run_smc_wide_start(model, particles, runs, threshold, generator, moves, max_levels, first)
     n = runs * particles
     state = model.start(n)
     log_weights = torch.zeros(runs, particles, dtype=torch.float64)
@@ -140,6 +148,55 @@ def run_smc(model: SequentialModel, particles: int, runs: int = 1, threshold: fl
     log_evidence += torch.logsumexp(log_weights, dim=1) - math.log(particles)
     return SMCRun(log_evidence, log_weights, state, torch.stack(ess, dim=1), torch.stack(resampled, dim=1), origin,
                   torch.stack(levels, dim=1))
+
+
+def _run_smc_wide_start(model, particles, runs, threshold, generator, moves, max_levels, first) -> SMCRun:
+    """`run_smc` whose first frame has `first` particles per run (see there)."""
+
+    class WideStart:
+        frames = 1
+
+        def start(self, n):
+            return model.start(n)
+
+        def step(self, t, state, generator):
+            return model.step(t, state, generator)
+
+        def select(self, state, index):
+            return model.select(state, index)
+
+        def move(self, t, state, beta, generator, runs):
+            return model.move(t, state, beta, generator, runs)
+
+    opening = run_smc(WideStart(), first, runs, threshold, generator, moves, max_levels)
+    chosen = systematic_resample(torch.softmax(opening.log_weights, dim=1), generator, particles)
+    base = (torch.arange(runs) * first)[:, None]
+    state = model.select(opening.state, (base + chosen).reshape(-1))
+    rest = _Continue(model, state)
+    after = run_smc(rest, particles, runs, threshold, generator, moves, max_levels)
+    return SMCRun(opening.log_evidence + after.log_evidence, after.log_weights, after.state,
+                  torch.cat([opening.ess, after.ess], dim=1),
+                  torch.cat([torch.ones(runs, 1, dtype=torch.bool), after.resampled], dim=1),
+                  chosen.gather(1, after.origin), torch.cat([opening.levels, after.levels], dim=1))
+
+
+class _Continue:
+    """A sequential model from frame 1 on, started from given particles."""
+
+    def __init__(self, model, state):
+        self.model, self.state, self.frames = model, state, model.frames - 1
+
+    def start(self, n):
+        return self.state
+
+    def step(self, t, state, generator):
+        return self.model.step(t + 1, state, generator)
+
+    def select(self, state, index):
+        return self.model.select(state, index)
+
+    def move(self, t, state, beta, generator, runs):
+        return self.model.move(t + 1, state, beta, generator, runs)
 
 
 def tempering_step(log_weights: Tensor, increment: Tensor, room: Tensor, target: float) -> Tensor:
@@ -448,13 +505,14 @@ def smc_evidence(scene, frames: Tensor, config: InferenceConfig, proposal: Propo
     run = None
     if 0 < config.smc_pilot < particles:
         pilot = run_smc(model, config.smc_pilot, threshold=config.resample_threshold, generator=generator,
-                        moves=config.smc_moves, max_levels=config.smc_max_levels)
+                        moves=config.smc_moves, max_levels=config.smc_max_levels,
+                        first=config.smc_first * config.smc_pilot // particles)
         gap = (math.log1p(-config.prior_hidden) + log_empty) - (math.log(config.prior_hidden) + float(pilot.log_evidence[0]))
         if gap > config.smc_pilot_margin:
             run, particles = pilot, config.smc_pilot
     if run is None:
         run = run_smc(model, particles, threshold=config.resample_threshold, generator=generator,
-                      moves=config.smc_moves, max_levels=config.smc_max_levels)
+                      moves=config.smc_moves, max_levels=config.smc_max_levels, first=config.smc_first)
     log_hidden = float(run.log_evidence[0])
     total, p_hidden = mixture(config.prior_hidden, log_hidden, log_empty)
     return SMCEstimate(total, log_hidden, log_empty, p_hidden, float(run.final_ess[0]), float(run.ess[0].min()),

@@ -150,6 +150,17 @@ def test_smc_evidence_matches_the_kalman_filter(particles, proposal):
     assert found.resampled.any()
 
 
+def test_a_wide_first_frame_keeps_the_evidence_unbiased():
+    """256 first-frame draws resampled down to 16 particles: still p^/p = 1 in expectation."""
+    frames, runs = simulated_frames(), 2000
+    model = HiddenTrajectory(LinearSteps(linear_scene(), frames, config()), config(), rough_proposal())
+    found = run_smc(model, 16, runs=runs, generator=torch.Generator().manual_seed(5), first=256)
+    ratio = torch.exp(found.log_evidence - kalman(frames))
+    assert abs(float(ratio.mean()) - 1) < 3 * float(ratio.std()) / math.sqrt(runs)
+    assert found.state.trajectory.shape == (runs * 16, T, D) and found.ess.shape == (runs, T)
+    assert int(found.origin.max()) < 256
+
+
 def test_tempered_smc_matches_the_kalman_filter_up_to_its_adaptive_bias():
     """Tempering within a frame, with its levels chosen from the particles (each keeps half the
     ESS), is consistent but not unbiased: O(1/N), measured 4-5% of p at 64 particles on this
@@ -287,3 +298,49 @@ def test_tempered_smc_runs_on_the_xpl_scene_and_resamples_the_dynamics_memory():
     assert math.isfinite(found.log_evidence) and 0.0 <= found.p_hidden <= 1.0
     assert found.levels > 0 and found.trajectories.shape == (16, scene.frames, scene.dim)
     pyro.clear_param_store()
+
+
+# --- the NLL entry points on the tiny XPL model ---------------------------------------------
+
+def tiny_video():
+    from test_nll import tiny_models, video
+    torch.set_default_dtype(torch.float32)
+    return tiny_models(), video()
+
+
+@pytest.mark.parametrize("method", ["smc", "importance"])
+def test_nll_surprise_is_reproducible_from_a_seed_and_leaves_the_global_state_alone(method):
+    from inference.surprise import nll_surprise
+
+    (vae, xpl), args = tiny_video()
+    settings = InferenceConfig(particles=16, smc_pilot=0)
+    state = torch.get_rng_state()
+    first = nll_surprise(vae, xpl, *args, settings, method=method, seed=7)
+    torch.manual_seed(123)                      # what was drawn before must not matter
+    second = nll_surprise(vae, xpl, *args, settings, method=method, seed=7)
+    third = nll_surprise(vae, xpl, *args, settings, method=method, seed=torch.Generator().manual_seed(7))
+    other = nll_surprise(vae, xpl, *args, settings, method=method, seed=8)
+    torch.manual_seed(123)
+    assert first.nll == second.nll and first.method == method
+    assert first.nll != other.nll
+    assert method == "importance" or third.nll == first.nll      # an int seed is a fresh generator of it
+    assert 1.0 <= first.holding_ess <= 16 + 1e-9 and 0.0 <= first.p_hidden <= 1.0
+
+
+def test_explain_surprise_returns_the_heaviest_hypotheses_and_the_posterior_mean():
+    from inference.surprise import explain_surprise, hidden_posterior
+
+    (vae, xpl), args = tiny_video()
+    found = explain_surprise(vae, xpl, *args, InferenceConfig(particles=32, smc_pilot=0), top=3)
+    hypotheses = found.hypotheses
+    assert found.method == "smc" and found.hidden_slot == 3
+    assert hypotheses.trajectories.shape[1:] == (args[1].shape[0], args[1].shape[2])
+    assert 1 <= len(hypotheses.weights) <= 3 and float(hypotheses.weights.sum()) <= 1 + 1e-9
+    assert (hypotheses.weights[:-1] >= hypotheses.weights[1:]).all()
+    posterior = hidden_posterior(found.result)
+    estimate = found.result.estimate
+    expected = (estimate.weights[:, None, None] * estimate.trajectories.double()).sum(0)
+    torch.testing.assert_close(posterior.mean.double(), expected, rtol=1e-5, atol=1e-5)
+    assert posterior.holding == 32
+    importance = explain_surprise(vae, xpl, *args, InferenceConfig(particles=32), method="importance", top=3)
+    assert importance.method == "importance" and importance.hypotheses is not None
