@@ -94,6 +94,7 @@ def run_smc(model: SequentialModel, particles: int, runs: int = 1, threshold: fl
     each level keeps the threshold's ESS, each followed by resampling and `moves` Metropolis
     moves of the frame's draw that leave the level's target invariant: a frame that one
     particle would win outright is crossed by many (an adaptive SMC sampler within the frame).
+    The levels are chosen from the particles: consistent, but p^ is biased by O(1/N).
 
     first > particles: the first frame is drawn `first` times per run, its mean weight taken
     into the evidence, and `particles` of them kept by systematic resampling: more starting
@@ -267,8 +268,8 @@ class HiddenTrajectory:
         """A random-walk Metropolis move of frame t's draws, invariant for q^(1-beta) (p L)^beta,
         the history untouched. Its steps are the proposal's scale times 1.19 / sqrt(D) (half
         the optimal scaling for a Gaussian target, which the likelihood narrows): a function of
-        the particle's past alone, so the move is reversible; steps scaled by the population's
-        spread depend on the particle itself and biased the evidence with few particles."""
+        the particle's past alone, so the move is reversible (a step scaled by the population's
+        spread would depend on the particle's own value)."""
         z = state.trajectory[:, -1]
         step = state.guide[1] * (1.19 / math.sqrt(z.shape[-1]))
         candidate = z + step * torch.randn(z.shape, generator=generator, dtype=z.dtype)
