@@ -150,6 +150,9 @@ def main() -> None:
     parser.add_argument("--proposal-widening", type=float, default=InferenceConfig.proposal_widening,
                         help="factor on Transformer 2's scales before they are fused with the latent prior and "
                              f"the dynamics' step (default {InferenceConfig.proposal_widening})")
+    parser.add_argument("--smc-proposal-widening", default=",".join(map(str, InferenceConfig.smc_proposal_widening)),
+                        help="the same for the SMC's proposal, comma-separated for an equal-weight mixture; "
+                             "0: as --proposal-widening (default %(default)s)")
     parser.add_argument("--independent-guide", action="store_true",
                         help="draw the hidden trajectory frame by frame from Transformer 2 alone (the guide "
                              "before it was fused with the dynamics' step), for comparison")
@@ -170,7 +173,8 @@ def run(args: argparse.Namespace) -> None:
                              refine_steps=args.refine_steps,
                              refine_rate=args.refine_rate, proposal_widening=args.proposal_widening,
                              guide_follows_dynamics=not args.independent_guide, method=args.method,
-                             smc_moves=args.smc_moves, smc_pilot=args.smc_pilot, smc_first=args.smc_first)
+                             smc_moves=args.smc_moves, smc_pilot=args.smc_pilot, smc_first=args.smc_first,
+                             smc_proposal_widening=widenings(args.smc_proposal_widening))
     rows, nll_seconds, mse_seconds = [], 0.0, 0.0
     with store.open_dataset(args.data) as file:
         check_size(file, scorer.image_size, f"the model {scorer.name}")
@@ -194,6 +198,11 @@ def run(args: argparse.Namespace) -> None:
     report(table, args, nll_seconds, mse_seconds)
 
 
+def widenings(text: str) -> tuple[float, ...] | None:
+    values = tuple(float(v) for v in text.split(","))
+    return None if values == (0.0,) else values
+
+
 def report(table: dict[str, np.ndarray], args: argparse.Namespace, nll_seconds: float, mse_seconds: float) -> None:
     """Print the figures; the last line is the summary."""
     videos = len(table["index"])
@@ -201,7 +210,7 @@ def report(table: dict[str, np.ndarray], args: argparse.Namespace, nll_seconds: 
     print(f"model {args.model}, {args.data}: {videos} videos ({args.pairs if args.pairs < 1_000_000 else 'all'} "
           f"pairs per setting), method {args.method}, {args.particles} particles, seeds {args.seeds}, "
           f"{args.threads} thread(s), smc moves {args.smc_moves}, smc pilot {args.smc_pilot}, "
-          f"smc first frame {args.smc_first}, "
+          f"smc first frame {args.smc_first}, smc proposal widening {args.smc_proposal_widening}, "
           f"{'independent' if args.independent_guide else 'dynamics-fused'} guide, motion sigma {args.motion_sigma}, "
           f"pixel sigma {args.pixel_sigma}, {args.refine_steps} steps out of sight at rate {args.refine_rate}, "
           f"proposal widening {args.proposal_widening}")
@@ -224,6 +233,10 @@ def report(table: dict[str, np.ndarray], args: argparse.Namespace, nll_seconds: 
           f"object visible in no frame: {p_hidden_hidden:.2f} (goal >= 0.95)")
     print(f"p_hidden < 0.5 on {int((table['p_hidden'][seen] < 0.5).sum())} of {int(seen.sum())} videos in which "
           f"every object is seen at some frame: {p_hidden_seen:.2f} (goal >= 0.95)")
+    for possible, name in ((True, "possible"), (False, "impossible")):
+        group = seen & (table["possible"] == possible)
+        print(f"  of them {name}: p_hidden < 0.5 on {int((table['p_hidden'][group] < 0.5).sum())} of {int(group.sum())}"
+              + ("" if possible else " (a hidden object is the model's explanation of an impossible event)"))
     repeat = table["repeat"]
     repeat_median = float(np.median(repeat))
     repeat_p99 = float(np.percentile(repeat, 99))

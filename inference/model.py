@@ -92,6 +92,11 @@ class InferenceConfig:
     smc_pilot: int = 16
     smc_pilot_margin: float = 30.0
     smc_first: int = 0     # particles of the SMC's first frame, resampled down to `particles` (0: as many)
+    # proposal_widening for the SMC (None: the same); several: an equal-weight mixture of the
+    # proposals with each. The SMC reweights every frame, so a pull towards Transformer 2's
+    # marginals costs weight variance at each step: the wide component keeps the particles near
+    # the dynamics, the narrow one finds the hypotheses that the marginals point at
+    smc_proposal_widening: float | tuple[float, ...] | None = (3.0, 10.0)
 
 
 def pixel_log_normaliser(pixels: int, sigma: float) -> float:

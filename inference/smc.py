@@ -246,16 +246,20 @@ class HiddenTrajectory:
             prior_loc, prior_scale = self.steps.initial(n)
         else:
             prior_loc, prior_scale = state.loc, torch.full_like(state.loc, self.config.transition_sigma)
-        loc, scale = self.proposal_at(t, prior_loc, prior_scale)
+        locs, scales = self.proposal_at(t, prior_loc, prior_scale)
+        chosen = torch.randint(locs.shape[1], (n,), generator=generator)
+        rows = torch.arange(n)
+        loc, scale = locs[rows, chosen], scales[rows, chosen]
         z = loc + scale * torch.randn(loc.shape, generator=generator, dtype=loc.dtype)
-        drawn = self.evaluate(t, z, (prior_loc, prior_scale), (loc, scale), state.carried)
+        drawn = self.evaluate(t, z, (prior_loc, prior_scale), (locs, scales), state.carried)
         drawn.trajectory = torch.cat([state.trajectory, z[:, None]], dim=1)
         return drawn, drawn.increment
 
     def evaluate(self, t: int, z: Tensor, prior: tuple[Tensor, Tensor], guide: tuple[Tensor, Tensor],
                  before: Any) -> Particles:
-        """Frame t's draws z (n, D) weighed: their log-weights and the scene's state after them."""
-        log_q = normal_log_density(z, *guide)
+        """Frame t's draws z (n, D) weighed: their log-weights and the scene's state after them.
+        guide: the proposal's components' means and scales (n, C, D), an equal-weight mixture."""
+        log_q = mixture_log_density(z, *guide)
         increment = normal_log_density(z, *prior) - log_q + self.steps.frame_log_likelihood(t, z)
         next_loc, carried = None, before
         if t < self.frames - 1:
@@ -271,7 +275,7 @@ class HiddenTrajectory:
         the particle's past alone, so the move is reversible (a step scaled by the population's
         spread would depend on the particle's own value)."""
         z = state.trajectory[:, -1]
-        step = state.guide[1] * (1.19 / math.sqrt(z.shape[-1]))
+        step = state.guide[1].mean(dim=1) * (1.19 / math.sqrt(z.shape[-1]))
         candidate = z + step * torch.randn(z.shape, generator=generator, dtype=z.dtype)
         moved = self.evaluate(t, candidate, state.prior, state.guide, state.before)
         log_ratio = (moved.log_q + beta * moved.increment) - (state.log_q + beta * state.increment)
@@ -287,12 +291,21 @@ class HiddenTrajectory:
         return result, result.increment
 
     def proposal_at(self, t: int, prior_loc: Tensor, prior_scale: Tensor) -> tuple[Tensor, Tensor]:
+        """Means and scales (n, C, D) of the proposal's C components for frame t: the
+        dynamics' step fused with Transformer 2's marginal widened by each of
+        `smc_proposal_widening` (an equal-weight mixture)."""
         if self.proposal is None:
-            return prior_loc, prior_scale
+            return prior_loc[:, None], prior_scale[:, None]
         loc, scale = self.proposal.loc[t].expand_as(prior_loc), self.proposal.scale[t].expand_as(prior_loc)
         if not self.config.guide_follows_dynamics:
-            return loc, scale
-        return fuse(prior_loc, prior_scale, loc, scale * self.config.proposal_widening)
+            return loc[:, None], scale[:, None]
+        widenings = self.config.smc_proposal_widening
+        if widenings is None:
+            widenings = (self.config.proposal_widening,)
+        elif isinstance(widenings, (int, float)):
+            widenings = (widenings,)
+        fused = [fuse(prior_loc, prior_scale, loc, scale * widening) for widening in widenings]
+        return torch.stack([f[0] for f in fused], dim=1), torch.stack([f[1] for f in fused], dim=1)
 
     def select(self, state: Particles, index: Tensor) -> Particles:
         def pick(value):
@@ -303,6 +316,12 @@ class HiddenTrajectory:
                          None if state.prior is None else tuple(p[index] for p in state.prior),
                          None if state.guide is None else tuple(g[index] for g in state.guide),
                          pick(state.increment), pick(state.log_q))
+
+
+def mixture_log_density(x: Tensor, locs: Tensor, scales: Tensor) -> Tensor:
+    """Log-density (n,) of x (n, D) under the equal-weight mixture of diagonal Gaussians (n, C, D)."""
+    components = normal_log_density(x[:, None], locs, scales)            # (n, C)
+    return torch.logsumexp(components, dim=1) - math.log(locs.shape[1])
 
 
 def normal_log_density(x: Tensor, loc: Tensor, scale: Tensor) -> Tensor:
