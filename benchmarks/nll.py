@@ -1,23 +1,27 @@
-"""The NLL surprise, measured: its scoring speed, the ESS, the hidden-object posterior, and its
-comparative accuracy against the MSE score on the same pairs.
+"""The NLL surprise, measured: its scoring speed, the ESS, the hidden-object posterior, its
+repeatability between seeds, and its accuracy against the MSE score on the same pairs.
 
     python benchmarks/nll.py --model NAME_OR_RUN --data test.h5 [--particles 64] [--pairs N] [--threads 2]
+                             [--method smc|importance] [--seeds 0,1] [--smc-moves N] [--smc-pilot N]
                              [--motion-sigma S] [--pixel-sigma S] [--refine-steps N] [--proposal-widening F]
                              [--independent-guide]
 
 Scores the first N pairs of every S1 and S3 setting and of blocking S2 with both surprise
-definitions, each video encoded once (as `xvoe score --surprise both` does).
-(a) videos_per_s: NLL scoring throughput, encoding included, MSE excluded (goal >= 5 at 64
-    particles on 2 cores).
-(b) median_ess: the median effective sample size of the importance weights (and, apart, on
-    the hidden-cube videos of (c), where it is far lower).
-(c) p_hidden_hidden: of the blocking S2 member-0 videos whose ground truth holds an object
-    visible in no frame (the saved states' `visible` column), the share with p_hidden > 0.5.
-(d) p_hidden_seen: of the scored videos in which every object is seen at some frame, the share
-    with p_hidden < 0.5. Goal of (c) and (d): >= 0.8 each.
-(e) comparative accuracy of the NLL against the MSE score in every S1 and S3 setting (goal:
-    the NLL at least the MSE's).
-Last line: videos_per_s=N.N median_ess=N.N p_hidden_hidden=0.NN p_hidden_seen=0.NN
+definitions, each video encoded once (as `xvoe score --surprise both` does), the NLL once per
+seed.
+(a) videos_per_s: NLL scoring throughput of the first seed, encoding included, MSE excluded
+    (goal >= 5 at 64 particles on 2 cores).
+(b) ESS: the median effective sample size among the particles that hold an object, on the
+    videos whose ground truth holds an object visible in no frame (goal >= 16 of 64).
+(c) p_hidden_hidden: of those videos, the share with p_hidden > 0.5; (d) p_hidden_seen: of the
+    videos in which every object is seen at some frame, the share with p_hidden < 0.5 (goal of
+    both >= 0.95).
+(e) repeatability: |NLL(seed 0) - NLL(seed 1)| per video, median and 99th percentile (goal
+    <= 0.5 and <= 5 nats), with two seeds or more.
+(f) comparative accuracy of the NLL against the MSE score in every S1 and S3 setting (goal
+    >= 99%), and the holistic AUC of the NLL excess per scenario (goal >= 0.9).
+Last line: videos_per_s=N.N holding_ess=N.N p_hidden_hidden=0.NN p_hidden_seen=0.NN repeat_median=N.NN
+repeat_p99=N.NN min_comparative=N.N min_excess_auc=N.NN
 """
 from __future__ import annotations
 
@@ -25,15 +29,15 @@ import argparse
 import time
 
 import numpy as np
-import pyro
 import torch
 from tqdm.auto import tqdm
 
 from inference.model import InferenceConfig
-from inference.score import xpl_nll
+from inference.score import reference_nll
+from inference.surprise import nll_surprise
 from xvoe.benchmark import store
 from xvoe.errors import XvoeError
-from xvoe.evaluation.metrics import comparative
+from xvoe.evaluation.metrics import comparative, holistic
 from xvoe.evaluation.score import encode_videos, load_model
 from xvoe.evaluation.surprise import mse_surprise
 from xvoe.training.data import check_size
@@ -65,20 +69,35 @@ def ground_truth(file, index: int, names: list[str], columns: list[str]) -> str:
 
 
 @torch.no_grad()
-def score_range(scorer, file, start: int, stop: int, config: InferenceConfig) -> tuple[list[dict], float, float]:
-    """Both surprises of videos [start, stop); the seconds spent on the NLL (encoding included)
-    and on the MSE score."""
+def score_range(scorer, file, start: int, stop: int, config: InferenceConfig,
+                seeds: list[int]) -> tuple[list[dict], float, float]:
+    """Both surprises of videos [start, stop), the NLL once per seed; the seconds spent on the
+    NLL of the first seed (encoding included) and on the MSE score."""
     began = time.perf_counter()
     batch = encode_videos(scorer, file, start, stop)
     encoded = time.perf_counter()
-    rows = [{"index": start + i, "nll": nll, "ess": ess, "p_hidden": p_hidden}
-            for i, (nll, ess, p_hidden) in enumerate(xpl_nll(scorer, batch, config))]
+    rows, first_seed = [], 0.0
+    for i in range(stop - start):
+        video = [batch[k][i] for k in ("frames", "mean", "visible", "background", "occluder")]
+        row = {"index": start + i}
+        for n, seed in enumerate(seeds):
+            tick, cpu = time.perf_counter(), time.process_time()
+            found = nll_surprise(scorer.vae, scorer.xpl, *video, config, seed=seed)
+            first_seed += time.perf_counter() - tick if n == 0 else 0.0
+            row["cpu_seconds"] = row.get("cpu_seconds", time.process_time() - cpu)
+            if n == 0:
+                row |= {"nll": found.nll, "ess": found.ess, "holding_ess": found.holding_ess,
+                        "p_hidden": found.p_hidden}
+            row[f"nll_{n}"] = found.nll
+        rows.append(row)
     nll_done = time.perf_counter()
-    mse = mse_surprise(scorer.vae, scorer.xpl, batch["frames"], batch["mean"], batch["visible"], batch["background"],
-                       batch["occluder"]).per_frame.sum(dim=1)
-    for row, value in zip(rows, mse.tolist()):
-        row["score"] = value
-    return rows, nll_done - began, time.perf_counter() - nll_done + (encoded - began)
+    surprise = mse_surprise(scorer.vae, scorer.xpl, batch["frames"], batch["mean"], batch["visible"],
+                            batch["background"], batch["occluder"])
+    size = batch["frames"].shape[-1]
+    reference = reference_nll(surprise.s_rec.numpy(), 4 * size * size, config.pixel_sigma)
+    for row, value, ref in zip(rows, surprise.per_frame.sum(dim=1).tolist(), reference):
+        row["score"], row["nll_excess"] = value, row["nll"] - float(ref)
+    return rows, first_seed + (encoded - began), time.perf_counter() - nll_done + (encoded - began)
 
 
 def label(rows: list[dict], file) -> dict[str, np.ndarray]:
@@ -88,8 +107,11 @@ def label(rows: list[dict], file) -> dict[str, np.ndarray]:
              "setting": store.strings(file, "setting")[index]}
     for name in ("pair", "member", "possible"):
         table[name] = file[name][:][index]
-    for name in ("score", "nll", "ess", "p_hidden", "truth"):
+    for name in ("score", "nll", "ess", "holding_ess", "p_hidden", "truth", "nll_excess", "cpu_seconds"):
         table[name] = np.array([r[name] for r in rows])
+    seeds = sum(1 for name in rows[0] if name.startswith("nll_") and name[4:].isdigit())
+    table["repeat"] = (np.abs(np.array([r["nll_1"] - r["nll_0"] for r in rows])) if seeds > 1
+                       else np.full(len(rows), np.nan))
     return table
 
 
@@ -104,7 +126,19 @@ def main() -> None:
     parser.add_argument("--particles", type=int, default=64, help="importance samples per video (default 64)")
     parser.add_argument("--pairs", type=int, default=1_000_000, help="pairs per setting (default: all)")
     parser.add_argument("--threads", type=int, default=2, help="torch threads (default 2)")
-    parser.add_argument("--seed", type=int, default=0, help="seed of the importance samples")
+    parser.add_argument("--seeds", default="0,1", help="comma-separated seeds; each video is scored with each "
+                                                        "(default 0,1: repeatability)")
+    parser.add_argument("--method", default=InferenceConfig.method, choices=("smc", "importance"),
+                        help=f"the estimator (default {InferenceConfig.method})")
+    parser.add_argument("--smc-moves", type=int, default=InferenceConfig.smc_moves,
+                        help="Metropolis moves per tempering level within a frame, 0: no tempering "
+                             f"(default {InferenceConfig.smc_moves})")
+    parser.add_argument("--smc-first", type=int, default=InferenceConfig.smc_first,
+                        help="SMC particles of the first frame, resampled down to --particles (0: as many; "
+                             f"default {InferenceConfig.smc_first})")
+    parser.add_argument("--rows", help="also write each video's figures to this CSV")
+    parser.add_argument("--smc-pilot", type=int, default=InferenceConfig.smc_pilot,
+                        help=f"particles of the SMC's pilot run, 0: none (default {InferenceConfig.smc_pilot})")
     parser.add_argument("--motion-sigma", type=float, default=InferenceConfig.motion_sigma,
                         help="standard deviation of the seen objects' latents around the dynamics "
                              f"(default {InferenceConfig.motion_sigma})")
@@ -118,6 +152,9 @@ def main() -> None:
     parser.add_argument("--proposal-widening", type=float, default=InferenceConfig.proposal_widening,
                         help="factor on Transformer 2's scales before they are fused with the latent prior and "
                              f"the dynamics' step (default {InferenceConfig.proposal_widening})")
+    parser.add_argument("--smc-proposal-widening", default=",".join(map(str, InferenceConfig.smc_proposal_widening)),
+                        help="the same for the SMC's proposal, comma-separated for an equal-weight mixture; "
+                             "0: as --proposal-widening (default %(default)s)")
     parser.add_argument("--independent-guide", action="store_true",
                         help="draw the hidden trajectory frame by frame from Transformer 2 alone (the guide "
                              "before it was fused with the dynamics' step), for comparison")
@@ -130,14 +167,16 @@ def main() -> None:
 
 def run(args: argparse.Namespace) -> None:
     torch.set_num_threads(args.threads)
-    pyro.set_rng_seed(args.seed)
+    seeds = [int(seed) for seed in args.seeds.split(",")]
     scorer = load_model(args.model)
     if scorer.xpl is None or not scorer.xpl.config.use_reasoning:
         raise XvoeError(f"the NLL surprise needs an XPL model with reasoning; {scorer.name} has none")
     config = InferenceConfig(particles=args.particles, motion_sigma=args.motion_sigma, pixel_sigma=args.pixel_sigma,
                              refine_steps=args.refine_steps,
                              refine_rate=args.refine_rate, proposal_widening=args.proposal_widening,
-                             guide_follows_dynamics=not args.independent_guide)
+                             guide_follows_dynamics=not args.independent_guide, method=args.method,
+                             smc_moves=args.smc_moves, smc_pilot=args.smc_pilot, smc_first=args.smc_first,
+                             smc_proposal_widening=widenings(args.smc_proposal_widening))
     rows, nll_seconds, mse_seconds = [], 0.0, 0.0
     with store.open_dataset(args.data) as file:
         check_size(file, scorer.image_size, f"the model {scorer.name}")
@@ -145,54 +184,84 @@ def run(args: argparse.Namespace) -> None:
         batches = [(a, min(stop, a + BATCH)) for start, stop in chosen_ranges(file, args.pairs)
                    for a in range(start, stop, BATCH)]
         for start, stop in tqdm(batches, desc="nll benchmark", unit="batch"):
-            scored, nll_time, mse_time = score_range(scorer, file, start, stop, config)
+            scored, nll_time, mse_time = score_range(scorer, file, start, stop, config, seeds)
             for row in scored:
                 row["truth"] = ground_truth(file, row["index"], names, columns)
             rows += scored
             nll_seconds, mse_seconds = nll_seconds + nll_time, mse_seconds + mse_time
         table = label(rows, file)
+    if args.rows:
+        import csv
+
+        with open(args.rows, "w", newline="") as handle:
+            writer = csv.DictWriter(handle, fieldnames=list(rows[0]))
+            writer.writeheader()
+            writer.writerows(rows)
     report(table, args, nll_seconds, mse_seconds)
+
+
+def widenings(text: str) -> tuple[float, ...] | None:
+    values = tuple(float(v) for v in text.split(","))
+    return None if values == (0.0,) else values
 
 
 def report(table: dict[str, np.ndarray], args: argparse.Namespace, nll_seconds: float, mse_seconds: float) -> None:
     """Print the figures; the last line is the summary."""
     videos = len(table["index"])
-    speed, median_ess = videos / nll_seconds, float(np.median(table["ess"]))
+    speed = videos / nll_seconds
     print(f"model {args.model}, {args.data}: {videos} videos ({args.pairs if args.pairs < 1_000_000 else 'all'} "
-          f"pairs per setting), {args.particles} particles, {args.threads} thread(s), "
+          f"pairs per setting), method {args.method}, {args.particles} particles, seeds {args.seeds}, "
+          f"{args.threads} thread(s), smc moves {args.smc_moves}, smc pilot {args.smc_pilot}, "
+          f"smc first frame {args.smc_first}, smc proposal widening {args.smc_proposal_widening}, "
           f"{'independent' if args.independent_guide else 'dynamics-fused'} guide, motion sigma {args.motion_sigma}, "
-          f"pixel sigma {args.pixel_sigma}, "
-          f"{args.refine_steps} steps out of sight at rate {args.refine_rate}, proposal widening "
-          f"{args.proposal_widening}")
-    print(f"NLL scoring: {speed:.2f} videos/s (encoding included, {nll_seconds:.0f} s); "
+          f"pixel sigma {args.pixel_sigma}, {args.refine_steps} steps out of sight at rate {args.refine_rate}, "
+          f"proposal widening {args.proposal_widening}")
+    print(f"NLL scoring: {speed:.2f} videos/s (first seed, encoding included, {nll_seconds:.0f} s); "
           f"MSE scoring: {videos / mse_seconds:.1f} videos/s (encoding included)")
-    print(f"ESS: median {median_ess:.1f}, 10th percentile {np.percentile(table['ess'], 10):.1f} "
-          f"of {args.particles}")
-    blocking_s2 = (table["scenario"] == "blocking") & (table["setting"] == "S2")
-    hidden = blocking_s2 & (table["member"] == 0) & (table["truth"] == "hidden")
-    seen = table["truth"] == "seen"
-    if hidden.any():    # there the particles holding an object carry the weight, and few of them do
-        print(f"ESS on the {int(hidden.sum())} blocking S2 member-0 videos with an object visible in no frame: "
-              f"median {np.median(table['ess'][hidden]):.1f} of {args.particles}")
+    cpu = table["cpu_seconds"]      # the process's CPU time: less sensitive than the clock to other jobs
+    print(f"NLL CPU time per video (first seed, encoding excluded, all threads): mean {cpu.mean():.3f} s, "
+          f"{1 / cpu.mean():.2f} videos per CPU-second; on the videos with an object visible in no frame "
+          f"{cpu[table['truth'] == 'hidden'].mean():.3f} s")
+    hidden, seen = table["truth"] == "hidden", table["truth"] == "seen"
+    holding = table["holding_ess"][hidden]
+    holding_ess = float(np.median(holding)) if len(holding) else float("nan")
+    if hidden.any():
+        print(f"ESS among the particles that hold an object, on the {int(hidden.sum())} videos with an object "
+              f"visible in no frame: median {holding_ess:.1f}, 10th percentile {np.percentile(holding, 10):.1f}, "
+              f"lowest {holding.min():.1f} of {args.particles} (goal: median >= 16)")
     p_hidden_hidden = share(table["p_hidden"][hidden] > 0.5)
     p_hidden_seen = share(table["p_hidden"][seen] < 0.5)
-    print(f"p_hidden > 0.5 on {int((table['p_hidden'][hidden] > 0.5).sum())} of {int(hidden.sum())} blocking S2 "
-          f"member-0 videos with an object visible in no frame: {p_hidden_hidden:.2f} (goal >= 0.80)")
+    print(f"p_hidden > 0.5 on {int((table['p_hidden'][hidden] > 0.5).sum())} of {int(hidden.sum())} videos with an "
+          f"object visible in no frame: {p_hidden_hidden:.2f} (goal >= 0.95)")
     print(f"p_hidden < 0.5 on {int((table['p_hidden'][seen] < 0.5).sum())} of {int(seen.sum())} videos in which "
-          f"every object is seen at some frame: {p_hidden_seen:.2f} (goal >= 0.80)")
-    for scenario, setting in SETTINGS:
-        group = seen & (table["scenario"] == scenario) & (table["setting"] == setting)
-        if group.any():
-            print(f"  {scenario} {setting}: p_hidden < 0.5 on {share(table['p_hidden'][group] < 0.5):.2f} "
-                  f"of {int(group.sum())}; median p_hidden {np.median(table['p_hidden'][group]):.2f}")
-    print("comparative accuracy on the same pairs, MSE score -> NLL (goal: NLL >= MSE in every S1 and S3 setting):")
+          f"every object is seen at some frame: {p_hidden_seen:.2f} (goal >= 0.95)")
+    for possible, name in ((True, "possible"), (False, "impossible")):
+        group = seen & (table["possible"] == possible)
+        print(f"  of them {name}: p_hidden < 0.5 on {int((table['p_hidden'][group] < 0.5).sum())} of {int(group.sum())}"
+              + ("" if possible else " (a hidden object is the model's explanation of an impossible event)"))
+    repeat = table["repeat"]
+    repeat_median = float(np.median(repeat))
+    repeat_p99 = float(np.percentile(repeat, 99))
+    if np.isfinite(repeat).all():
+        print(f"|NLL(seed a) - NLL(seed b)|: median {repeat_median:.3f}, 99th percentile {repeat_p99:.2f}, "
+              f"largest {repeat.max():.2f} nats (goal <= 0.5 and <= 5); on the videos with an object visible "
+              f"in no frame: median {np.median(repeat[hidden]) if hidden.any() else float('nan'):.2f}, "
+              f"largest {repeat[hidden].max() if hidden.any() else float('nan'):.2f}")
+    print("comparative accuracy on the same pairs, MSE score -> NLL (goal: NLL >= 99% in every S1 and S3 setting):")
     mse, nll = comparative(table, "score", rounds=200), comparative(table, "nll", rounds=200)
+    lowest = 1.0
     for key in (k for k in mse if k[1] != "S2"):
-        verdict = "ok" if nll[key].value >= mse[key].value else "NLL below MSE"
+        lowest = min(lowest, nll[key].value)
         print(f"  {key[0]} {key[1]}: {100 * mse[key].value:.1f}% -> {100 * nll[key].value:.1f}% "
-              f"(NLL 95% interval {100 * nll[key].low:.0f}-{100 * nll[key].high:.0f}) {verdict}")
-    print(f"videos_per_s={speed:.1f} median_ess={median_ess:.1f} p_hidden_hidden={p_hidden_hidden:.2f} "
-          f"p_hidden_seen={p_hidden_seen:.2f}")
+              f"(NLL 95% interval {100 * nll[key].low:.0f}-{100 * nll[key].high:.0f})")
+    print("holistic AUC of the NLL excess per scenario (goal >= 0.9):")
+    aucs = holistic(table, "nll_excess", rounds=200)
+    for scenario, estimate in aucs.items():
+        print(f"  {scenario}: {estimate.value:.3f} (95% interval {estimate.low:.2f}-{estimate.high:.2f})")
+    lowest_auc = min(e.value for e in aucs.values())
+    print(f"videos_per_s={speed:.1f} holding_ess={holding_ess:.1f} p_hidden_hidden={p_hidden_hidden:.2f} "
+          f"p_hidden_seen={p_hidden_seen:.2f} repeat_median={repeat_median:.2f} repeat_p99={repeat_p99:.2f} "
+          f"min_comparative={100 * lowest:.1f} min_excess_auc={lowest_auc:.2f}")
 
 
 if __name__ == "__main__":

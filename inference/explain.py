@@ -2,7 +2,7 @@
 with the posterior probability that it exists and the effective sample size of the weights."""
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 import torch
@@ -13,7 +13,7 @@ from xvoe.evaluation.score import Scorer
 from xvoe.models.perception import to_uint8
 
 from .model import InferenceConfig
-from .surprise import hidden_posterior, nll_surprise
+from .surprise import explain_surprise, hidden_posterior
 
 
 @dataclass
@@ -24,6 +24,8 @@ class NLLExplanation(Explanation):
     particles: int = 0          # importance samples drawn
     holding: int = 0            # of them, those that held a hidden object
     holding_ess: float = 0.0    # the effective sample size among those
+    # the heaviest distinct hypotheses of what is hidden, each decoded alone: (label, frames)
+    hypotheses: list[tuple[str, np.ndarray]] = field(default_factory=list)
 
     def rows(self) -> list[tuple[str, np.ndarray]]:
         if self.holding == 0:
@@ -31,32 +33,35 @@ class NLLExplanation(Explanation):
         else:
             label = f"if it exists:\nmean of {self.holding} samples\n(ESS {self.holding_ess:.1f})"
         behind = "behind the wall" if self.holding == 0 else "behind the wall,\nif it exists"
-        return [("observed", self.observed), (behind, self.behind_wall), (label, self.hidden_object)]
+        return [("observed", self.observed), (behind, self.behind_wall), (label, self.hidden_object),
+                *self.hypotheses]
 
 
-def explain_nll(scorer: Scorer, data: str, index: int, particles: int = 64, seed: int = 0) -> NLLExplanation:
+def explain_nll(scorer: Scorer, data: str, index: int, particles: int = 64, seed: int = 0,
+                hypotheses: int = 3) -> NLLExplanation:
     """What `xvoe explain --surprise nll` draws: the Pyro model's explanation posterior."""
     if not scorer.is_random and (scorer.xpl is None or not scorer.xpl.config.use_reasoning):
         raise XvoeError(f"the NLL explanation needs an XPL model with reasoning; {scorer.name} has none")
     video, rgbd, title = _read_video(scorer, data, index)
-    return nll_explanation(scorer.vae, scorer.xpl, video, particles, title, rgbd, seed)
+    return nll_explanation(scorer.vae, scorer.xpl, video, particles, title, rgbd, seed, hypotheses)
 
 
 @torch.no_grad()
 def nll_explanation(vae, xpl, video: dict, particles: int, title: str = "", observed: np.ndarray | None = None,
-                    seed: int = 0) -> NLLExplanation:
+                    seed: int = 0, hypotheses: int = 3) -> NLLExplanation:
     """The explanation posterior of one encoded video (`encode_videos` of one video): the
     importance-weighted mean of the particles that hold a hidden object, decoded frame by
     frame. The mean, not the best particle: where one particle takes all the weight (a broad
     proposal) the two are the same, and where many share it the mean does not hang on one
-    lucky draw; the ESS among them, in the row's label, tells which case it is.
+    lucky draw; the ESS among them, in the row's label, tells which case it is. Below it, the
+    `hypotheses` heaviest distinct trajectories, each decoded alone with its weight, and the
+    frames where they disagree most in the title.
 
     The samples come from `seed`, without touching the global random state."""
     one = {name: value[0] for name, value in video.items()}
-    with torch.random.fork_rng(devices=[]):
-        torch.manual_seed(seed)
-        result = nll_surprise(vae, xpl, one["frames"], one["mean"], one["visible"], one["background"],
-                              one["occluder"], InferenceConfig(particles=particles))
+    found = explain_surprise(vae, xpl, one["frames"], one["mean"], one["visible"], one["background"],
+                             one["occluder"], InferenceConfig(particles=particles), seed=seed, top=hypotheses)
+    result = found.result
     posterior = hidden_posterior(result)
     refined = xpl.refine(video["mean"], video["visible"])
     occupied = video["visible"].any(dim=1)
@@ -70,5 +75,13 @@ def nll_explanation(vae, xpl, video: dict, particles: int, title: str = "", obse
     heading += (f"NLL {result.nll:.0f} nats, p(hidden object) = {result.p_hidden:.2f}, "
                 f"ESS {result.ess:.1f} of {particles}")
     holding = (posterior.holding, posterior.ess) if posterior is not None else (0, 0.0)
+    drawn = []
+    if posterior is not None and found.hypotheses is not None:
+        options = found.hypotheses
+        for rank, (trajectory, weight) in enumerate(zip(options.trajectories, options.weights)):
+            picture = to_uint8(vae.decode(trajectory.to(video["mean"].dtype))).numpy()
+            drawn.append((f"hypothesis {rank + 1}:\nweight {float(weight):.2f}", picture))
+        if options.disagree:
+            heading += f"\nthe hypotheses differ most at frames {', '.join(map(str, options.disagree[:3]))}"
     return NLLExplanation(observed, behind, alone, result.hidden_slot, heading, result.p_hidden, result.ess,
-                          result.nll, particles, *holding)
+                          result.nll, particles, *holding, drawn)

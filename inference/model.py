@@ -71,6 +71,26 @@ class InferenceConfig:
     # marginal uncertainty, not fresh evidence about that frame, and too narrow for what a video
     # leaves open (docs/decisions.md, "NLL proposal widening")
     proposal_widening: float = 3.0
+    # "smc": sequential Monte Carlo over frames with existence summed out (inference.smc);
+    # "importance": one vectorised importance-sampling pass of the Pyro model and guide
+    method: str = "smc"
+    resample_threshold: float = 0.5   # SMC resamples when the ESS falls below this share of the particles
+    # Metropolis moves per tempering level within a frame (0: no tempering, plain SMC), and the
+    # most levels one frame may take. Tempering (2 moves) cost 1.6x the time on the never-seen-
+    # object videos for the same evidence and a seed-to-seed spread as wide (NOTES-38.md)
+    smc_moves: int = 0
+    smc_max_levels: int = 40
+    # SMC first runs this many particles (0: none); where the branch with a hidden object then
+    # trails the one without by more than smc_pilot_margin nats, it changes log p(x) by less
+    # than exp(-margin) and the full run is skipped (most videos show every object)
+    smc_pilot: int = 16
+    smc_pilot_margin: float = 30.0
+    smc_first: int = 0     # particles of the SMC's first frame, resampled down to `particles` (0: as many)
+    # proposal_widening for the SMC (None: the same); several: an equal-weight mixture of the
+    # proposals with each. The SMC reweights every frame, so a pull towards Transformer 2's
+    # marginals costs weight variance at each step: the wide component keeps the particles near
+    # the dynamics, the narrow one finds the hypotheses that the marginals point at
+    smc_proposal_widening: float | tuple[float, ...] | None = (3.0, 10.0)
 
 
 def pixel_log_normaliser(pixels: int, sigma: float) -> float:

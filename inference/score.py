@@ -21,12 +21,14 @@ def reference_nll(s_rec: np.ndarray, pixels: int, sigma: float) -> np.ndarray:
     return s_rec.sum(axis=1) / (2 * sigma ** 2) + pixel_log_normaliser(pixels * s_rec.shape[1], sigma)
 
 
-def xpl_nll(scorer: Scorer, batch: dict[str, Tensor], config: InferenceConfig) -> list[tuple[float, float, float]]:
-    """(nll, ess, p_hidden) of each encoded video (`encode_videos`) under the Pyro hidden-object model."""
+def xpl_nll(scorer: Scorer, batch: dict[str, Tensor], config: InferenceConfig,
+            seed: int = 0) -> list[tuple[float, float, float]]:
+    """(nll, ess, p_hidden) of each encoded video (`encode_videos`) under the Pyro hidden-object model,
+    each from its own generator seeded `seed`, so that a video's score does not hang on the others'."""
     results = []
     for i in range(len(batch["mean"])):
         found = nll_surprise(scorer.vae, scorer.xpl, batch["frames"][i], batch["mean"][i], batch["visible"][i],
-                             batch["background"][i], batch["occluder"][i], config)
+                             batch["background"][i], batch["occluder"][i], config, seed=seed)
         results.append((found.nll, found.ess, found.p_hidden))
     return results
 
@@ -37,15 +39,15 @@ class NLLColumns:
 
     names = ("nll", "ess", "p_hidden", "nll_excess")
 
-    def __init__(self, particles: int = 64):
-        self.config = InferenceConfig(particles=particles)
+    def __init__(self, particles: int = 64, seed: int = 0):
+        self.config, self.seed = InferenceConfig(particles=particles), seed
 
     def check(self, scorer: Scorer) -> None:
         if scorer.xpl is None or not scorer.xpl.config.use_reasoning:
             raise XvoeError(f"the NLL surprise needs an XPL model with reasoning; {scorer.name} has none")
 
     def batch(self, scorer: Scorer, videos: dict[str, Tensor]) -> np.ndarray:
-        return np.array(xpl_nll(scorer, videos, self.config), dtype=float).reshape(-1, 3)
+        return np.array(xpl_nll(scorer, videos, self.config, self.seed), dtype=float).reshape(-1, 3)
 
     def finish(self, values: np.ndarray, curves: np.ndarray, size: int) -> np.ndarray:
         nll_excess = values[:, 0] - reference_nll(curves[2], 4 * size * size, self.config.pixel_sigma)

@@ -1,6 +1,8 @@
-"""The NLL surprise of a video: -log p(video) under the hidden-object model, by vectorised
-importance sampling with Transformer 2's proposal; with the effective sample size and the
-posterior probability that a hidden object exists."""
+"""The NLL surprise of a video: -log p(video) under the hidden-object model, by sequential Monte
+Carlo over frames (`inference.smc`, the default) or vectorised importance sampling, both with
+Transformer 2's proposal; with the effective sample size and the posterior probability that a
+hidden object exists. Every estimate comes from a seed (or a torch.Generator): the same seed
+gives the same bytes, whatever was drawn before."""
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -14,16 +16,29 @@ from xvoe.models.xpl import XPL
 
 from .importance import Estimate, importance
 from .model import HiddenObjectModel, InferenceConfig, Proposal
+from .smc import Hypotheses, SMCEstimate, smc_evidence, top_hypotheses
 from .xpl_scene import XPLScene
 
 
 @dataclass
 class NLLSurprise:
     nll: float            # -log p(video), nats
-    ess: float            # effective sample size of the importance weights
+    ess: float            # effective sample size of the weights (SMC: of the particles, all holding an object)
     p_hidden: float       # posterior probability that a hidden object exists
     hidden_slot: int      # the free slot the hidden object was given (-1: none was free)
-    estimate: Estimate
+    estimate: Estimate | SMCEstimate
+    holding_ess: float = 0.0   # effective sample size among the particles that hold an object
+    method: str = "importance"
+
+
+Seed = int | torch.Generator | None
+
+
+def generator_from(seed: Seed) -> torch.Generator:
+    """A generator of its own for a seed (None: 0); a generator is used as it is."""
+    if isinstance(seed, torch.Generator):
+        return seed
+    return torch.Generator().manual_seed(0 if seed is None else int(seed))
 
 
 BRANCH_SAMPLES = 8     # particles each value of `exists` expects at the least
@@ -41,11 +56,19 @@ def defensive(p_exists: Tensor, particles: int) -> Tensor:
 
 @torch.no_grad()
 def nll_surprise(vae: ComponentVAE, xpl: XPL, frames: Tensor, mean: Tensor, visible: Tensor, background: Tensor,
-                 occluder: Tensor, config: InferenceConfig) -> NLLSurprise:
+                 occluder: Tensor, config: InferenceConfig, method: str | None = None,
+                 seed: Seed = 0) -> NLLSurprise:
     """One video: frames (T, 4, H, W) in [-1, 1]; mean (T, K, D); visible (T, K) bool;
     background (T, D) latents; occluder (K,) bool. The guide proposes the hidden object's
     trajectory from Transformer 2's mean (moved out of sight, `refine_out_of_sight`) and scale,
-    and its existence from XPL's amortised existence probability."""
+    and (importance sampling) its existence from XPL's amortised existence probability.
+
+    method: "smc" or "importance" (None: config.method). seed: an int or a torch.Generator;
+    the global random state is neither read nor changed."""
+    method = config.method if method is None else method
+    if method not in ("smc", "importance"):
+        raise ValueError(f"method must be smc or importance, not {method!r}")
+    generator = generator_from(seed)
     refined = xpl.refine(mean[None], visible[None])
     explained, scale, slot = xpl.explain(refined, visible[None])
     unseen = never_seen(visible[None])[0]
@@ -59,9 +82,22 @@ def nll_surprise(vae: ComponentVAE, xpl: XPL, frames: Tensor, mean: Tensor, visi
     if free and config.refine_steps:
         loc = refine_out_of_sight(scene, loc, frames, config)
     proposal = Proposal(defensive(p_exists, config.particles) if free else p_exists, loc, spread)
-    estimate = importance(model.model, model.guide, frames, proposal=proposal, particles=config.particles)
+    if method == "smc":
+        found = smc_evidence(scene, frames, config, proposal, generator, free)
+        return NLLSurprise(found.nll, found.ess, found.p_hidden, hidden if free else -1, found,
+                           found.ess if free else 0.0, "smc")
+    with torch.random.fork_rng(devices=[]):     # Pyro draws from the global state: seed it, then put it back
+        torch.manual_seed(int(torch.randint(2 ** 62, (1,), generator=generator)))
+        estimate = importance(model.model, model.guide, frames, proposal=proposal, particles=config.particles)
     p_hidden = float(estimate.posterior_mean("exists").clamp(0.0, 1.0))   # a weighted mean can round past 1
-    return NLLSurprise(estimate.nll, estimate.ess, p_hidden, hidden if free else -1, estimate)
+    alive = estimate.guide_trace.nodes["exists"]["value"].bool()
+    holding = float(effective_sample_size(estimate.log_weights[alive])) if alive.any() else 0.0
+    return NLLSurprise(estimate.nll, estimate.ess, p_hidden, hidden if free else -1, estimate, holding, "importance")
+
+
+def effective_sample_size(log_weights: Tensor) -> Tensor:
+    normalised = torch.softmax(log_weights, dim=0)
+    return 1.0 / normalised.square().sum()
 
 
 def refine_out_of_sight(scene: XPLScene, loc: Tensor, frames: Tensor, config: InferenceConfig) -> Tensor:
@@ -116,6 +152,14 @@ def hidden_posterior(result: NLLSurprise) -> HiddenPosterior | None:
     Weights are renormalised over the particles that hold an object, from the float64
     log-weights: where p_hidden is tiny their plain normalised weights underflow to zero, yet
     what the model would believe if there were an object is still worth drawing."""
+    if isinstance(result.estimate, SMCEstimate):
+        found = result.estimate
+        if result.hidden_slot < 0 or found.trajectories is None:
+            return None
+        weights = found.weights
+        mean = (weights[:, None, None] * found.trajectories.to(torch.float64)).sum(0).to(found.trajectories.dtype)
+        best = int(weights.argmax())
+        return HiddenPosterior(mean, found.trajectories[best], float(weights[best]), found.particles, found.ess)
     nodes = result.estimate.guide_trace.nodes
     alive = nodes["exists"]["value"].bool()
     if result.hidden_slot < 0 or not alive.any():
@@ -127,3 +171,45 @@ def hidden_posterior(result: NLLSurprise) -> HiddenPosterior | None:
     best = int(weights.argmax())
     return HiddenPosterior(mean, trajectories[best], float(weights[best]), int(alive.sum()),
                            float(1.0 / (weights ** 2).sum()))
+
+
+@dataclass
+class Surprise:
+    """What the application layer shows of one video's NLL surprise."""
+
+    nll: float
+    ess: float                 # ESS among the particles that hold an object
+    p_hidden: float
+    hidden_slot: int
+    method: str
+    hypotheses: Hypotheses | None   # the heaviest distinct trajectories (SMC), None where no object was placed
+    result: NLLSurprise
+
+
+def explain_surprise(vae: ComponentVAE, xpl: XPL, frames: Tensor, mean: Tensor, visible: Tensor, background: Tensor,
+                     occluder: Tensor, config: InferenceConfig | None = None, method: str | None = None,
+                     seed: Seed = 0, top: int = 4) -> Surprise:
+    """`nll_surprise` with the plural explanation: the `top` heaviest distinct hidden-object
+    trajectories after resampling, their weights, and the frames where they disagree
+    (`inference.smc.top_hypotheses`). With importance sampling, the particles that hold an
+    object stand in for them, weighted among themselves."""
+    config = config or InferenceConfig()
+    result = nll_surprise(vae, xpl, frames, mean, visible, background, occluder, config, method, seed)
+    if result.method == "smc":
+        hypotheses = top_hypotheses(result.estimate, top)
+    else:
+        hypotheses = _importance_hypotheses(result, config, top)
+    return Surprise(result.nll, result.holding_ess, result.p_hidden, result.hidden_slot, result.method, hypotheses,
+                    result)
+
+
+def _importance_hypotheses(result: NLLSurprise, config: InferenceConfig, top: int) -> Hypotheses | None:
+    nodes = result.estimate.guide_trace.nodes
+    alive = nodes["exists"]["value"].bool()
+    if result.hidden_slot < 0 or not alive.any():
+        return None
+    frames = sum(1 for name in nodes if name.startswith("z_"))
+    trajectories = torch.stack([nodes[f"z_{t}"]["value"] for t in range(frames)], dim=1)[alive]
+    held = SMCEstimate(0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0, 0, 0, int(alive.sum()), trajectories,
+                       result.estimate.log_weights[alive])
+    return top_hypotheses(held, top)

@@ -50,7 +50,7 @@ def video(hidden_free=True):
 def test_real_model_and_guide_match_and_estimates_are_sane():
     vae, xpl = tiny_models()
     pyro.set_rng_seed(0)
-    result = nll_surprise(vae, xpl, *video(), InferenceConfig(particles=16))
+    result = nll_surprise(vae, xpl, *video(), InferenceConfig(particles=16, method="importance"))
     with warnings.catch_warnings():
         warnings.simplefilter("error")
         check_model_guide_match(result.estimate.model_trace, result.estimate.guide_trace)
@@ -108,7 +108,7 @@ def test_nll_explanation_shapes_and_probabilities(hidden_free):
 def test_hidden_posterior_weights_the_particles_that_hold_an_object():
     vae, xpl = tiny_models()
     pyro.set_rng_seed(0)
-    result = nll_surprise(vae, xpl, *video(), InferenceConfig(particles=32))
+    result = nll_surprise(vae, xpl, *video(), InferenceConfig(particles=32, method="importance"))
     posterior = hidden_posterior(result)
     nodes = result.estimate.guide_trace.nodes
     alive = nodes["exists"]["value"].bool()

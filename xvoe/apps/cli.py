@@ -72,7 +72,7 @@ def cmd_show(args: argparse.Namespace) -> None:
 
 def cmd_score(args: argparse.Namespace) -> None:
     print(xvoe.score(args.model, args.data, args.out, surprise=args.surprise, particles=args.particles,
-                     how=args.aggregate, videos_per_batch=args.batch, overwrite=args.overwrite,
+                     seed=args.seed, how=args.aggregate, videos_per_batch=args.batch, overwrite=args.overwrite,
                      progress=not args.quiet))
 
 
@@ -268,7 +268,8 @@ def build_parser() -> argparse.ArgumentParser:
     score.add_argument("--surprise", choices=("mse", "nll", "both"), default="mse",
                        help="mse: the paper's score; nll: -log p(video) under the Pyro model (adds nll, ess, "
                             "p_hidden, nll_excess); both: the MSE score with the NLL columns beside it")
-    score.add_argument("--particles", type=_positive, default=64, help="importance samples per video (nll)")
+    score.add_argument("--particles", type=_positive, default=64, help="particles per video (nll)")
+    score.add_argument("--seed", type=int, default=0, help="seed of the NLL's random draws (default 0)")
     score.add_argument("--aggregate", choices=("sum", "max"), default="sum", help="over frames (default sum)")
     score.add_argument("--batch", type=_positive, default=16, help="videos per batch")
     score.add_argument("--overwrite", action="store_true", help="replace --out if it exists")
@@ -279,16 +280,17 @@ def build_parser() -> argparse.ArgumentParser:
                                description="Rows of observed frames, the decoded scene with the occluder left "
                                            "out (what the model believes is behind the wall), and the decoded "
                                            "explanation object alone. With --surprise nll the explanation is the "
-                                           "posterior mean of the importance samples that hold a hidden object.")
+                                           "posterior mean of the particles that hold a hidden object, and its heaviest distinct "
+                                           "hypotheses, each with its weight.")
     explain.add_argument("--model", required=True, help="a run directory or a stage checkpoint (xpl.pt, ...)")
     explain.add_argument("--data", required=True, help="a split file")
     explain.add_argument("--index", type=int, default=0, help="the video")
     explain.add_argument("--out", required=True, help="the PNG to write")
     explain.add_argument("--surprise", choices=("mse", "nll"), default="mse",
                          help="mse: Transformer 2's proposal (default); nll: the Pyro model's posterior, the "
-                              "importance-weighted hidden object with p(hidden object) and the ESS")
-    explain.add_argument("--particles", type=_positive, default=64, help="importance samples (nll)")
-    explain.add_argument("--seed", type=int, default=0, help="seed of the importance samples (nll)")
+                              "weighted hidden object, its top hypotheses, p(hidden object) and the ESS")
+    explain.add_argument("--particles", type=_positive, default=64, help="particles (nll)")
+    explain.add_argument("--seed", type=int, default=0, help="seed of the particles (nll)")
     explain.add_argument("--overwrite", action="store_true", help="replace --out if it exists")
     explain.set_defaults(run=cmd_explain)
 
