@@ -280,8 +280,8 @@ def build_parser() -> argparse.ArgumentParser:
                                description="Rows of observed frames, the decoded scene with the occluder left "
                                            "out (what the model believes is behind the wall), and the decoded "
                                            "explanation object alone. With --surprise nll the explanation is the "
-                                           "posterior mean of the particles that hold a hidden object, and its heaviest distinct "
-                                           "hypotheses, each with its weight.")
+                                           "posterior mean of the particles that hold a hidden object, and "
+                                           "its heaviest distinct hypotheses, each with its weight.")
     explain.add_argument("--model", required=True, help="a run directory or a stage checkpoint (xpl.pt, ...)")
     explain.add_argument("--data", required=True, help="a split file")
     explain.add_argument("--index", type=int, default=0, help="the video")
