@@ -83,7 +83,7 @@ class InteractionLSTM(nn.Module):
     def recur(self, inputs: Tensor) -> Tensor:
         """The slot-wise LSTM (`self.cell`) over sequences (N, T, 3H) from a zero state: hidden states
         (N, T, L). One fused call: the input projection of all frames is one matrix product, not one
-        per frame (1.6x faster forward and backward at the paper's sizes; benchmarks/steps.py)."""
+        per frame (forward and backward 1.6x faster at the paper's sizes)."""
         start = inputs.new_zeros(1, len(inputs), self.config.lstm)
         cell = self.cell
         return torch.lstm(inputs, (start, start), [cell.weight_ih, cell.weight_hh, cell.bias_ih, cell.bias_hh],
