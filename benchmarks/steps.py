@@ -8,8 +8,9 @@ models (untrained weights cost the same as trained ones):
 Each stage runs `--warmup` steps, then `--repeats` timed ones; it prints the median wall time
 per item and the median CPU time (all threads: on a loaded machine it moves less than the wall
 time), the minor page faults and the kernel share (system / (user + system) CPU time) per
-step, the peak resident memory, and the ratio to the reference's figure (383 ms per 128x128
-frame, 539 ms per video, 881 ms per video; 2 threads; the reference's decoder has 32 channels).
+step, the peak resident memory, and the wall time over the reference's ("vs ref"; the goal is
+below 0.5x at the paper preset). The reference (TensorFlow, 2 threads, a 32-channel decoder):
+383 ms per 128x128 frame, 539 ms per video, 881 ms per video.
 
     python benchmarks/steps.py --preset paper --decoder-channels 32
     python benchmarks/steps.py --preset cpu --stages score
