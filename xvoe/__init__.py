@@ -18,6 +18,10 @@ from __future__ import annotations
 import importlib
 from typing import Any
 
+from .allocator import tune as _tune_allocator
+
+_tune_allocator()       # before any large tensor: freed buffers stay in the heap (xvoe/allocator.py)
+
 __version__ = "0.1.0"
 
 _HOMES = {

@@ -93,6 +93,9 @@ def read_latents(path: str | os.PathLike) -> Latents:
     return Latents(**arrays, attrs=attrs)
 
 
+ENCODE_CHUNK = 64   # images per encoder pass: the paper's ViT needs about 8 MiB of activations per image
+
+
 @torch.no_grad()
 def encode_frames(model, rgbd: np.ndarray, ids: np.ndarray, slots: int) -> dict[str, np.ndarray]:
     """Posteriors of every slot and of the background for frames (B,H,W,4), ids (B,H,W)."""
@@ -100,7 +103,8 @@ def encode_frames(model, rgbd: np.ndarray, ids: np.ndarray, slots: int) -> dict[
     frames = normalise(torch.as_tensor(rgbd)).to(device)
     parts = masked_inputs(frames, torch.as_tensor(ids).to(device), slots)
     count, objects = len(frames), len(parts["objects"])
-    mean, std = model.posterior(torch.cat([parts["objects"], parts["background"], model.blank()]))
+    inputs = torch.cat([parts["objects"], parts["background"], model.blank()])
+    mean, std = map(torch.cat, zip(*(model.posterior(part) for part in inputs.split(ENCODE_CHUNK))))
     slot_mean = mean[-1:].expand(count, slots, -1).clone()
     slot_std = std[-1:].expand(count, slots, -1).clone()
     slot_mean[parts["object_frame"], parts["object_slot"]] = mean[:objects]

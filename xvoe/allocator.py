@@ -1,0 +1,76 @@
+"""Keep freed tensor memory in the process instead of handing it back to the system.
+
+glibc serves blocks above its mmap threshold (128 KiB at first, raised as blocks are freed,
+at most 32 MiB) with fresh mmap and gives them back on free; it also trims the top of its
+heap beyond 128 KiB. A training or scoring step allocates and frees the same large buffers
+every time, so every step faults all their pages in again: a quarter of the CPU time went to
+the kernel. `tune()` raises both thresholds so the heap keeps those pages; the process's
+memory stays at its peak, which it reaches anyway on the next step. It also keeps every thread
+on the one main arena: another thread's arena is made of 64 MiB heaps, so a larger block
+allocated there (by a torch worker thread, or a thread of the user's) is mapped and unmapped
+each time whatever the thresholds say.
+
+`import xvoe` calls it, so the CLI, notebooks, torchrun workers and pool workers (forked:
+inherited; spawned: they import xvoe) all get it. XVOE_MALLOC=system leaves the allocator
+as glibc sets it, and so does a GLIBC_TUNABLES or MALLOC_*_ setting of the user's own.
+A thread that allocated before the call keeps its arena, hence the call at import time.
+"""
+from __future__ import annotations
+
+import ctypes
+import ctypes.util
+import os
+
+M_TRIM_THRESHOLD = -1
+M_MMAP_THRESHOLD = -3
+M_ARENA_MAX = -8
+MMAP_THRESHOLD = 1 << 30            # blocks up to 1 GiB come from the heap, whose pages stay
+TRIM_THRESHOLD = (1 << 31) - 1      # the largest int: free memory at the top of the heap stays
+ARENA_MAX = 1                       # one arena (a lock shared by a few threads costs nothing measurable)
+ENV = "XVOE_MALLOC"                 # "system": leave glibc's defaults
+
+_state: dict[str, bool] = {}
+
+
+def _user_set() -> bool:
+    """Whether the user chose malloc settings of their own (or asked for the system's)."""
+    return (os.environ.get(ENV, "").strip().lower() == "system"
+            or "glibc.malloc." in os.environ.get("GLIBC_TUNABLES", "")
+            or any(name in os.environ for name in ("MALLOC_MMAP_THRESHOLD_", "MALLOC_TRIM_THRESHOLD_",
+                                                    "MALLOC_TOP_PAD_", "MALLOC_MMAP_MAX_", "MALLOC_ARENA_MAX")))
+
+
+def _glibc() -> ctypes.CDLL | None:
+    """This process's C library if it is glibc (not on macOS, Windows or musl)."""
+    try:
+        libc = ctypes.CDLL(None)
+        libc.gnu_get_libc_version     # only glibc has it
+        libc.mallopt
+    except (OSError, AttributeError, TypeError):
+        return None
+    return libc
+
+
+def tune() -> bool:
+    """Raise glibc's mmap and trim thresholds and keep one arena, once per process; True if done.
+
+    False where the C library is not glibc or the user set malloc options (XVOE_MALLOC=system,
+    GLIBC_TUNABLES, MALLOC_*_). Calling it again changes nothing."""
+    if "tuned" not in _state:
+        tuned = False
+        if not _user_set():
+            libc = _glibc()
+            if libc is not None:
+                libc.mallopt.argtypes = [ctypes.c_int, ctypes.c_int]
+                libc.mallopt.restype = ctypes.c_int
+                # trim first: setting either one turns glibc's dynamic threshold off
+                tuned = all([libc.mallopt(M_TRIM_THRESHOLD, TRIM_THRESHOLD),
+                             libc.mallopt(M_MMAP_THRESHOLD, MMAP_THRESHOLD),
+                             libc.mallopt(M_ARENA_MAX, ARENA_MAX)])
+        _state["tuned"] = tuned
+    return _state["tuned"]
+
+
+def tuned() -> bool:
+    """Whether `tune()` raised the thresholds in this process."""
+    return _state.get("tuned", False)
