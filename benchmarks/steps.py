@@ -29,13 +29,13 @@ from dataclasses import replace
 import numpy as np
 import torch
 
-from xvoe.data import perception_batch, visible_threshold
-from xvoe.latents import encode_frames
-from xvoe.models.config import preset
+from xvoe.evaluation.surprise import mse_surprise
 from xvoe.models.perception import ComponentVAE, normalise
 from xvoe.models.xpl import XPL
-from xvoe.score import mse_surprise
-from xvoe.train_xpl import LatentBatch
+from xvoe.training.data import perception_batch, visible_threshold
+from xvoe.training.latents import encode_frames
+from xvoe.training.presets import preset
+from xvoe.training.xpl import LatentBatch
 
 REFERENCE_MS = {"perception": 383.0, "xpl": 539.0, "score": 881.0}   # TensorFlow, 2 threads, this machine
 UNIT = {"perception": "frame", "xpl": "video", "score": "video"}
@@ -128,7 +128,8 @@ def measure(step, warmup: int, repeats: int) -> dict[str, float]:
         user += after.ru_utime - before.ru_utime
         system += after.ru_stime - before.ru_stime
         cpus.append(after.ru_utime + after.ru_stime - before.ru_utime - before.ru_stime)
-    return {"wall": statistics.median(walls), "cpu": statistics.median(cpus), "spread": (max(walls) - min(walls)) / 2, "faults": faults / repeats,
+    return {"wall": statistics.median(walls), "cpu": statistics.median(cpus),
+            "spread": (max(walls) - min(walls)) / 2, "faults": faults / repeats,
             "kernel": system / max(1e-9, user + system)}
 
 
@@ -154,7 +155,8 @@ def main() -> None:
         perception = replace(perception, decoder_channels=args.decoder_channels)
     print(f"preset {args.preset}: {perception.image_size}px, decoder {perception.decoder_channels} channels, "
           f"{args.threads} threads, allocator tuned: {allocator_tuned()}, torch {torch.__version__}")
-    print(f"{'stage':<11} {'ms/item':>9} {'+-':>6} {'vs ref':>7} {'cpu ms/item':>12} {'faults/step':>12} {'kernel':>7}  items/step")
+    print(f"{'stage':<11} {'ms/item':>9} {'+-':>6} {'vs ref':>7} {'cpu ms/item':>12} {'faults/step':>12} "
+          f"{'kernel':>7}  items/step")
     builders = {"perception": lambda rng: (perception_step(perception, args.frames, rng), args.frames),
                 "xpl": lambda rng: (xpl_step(chosen.xpl, args.videos, rng), args.videos),
                 "score": lambda rng: (score_step(perception, chosen.xpl, args.score_videos, rng), args.score_videos)}
@@ -163,7 +165,8 @@ def main() -> None:
         found = measure(step, args.warmup, args.repeats)
         ms = 1000 * found["wall"] / items
         print(f"{stage:<11} {ms:9.1f} {1000 * found['spread'] / items:6.1f} {ms / REFERENCE_MS[stage]:6.2f}x "
-              f"{1000 * found['cpu'] / items:12.1f} {found['faults']:12.0f} {found['kernel']:7.1%}  {items} {UNIT[stage]}s", flush=True)
+              f"{1000 * found['cpu'] / items:12.1f} {found['faults']:12.0f} {found['kernel']:7.1%}  "
+              f"{items} {UNIT[stage]}s", flush=True)
     print(f"peak resident memory {resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2**20:.2f} GiB")
 
 

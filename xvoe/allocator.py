@@ -44,11 +44,10 @@ def _glibc() -> ctypes.CDLL | None:
     """This process's C library if it is glibc (not on macOS, Windows or musl)."""
     try:
         libc = ctypes.CDLL(None)
-        libc.gnu_get_libc_version     # only glibc has it
-        libc.mallopt
-    except (OSError, AttributeError, TypeError):
+        found = hasattr(libc, "gnu_get_libc_version") and hasattr(libc, "mallopt")    # only glibc has both
+    except (OSError, TypeError):
         return None
-    return libc
+    return libc if found else None
 
 
 def tune() -> bool:
