@@ -35,7 +35,7 @@ _HOMES = {
     "xvoe.training.latents": ("encode_split",),
     "xvoe.training.xpl": ("train_xpl", "train_proposal", "latent_cache_for"),
     "xvoe.training.phydnet": ("train_phydnet",),
-    "xvoe.evaluation.score": ("Scorer", "load_model"),
+    "xvoe.evaluation.score": ("Scorer", "load_model", "SurpriseModel", "Videos"),
     "xvoe.evaluation.metrics": ("read_scores", "metric_rows", "comparative", "holistic", "relative",
                                 "disagreements"),
     "xvoe.apps.verbs": ("score", "explain"),

@@ -204,8 +204,9 @@ def _bars(ax, groups: list[str], models: list[str], lookup, width: float = 0.8) 
                 continue
             xs.append(g - width / 2 + step * (m + 0.5))
             values.append(100 * row["value"])
-            errors[0].append(100 * (row["value"] - row["low"]))
-            errors[1].append(100 * (row["high"] - row["value"]))
+            # a percentile interval of a statistic full of ties may stop short of the value itself
+            errors[0].append(max(0.0, 100 * (row["value"] - row["low"])))
+            errors[1].append(max(0.0, 100 * (row["high"] - row["value"])))
         ax.bar(xs, values, step * 0.95, yerr=errors, capsize=2, label=model)
     ax.set_xticks(range(len(groups)), groups)
 

@@ -45,6 +45,8 @@ def explain(model: str | Scorer, data: str | Path, index: int, *, surprise: str 
     scorer = load_model(model) if isinstance(model, str) else model
     if scorer.phydnet is not None:
         raise XvoeError("PhyDNet predicts pixels and has no hidden object to draw; give an XPL run")
+    if scorer.custom is not None:
+        raise XvoeError(f"the model {scorer.name} gives surprise only, no explanation to draw; give an XPL run")
     if surprise == "nll":
         return explain_nll(scorer, str(data), index, particles=particles, seed=seed)
     if surprise != "mse":

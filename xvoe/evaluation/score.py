@@ -10,6 +10,8 @@ s_dyn column and curve; s_img is all zeros for it.
 from __future__ import annotations
 
 import csv
+import importlib
+import importlib.util
 from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Protocol
@@ -41,21 +43,47 @@ STAGES = (*XPL_STAGES, "phydnet")
 
 
 @dataclass
+class Videos:
+    """A batch of test videos as a surprise model sees them: no labels, nothing from the future
+    of the file."""
+
+    rgbd: np.ndarray        # (B, T, H, W, 4) uint8: RGB, and depth (near is dark)
+    ids: np.ndarray         # (B, T, H, W) uint8: the slot each pixel shows (0: background)
+    frames: int             # T
+
+
+class SurpriseModel(Protocol):
+    """Your own model, as `xvoe score --model package.module:name` (or `path/to/file.py:name`)
+    takes it: an object, or a factory of one, with a `name` and a `surprise` method; an
+    `image_size` attribute, if it has one, is checked against the split's frames.
+    docs/evaluate-your-model.md walks through one."""
+
+    name: str
+
+    def surprise(self, videos: Videos) -> np.ndarray | Tensor:
+        """Per-frame surprise (B, T), higher for more surprising; a video's score is its sum."""
+
+
+@dataclass
 class Scorer:
-    """A trained model ready to score: the perception module and one dynamics stage, or PhyDNet."""
+    """A model ready to score: the perception module and one dynamics stage, PhyDNet, a model
+    of your own (`SurpriseModel`), or none of them (the random agent)."""
 
     name: str
     vae: ComponentVAE | None
     xpl: XPL | None
     seed: int = 0                 # the random agent's scores, and the NLL's importance samples
     phydnet: PhyDNet | None = None
+    custom: SurpriseModel | None = None
 
     @property
     def is_random(self) -> bool:
-        return self.vae is None and self.phydnet is None
+        return self.vae is None and self.phydnet is None and self.custom is None
 
     @property
-    def image_size(self) -> int:
+    def image_size(self) -> int | None:
+        if self.custom is not None:
+            return getattr(self.custom, "image_size", None)
         return (self.phydnet or self.vae).config.image_size
 
     def without_reasoning(self) -> Scorer:
@@ -70,9 +98,13 @@ class Scorer:
 
 def load_model(model: str, device: str = "cpu") -> Scorer:
     """`random`, a shipped model's name (`SHIPPED`), a run directory (its xpl.pt), a stage checkpoint (xpl.pt, plato.pt,
-    xpl-noresidual.pt with perception.pt beside it; phydnet.pt), or RUN_DIR/STAGE."""
+    xpl-noresidual.pt with perception.pt beside it; phydnet.pt), RUN_DIR/STAGE, or a model of your own,
+    `package.module:name` or `path/to/file.py:name` (`SurpriseModel`)."""
     if model == "random":
         return Scorer("random", None, None)
+    if ":" in model and not Path(model).exists():
+        custom = load_surprise_model(model)
+        return Scorer(str(custom.name), None, None, custom=custom)
 
     path = Path(model)
     if model in SHIPPED and not path.exists():
@@ -94,6 +126,46 @@ def load_model(model: str, device: str = "cpu") -> Scorer:
     vae, _ = load_perception(run_dir, device)
     xpl, _ = load_xpl(run_dir, stage, device)
     return Scorer(stage, vae, xpl)
+
+
+def load_surprise_model(reference: str) -> SurpriseModel:
+    """The object `name` of `package.module:name` or `path/to/file.py:name`; a class or another
+    factory is called with no arguments. A one-line error for anything that is not a model."""
+    where, _, name = reference.rpartition(":")
+    try:
+        if where.endswith(".py"):
+            if not Path(where).is_file():
+                raise XvoeError(f"{where}: no such file")
+            spec = importlib.util.spec_from_file_location(Path(where).stem, where)
+            module = importlib.util.module_from_spec(spec)
+            spec.loader.exec_module(module)
+        else:
+            module = importlib.import_module(where)
+    except XvoeError:
+        raise
+    except Exception as error:  # noqa: BLE001 - a user's module may fail in any way; say which and where
+        raise XvoeError(f"cannot import {where} for the model {reference}: {type(error).__name__}: {error}") from None
+    found = getattr(module, name, None)
+    if found is None:
+        raise XvoeError(f"{where} has no {name!r} for the model {reference}")
+    model = found() if isinstance(found, type) or (callable(found) and not hasattr(found, "surprise")) else found
+    if not callable(getattr(model, "surprise", None)) or not isinstance(getattr(model, "name", None), str):
+        raise XvoeError(f"{reference} is not a surprise model: it needs a name (str) and a surprise(videos) "
+                        "method (docs/evaluate-your-model.md)")
+    return model
+
+
+def custom_surprise(scorer: Scorer, file, start: int, stop: int) -> np.ndarray:
+    """A model of your own's per-frame surprise (B, T) of videos [start, stop), checked."""
+    rgbd, ids = file["rgbd"][start:stop], file["ids"][start:stop]
+    found = scorer.custom.surprise(Videos(rgbd, ids, rgbd.shape[1]))
+    values = np.asarray(found.detach().cpu() if isinstance(found, Tensor) else found, dtype=float)
+    if values.shape != rgbd.shape[:2]:
+        raise XvoeError(f"the model {scorer.name} gave surprise of shape {values.shape} for {rgbd.shape[0]} videos "
+                        f"of {rgbd.shape[1]} frames; expected {rgbd.shape[:2]}")
+    if not np.all(np.isfinite(values)):
+        raise XvoeError(f"the model {scorer.name} gave surprise that is not finite for videos {start}..{stop - 1}")
+    return values
 
 
 class ExtraColumns(Protocol):
@@ -142,7 +214,8 @@ def score_split(model: str | Scorer, data: str, out: str, *, how: str = "sum", v
         if scorer.is_random:
             curves[:2] = np.random.default_rng(scorer.seed).random((2, count, frames_count))
         else:
-            check_size(file, scorer.image_size, f"the model {scorer.name}")
+            if scorer.image_size is not None:
+                check_size(file, scorer.image_size, f"the model {scorer.name}")
             with torch.random.fork_rng(devices=[]):     # random draws of extra columns come from the scorer's seed
                 torch.manual_seed(scorer.seed)
                 for start in tqdm(range(0, count, videos_per_batch), desc=f"score {scorer.name}", unit="batch",
@@ -150,6 +223,9 @@ def score_split(model: str | Scorer, data: str, out: str, *, how: str = "sum", v
                     stop = min(count, start + videos_per_batch)
                     if scorer.phydnet is not None:
                         curves[:2, start:stop] = torch.stack(_phydnet_curves(scorer, file, start, stop)).numpy()
+                        continue
+                    if scorer.custom is not None:     # like PhyDNet's: one term, in the s_dyn column
+                        curves[1, start:stop] = custom_surprise(scorer, file, start, stop)
                         continue
                     batch = encode_videos(scorer, file, start, stop)     # once, for every column
                     curves[:, start:stop] = torch.stack(_xpl_curves(scorer, batch)).numpy()

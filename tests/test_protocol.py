@@ -1,0 +1,70 @@
+"""Bring your own model: anything with a name and a per-frame `surprise(videos)` scores and is
+measured like the shipped models, from a module or a file."""
+import csv
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from xvoe.apps.cli import main
+
+EXAMPLES = Path(__file__).resolve().parent.parent / "examples"
+
+
+@pytest.mark.parametrize("reference", ["frame_change.py:FrameChange", "object_tracker.py:ObjectTracker"])
+def test_an_example_model_goes_from_score_to_the_paper_metrics(reference, test_file, tmp_path):
+    scores = tmp_path / "scores.csv"
+    assert main(["score", "--model", str(EXAMPLES / reference), "--data", str(test_file), "--out", str(scores),
+                 "--quiet"]) == 0
+    rows = list(csv.DictReader(open(scores)))
+    assert len(rows) == 176 and all(float(r["s_img"]) == 0 for r in rows)     # 8 pairs of 11 settings
+    curves = np.load(scores.with_suffix(".curves.npz"))
+    np.testing.assert_allclose([float(r["score"]) for r in rows], curves["s_dyn"].sum(1), rtol=1e-9)
+    assert main(["metrics", str(scores), "--out", str(tmp_path / "report"), "--rounds", "10"]) == 0
+    assert (tmp_path / "report" / "comparative.png").exists()
+
+
+def test_the_object_tracker_misses_a_cube_that_is_gone_when_the_wall_lifts(test_file, tmp_path):
+    scores = tmp_path / "t.csv"
+    main(["score", "--model", str(EXAMPLES / "object_tracker.py:ObjectTracker"), "--data", str(test_file),
+          "--out", str(scores), "--quiet"])
+    rows = [r for r in csv.DictReader(open(scores)) if (r["scenario"], r["setting"]) == ("permanence", "S1")]
+    by_pair = {}
+    for r in rows:
+        by_pair.setdefault(r["pair"], {})[r["member"]] = float(r["score"])
+    assert all(pair["1"] > pair["0"] for pair in by_pair.values())
+
+
+def write_module(folder: Path, text: str) -> None:
+    (folder / "my_models.py").write_text(text)
+
+
+def test_a_module_factory_loads_and_bad_models_get_one_line(test_file, tmp_path, monkeypatch, capsys):
+    write_module(tmp_path, (
+        "import numpy as np\n"
+        "class Still:\n"
+        "    name = 'still'\n"
+        "    image_size = 64\n"
+        "    def surprise(self, videos):\n"
+        "        return np.zeros((len(videos.rgbd), videos.frames))\n"
+        "def make():\n"
+        "    return Still()\n"
+        "class Wrong:\n"
+        "    name = 'wrong'\n"
+        "    def surprise(self, videos):\n"
+        "        return np.zeros(3)\n"
+        "class Small(Still):\n"
+        "    image_size = 32\n"
+        "nothing = 3\n"))
+    monkeypatch.syspath_prepend(str(tmp_path))
+    out = tmp_path / "s.csv"
+    assert main(["score", "--model", "my_models:make", "--data", str(test_file), "--out", str(out), "--quiet"]) == 0
+    assert {r["model"] for r in csv.DictReader(open(out))} == {"still"}
+    for reference, needle in [("my_models:Wrong", "expected (16, 15)"), ("my_models:nothing", "not a surprise model"),
+                              ("my_models:absent", "has no 'absent'"), ("no_such_module:x", "cannot import"),
+                              ("my_models:Small", "works at 32x32"), ("missing.py:x", "no such file")]:
+        code = main(["score", "--model", reference, "--data", str(test_file), "--out", str(tmp_path / "x.csv"),
+                     "--quiet"])
+        err = capsys.readouterr().err
+        assert code == 2 and len(err.strip().splitlines()) == 1 and needle in err, (reference, err)
+        assert not (tmp_path / "x.csv").exists()
