@@ -9,8 +9,6 @@ settings can be compared pair by pair.
 """
 from __future__ import annotations
 
-import ctypes
-import ctypes.util
 import multiprocessing
 import signal
 from dataclasses import asdict, dataclass
@@ -132,14 +130,9 @@ def _map(function, items: range, workers: int):
 
 
 def _worker_follows_parent() -> None:
-    """A worker leaves Ctrl-C to the parent (which stops the pool and removes its half-written
-    file) and dies with it when it is killed, instead of printing a broken pipe's traceback."""
+    """A worker leaves Ctrl-C to the parent, which stops the pool and removes its half-written
+    file, instead of each worker printing a traceback of its own."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)
-    try:
-        libc = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6", use_errno=True)
-        libc.prctl(1, signal.SIGTERM)       # PR_SET_PDEATHSIG: Linux only
-    except (OSError, AttributeError):
-        pass
 
 
 def merge(parts: list[str | Path], out: str | Path, overwrite: bool = False, progress: bool = True) -> Path:
