@@ -100,8 +100,14 @@ def test_nll_explanation_shapes_and_probabilities(hidden_free):
     else:
         assert explanation.slot == -1 and explanation.holding == 0 and explanation.p_hidden == 0.0
         assert (explanation.hidden_object[..., 3] == 255).all()     # the blank: nothing drawn
+    if hidden_free:     # the heaviest distinct hypotheses, each drawn alone with its weight
+        assert 1 <= len(explanation.hypotheses) <= 3
+        assert all(label.startswith("hypothesis") and frames.shape == (T, 16, 16, 4)
+                   for label, frames in explanation.hypotheses)
+    else:
+        assert explanation.hypotheses == []
     figure = plot_explanation(explanation)
-    assert len(figure.axes[0].get_yticklabels()) == 3
+    assert len(figure.axes[0].get_yticklabels()) == 3 + len(explanation.hypotheses)
     plt.close(figure)
 
 
@@ -159,7 +165,8 @@ def test_cli_explain_with_the_nll_posterior(shipped, tmp_path, capsys):
     args = ["explain", "--model", "xpl", "--data", str(path), "--index", str(index), "--surprise", "nll",
             "--particles", "16", "--out", str(out)]
     assert main(args) == 0 and out.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
-    assert main(["explain", "--model", "random", "--data", str(path), "--surprise", "nll", "--out", str(out)]) == 2
+    assert main(["explain", "--model", "random", "--data", str(path), "--surprise", "nll",
+                 "--out", str(tmp_path / "random.png")]) == 2
     assert "random agent" in capsys.readouterr().err
 
 

@@ -295,7 +295,7 @@ def test_a_focus_group_fills_its_share_of_each_batch_with_that_groups_wall_video
         VideoBatches(str(splits[0]), image_size=16, batch_size=4, shards=1, focus_group="continuity", focus_share=0.1)
     with pytest.raises(XvoeError, match="no continuity videos with a wall in rows 3 to 5"):
         VideoBatches(str(splits[0]), image_size=16, batch_size=4, shards=2, focus_group="continuity", focus_share=0.5)
-    with pytest.raises(XvoeError, match="needs a training split"):
+    with pytest.raises(XvoeError, match="needs a train split"):
         VideoBatches(str(splits[1]), image_size=16, batch_size=4, shards=1, focus_group="continuity", focus_share=0.5)
 
 
