@@ -62,6 +62,16 @@ def random_frames(rng: np.random.Generator, count: int, size: int) -> tuple[np.n
     return rgbd, ids
 
 
+def training_step(model, optimiser, batch):
+    """One optimiser step on a fixed batch, as the training loop takes it."""
+    def step() -> None:
+        loss = model(batch)["loss"]
+        optimiser.zero_grad(set_to_none=True)
+        loss.backward()
+        optimiser.step()
+    return step
+
+
 def perception_step(config, frames: int, rng: np.random.Generator):
     model = ComponentVAE(config).train()
     optimiser = torch.optim.Adam(model.parameters(), lr=1e-4)
@@ -69,12 +79,7 @@ def perception_step(config, frames: int, rng: np.random.Generator):
     noise = rng.standard_normal((frames, SLOTS + 1, config.latent_dim), dtype=np.float32)
     batch = perception_batch(rgbd, ids, SLOTS, noise, noise[:1, 0])
 
-    def step() -> None:
-        loss = model(batch)["loss"]
-        optimiser.zero_grad(set_to_none=True)
-        loss.backward()
-        optimiser.step()
-    return step
+    return training_step(model, optimiser, batch)
 
 
 def xpl_step(config, videos: int, rng: np.random.Generator):
@@ -89,12 +94,7 @@ def xpl_step(config, videos: int, rng: np.random.Generator):
                         hidden=torch.from_numpy(rng.integers(0, SLOTS, videos)),
                         refill=torch.from_numpy(rng.random(shape) < 0.2), walls=walls)
 
-    def step() -> None:
-        loss = model(batch)["loss"]
-        optimiser.zero_grad(set_to_none=True)
-        loss.backward()
-        optimiser.step()
-    return step
+    return training_step(model, optimiser, batch)
 
 
 def score_step(perception, xpl_config, videos: int, rng: np.random.Generator):

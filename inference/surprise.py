@@ -160,16 +160,14 @@ def hidden_posterior(result: NLLSurprise) -> HiddenPosterior | None:
         mean = (weights[:, None, None] * found.trajectories.to(torch.float64)).sum(0).to(found.trajectories.dtype)
         best = int(weights.argmax())
         return HiddenPosterior(mean, found.trajectories[best], float(weights[best]), found.particles, found.ess)
-    nodes = result.estimate.guide_trace.nodes
-    alive = nodes["exists"]["value"].bool()
-    if result.hidden_slot < 0 or not alive.any():
+    held = _held_trajectories(result)
+    if held is None:
         return None
-    frames = sum(1 for name in nodes if name.startswith("z_"))
-    trajectories = torch.stack([nodes[f"z_{t}"]["value"] for t in range(frames)], dim=1)[alive]
-    weights = torch.softmax(result.estimate.log_weights[alive], dim=0)
+    trajectories, log_weights = held
+    weights = torch.softmax(log_weights, dim=0)
     mean = (weights[:, None, None] * trajectories.to(torch.float64)).sum(0).to(trajectories.dtype)
     best = int(weights.argmax())
-    return HiddenPosterior(mean, trajectories[best], float(weights[best]), int(alive.sum()),
+    return HiddenPosterior(mean, trajectories[best], float(weights[best]), len(trajectories),
                            float(1.0 / (weights ** 2).sum()))
 
 
@@ -203,13 +201,22 @@ def explain_surprise(vae: ComponentVAE, xpl: XPL, frames: Tensor, mean: Tensor, 
                     result)
 
 
-def _importance_hypotheses(result: NLLSurprise, config: InferenceConfig, top: int) -> Hypotheses | None:
+def _held_trajectories(result: NLLSurprise) -> tuple[Tensor, Tensor] | None:
+    """The importance sampler's trajectories (N, T, D) that hold an object, with their log
+    weights (N,); None where none does."""
     nodes = result.estimate.guide_trace.nodes
     alive = nodes["exists"]["value"].bool()
     if result.hidden_slot < 0 or not alive.any():
         return None
     frames = sum(1 for name in nodes if name.startswith("z_"))
     trajectories = torch.stack([nodes[f"z_{t}"]["value"] for t in range(frames)], dim=1)[alive]
-    held = SMCEstimate(0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0, 0, 0, int(alive.sum()), trajectories,
-                       result.estimate.log_weights[alive])
+    return trajectories, result.estimate.log_weights[alive]
+
+
+def _importance_hypotheses(result: NLLSurprise, config: InferenceConfig, top: int) -> Hypotheses | None:
+    found = _held_trajectories(result)
+    if found is None:
+        return None
+    trajectories, log_weights = found
+    held = SMCEstimate(0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0, 0, 0, len(trajectories), trajectories, log_weights)
     return top_hypotheses(held, top)

@@ -10,7 +10,9 @@ settings can be compared pair by pair.
 from __future__ import annotations
 
 import multiprocessing
+import os
 import signal
+import sys
 from dataclasses import asdict, dataclass
 from functools import partial
 from pathlib import Path
@@ -131,8 +133,11 @@ def _map(function, items: range, workers: int):
 
 def _worker_follows_parent() -> None:
     """A worker leaves Ctrl-C to the parent, which stops the pool and removes its half-written
-    file, instead of each worker printing a traceback of its own."""
+    file. Its own stderr goes nowhere: an error in a unit reaches the parent through the pool
+    and is raised there, so what a worker would print is the pool's broken pipe once the parent
+    is killed."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)
+    sys.stderr = open(os.devnull, "w")    # noqa: SIM115 - open for the worker's whole life
 
 
 def merge(parts: list[str | Path], out: str | Path, overwrite: bool = False, progress: bool = True) -> Path:
