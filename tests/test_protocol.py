@@ -68,3 +68,44 @@ def test_a_module_factory_loads_and_bad_models_get_one_line(test_file, tmp_path,
         err = capsys.readouterr().err
         assert code == 2 and len(err.strip().splitlines()) == 1 and needle in err, (reference, err)
         assert not (tmp_path / "x.csv").exists()
+
+
+def test_scoring_in_shards_merges_to_the_bytes_of_one_run(test_file, tmp_path, capsys):
+    model = str(EXAMPLES / "frame_change.py:FrameChange")
+    parts = []
+    for index in (2, 0, 1):      # merged in any order
+        part = tmp_path / f"part{index}.csv"
+        assert main(["score", "--model", model, "--data", str(test_file), "--shard", f"{index}/3", "--batch", "8",
+                     "--out", str(part), "--quiet"]) == 0
+        parts.append(str(part))
+    assert main(["score", "--merge", *parts, "--out", str(tmp_path / "merged.csv")]) == 0
+    assert main(["score", "--model", model, "--data", str(test_file), "--batch", "8", "--out",
+                 str(tmp_path / "whole.csv"), "--quiet"]) == 0
+    for suffix in (".csv", ".curves.npz"):
+        assert (tmp_path / f"merged{suffix}").read_bytes() == (tmp_path / f"whole{suffix}").read_bytes()
+    capsys.readouterr()
+    assert main(["score", "--merge", parts[0], parts[2], "--out", str(tmp_path / "gap.csv")]) == 2
+    assert "do not follow each other" in capsys.readouterr().err
+
+
+def test_the_split_as_a_pytorch_dataset_reads_the_same_in_loader_workers(test_file):
+    import torch
+    from torch.utils.data import DataLoader
+
+    import xvoe
+    from xvoe.benchmark import store
+
+    dataset = xvoe.SplitDataset(test_file)
+    assert len(dataset) == 176 and dataset[-1]["index"] == 175
+    with pytest.raises(IndexError):
+        dataset[176]
+    seen = {}
+    for batch in DataLoader(dataset, batch_size=16, num_workers=2):
+        for row, index in enumerate(batch["index"].tolist()):
+            seen[index] = (batch["rgbd"][row], batch["scenario"][row], bool(batch["possible"][row]))
+    assert sorted(seen) == list(range(176))
+    with store.open_dataset(test_file) as file:
+        for index in (0, 57, 175):
+            rgbd, scenario, possible = seen[index]
+            assert torch.equal(rgbd, torch.from_numpy(file["rgbd"][index]))
+            assert scenario == file["scenario"].asstr()[index] and possible == bool(file["possible"][index])

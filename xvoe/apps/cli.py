@@ -71,9 +71,17 @@ def cmd_show(args: argparse.Namespace) -> None:
 
 
 def cmd_score(args: argparse.Namespace) -> None:
+    if args.merge:
+        if args.model or args.data or args.shard != (0, 1):
+            raise XvoeError("--merge joins score files as they were written; "
+                            "leave out --model, --data and --shard")
+        print(xvoe.merge_scores(args.merge, args.out, overwrite=args.overwrite))
+        return
+    if args.model is None or args.data is None:
+        raise XvoeError("--model and --data are required (unless --merge joins the parts of a sharded run)")
     print(xvoe.score(args.model, args.data, args.out, surprise=args.surprise, particles=args.particles,
-                     seed=args.seed, how=args.aggregate, videos_per_batch=args.batch, overwrite=args.overwrite,
-                     progress=not args.quiet))
+                     seed=args.seed, how=args.aggregate, shard=args.shard, videos_per_batch=args.batch,
+                     overwrite=args.overwrite, progress=not args.quiet))
 
 
 def cmd_explain(args: argparse.Namespace) -> None:
@@ -260,10 +268,10 @@ def build_parser() -> argparse.ArgumentParser:
                              description="One CSV row per test video (index, scenario, setting, pair, member, "
                                          "possible, score, s_img, s_dyn) and the per-frame surprise curves in "
                                          "OUT.curves.npz. The MSE surprise is the paper's (Eq. 2-4).")
-    score.add_argument("--model", required=True,
+    score.add_argument("--model",
                        help="a run directory, a stage checkpoint (xpl.pt, plato.pt, xpl-noresidual.pt, "
                             "phydnet.pt) or random")
-    score.add_argument("--data", required=True, help="a test split file")
+    score.add_argument("--data", help="a test split file")
     score.add_argument("--out", required=True, help="the scores CSV to write")
     score.add_argument("--surprise", choices=("mse", "nll", "both"), default="mse",
                        help="mse: the paper's score; nll: -log p(video) under the Pyro model (adds nll, ess, "
@@ -274,6 +282,9 @@ def build_parser() -> argparse.ArgumentParser:
     score.add_argument("--batch", type=_positive, default=16, help="videos per batch")
     score.add_argument("--overwrite", action="store_true", help="replace --out if it exists")
     score.add_argument("--quiet", action="store_true", help="no progress bar")
+    score.add_argument("--shard", type=_shard, default=(0, 1), metavar="I/N",
+                       help="score only part I of N (counted from 0); join the parts with --merge")
+    score.add_argument("--merge", nargs="+", metavar="PART", help="join the score files of --shard runs into --out")
     score.set_defaults(run=cmd_score)
 
     explain = verbs.add_parser("explain", help="draw the model's explanation of what is behind the wall",

@@ -20,20 +20,21 @@ SURPRISES = ("mse", "nll", "both")
 
 
 def score(model: str | Scorer, data: str | Path, out: str | Path, *, surprise: str = "mse", particles: int = 64,
-          seed: int = 0, how: str = "sum", videos_per_batch: int = 16, overwrite: bool = False,
-          progress: bool = True) -> Path:
+          seed: int = 0, how: str = "sum", videos_per_batch: int = 16, shard: tuple[int, int] = (0, 1),
+          overwrite: bool = False, progress: bool = True) -> Path:
     """Score every video of a test split into a CSV (and the per-frame curves beside it).
 
     surprise: "mse", the paper's score; "nll", -log p(video) under the Pyro model (the score
     column is the NLL; the columns nll, ess, p_hidden and nll_excess are added); "both", the
-    MSE score with the NLL's columns beside it. model: a name (`xpl`, `random`, ...), a run
+    MSE score with the NLL's columns beside it. shard: (I, N) scores part I of N, for
+    `merge_scores` to join (xvoe score --shard / --merge). model: a name (`xpl`, `random`, ...), a run
     directory, a checkpoint, or a loaded `Scorer`. seed: the NLL's random draws (each video's
     from a generator of its own), so that a score file can be reproduced and its spread measured."""
     if surprise not in SURPRISES:
         raise XvoeError(f"--surprise must be mse, nll or both, not {surprise!r}")
     extra = NLLColumns(particles, seed) if surprise != "mse" else None
     return score_split(model, str(data), str(out), how=how, videos_per_batch=videos_per_batch, extra=extra,
-                       score_column="nll" if surprise == "nll" else "score", overwrite=overwrite,
+                       score_column="nll" if surprise == "nll" else "score", shard=shard, overwrite=overwrite,
                        progress=progress)
 
 

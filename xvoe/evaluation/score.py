@@ -187,13 +187,14 @@ class ExtraColumns(Protocol):
 
 
 def score_split(model: str | Scorer, data: str, out: str, *, how: str = "sum", videos_per_batch: int = 16,
-                extra: ExtraColumns | None = None, score_column: str = "score", overwrite: bool = False,
-                progress: bool = True) -> Path:
+                extra: ExtraColumns | None = None, score_column: str = "score", shard: tuple[int, int] = (0, 1),
+                overwrite: bool = False, progress: bool = True) -> Path:
     """One CSV row per test video, and the per-frame surprise curves (s_img, s_dyn: (N, T);
     s_rec too for a model with a perception module) in an .npz beside it. Models with a
     perception module also get the columns s_rec and excess (xvoe.evaluation.surprise).
     `extra` adds columns after these; `score_column` names one of them to be the score
-    instead of the MSE score."""
+    instead of the MSE score. `shard` (I, N) scores part I of N, whole batches of it, so that
+    `merge_scores` of the parts writes the bytes one run would have."""
     if how not in ("sum", "max"):
         raise XvoeError(f"--aggregate must be sum or max, not {how!r}")
     if score_column != "score" and (extra is None or score_column not in extra.names):
@@ -207,6 +208,7 @@ def score_split(model: str | Scorer, data: str, out: str, *, how: str = "sum", v
     curves_path = claim_file(out.with_suffix(".curves.npz"), overwrite, what="the curves beside --out")
     with store.open_dataset(data, split="test") as file:
         count, frames_count, size = file["rgbd"].shape[:3]
+        first, last = shard_rows(count, videos_per_batch, shard)
         labels = {name: (store.strings(file, name) if name in ("scenario", "setting") else file[name][:])
                   for name in ("scenario", "setting", "pair", "member", "possible")}
         curves = np.zeros((3, count, frames_count))     # s_img, s_dyn, s_rec
@@ -218,9 +220,9 @@ def score_split(model: str | Scorer, data: str, out: str, *, how: str = "sum", v
                 check_size(file, scorer.image_size, f"the model {scorer.name}")
             with torch.random.fork_rng(devices=[]):     # random draws of extra columns come from the scorer's seed
                 torch.manual_seed(scorer.seed)
-                for start in tqdm(range(0, count, videos_per_batch), desc=f"score {scorer.name}", unit="batch",
+                for start in tqdm(range(first, last, videos_per_batch), desc=f"score {scorer.name}", unit="batch",
                                   disable=not progress):
-                    stop = min(count, start + videos_per_batch)
+                    stop = min(last, start + videos_per_batch)
                     if scorer.phydnet is not None:
                         curves[:2, start:stop] = torch.stack(_phydnet_curves(scorer, file, start, stop)).numpy()
                         continue
@@ -232,7 +234,8 @@ def score_split(model: str | Scorer, data: str, out: str, *, how: str = "sum", v
                     if values is not None:
                         values.append(extra.batch(scorer, batch))
     with_rec = scorer.vae is not None
-    added = extra.finish(np.concatenate(values), curves, size) if extra is not None else np.zeros((count, 0))
+    curves = curves[:, first:last]
+    added = extra.finish(np.concatenate(values), curves, size) if extra is not None else np.zeros((last - first, 0))
     s_img, s_dyn, s_rec = (aggregate(torch.from_numpy(c), how).numpy() for c in curves)
     if score_column == "score":
         total = aggregate(torch.from_numpy(curves[:2].sum(0)), how).numpy()
@@ -247,12 +250,61 @@ def score_split(model: str | Scorer, data: str, out: str, *, how: str = "sum", v
             np.savez_compressed(curves_file, **named)
         writer = csv.writer(handle)
         writer.writerow(SCORE_COLUMNS + (EXCESS_COLUMNS if with_rec else ()) + (extra.names if extra else ()))
-        for i in range(count):
-            row_extra = [float(s_rec[i]), float(excess_score[i])] if with_rec else []
-            row_extra += list(map(float, added[i]))
+        for row, i in enumerate(range(first, last)):
+            row_extra = [float(s_rec[row]), float(excess_score[row])] if with_rec else []
+            row_extra += list(map(float, added[row]))
             writer.writerow([i, scorer.name, labels["scenario"][i], labels["setting"][i], int(labels["pair"][i]),
-                             int(labels["member"][i]), bool(labels["possible"][i]), float(total[i]),
-                             float(s_img[i]), float(s_dyn[i])] + row_extra)
+                             int(labels["member"][i]), bool(labels["possible"][i]), float(total[row]),
+                             float(s_img[row]), float(s_dyn[row])] + row_extra)
+    return out
+
+
+def shard_rows(count: int, videos_per_batch: int, shard: tuple[int, int]) -> tuple[int, int]:
+    """Rows [first, last) of part I of N: whole batches, so each video is scored in the batch a
+    single run would score it in."""
+    index, parts = shard
+    if not 0 <= index < parts:
+        raise XvoeError(f"--shard must be I/N with 0 <= I < N, not {index}/{parts}")
+    batches = -(-count // videos_per_batch)
+    if parts > batches:
+        raise XvoeError(f"cannot cut {batches} batches of {videos_per_batch} videos into {parts} shards")
+    first, last = index * batches // parts, (index + 1) * batches // parts
+    return first * videos_per_batch, min(count, last * videos_per_batch)
+
+
+def merge_scores(parts: list[str | Path], out: str | Path, overwrite: bool = False) -> Path:
+    """Join the score files of `xvoe score --shard` (and their curves) into the files one run
+    would have written, byte for byte; an error unless they are the parts of one split."""
+    if not parts:
+        raise XvoeError("--merge needs at least one part")
+    out = claim_file(out, overwrite)
+    curves_path = claim_file(out.with_suffix(".curves.npz"), overwrite, what="the curves beside --out")
+    found = []
+    for part in map(Path, parts):
+        if not part.is_file() or not part.with_suffix(".curves.npz").is_file():
+            raise XvoeError(f"{part} is not a scores file with its curves beside it")
+        with open(part, newline="") as handle:      # the CSV's own line ends, kept
+            lines = handle.read().splitlines(keepends=True)
+        if len(lines) < 2:
+            raise XvoeError(f"{part} holds no scores")
+        found.append((int(lines[1].split(",", 1)[0]), part, lines))
+    found.sort(key=lambda item: item[0])
+    header, expected, rows, arrays = found[0][2][0], 0, [], {}
+    for first, part, lines in found:
+        if lines[0] != header:
+            raise XvoeError(f"{part} has other columns than {found[0][1]}: the parts of one run have the same")
+        if first != expected:
+            raise XvoeError(f"the parts do not follow each other: {part} starts at video {first}, not {expected}")
+        expected += len(lines) - 1
+        rows += lines[1:]
+        with np.load(part.with_suffix(".curves.npz")) as curves:
+            for name in curves.files:
+                arrays.setdefault(name, []).append(curves[name])
+    with atomic_paths(curves_path, out) as (curves_tmp, tmp):
+        with open(curves_tmp, "wb") as curves_file:
+            np.savez_compressed(curves_file, **{name: np.concatenate(a) for name, a in arrays.items()})
+        with open(tmp, "w", newline="") as handle:
+            handle.writelines([header, *rows])
     return out
 
 
