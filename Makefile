@@ -22,7 +22,7 @@ demo: $(STAMP)
 	$(BIN)/xvoe generate --split test --pairs 20 --size 32 --seed 7 --out demo/test.h5 --overwrite
 	$(BIN)/xvoe score --model xpl --data demo/test.h5 --out demo/scores/xpl.csv --overwrite
 	$(BIN)/xvoe score --model random --data demo/test.h5 --out demo/scores/random.csv --overwrite
-	$(BIN)/xvoe metrics demo/scores/xpl.csv demo/scores/random.csv --out demo/report --overwrite
+	$(BIN)/xvoe metrics demo/scores/xpl.csv demo/scores/random.csv --data demo/test.h5 --out demo/report --overwrite
 	$(BIN)/xvoe explain --model xpl --data demo/test.h5 --index 160 --out demo/explanation-blocking-S2.png --overwrite
 	for i in 0 40 80 120 160 200 240 280 320 360 400; do \
 		$(BIN)/xvoe show demo/test.h5 --index $$i --out demo/pair-$$i.png --overwrite || exit 1; done

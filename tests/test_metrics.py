@@ -197,3 +197,23 @@ def test_report_compares_the_two_surprises_and_draws_disagreements(test_data, te
     generate(GenerateConfig("test", pairs=1, size=16, seed=3), other, workers=1, progress=False)
     with pytest.raises(XvoeError, match="does not hold the videos"):
         report([path], tmp_path / "again", rounds=5, data=other)
+
+
+def test_violation_onset_on_hand_made_curves():
+    from xvoe.evaluation.metrics import onset, onset_pairs
+
+    # two collision S1 pairs (rows: pair 0 possible, impossible; pair 1 possible, impossible), event at frame 2
+    scores = {"scenario": np.array(["collision"] * 4), "setting": np.array(["S1"] * 4),
+              "pair": np.array([0.0, 0.0, 1.0, 1.0]), "possible": np.array([True, False, True, False])}
+    per_frame = np.array([[1, 1, 1, 1, 1, 1],
+                          [1, 1, 1, 5, 9, 1],      # rises at 3, peaks at 4: timely, 2 after the event
+                          [1, 1, 1, 1, 1, 1],
+                          [1, 4, 1, 1, 1, 1]], dtype=float)   # rises and peaks at 1: before the event
+    event = np.array([2, 2, 2, 2])
+    pairs = onset_pairs(scores, per_frame, event)
+    assert [(p["first_positive"], p["timely"], p["peak_offset"]) for p in pairs] == [(3, True, 2), (1, False, -1)]
+    row, = onset(scores, per_frame, event, "m", rounds=50)
+    assert (row["pairs"], row["timely"], row["median_peak_offset"]) == (2, 0.5, 0.5)
+    noise = per_frame.copy()
+    noise[1, 0] += 0.3      # under a tenth of the peak difference (8): no rise yet
+    assert onset_pairs(scores, noise, event)[0]["timely"]

@@ -299,6 +299,29 @@ def draw_frame_rows(ax, videos: list[np.ndarray], labels: list[str], title: str)
     ax.set_title(title, fontsize=8)
 
 
+def plot_onset(pairs: dict[str, list[dict]]) -> plt.Figure:
+    """Violation onset: for each scenario, how many S1/S3 pairs' surprise difference peaks how
+    many frames after the event (0: at the event frame; negative: before it), one series per
+    model (`xvoe.evaluation.metrics.onset_pairs`)."""
+    scenarios = list(dict.fromkeys(p["scenario"] for found in pairs.values() for p in found))
+    if not scenarios:
+        raise XvoeError("no S1 or S3 pair with an event frame to time")
+    offsets = [p["peak_offset"] for found in pairs.values() for p in found]
+    edges = np.arange(min(offsets) - 0.5, max(offsets) + 1.5)
+    fig, axes = plt.subplots(1, len(scenarios), figsize=(3.2 * len(scenarios), 2.8), sharey=True, squeeze=False)
+    for ax, scenario in zip(axes[0], scenarios):
+        for model, found in pairs.items():
+            ax.hist([p["peak_offset"] for p in found if p["scenario"] == scenario], bins=edges, alpha=0.6,
+                    label=model)
+        ax.axvline(0, color="red", linewidth=1)
+        ax.set_title(scenario, fontsize=9)
+        ax.set_xlabel("frames from event to peak", fontsize=8)
+    axes[0][0].set_ylabel("S1/S3 pairs", fontsize=8)
+    axes[0][-1].legend(fontsize=7)
+    fig.tight_layout()
+    return fig
+
+
 def plot_explanation(explanation) -> plt.Figure:
     """The paper's Fig. 7/8: observed frames, the scene behind the wall as the model believes
     it (occluder left out), and the explanation object alone; the rows an explanation gives

@@ -12,10 +12,13 @@ from ..benchmark import store
 from ..errors import XvoeError
 from ..evaluation.metrics import (
     DISAGREEMENT_FIELDS,
+    ONSET_FIELDS,
     disagreements,
     has_both_surprises,
     metric_rows,
     model_name,
+    onset,
+    onset_pairs,
     read_scores,
     side_by_side,
 )
@@ -24,7 +27,7 @@ from . import figures
 
 # what a report writes, so that a rerun into the same directory leaves nothing of the last one
 REPORT_FILES = ("metrics.csv", "metrics.json", "holistic.png", "comparative.png", "components-*.png",
-                "disagreements-*.png", "surprise-*.csv", "disagreements-*.csv")
+                "disagreements-*.png", "surprise-*.csv", "disagreements-*.csv", "onset.csv", "onset.png")
 
 
 def report(paths: list[str | Path], out_dir: str | Path, rounds: int = 1000, seed: int = 0,
@@ -33,10 +36,13 @@ def report(paths: list[str | Path], out_dir: str | Path, rounds: int = 1000, see
     models' scores files. A scores file holding both surprise definitions (`xvoe score
     --surprise both`) also gets them side by side (surprise-MODEL.csv) and the pairs they
     judge differently (disagreements-MODEL.csv); with `data`, the test split the scores
-    came from, a figure of a few of those pairs too."""
+    came from, a figure of a few of those pairs too, and for every model whose per-frame
+    curves lie beside its scores, the violation onset (onset.csv, onset.png)."""
     rows = []
     names = []
     compared = {}
+    timing, timed_pairs = [], {}
+    events = _event_frames(data) if data is not None else None
     for path in paths:
         scores = read_scores(path, data)
         name = model_name(path, scores)
@@ -46,6 +52,11 @@ def report(paths: list[str | Path], out_dir: str | Path, rounds: int = 1000, see
         rows += metric_rows(scores, name, rounds=rounds, seed=seed)
         if has_both_surprises(scores):
             compared[name] = scores
+        per_frame = _per_frame(Path(path), len(scores["index"]))
+        if events is not None and per_frame is not None:
+            event = events[scores["index"].astype(int)]
+            timing += onset(scores, per_frame, event, name, rounds=rounds, seed=seed)
+            timed_pairs[name] = onset_pairs(scores, per_frame, event)
     if not rows:
         raise XvoeError("the scores hold no test pairs to measure")
     out_dir = claim_directory(out_dir)
@@ -59,6 +70,9 @@ def report(paths: list[str | Path], out_dir: str | Path, rounds: int = 1000, see
     for name in names:
         if any(r["model"] == name and r["column"] != "score" for r in rows):
             drawn[f"components-{name}.png"] = figures.plot_components(rows, name)
+    if timing:
+        written.append(write_csv(timing, out_dir / "onset.csv", ONSET_FIELDS))
+        drawn["onset.png"] = figures.plot_onset(timed_pairs)
     for name, scores in compared.items():
         differ = disagreements(scores)
         written.append(write_csv(side_by_side(scores, rows, name), Path(out_dir) / f"surprise-{name}.csv"))
@@ -94,3 +108,19 @@ def _disagreement_figure(data: str | Path, scores: dict[str, np.ndarray], differ
     labels were checked against the scores when they were read)."""
     with store.open_dataset(data) as file:
         return figures.plot_disagreements(file, differ)
+
+
+def _event_frames(data: str | Path) -> np.ndarray:
+    with store.open_dataset(data, split="test") as file:
+        return file["event_frame"][:]
+
+
+def _per_frame(path: Path, rows: int) -> np.ndarray | None:
+    """The per-frame surprise (s_img + s_dyn) saved beside a scores file, row by row, or None."""
+    curves = path.with_suffix(".curves.npz")
+    if not curves.is_file():
+        return None
+    with np.load(curves) as saved:
+        if not {"s_img", "s_dyn"} <= set(saved.files) or saved["s_img"].shape[0] != rows:
+            raise XvoeError(f"{curves} does not hold the curves of {path} (s_img and s_dyn, one row per video)")
+        return saved["s_img"] + saved["s_dyn"]
