@@ -69,3 +69,14 @@ def test_every_verb_has_help(verb, capsys):
         main([verb, "--help"])
     assert exit_.value.code == 0
     assert "usage: xvoe " + verb in capsys.readouterr().out
+
+
+def test_show_writes_an_mp4_with_the_surprise_curves(test_file, tmp_path, capsys):
+    scores = tmp_path / "random.csv"
+    assert main(["score", "--model", "random", "--data", str(test_file), "--out", str(scores), "--quiet"]) == 0
+    for name, extra in (("plain.mp4", []), ("curves.mp4", ["--scores", str(scores)])):
+        out = tmp_path / name
+        assert main(["show", str(test_file), "--index", "5", "--out", str(out), *extra]) == 0
+        assert out.read_bytes()[4:8] == b"ftyp"         # an MP4 container
+    assert main(["show", str(test_file), "--out", str(tmp_path / "a.png"), "--scores", str(scores)]) == 2
+    assert "give --out NAME.mp4" in capsys.readouterr().err

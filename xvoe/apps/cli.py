@@ -67,7 +67,7 @@ def cmd_generate(args: argparse.Namespace) -> None:
 
 def cmd_show(args: argparse.Namespace) -> None:
     out = args.out or Path(args.file).with_suffix(f".{args.index}.png").name
-    print(xvoe.show(args.file, args.index, out, overwrite=args.overwrite))
+    print(xvoe.show(args.file, args.index, out, overwrite=args.overwrite, scores=args.scores))
 
 
 def cmd_score(args: argparse.Namespace) -> None:
@@ -253,12 +253,13 @@ def build_parser() -> argparse.ArgumentParser:
     gen.add_argument("--quiet", action="store_true", help="no progress bar")
     gen.set_defaults(run=cmd_generate)
 
-    show = verbs.add_parser("show", help="contact sheet (PNG) or animation (GIF) of a video or test pair",
+    show = verbs.add_parser("show", help="contact sheet (PNG), animation (GIF) or video (MP4) of a video or pair",
                             description="Frames in a row: RGB, depth and slot ids; a test pair's members "
                                         "one above the other with the event frame outlined.")
     show.add_argument("file", help="an xvoe HDF5 file")
     show.add_argument("--index", type=int, default=0, help="video index (a test video shows its pair)")
-    show.add_argument("--out", help="fig.png or anim.gif (default: FILE.INDEX.png here)")
+    show.add_argument("--out", help="fig.png, anim.gif or pair.mp4 (default: FILE.INDEX.png here)")
+    show.add_argument("--scores", help="mp4: a scores CSV of xvoe score, whose surprise curves play under the pair")
     show.add_argument("--overwrite", action="store_true", help="replace --out if it exists")
     show.set_defaults(run=cmd_show)
 

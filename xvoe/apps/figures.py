@@ -8,6 +8,7 @@ from __future__ import annotations
 from pathlib import Path
 
 import h5py
+import imageio_ffmpeg
 import matplotlib.pyplot as plt
 import numpy as np
 import torch
@@ -113,18 +114,81 @@ def save_gif(file: h5py.File, index: int, out: str | Path, zoom: int = 3, frame_
     return Path(out)
 
 
-def show(path: str | Path, index: int, out: str | Path | None = None, overwrite: bool = False) -> Path | plt.Figure:
-    """What `xvoe show` does: a PNG contact sheet or a GIF, chosen by the suffix of `out`
-    (no `out`: the figure)."""
+def save_video(file: h5py.File, index: int, out: str | Path, scores: str | Path | None = None,
+               fps: int = 3) -> Path:
+    """An MP4 for slides and a class: the video's pair side by side, and, given the `scores`
+    CSV of `xvoe score` (its curves beside it), each member's per-frame surprise under them
+    with the frame marked as it plays."""
+    indices = video_indices(file, index)
+    videos = [file["rgbd"][i][..., :3] for i in indices]
+    titles = [describe(file, i) for i in indices]
+    curves = _video_curves(scores, indices) if scores is not None else None
+    event = int(file["event_frame"][indices[-1]]) if "event_frame" in file else -1
+    pictures = []
+    for t in range(videos[0].shape[0]):
+        fig = plt.figure(figsize=(6.4, 4.8 if curves is not None else 3.2), dpi=100)
+        grid = fig.add_gridspec(2 if curves is not None else 1, len(videos))
+        for column, (video, title) in enumerate(zip(videos, titles)):
+            ax = fig.add_subplot(grid[0, column])
+            ax.imshow(video[t], interpolation="nearest")
+            ax.set_title(title.replace(" member", "\nmember"), fontsize=7, color="red" if t == event else "black")
+            ax.set_axis_off()
+        if curves is not None:
+            ax = fig.add_subplot(grid[1, :])
+            for column, curve in enumerate(curves):
+                ax.plot(curve, label=f"member {column}")
+            ax.axvline(t, color="black", linewidth=1)
+            if event >= 0:
+                ax.axvline(event, color="red", linewidth=1, linestyle=":")
+            ax.set_xlabel("frame", fontsize=8)
+            ax.set_ylabel("surprise", fontsize=8)
+            ax.legend(fontsize=7)
+        fig.canvas.draw()
+        pictures.append(np.asarray(fig.canvas.buffer_rgba())[..., :3].copy())
+        plt.close(fig)
+    height, width = pictures[0].shape[:2]
+    with atomic_paths(Path(out)) as (tmp,):
+        # the container is named, not read off the temporary file's name
+        writer = imageio_ffmpeg.write_frames(str(tmp), (width, height), fps=fps, codec="libx264",
+                                             pix_fmt_out="yuv420p", macro_block_size=1, output_params=["-f", "mp4"])
+        writer.send(None)
+        for picture in pictures:
+            writer.send(np.ascontiguousarray(picture))
+        writer.close()
+    return Path(out)
+
+
+def _video_curves(scores: str | Path, indices: list[int]) -> list[np.ndarray]:
+    """Per-frame surprise (s_img + s_dyn) of videos `indices` from a scores CSV and its curves."""
+    table = read_scores(scores)
+    curves = Path(scores).with_suffix(".curves.npz")
+    if not curves.is_file():
+        raise XvoeError(f"{curves}: no such file; xvoe score writes the curves beside the CSV")
+    rows = {int(video): row for row, video in enumerate(table["index"])}
+    missing = [i for i in indices if i not in rows]
+    if missing:
+        raise XvoeError(f"{scores} has no score of video {missing[0]}; were these scores made from this split?")
+    with np.load(curves) as saved:
+        return [saved["s_img"][rows[i]] + saved["s_dyn"][rows[i]] for i in indices]
+
+
+def show(path: str | Path, index: int, out: str | Path | None = None, overwrite: bool = False,
+         scores: str | Path | None = None) -> Path | plt.Figure:
+    """What `xvoe show` does: a PNG contact sheet, a GIF, or an MP4 (with `scores`, the
+    surprise curves under the pair), chosen by the suffix of `out` (no `out`: the figure)."""
     suffix = Path(out).suffix.lower() if out is not None else None
-    if suffix not in (None, ".png", ".gif"):
-        raise XvoeError(f"--out must end in .png or .gif, not {suffix or 'nothing'}")
+    if suffix not in (None, ".png", ".gif", ".mp4"):
+        raise XvoeError(f"--out must end in .png, .gif or .mp4, not {suffix or 'nothing'}")
+    if scores is not None and suffix != ".mp4":
+        raise XvoeError("--scores draws surprise curves into an MP4; give --out NAME.mp4")
     with store.open_dataset(path) as file:
         check_index(file, index)
         if out is not None:
             claim_file(out, overwrite)
         if suffix == ".gif":
             return save_gif(file, index, out)
+        if suffix == ".mp4":
+            return save_video(file, index, out, scores)
         fig = show_video(file, index)
     return fig if out is None else save_figure(fig, out)
 
