@@ -47,7 +47,7 @@ def test_show_errors(tmp_path, capsys):
     assert main(["show", str(out), "--index", "5"]) == 2
     assert "out of range" in capsys.readouterr().err
     assert main(["show", str(out), "--out", str(tmp_path / "fig.jpg")]) == 2
-    assert ".png or .gif" in capsys.readouterr().err
+    assert ".png, .gif or .mp4" in capsys.readouterr().err
     assert not (tmp_path / "fig.jpg").exists()
 
 

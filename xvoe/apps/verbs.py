@@ -44,6 +44,8 @@ def explain(model: str | Scorer, data: str | Path, index: int, *, surprise: str 
     (surprise "mse") or the Pyro model's posterior (surprise "nll", from `particles`
     importance samples drawn from `seed`)."""
     scorer = load_model(model) if isinstance(model, str) else model
+    if scorer.is_random:
+        raise XvoeError("the random agent explains nothing; give a trained model")
     if scorer.phydnet is not None:
         raise XvoeError("PhyDNet predicts pixels and has no hidden object to draw; give an XPL run")
     if scorer.custom is not None:

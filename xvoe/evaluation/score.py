@@ -50,6 +50,8 @@ class Videos:
     rgbd: np.ndarray        # (B, T, H, W, 4) uint8: RGB, and depth (near is dark)
     ids: np.ndarray         # (B, T, H, W) uint8: the slot each pixel shows (0: background)
     frames: int             # T
+    walls: np.ndarray       # (B, K) bool: the slots that are walls (occluders), as the masks show them
+    index: np.ndarray       # (B,) the videos' rows in the split: a seed per video, not a label
 
 
 class SurpriseModel(Protocol):
@@ -64,21 +66,54 @@ class SurpriseModel(Protocol):
         """Per-frame surprise (B, T), higher for more surprising; a video's score is its sum."""
 
 
+class RandomAgent:
+    """The chance baseline, as any model is written: per-frame surprise drawn uniformly, from
+    a generator of each video's own (so a video scores the same in any batch or shard)."""
+
+    name = "random"
+
+    def __init__(self, seed: int = 0):
+        self.seed = seed
+
+    def surprise(self, videos: Videos) -> np.ndarray:
+        return np.stack([np.random.default_rng([self.seed, int(i)]).random(videos.frames) for i in videos.index])
+
+
+class PhyDNetSurprise:
+    """The PhyDNet baseline as a surprise model: its one-step prediction error per frame."""
+
+    name = "phydnet"
+
+    def __init__(self, net: PhyDNet):
+        self.net, self.image_size = net, net.config.image_size
+
+    def surprise(self, videos: Videos) -> Tensor:
+        return self.net.surprise(normalise(torch.from_numpy(videos.rgbd)))
+
+
 @dataclass
 class Scorer:
-    """A model ready to score: the perception module and one dynamics stage, PhyDNet, a model
-    of your own (`SurpriseModel`), or none of them (the random agent)."""
+    """A model ready to score: the perception module and one dynamics stage (XPL, PLATO), or a
+    `SurpriseModel` (PhyDNet, the random agent, a model of your own). Every one answers the
+    same `surprise(videos)`; the XPL family's scores also keep their terms apart (s_img,
+    s_dyn, s_rec) and feed extra columns such as the NLL's."""
 
     name: str
     vae: ComponentVAE | None
     xpl: XPL | None
-    seed: int = 0                 # the random agent's scores, and the NLL's importance samples
     phydnet: PhyDNet | None = None
     custom: SurpriseModel | None = None
 
     @property
     def is_random(self) -> bool:
-        return self.vae is None and self.phydnet is None and self.custom is None
+        return isinstance(self.custom, RandomAgent)
+
+    def surprise(self, videos: Videos) -> np.ndarray | Tensor:
+        """Per-frame surprise (B, T), the protocol every model answers: s_img + s_dyn for XPL."""
+        if self.custom is not None:
+            return self.custom.surprise(videos)
+        s_img, s_dyn, _ = _xpl_curves(self, encode(self, videos))
+        return s_img + s_dyn
 
     @property
     def image_size(self) -> int | None:
@@ -101,7 +136,7 @@ def load_model(model: str, device: str = "cpu") -> Scorer:
     xpl-noresidual.pt with perception.pt beside it; phydnet.pt), RUN_DIR/STAGE, or a model of your own,
     `package.module:name` or `path/to/file.py:name` (`SurpriseModel`)."""
     if model == "random":
-        return Scorer("random", None, None)
+        return Scorer("random", None, None, custom=RandomAgent())
     if ":" in model and not Path(model).exists():
         custom = load_surprise_model(model)
         return Scorer(str(custom.name), None, None, custom=custom)
@@ -122,7 +157,8 @@ def load_model(model: str, device: str = "cpu") -> Scorer:
         raise XvoeError(f"{model} is not a model to score with: give a run directory, one of "
                         f"{', '.join(s + '.pt' for s in STAGES)}, or 'random'")
     if stage == "phydnet":
-        return Scorer(stage, None, None, phydnet=load_phydnet(run_dir / "phydnet.pt", device)[0])
+        net = load_phydnet(run_dir / "phydnet.pt", device)[0]
+        return Scorer(stage, None, None, phydnet=net, custom=PhyDNetSurprise(net))
     vae, _ = load_perception(run_dir, device)
     xpl, _ = load_xpl(run_dir, stage, device)
     return Scorer(stage, vae, xpl)
@@ -157,8 +193,8 @@ def load_surprise_model(reference: str) -> SurpriseModel:
 
 def custom_surprise(scorer: Scorer, file, start: int, stop: int) -> np.ndarray:
     """A model of your own's per-frame surprise (B, T) of videos [start, stop), checked."""
-    rgbd, ids = file["rgbd"][start:stop], file["ids"][start:stop]
-    found = scorer.custom.surprise(Videos(rgbd, ids, rgbd.shape[1]))
+    rgbd = file["rgbd"][start:stop]
+    found = scorer.custom.surprise(read_videos(file, start, stop))
     values = np.asarray(found.detach().cpu() if isinstance(found, Tensor) else found, dtype=float)
     if values.shape != rgbd.shape[:2]:
         raise XvoeError(f"the model {scorer.name} gave surprise of shape {values.shape} for {rgbd.shape[0]} videos "
@@ -213,26 +249,18 @@ def score_split(model: str | Scorer, data: str, out: str, *, how: str = "sum", v
                   for name in ("scenario", "setting", "pair", "member", "possible")}
         curves = np.zeros((3, count, frames_count))     # s_img, s_dyn, s_rec
         values = [] if extra is not None else None
-        if scorer.is_random:
-            curves[:2] = np.random.default_rng(scorer.seed).random((2, count, frames_count))
-        else:
-            if scorer.image_size is not None:
-                check_size(file, scorer.image_size, f"the model {scorer.name}")
-            with torch.random.fork_rng(devices=[]):     # random draws of extra columns come from the scorer's seed
-                torch.manual_seed(scorer.seed)
-                for start in tqdm(range(first, last, videos_per_batch), desc=f"score {scorer.name}", unit="batch",
-                                  disable=not progress):
-                    stop = min(last, start + videos_per_batch)
-                    if scorer.phydnet is not None:
-                        curves[:2, start:stop] = torch.stack(_phydnet_curves(scorer, file, start, stop)).numpy()
-                        continue
-                    if scorer.custom is not None:     # like PhyDNet's: one term, in the s_dyn column
-                        curves[1, start:stop] = custom_surprise(scorer, file, start, stop)
-                        continue
-                    batch = encode_videos(scorer, file, start, stop)     # once, for every column
-                    curves[:, start:stop] = torch.stack(_xpl_curves(scorer, batch)).numpy()
-                    if values is not None:
-                        values.append(extra.batch(scorer, batch))
+        if scorer.image_size is not None:
+            check_size(file, scorer.image_size, f"the model {scorer.name}")
+        for start in tqdm(range(first, last, videos_per_batch), desc=f"score {scorer.name}", unit="batch",
+                          disable=not progress):
+            stop = min(last, start + videos_per_batch)
+            if scorer.custom is not None:     # one term, in the s_dyn column
+                curves[1, start:stop] = custom_surprise(scorer, file, start, stop)
+                continue
+            batch = encode_videos(scorer, file, start, stop)     # once, for every column
+            curves[:, start:stop] = torch.stack(_xpl_curves(scorer, batch)).numpy()
+            if values is not None:
+                values.append(extra.batch(scorer, batch))
     with_rec = scorer.vae is not None
     curves = curves[:, first:last]
     added = extra.finish(np.concatenate(values), curves, size) if extra is not None else np.zeros((last - first, 0))
@@ -308,16 +336,27 @@ def merge_scores(parts: list[str | Path], out: str | Path, overwrite: bool = Fal
     return out
 
 
+def read_videos(file, start: int, stop: int) -> Videos:
+    """Videos [start, stop) of an open test split as a surprise model sees them."""
+    rgbd = file["rgbd"][start:stop]
+    return Videos(rgbd, file["ids"][start:stop], rgbd.shape[1], store.wall_mask(file, start, stop),
+                  np.arange(start, stop))
+
+
 def encode_videos(scorer: Scorer, file, start: int, stop: int) -> dict[str, Tensor]:
     """Videos [start, stop) of an open test split, encoded: frames, latents, visibility, walls."""
-    _, frames_count, size = file["rgbd"].shape[:3]
-    rgbd, ids = file["rgbd"][start:stop], file["ids"][start:stop]
-    encoded = encode_frames(scorer.vae, rgbd.reshape(-1, size, size, 4), ids.reshape(-1, size, size),
-                            file["states"].shape[2])
-    shaped = {k: torch.from_numpy(v).reshape(stop - start, frames_count, *v.shape[1:]) for k, v in encoded.items()}
-    return {"frames": normalise(torch.from_numpy(rgbd)), "mean": shaped["mean"],
+    return encode(scorer, read_videos(file, start, stop))
+
+
+def encode(scorer: Scorer, videos: Videos) -> dict[str, Tensor]:
+    """A batch of videos encoded by the scorer's perception module: frames, latents, visibility, walls."""
+    count, frames_count, size = videos.rgbd.shape[:3]
+    encoded = encode_frames(scorer.vae, videos.rgbd.reshape(-1, size, size, 4), videos.ids.reshape(-1, size, size),
+                            videos.walls.shape[1])
+    shaped = {k: torch.from_numpy(v).reshape(count, frames_count, *v.shape[1:]) for k, v in encoded.items()}
+    return {"frames": normalise(torch.from_numpy(videos.rgbd)), "mean": shaped["mean"],
             "visible": shaped["pixels"] > visible_threshold(size), "background": shaped["background_mean"],
-            "occluder": torch.from_numpy(store.wall_mask(file, start, stop))}
+            "occluder": torch.from_numpy(videos.walls)}
 
 
 def _xpl_curves(scorer: Scorer, batch: dict[str, Tensor]) -> tuple[Tensor, Tensor, Tensor]:
@@ -325,9 +364,3 @@ def _xpl_curves(scorer: Scorer, batch: dict[str, Tensor]) -> tuple[Tensor, Tenso
     surprise = mse_surprise(scorer.vae, scorer.xpl, batch["frames"], batch["mean"], batch["visible"],
                             batch["background"], batch["occluder"])
     return surprise.s_img, surprise.s_dyn, surprise.s_rec
-
-
-def _phydnet_curves(scorer: Scorer, file, start: int, stop: int) -> tuple[Tensor, Tensor]:
-    """Zeros and PhyDNet's one-step pixel error (B, T) of videos [start, stop) of an open test split."""
-    error = scorer.phydnet.surprise(normalise(torch.from_numpy(file["rgbd"][start:stop])))
-    return torch.zeros_like(error), error
