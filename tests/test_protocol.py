@@ -35,8 +35,9 @@ def test_the_object_tracker_misses_a_cube_that_is_gone_when_the_wall_lifts(test_
     assert all(pair["1"] > pair["0"] for pair in by_pair.values())
 
 
-def write_module(folder: Path, text: str) -> None:
-    (folder / "my_models.py").write_text(text)
+def write_module(folder: Path, text: str, name: str = "my_models") -> None:
+    """A module of the user's; each test names its own, as Python keeps one imported by name."""
+    (folder / f"{name}.py").write_text(text)
 
 
 def test_a_module_factory_loads_and_bad_models_get_one_line(test_file, tmp_path, monkeypatch, capsys):
@@ -109,3 +110,29 @@ def test_the_split_as_a_pytorch_dataset_reads_the_same_in_loader_workers(test_fi
             rgbd, scenario, possible = seen[index]
             assert torch.equal(rgbd, torch.from_numpy(file["rgbd"][index]))
             assert scenario == file["scenario"].asstr()[index] and possible == bool(file["possible"][index])
+
+
+def test_a_model_of_your_own_may_draw_its_explanation(test_file, tmp_path, monkeypatch, capsys):
+    write_module(tmp_path, (
+        "import numpy as np\n"
+        "class Painter:\n"
+        "    name = 'painter'\n"
+        "    def surprise(self, videos):\n"
+        "        return np.zeros((len(videos.rgbd), videos.frames))\n"
+        "    def explain(self, videos):\n"
+        "        return 255 - videos.rgbd\n"
+        "class Mute:\n"
+        "    name = 'mute'\n"
+        "    def surprise(self, videos):\n"
+        "        return np.zeros((len(videos.rgbd), videos.frames))\n"), name="my_painters")
+    monkeypatch.syspath_prepend(str(tmp_path))
+    import xvoe
+
+    drawn = xvoe.explain("my_painters:Painter", test_file, 3)
+    assert [label for label, _ in drawn.rows()] == ["observed", "the model's\nexplanation"]
+    assert (drawn.behind_wall == 255 - drawn.observed).all()
+    assert main(["explain", "--model", "my_painters:Painter", "--data", str(test_file), "--index", "3",
+                 "--out", str(tmp_path / "p.png")]) == 0
+    assert main(["explain", "--model", "my_painters:Mute", "--data", str(test_file), "--out",
+                 str(tmp_path / "m.png")]) == 2
+    assert "no explanation to draw" in capsys.readouterr().err

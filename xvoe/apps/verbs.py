@@ -12,7 +12,7 @@ from inference.explain import explain_nll
 from inference.score import NLLColumns
 
 from ..errors import XvoeError
-from ..evaluation.explain import Explanation
+from ..evaluation.explain import Explanation, explain_drawn
 from ..evaluation.explain import explain as explain_mse
 from ..evaluation.score import Scorer, load_model, score_split
 
@@ -49,7 +49,11 @@ def explain(model: str | Scorer, data: str | Path, index: int, *, surprise: str 
     if scorer.phydnet is not None:
         raise XvoeError("PhyDNet predicts pixels and has no hidden object to draw; give an XPL run")
     if scorer.custom is not None:
-        raise XvoeError(f"the model {scorer.name} gives surprise only, no explanation to draw; give an XPL run")
+        if not callable(getattr(scorer.custom, "explain", None)):
+            raise XvoeError(f"the model {scorer.name} gives surprise only, no explanation to draw (it has no explain)")
+        if surprise != "mse":
+            raise XvoeError(f"the model {scorer.name} draws its own explanation; leave out --surprise nll")
+        return explain_drawn(scorer, str(data), index)
     if surprise == "nll":
         return explain_nll(scorer, str(data), index, particles=particles, seed=seed)
     if surprise != "mse":

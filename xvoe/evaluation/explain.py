@@ -19,7 +19,7 @@ from ..errors import XvoeError
 from ..models.perception import to_uint8
 from ..models.slots import composite, decode_slots
 from ..training.data import check_size
-from .score import Scorer, encode_videos
+from .score import Scorer, encode_videos, read_videos
 from .surprise import explained_latents
 
 
@@ -35,6 +35,27 @@ class Explanation:
         """What a figure draws, one labelled row of frames each."""
         return [("observed", self.observed), ("behind the wall", self.behind_wall),
                 ("explanation" if self.slot >= 0 else "nothing hidden", self.hidden_object)]
+
+
+@dataclass
+class DrawnExplanation(Explanation):
+    """What a model of your own draws behind the wall (`SurpriseModel.explain`), under the video."""
+
+    def rows(self) -> list[tuple[str, np.ndarray]]:
+        return [("observed", self.observed), ("the model's\nexplanation", self.behind_wall)]
+
+
+def explain_drawn(scorer: Scorer, data: str, index: int) -> DrawnExplanation:
+    """The frames (T, H, W, C >= 3, uint8) a model of your own returns from `explain(videos)`."""
+    with store.open_dataset(data) as file:
+        check_index(file, index)
+        videos, title = read_videos(file, index, index + 1), describe(file, index)
+    drawn = np.asarray(scorer.custom.explain(videos))
+    expected = videos.rgbd.shape[:4]
+    if drawn.shape[:4] != expected or drawn.ndim != 5 or drawn.shape[4] < 3 or drawn.dtype != np.uint8:
+        raise XvoeError(f"the model {scorer.name} drew frames of shape {drawn.shape} and type {drawn.dtype}; "
+                        f"expected uint8 of shape {(*expected, 'C >= 3')}")
+    return DrawnExplanation(videos.rgbd[0], drawn[0], drawn[0], -1, title)
 
 
 def _read_video(scorer: Scorer, data: str, index: int) -> tuple[dict, np.ndarray, str]:

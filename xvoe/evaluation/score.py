@@ -57,8 +57,10 @@ class Videos:
 class SurpriseModel(Protocol):
     """Your own model, as `xvoe score --model package.module:name` (or `path/to/file.py:name`)
     takes it: an object, or a factory of one, with a `name` and a `surprise` method; an
-    `image_size` attribute, if it has one, is checked against the split's frames.
-    docs/evaluate-your-model.md walks through one."""
+    `image_size` attribute, if it has one, is checked against the split's frames. It may also
+    have `explain(videos)`, the frames (B, T, H, W, C >= 3) uint8 of what it believes is behind
+    the wall, which `xvoe explain` draws under the video. docs/evaluate-your-model.md walks
+    through one."""
 
     name: str
 
