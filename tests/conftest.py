@@ -20,6 +20,17 @@ def randomise_dynamics_head(dynamics) -> None:
             torch.nn.init.normal_(layer.weight, std=0.3)
 
 
+@pytest.fixture
+def double_precision():
+    """Run a test in float64 and leave the default dtype as it was."""
+    import torch
+
+    previous = torch.get_default_dtype()
+    torch.set_default_dtype(torch.float64)
+    yield
+    torch.set_default_dtype(previous)
+
+
 @pytest.fixture(scope="session")
 def test_file(tmp_path_factory):
     path = tmp_path_factory.mktemp("data") / "test.h5"

@@ -11,14 +11,7 @@ from pyro.util import check_model_guide_match
 from inference.importance import importance
 from inference.model import HiddenObjectModel, InferenceConfig, LinearGaussianScene, Proposal, fuse
 
-
-@pytest.fixture(autouse=True)
-def double_precision():
-    """These checks compare to 1e-4: run them in float64, and leave the default as it was."""
-    previous = torch.get_default_dtype()
-    torch.set_default_dtype(torch.float64)
-    yield
-    torch.set_default_dtype(previous)
+pytestmark = pytest.mark.usefixtures("double_precision")     # these checks compare to 1e-4
 
 
 # --- a conjugate Gaussian: theta ~ N(m0, s0^2), x_i ~ N(theta, s^2) -----------------------

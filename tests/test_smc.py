@@ -18,13 +18,7 @@ from inference.smc import (
     top_hypotheses,
 )
 
-
-@pytest.fixture(autouse=True)
-def double_precision():
-    previous = torch.get_default_dtype()
-    torch.set_default_dtype(torch.float64)
-    yield
-    torch.set_default_dtype(previous)
+pytestmark = pytest.mark.usefixtures("double_precision")
 
 
 # --- resampling ------------------------------------------------------------------------------
@@ -253,15 +247,10 @@ def test_top_hypotheses_merge_copies_and_say_where_they_differ():
 # --- the XPL scene: the SMC's factors are the Pyro model's ----------------------------------
 
 def tiny_xpl_scene():
-    from test_nll import tiny_models, video
+    from test_nll import tiny_scene
 
-    from inference.xpl_scene import XPLScene
     torch.set_default_dtype(torch.float32)
-    vae, xpl = tiny_models()
-    frames, mean, visible, background, occluder = video()
-    with torch.no_grad():
-        scene = XPLScene(vae, xpl, mean, vae.decode(background), visible, occluder, 3)
-    return scene, frames
+    return tiny_scene()
 
 
 def test_the_frame_by_frame_factors_add_up_to_the_pyro_models_joint_density():
