@@ -132,12 +132,10 @@ def _map(function, items: range, workers: int):
 
 
 def _worker_follows_parent() -> None:
-    """A worker leaves Ctrl-C to the parent, which stops the pool and removes its half-written
-    file, and dies at once when the pool ends it: with the parent's SIGTERM handler inherited
-    (the command line turns SIGTERM into Ctrl-C), a worker outlived the pool's end, blocked on
-    the task queue, and the pool waited for it forever. Its own stderr goes nowhere: an error in a unit
-    reaches the parent through the pool and is raised there, so what a worker would print is
-    the pool's broken pipe once the parent is killed."""
+    """A worker ignores Ctrl-C (the parent stops the pool and removes its half-written file) and
+    dies at once when the pool ends it, whatever SIGTERM handler the parent had; its stderr goes
+    nowhere: a unit's error is raised in the parent, and a worker would only print the pool's
+    broken pipe once the parent is killed."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     signal.signal(signal.SIGTERM, signal.SIG_DFL)
     sys.stderr = open(os.devnull, "w")    # noqa: SIM115 - open for the worker's whole life
