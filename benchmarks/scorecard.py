@@ -62,12 +62,17 @@ def main() -> None:
     scores = xvoe.read_scores(runs[0])
     count = len(scores["index"])
     card = []
+    # the comparative goals: the MSE score's (DESIGN section 7) and the NLL's (issue on SMC); the
+    # excess columns are measured, with no goal of their own
+    targets = {"score": 97.0, "excess": None, "nll": 99.0, "nll_excess": None}
     for column, label in (("score", "MSE"), ("excess", "MSE excess"), ("nll", "NLL"), ("nll_excess", "NLL excess")):
         accuracy = {(r["scenario"], r["setting"]): r["value"] for r in xvoe.metric_rows(scores, "m", (column,))
                     if r["metric"] == "comparative"}
         for (scenario, setting), value in accuracy.items():
             if setting in ("S1", "S3"):
-                card.append(goal(f"{label} {scenario} {setting} comparative", 100 * value, 97.0))
+                name = f"{label} {scenario} {setting} comparative"
+                card.append(goal(name, 100 * value, targets[column]) if targets[column]
+                            else {"goal": name, "value": 100 * value})
         if column == "score":
             for scenario in SCENARIOS:
                 if (scenario, "S3") in accuracy and (scenario, "S2") in accuracy:
