@@ -28,7 +28,7 @@ from xvoe.models.perception import ComponentVAE, to_uint8
 from xvoe.training.data import ShardedFrames, check_size, perception_batch, visible_threshold
 from xvoe.training.latents import encode_means
 from xvoe.training.perception import load_perception
-from xvoe.training.presets import TrainConfig
+from xvoe.training.recipes import TrainConfig, recipe_of
 
 
 def psnr(error_sum: float, count: int) -> float:
@@ -150,7 +150,7 @@ def main(argv: list[str] | None = None) -> int:
         print(f"warning: {args.data} is the file this model was trained on; its frames are not held out")
     train_config = from_dict(TrainConfig, state["train"])
     took = f" in {state['elapsed'] / 60:.1f} min" if "elapsed" in state else ""    # shipped weights keep no timing
-    print(f"model {state['path']}: {state['config']['preset']} preset, {model.config.encoder} encoder, "
+    print(f"model {state['path']}: {recipe_of(state['config'])} recipe, {model.config.encoder} encoder, "
           f"{size}x{size}, D={model.config.latent_dim}, {state['step']} steps{took} "
           f"(batch {train_config.batch_size} frames, {state.get('world', 1)} process(es))")
     print(f"data {args.data}: {count} videos x {frames} frames")

@@ -21,7 +21,7 @@ from xvoe.apps.pipeline import PipelineConfig, run_pipeline
 from xvoe.benchmark.generate import GenerateConfig, generate
 from xvoe.evaluation.metrics import comparative, holistic, read_scores
 from xvoe.evaluation.score import score_split
-from xvoe.training.presets import preset
+from xvoe.training.recipes import recipe
 
 FRESH_SEED = 12345
 
@@ -57,15 +57,15 @@ def goals(scores: dict) -> list[str]:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--out", required=True)
-    parser.add_argument("--preset", default="cpu")
-    parser.add_argument("--train-videos", type=int, default=10_000)
+    parser.add_argument("--recipe", default="cpu")
+    parser.add_argument("--train-videos", type=int, help="default: the recipe's")
     parser.add_argument("--pairs", type=int, default=200)
     parser.add_argument("--fresh-pairs", type=int, default=1000)
     parser.add_argument("--models", default="xpl,random")
     args = parser.parse_args()
     models = tuple(args.models.split(","))
     start = time.monotonic()
-    report = run_pipeline(PipelineConfig(args.out, args.preset, args.train_videos, args.pairs, models, progress=False))
+    report = run_pipeline(PipelineConfig(args.out, args.recipe, args.train_videos, args.pairs, models, progress=False))
     wall = time.monotonic() - start
     run_dir = Path(args.out)
     print(f"pipeline: {wall / 60:.1f} min wall this run, peak memory {peak_memory_gib():.2f} GiB, report {report}")
@@ -74,7 +74,7 @@ def main() -> None:
 
     fresh = run_dir / "data" / "fresh-test.h5"
     if not fresh.exists():
-        size = preset(args.preset).perception.image_size
+        size = recipe(args.recipe).perception.image_size
         generate(GenerateConfig("test", pairs=args.fresh_pairs, size=size, seed=FRESH_SEED), fresh, workers=2,
                  progress=False)
     for model in (m for m in models if m != "random"):

@@ -12,8 +12,8 @@ step, the peak resident memory, and the wall time over the reference's ("vs ref"
 below 0.5x at the paper preset). The reference (TensorFlow, 2 threads, a 32-channel decoder):
 383 ms per 128x128 frame, 539 ms per video, 881 ms per video.
 
-    python benchmarks/steps.py --preset paper --decoder-channels 32
-    python benchmarks/steps.py --preset cpu --stages score
+    python benchmarks/steps.py --recipe paper --decoder-channels 32
+    python benchmarks/steps.py --recipe cpu --stages score
 
 The allocator setting (xvoe/allocator.py) is per process: compare it by running this twice,
 once with XVOE_MALLOC=system; the faults column shows the difference without timing noise.
@@ -34,7 +34,7 @@ from xvoe.models.perception import ComponentVAE, normalise
 from xvoe.models.xpl import XPL
 from xvoe.training.data import perception_batch, visible_threshold
 from xvoe.training.latents import encode_frames
-from xvoe.training.presets import preset
+from xvoe.training.recipes import recipe
 from xvoe.training.xpl import LatentBatch
 
 REFERENCE_MS = {"perception": 383.0, "xpl": 539.0, "score": 881.0}   # TensorFlow, 2 threads, this machine
@@ -135,8 +135,8 @@ def measure(step, warmup: int, repeats: int) -> dict[str, float]:
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--preset", default="paper")
-    parser.add_argument("--decoder-channels", type=int, default=0, help="override the preset's (reference: 32)")
+    parser.add_argument("--recipe", default="paper")
+    parser.add_argument("--decoder-channels", type=int, default=0, help="override the recipe's (reference: 32)")
     parser.add_argument("--stages", default="perception,xpl,score")
     parser.add_argument("--frames", type=int, default=4, help="frames per perception step")
     parser.add_argument("--videos", type=int, default=8, help="videos per XPL step")
@@ -149,11 +149,11 @@ def main() -> None:
 
     torch.set_num_threads(args.threads)
     torch.manual_seed(args.seed)
-    chosen = preset(args.preset)
+    chosen = recipe(args.recipe)
     perception = chosen.perception
     if args.decoder_channels:
         perception = replace(perception, decoder_channels=args.decoder_channels)
-    print(f"preset {args.preset}: {perception.image_size}px, decoder {perception.decoder_channels} channels, "
+    print(f"recipe {args.recipe}: {perception.image_size}px, decoder {perception.decoder_channels} channels, "
           f"{args.threads} threads, allocator tuned: {allocator_tuned()}, torch {torch.__version__}")
     print(f"{'stage':<11} {'ms/item':>9} {'+-':>6} {'vs ref':>7} {'cpu ms/item':>12} {'faults/step':>12} "
           f"{'kernel':>7}  items/step")

@@ -34,13 +34,13 @@ def double_precision():
 @pytest.fixture(scope="session")
 def test_file(tmp_path_factory):
     path = tmp_path_factory.mktemp("data") / "test.h5"
-    return generate(GenerateConfig("test", pairs=8, seed=3), path, workers=2, progress=False)
+    return generate(GenerateConfig("test", pairs=8, size=64, seed=3), path, workers=2, progress=False)
 
 
 @pytest.fixture(scope="session")
 def train_file(tmp_path_factory):
     path = tmp_path_factory.mktemp("data") / "train.h5"
-    return generate(GenerateConfig("train", videos=96, seed=5), path, workers=1, progress=False)
+    return generate(GenerateConfig("train", videos=96, size=64, seed=5), path, workers=1, progress=False)
 
 
 @pytest.fixture(scope="session")

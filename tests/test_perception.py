@@ -6,7 +6,7 @@ from xvoe.errors import XvoeError
 from xvoe.models.config import from_dict, to_dict
 from xvoe.models.perception import BLANK, BLANK_DEPTH, ComponentVAE, PerceptionConfig, normalise, visible_centroid
 from xvoe.training.data import cut_objects, cut_plan, masked_inputs, perception_batch
-from xvoe.training.presets import preset
+from xvoe.training.recipes import recipe
 
 TINY = dict(latent_dim=4, cnn_channels=(8, 8), cnn_hidden=16, decoder_channels=8, vit_patch=4, vit_width=16,
             vit_layers=1, vit_heads=2, vit_mlp=32, vit_head_hidden=16)
@@ -30,7 +30,7 @@ def test_shapes_and_posterior_ranges(encoder, size, grid, where):
 
 
 def test_paper_preset_has_the_paper_sizes():
-    config = preset("paper").perception
+    config = recipe("paper").perception
     assert (config.image_size, config.latent_dim, config.encoder) == (128, 32, "vit")
     assert (config.vit_patch, config.vit_width, config.vit_layers, config.vit_heads, config.vit_mlp) == (8, 256, 6, 8,
                                                                                                          1024)
@@ -112,7 +112,7 @@ def test_loss_is_finite_with_empty_frames_and_decreases_on_a_tiny_batch():
 
 
 def test_the_paper_preset_builds_at_128_pixels():
-    config = preset("paper").perception
+    config = recipe("paper").perception
     model = ComponentVAE(config)
     with torch.no_grad():
         mean, std = model.posterior(torch.zeros(1, 4, 128, 128))
@@ -158,13 +158,8 @@ def test_where_latents_start_at_the_visible_pixels_centroid():
     assert torch.equal(mean[:, 2:], torch.zeros(3, model.config.latent_dim - 2))
 
 
-def test_where_latents_are_the_cpu_preset_and_off_in_older_configs():
-    cpu = preset("cpu")
-    assert cpu.perception.where_latents and cpu.perception.amodal and cpu.xpl.weigh_by_picture
-    for name in ("cpu-broadcast", "paper"):
-        assert not preset(name).perception.where_latents and not preset(name).perception.amodal
-        assert not preset(name).perception.cut_share and not preset(name).xpl.weigh_by_picture
-    older = to_dict(preset("cpu").perception)
+def test_where_latents_are_off_in_older_configs():
+    older = to_dict(PerceptionConfig(where_latents=True, amodal=True, cut_share=0.25))
     for field in ("where_latents", "where_scale", "amodal", "cut_share"):
         del older[field]                              # a checkpoint written before the fields existed
     model = ComponentVAE(from_dict(PerceptionConfig, older))

@@ -22,7 +22,7 @@ from xvoe.models.phydnet import (
     kernels_with_moments,
 )
 from xvoe.training.phydnet import VideoBatches, load_phydnet, train_phydnet, widen_run
-from xvoe.training.presets import PRESETS, TrainConfig
+from xvoe.training.recipes import RECIPES, TrainConfig
 
 TINY = PhyDNetConfig(image_size=16, encoder_channels=(8, 8, 8), phycell_kernel=5, lstm_channels=(8,))
 TRAIN = {"steps": 4, "batch_size": 2, "warmup_steps": 1, "log_every": 1, "threads": 1}
@@ -191,11 +191,12 @@ def splits(tmp_path_factory):
 
 
 @pytest.fixture
-def tiny_preset(monkeypatch):
-    monkeypatch.setitem(PRESETS, "cpu", replace(PRESETS["cpu"], phydnet=TINY, phydnet_train=TrainConfig(**TRAIN)))
+def tiny_recipe(monkeypatch):
+    monkeypatch.setitem(RECIPES, "cpu", replace(RECIPES["cpu"], phydnet=TINY, phydnet_train=TrainConfig(**TRAIN),
+                                                phases=()))
 
 
-def test_stage_trains_resumes_exactly_and_loads(splits, tmp_path, tiny_preset):
+def test_stage_trains_resumes_exactly_and_loads(splits, tmp_path, tiny_recipe):
     straight = train_phydnet(splits[0], tmp_path / "a", progress=False)
     train_phydnet(splits[0], tmp_path / "b", progress=False, steps=2)
     resumed = train_phydnet(None, tmp_path / "b", progress=False, resume=True, steps=4)
@@ -206,7 +207,7 @@ def test_stage_trains_resumes_exactly_and_loads(splits, tmp_path, tiny_preset):
     rows = [list(csv.DictReader(open(run / "phydnet.csv"))) for run in (tmp_path / "a", tmp_path / "b")]
     assert [r["loss"] for r in rows[0]] == [r["loss"] for r in rows[1]] and "moment" in rows[0][0]
     net, state = load_phydnet(tmp_path / "a")
-    assert net.config == TINY and not net.training and state["config"]["preset"] == "cpu"
+    assert net.config == TINY and not net.training and state["config"]["recipe"] == "cpu"
     one, two = VideoBatches(str(splits[0]), image_size=16, batch_size=4, shards=2, seed=1), [
         VideoBatches(str(splits[0]), image_size=16, batch_size=4, shards=2, rank=r, world=2, seed=1) for r in (0, 1)]
     assert torch.equal(one.batch(3), torch.cat([part.batch(3) for part in two]))
@@ -216,7 +217,7 @@ def test_stage_trains_resumes_exactly_and_loads(splits, tmp_path, tiny_preset):
         train_phydnet(splits[0], tmp_path / "d", progress=False, model_overrides={"image_size": 32})
 
 
-def test_a_widened_lstm_kernel_predicts_the_same_and_trains_on(splits, tmp_path, tiny_preset):
+def test_a_widened_lstm_kernel_predicts_the_same_and_trains_on(splits, tmp_path, tiny_recipe):
     """The 3x3 gates padded with zeros to 7x7 give the same predictions; the widened run resumes
     from the source's step with a fresh optimiser, and its outer taps learn."""
     source = train_phydnet(splits[0], tmp_path / "a", progress=False, model_overrides={"lstm_channels": (8, 8)})
@@ -237,7 +238,7 @@ def test_a_widened_lstm_kernel_predicts_the_same_and_trains_on(splits, tmp_path,
         widen_run(source, tmp_path / "b", lstm_kernel=9)
 
 
-def test_an_interrupt_stops_after_its_step_and_the_run_resumes_exactly(splits, tmp_path, tiny_preset, monkeypatch):
+def test_an_interrupt_stops_after_its_step_and_the_run_resumes_exactly(splits, tmp_path, tiny_recipe, monkeypatch):
     """Ctrl-C (SIGINT) during step 2 lets that step finish: the checkpoint holds step 3, the handler
     in place before is back, and the resumed run ends where an uninterrupted one does."""
     import os
@@ -318,7 +319,7 @@ def test_a_focus_on_several_groups_draws_from_the_wall_videos_of_each(tmp_path):
                      focus_share=0.5)
 
 
-def test_the_command_line_sets_the_focus_and_the_learning_rate(splits, tmp_path, tiny_preset, capsys):
+def test_the_command_line_sets_the_focus_and_the_learning_rate(splits, tmp_path, tiny_recipe, capsys):
     run = tmp_path / "run"
     assert main(["train", "phydnet", "--data", str(splits[0]), "--out", str(run), "--quiet", "--steps", "2",
                  "--lr", "0.004", "--focus-group", "continuity", "--focus-share", "0.5"]) == 0
@@ -332,7 +333,7 @@ def test_the_command_line_sets_the_focus_and_the_learning_rate(splits, tmp_path,
     assert not (tmp_path / "p").exists()
 
 
-def test_the_name_resolves_and_scores_a_tiny_test_set(splits, tmp_path, tiny_preset):
+def test_the_name_resolves_and_scores_a_tiny_test_set(splits, tmp_path, tiny_recipe):
     run = tmp_path / "run"
     assert main(["train", "phydnet", "--data", str(splits[0]), "--out", str(run), "--quiet"]) == 0
     assert load_model(str(run / "phydnet")).name == "phydnet"
@@ -351,9 +352,9 @@ def test_the_name_resolves_and_scores_a_tiny_test_set(splits, tmp_path, tiny_pre
 
 
 def test_pipeline_trains_and_scores_phydnet_without_perception(tmp_path, monkeypatch):
-    tiny = replace(PRESETS["cpu"], phydnet=replace(TINY, image_size=PRESETS["cpu"].perception.image_size),
-                   phydnet_train=TrainConfig(**TRAIN))
-    monkeypatch.setitem(PRESETS, "cpu", tiny)
+    tiny = replace(RECIPES["cpu"], phydnet=replace(TINY, image_size=RECIPES["cpu"].perception.image_size),
+                   phydnet_train=TrainConfig(**TRAIN), phases=())
+    monkeypatch.setitem(RECIPES, "cpu", tiny)
     config = PipelineConfig(str(tmp_path / "run"), train_videos=4, pairs=1, models=("phydnet", "random"), workers=1,
                             progress=False)
     report = run_pipeline(config).read_text()

@@ -9,23 +9,26 @@ from inference.score import reference_nll
 from xvoe.apps.pipeline import PipelineConfig, compare_models, run_pipeline
 from xvoe.benchmark import store
 from xvoe.errors import XvoeError
-from xvoe.training.presets import PRESETS, TrainConfig
+from xvoe.training.checkpoints import load_checkpoint
+from xvoe.training.recipes import RECIPES, TrainConfig
 
 
 @pytest.fixture
-def tiny_cpu_preset(monkeypatch):
-    cpu = PRESETS["cpu"]
+def tiny_cpu_recipe(monkeypatch):
+    cpu = RECIPES["cpu"]
     few = TrainConfig(steps=6, batch_size=8, warmup_steps=1, log_every=2)
     tiny = replace(cpu, perception=replace(cpu.perception, latent_dim=8, cnn_channels=(8, 8), cnn_hidden=16,
                                            decoder_channels=8),
                    perception_train=few,
                    xpl=replace(cpu.xpl, reasoning=replace(cpu.xpl.reasoning, width=16, layers=1, heads=2, mlp=16),
                                dynamics=replace(cpu.xpl.dynamics, hidden=16, lstm=16, buffer_heads=2)),
-                   xpl_train=replace(few, batch_size=4), proposal_train=replace(few, batch_size=4))
-    monkeypatch.setitem(PRESETS, "cpu", tiny)
+                   xpl_train=replace(few, batch_size=4), proposal_train=replace(few, batch_size=4),
+                   plato_train=replace(few, batch_size=4),
+                   phases=(("plato", replace(few, batch_size=4, steps=9, focus_group="continuity", focus_share=0.5)),))
+    monkeypatch.setitem(RECIPES, "cpu", tiny)
 
 
-def test_tiny_pipeline_runs_end_to_end_and_skips_done_stages(tmp_path, tiny_cpu_preset):
+def test_tiny_pipeline_runs_end_to_end_and_skips_done_stages(tmp_path, tiny_cpu_recipe):
     config = PipelineConfig(str(tmp_path / "run"), train_videos=12, pairs=2, models=("xpl", "plato", "random"),
                             workers=1, progress=False)
     report = run_pipeline(config)
@@ -37,6 +40,8 @@ def test_tiny_pipeline_runs_end_to_end_and_skips_done_stages(tmp_path, tiny_cpu_
     for figure in ("holistic.png", "comparative.png", "components-plato.png", "explanation-blocking-S2.png"):
         assert (run / "report" / figure).exists()
     assert (run / "proposal.pt").exists() and "train-proposal" in text
+    plato = load_checkpoint(run / "plato.pt")        # the recipe's later phase, resumed from the first
+    assert "train-plato-2" in text and plato["step"] == 9 and plato["train"]["focus_group"] == "continuity"
     stamp = (run / "xpl.pt").stat().st_mtime_ns
     run_pipeline(config)                     # everything done: nothing is redone
     assert (run / "xpl.pt").stat().st_mtime_ns == stamp
@@ -98,8 +103,8 @@ def test_report_compares_models_with_their_numbers():
     assert compare_models([row("xpl", "collision", "S3", 0.9)]) == []
 
 
-def test_models_trained_side_by_side_match_one_after_another(tmp_path, tiny_cpu_preset, monkeypatch):
-    """--jobs 2 trains xpl and plato in two processes (the tiny preset goes with them), then
+def test_models_trained_side_by_side_match_one_after_another(tmp_path, tiny_cpu_recipe, monkeypatch):
+    """--jobs 2 trains xpl and plato in two processes (the tiny recipe goes with them), then
     scores them; --jobs 1 with as many threads, one after the other: the same bytes. The second
     run starts from the first's data, perception and cache."""
     import os

@@ -16,11 +16,11 @@ from xvoe.training.checkpoints import load_checkpoint
 from xvoe.training.data import ShardedFrames
 from xvoe.training.loop import learning_rate, seed_everything
 from xvoe.training.perception import load_perception, train_perception
-from xvoe.training.presets import TrainConfig, preset
+from xvoe.training.recipes import TrainConfig, recipe
 
 TINY = dict(image_size=16, broadcast_size=4, latent_dim=4, cnn_channels=(8, 8), cnn_hidden=16, decoder_channels=8)
 TRAIN = dict(batch_size=4, log_every=2, warmup_steps=2, threads=1)
-TINY_CONFIG = override(preset("cpu").perception, **TINY)     # what train_perception builds from the overrides
+TINY_CONFIG = override(recipe("cpu").perception, **TINY)     # what train_perception builds from the overrides
 
 
 @pytest.fixture(scope="module")

@@ -12,7 +12,7 @@ from xvoe.models.dynamics import DynamicsConfig
 from xvoe.models.reasoning import ReasoningConfig
 from xvoe.models.xpl import XPL, XPLConfig
 from xvoe.training.latents import Latents, write_latents
-from xvoe.training.presets import PRESETS, TrainConfig
+from xvoe.training.recipes import RECIPES, TrainConfig
 from xvoe.training.xpl import (
     LatentBatches,
     ProposalBatch,
@@ -51,17 +51,19 @@ def losses(run_dir, stage):
 
 
 @pytest.fixture(autouse=True)
-def tiny_preset(monkeypatch):
-    """Shrink the cpu preset's networks so that a stage trains in a second."""
+def tiny_recipe(monkeypatch):
+    """Shrink the cpu recipe's networks so that a stage trains in a second."""
     from dataclasses import replace
 
     import xvoe.training.xpl as stage
 
-    cpu = PRESETS["cpu"]
+    cpu = RECIPES["cpu"]
     reasoning = replace(cpu.xpl.reasoning, width=16, layers=1, heads=2, mlp=16)
     dynamics = replace(cpu.xpl.dynamics, hidden=32, lstm=32, buffer_heads=2)
-    small = replace(cpu, xpl=replace(cpu.xpl, weigh_by_picture=False, reasoning=reasoning, dynamics=dynamics))
-    monkeypatch.setattr(stage, "preset", lambda name: small)
+    # the synthetic cache has no split file, which the fills outside the picture are found in
+    small = replace(cpu, xpl=replace(cpu.xpl, weigh_by_picture=False, outside_refill=False, reasoning=reasoning,
+                                     dynamics=dynamics))
+    monkeypatch.setattr(stage, "recipe", lambda name: small)
 
 
 def test_xpl_stage_learns_and_resumes_exactly(cache, tmp_path):
@@ -106,16 +108,16 @@ def test_plato_and_the_no_residual_ablation(cache, tmp_path):
     assert model.config.use_reasoning and not model.config.dynamics.residual
 
 
-def test_a_preset_can_train_plato_longer_than_xpl(cache, tmp_path, monkeypatch):
-    """Preset.plato_train, where set, is the plato stage's training; the other stages keep xpl_train."""
+def test_a_recipe_can_train_plato_longer_than_xpl(cache, tmp_path, monkeypatch):
+    """Recipe.plato_train, where set, is the plato stage's training; the other stages keep xpl_train."""
     from dataclasses import replace
 
     import xvoe.training.xpl as stage
 
-    base = stage.preset("cpu")
+    base = stage.recipe("cpu")
     xpl_train = TrainConfig(**{**TINY, "steps": 3})
     longer = replace(base, xpl_train=xpl_train, plato_train=replace(xpl_train, steps=7, lr=2e-3))
-    monkeypatch.setattr(stage, "preset", lambda name: longer)
+    monkeypatch.setattr(stage, "recipe", lambda name: longer)
     plato = torch.load(train_xpl(cache, tmp_path, stage="plato", progress=False), weights_only=False)
     ablation = torch.load(train_xpl(cache, tmp_path, residual=False, progress=False), weights_only=False)
     assert (plato["step"], plato["train"]["lr"]) == (7, 2e-3)
@@ -256,8 +258,8 @@ def test_weighing_by_picture_needs_a_cache_that_names_its_perception(cache, tmp_
 
     import xvoe.training.xpl as stage
 
-    small = stage.preset("cpu")                     # the tiny preset of the autouse fixture
-    monkeypatch.setattr(stage, "preset", lambda name: replace(small, xpl=replace(small.xpl, weigh_by_picture=True)))
+    small = stage.recipe("cpu")                     # the tiny recipe of the autouse fixture
+    monkeypatch.setattr(stage, "recipe", lambda name: replace(small, xpl=replace(small.xpl, weigh_by_picture=True)))
     with pytest.raises(XvoeError, match="does not say which perception module made it"):
         train_xpl(cache, tmp_path / "run", progress=False, **TINY)
 

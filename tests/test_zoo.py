@@ -34,6 +34,19 @@ def test_shipping_keeps_the_weights_and_drops_the_optimiser(tmp_path, monkeypatc
     assert load_model("xpl").name == "xpl"
 
 
+def test_a_run_that_is_not_its_recipes_is_not_shipped(tmp_path):
+    run = tmp_path / "run"
+    run.mkdir()
+    for stage in ("perception", "xpl"):
+        state = torch.load(zoo.WEIGHTS / f"{stage}.pt", weights_only=False)
+        if stage == "xpl":
+            state["train"]["steps"] = 99       # trained by hand, not as the recipe says
+        torch.save(state, run / f"{stage}.pt")
+    with pytest.raises(XvoeError, match=r"xpl.pt is not what its recipe makes \(train.steps: 99 != 12000\)"):
+        zoo.ship(run, tmp_path / "weights")
+    assert not (tmp_path / "weights").exists()
+
+
 def test_unshipped_names_and_runs_give_one_line_errors(tmp_path, monkeypatch):
     monkeypatch.setattr(checkpoints, "WEIGHTS", tmp_path)
     with pytest.raises(XvoeError, match="not shipped"):

@@ -95,7 +95,7 @@ def cmd_explain(args: argparse.Namespace) -> None:
 
 def cmd_pipeline(args: argparse.Namespace) -> None:
     models = tuple(m.strip() for m in args.models.split(",") if m.strip())
-    print(xvoe.run_pipeline(xvoe.PipelineConfig(args.out, args.preset, args.train_videos, args.pairs, models, args.seed,
+    print(xvoe.run_pipeline(xvoe.PipelineConfig(args.out, args.recipe, args.train_videos, args.pairs, models, args.seed,
                                       args.workers, not args.quiet, args.jobs)))
 
 
@@ -123,7 +123,7 @@ def cmd_ship(args: argparse.Namespace) -> None:
 # --- training: one subcommand per stage, each with its own flags --------------------------
 
 def _train_overrides(args: argparse.Namespace, stage: str) -> tuple[dict, dict]:
-    """The TrainConfig fields the flags and `--set` change (None: keep the preset's), and the model's."""
+    """The TrainConfig fields the flags and `--set` change (None: keep the recipe's), and the model's."""
     train, model = xvoe.stage_settings(stage, args.set)
     flags = {"steps": args.steps, "max_minutes": args.minutes, "batch_size": args.batch_size, "seed": args.seed,
              "max_videos": args.max_videos, "lr": args.lr, "focus_group": getattr(args, "focus_group", None),
@@ -142,7 +142,7 @@ def cmd_train(args: argparse.Namespace) -> None:
     if stage == "proposal":
         print(xvoe.train_proposal(args.out, args.data, **common, **train))
         return
-    common |= {"preset_name": args.preset, "model_overrides": model}
+    common |= {"recipe_name": args.recipe, "model_overrides": model}
     if stage == "perception":
         print(xvoe.train_perception(args.data, args.out, **common, **train))
     elif stage == "phydnet":
@@ -188,9 +188,9 @@ def add_train_parser(verbs) -> None:
             parser.add_argument("--data", help="the training split file (HDF5)")
         parser.add_argument("--out", required=True, help="the run directory")
         if stage != "proposal":
-            parser.add_argument("--preset", default="cpu",
-                                help="model and training sizes: cpu (default), cpu-broadcast or paper")
-        parser.add_argument("--steps", type=_positive, help="training steps (default: the preset's)")
+            parser.add_argument("--recipe", default="cpu",
+                                help="the recipe whose sizes and settings start the run: cpu (default) or paper")
+        parser.add_argument("--steps", type=_positive, help="training steps (default: the recipe's)")
         parser.add_argument("--minutes", type=_positive_float, help="stop after this many minutes of training")
         parser.add_argument("--batch-size", type=_positive,
                             help="videos per step over all processes" if stage == "phydnet"
@@ -199,7 +199,7 @@ def add_train_parser(verbs) -> None:
         parser.add_argument("--max-videos", type=_positive, help="use only the first N videos of --data")
         parser.add_argument("--seed", type=int, help="the seed of initialisation and batches (default 0)")
         parser.add_argument("--lr", type=_positive_float,
-                            help="peak learning rate (default: the preset's; it halves every decay_steps)")
+                            help="peak learning rate (default: the recipe's; it halves every decay_steps)")
         if stage in FOCUS_STAGES:
             parser.add_argument("--focus-group", help="draw --focus-share of each batch from this group's training "
                                                       "videos with a wall (e.g. permanence; several: "
@@ -242,7 +242,8 @@ def build_parser() -> argparse.ArgumentParser:
     gen.add_argument("--out", required=True, help="the HDF5 file to write")
     gen.add_argument("--videos", type=_positive, default=10_000, help="training videos (default 10000)")
     gen.add_argument("--pairs", type=_positive, default=1_000, help="test pairs per setting (default 1000)")
-    gen.add_argument("--size", type=_positive, default=64, help="frame size in pixels (default 64)")
+    gen.add_argument("--size", type=_positive, default=32,
+                     help="frame size in pixels (default 32, what the default recipe's models read)")
     gen.add_argument("--frames", type=_positive, default=15, help="frames per video (default 15)")
     gen.add_argument("--seed", type=int, default=0, help="the seed every random choice flows from")
     gen.add_argument("--workers", type=_positive, default=_default_workers(), help="worker processes")
@@ -327,9 +328,9 @@ def build_parser() -> argparse.ArgumentParser:
                                             "compute the metrics and write RUN_DIR/report.md. A rerun skips "
                                             "the stages already done and resumes an interrupted one.")
     pipeline.add_argument("--out", required=True, help="the run directory")
-    pipeline.add_argument("--preset", default="cpu",
-                          help="model and training sizes: cpu (default), cpu-broadcast or paper")
-    pipeline.add_argument("--train-videos", type=_positive, default=10_000, help="training videos (default 10000)")
+    pipeline.add_argument("--recipe", default="cpu",
+                          help="every stage and setting of the models: cpu (default, the shipped models') or paper")
+    pipeline.add_argument("--train-videos", type=_positive, help="training videos (default: the recipe's, 10000)")
     pipeline.add_argument("--pairs", type=_positive, default=200, help="test pairs per setting (default 200)")
     pipeline.add_argument("--models", default="xpl,random",
                           help="comma-separated: xpl, plato, xpl-noresidual, phydnet, random (default xpl,random)")

@@ -28,6 +28,7 @@ import torch
 from ..benchmark import store
 from ..benchmark.generate import GenerateConfig, generate
 from ..errors import XvoeError
+from ..models.config import to_dict
 from ..evaluation.explain import explain
 from ..evaluation.score import load_model, score_split
 from ..outputs import claim_directory
@@ -35,7 +36,7 @@ from ..training.latents import encode_split
 from ..training.loop import checkpoint_path
 from ..training.perception import train_perception
 from ..training.phydnet import train_phydnet
-from ..training.presets import PRESETS, Preset, preset
+from ..training.recipes import DEFAULT, RECIPES, Recipe, TrainConfig, recipe
 from ..training.xpl import train_proposal, train_xpl
 from .figures import plot_explanation
 from .report import report
@@ -47,8 +48,8 @@ TRAINED = {"xpl": ("xpl", True), "plato": ("plato", True), "xpl-noresidual": ("x
 @dataclass(frozen=True)
 class PipelineConfig:
     out: str
-    preset: str = "cpu"
-    train_videos: int = 10_000
+    recipe: str = DEFAULT
+    train_videos: int | None = None     # None: the recipe's
     pairs: int = 200
     models: tuple[str, ...] = ("xpl", "random")
     seed: int = 0
@@ -63,7 +64,7 @@ class PipelineConfig:
         unknown = [m for m in self.models if m not in MODELS]
         if unknown:
             raise XvoeError(f"unknown model(s) {', '.join(unknown)}; choose from {', '.join(MODELS)}")
-        if self.train_videos < 1 or self.pairs < 1:
+        if (self.train_videos is not None and self.train_videos < 1) or self.pairs < 1:
             raise XvoeError("--train-videos and --pairs must be at least 1")
         if self.jobs < 0:
             raise XvoeError("--jobs must be 0 (one per core) or more")
@@ -96,21 +97,22 @@ class Stages:
 
 def run_pipeline(config: PipelineConfig) -> Path:
     """Everything, end to end; returns the path of report.md."""
-    size = preset(config.preset).perception.image_size
+    chosen = recipe(config.recipe)
+    size, train_videos = chosen.perception.image_size, config.train_videos or chosen.train_videos
     run_dir = claim_directory(config.out)
     (run_dir / "data").mkdir(exist_ok=True)
     stages = Stages(run_dir, config.progress)
     train_data, test_data, latents = run_files(run_dir)
 
     stages.run("generate-train", lambda: generate(
-        GenerateConfig("train", videos=config.train_videos, size=size, seed=config.seed), train_data,
+        GenerateConfig("train", videos=train_videos, size=size, seed=config.seed), train_data,
         workers=config.workers, overwrite=True, progress=config.progress))
     stages.run("generate-test", lambda: generate(
         GenerateConfig("test", pairs=config.pairs, size=size, seed=config.seed + 1), test_data,
         workers=config.workers, overwrite=True, progress=config.progress))
     if any(model in TRAINED for model in config.models):     # PhyDNet and the random agent need no perception
         stages.run("perception", lambda: train_perception(
-            train_data, run_dir, preset_name=config.preset, progress=config.progress,
+            train_data, run_dir, recipe_name=config.recipe, progress=config.progress,
             resume=checkpoint_path(run_dir, "perception").exists(), seed=config.seed))
         stages.run("encode-train", lambda: encode_split(run_dir, train_data, latents, overwrite=True,
                                                         progress=config.progress))
@@ -122,7 +124,7 @@ def run_pipeline(config: PipelineConfig) -> Path:
         threads = max(1, cores // lanes)
         context = multiprocessing.get_context("spawn")
         with ProcessPoolExecutor(lanes, mp_context=context) as pool:
-            for done in [pool.submit(_lane, config, preset(config.preset), model, threads) for model in heavy]:
+            for done in [pool.submit(_lane, config, recipe(config.recipe), model, threads) for model in heavy]:
                 done.result()
     for model in config.models:
         _model_stages(config, model, stages, config.progress)
@@ -146,19 +148,23 @@ def _model_stages(config: PipelineConfig, model: str, stages: Stages, bars: bool
     """Train (with the proposal stage for xpl) and score one model, skipping what is done."""
     run_dir = Path(config.out)
     train_data, test_data, latents = run_files(run_dir)
+    phases = recipe(config.recipe).phases_of(model)
     if model in TRAINED:
         stage, residual = TRAINED[model]
-        stages.run(f"train-{model}", lambda: train_xpl(
-            latents, run_dir, stage=stage, preset_name=config.preset, residual=residual, progress=bars,
-            resume=checkpoint_path(run_dir, model).exists(), seed=config.seed))
+
+        def train(phase: dict) -> object:
+            return train_xpl(latents, run_dir, stage=stage, recipe_name=config.recipe, residual=residual,
+                             progress=bars, resume=checkpoint_path(run_dir, model).exists(), **phase)
+        _train_phases(stages, model, train, phases, config.seed)
         if model == "xpl":
             stages.run("train-proposal", lambda: train_proposal(
                 run_dir, latents, progress=bars, resume=checkpoint_path(run_dir, "proposal").exists(),
                 seed=config.seed))
     if model == "phydnet":
-        stages.run("train-phydnet", lambda: train_phydnet(
-            train_data, run_dir, preset_name=config.preset, progress=bars,
-            resume=checkpoint_path(run_dir, "phydnet").exists(), seed=config.seed))
+        def train(phase: dict) -> object:
+            return train_phydnet(train_data, run_dir, recipe_name=config.recipe, progress=bars,
+                                 resume=checkpoint_path(run_dir, "phydnet").exists(), **phase)
+        _train_phases(stages, model, train, phases, config.seed)
     if not score:
         return
     reference = "random" if model == "random" else str(checkpoint_path(run_dir, model))
@@ -166,13 +172,22 @@ def _model_stages(config: PipelineConfig, model: str, stages: Stages, bars: bool
         reference, str(test_data), str(run_dir / "scores" / f"{model}.csv"), overwrite=True, progress=bars))
 
 
-def _lane(config: PipelineConfig, sizes: Preset, model: str, threads: int) -> None:
+def _train_phases(stages: Stages, model: str, train: Callable[[dict], object], phases: tuple[TrainConfig, ...],
+                  seed: int) -> None:
+    """A model's first training run, then each later phase of its recipe, resumed from the one
+    before with the phase's whole training config (the run's seed kept)."""
+    stages.run(f"train-{model}", lambda: train({"seed": seed}))
+    for number, phase in enumerate(phases, start=2):
+        stages.run(f"train-{model}-{number}", lambda phase=phase: train({**to_dict(phase), "seed": seed}))
+
+
+def _lane(config: PipelineConfig, sizes: Recipe, model: str, threads: int) -> None:
     """One model's training stages in a process of its own with `threads` threads and the
-    caller's preset `sizes` (no progress bars: lanes would draw over each other; each stage's
+    caller's recipe `sizes` (no progress bars: lanes would draw over each other; each stage's
     start is printed). Scoring is left to the caller: it uses every core well (on one thread
     beside another lane it took twice as long)."""
 
-    PRESETS[config.preset] = sizes
+    RECIPES[config.recipe] = sizes
     os.environ["OMP_NUM_THREADS"] = str(threads)
     torch.set_num_threads(threads)
     _model_stages(config, model, Stages(Path(config.out), config.progress), bars=False, score=False)
@@ -242,9 +257,10 @@ def compare_models(rows: list[dict]) -> list[str]:
 def write_report(run_dir: Path, config: PipelineConfig) -> Path:
     """report.md: the holistic and comparative tables and the figures."""
     rows = list(csv.DictReader(open(run_dir / "report" / "metrics.csv")))
+    videos = config.train_videos or recipe(config.recipe).train_videos
     lines = [f"# xvoe pipeline report: {run_dir.name}", "",
-             f"Preset `{config.preset}`, {config.train_videos} training videos, {config.pairs} test pairs per "
-             f"setting, seed {config.seed}. Values are percentages with bootstrap 95% intervals.", ""]
+             f"Recipe `{config.recipe}`, {videos} training videos, {config.pairs} test pairs per setting, "
+             f"seed {config.seed}. Values are percentages with bootstrap 95% intervals.", ""]
     models = list(dict.fromkeys(r["model"] for r in rows))
     total = [r for r in rows if r["column"] == "score"]
 

@@ -2,7 +2,8 @@
 
 They live in xvoe/weights/ as one run directory (a shared perception.pt and one checkpoint per
 stage), written by `xvoe ship RUN_DIR` from a run of `xvoe pipeline`: weights and configs only,
-without the optimiser state, so that they load with no download and stay small.
+without the optimiser state, so that they load with no download and stay small. Only a run
+its recipe made as written is shipped, so that one command makes each shipped model again.
 """
 from __future__ import annotations
 
@@ -15,6 +16,7 @@ import torch
 from ..errors import XvoeError
 from ..outputs import atomic_paths, claim_directory
 from ..training.checkpoints import SHIPPED, WEIGHTS, load_checkpoint, shipped_path
+from ..training.provenance import recipe_differences
 
 BUDGET_BYTES = 25 * 2**20      # all shipped checkpoints together
 KEPT = ("format", "stage", "step", "config", "model", "train", "meta")
@@ -35,7 +37,12 @@ def ship(run_dir: str | os.PathLike, out: str | os.PathLike | None = None) -> li
     if "perception" not in stages or "xpl" not in stages:
         raise XvoeError(f"{run_dir} holds no perception.pt and xpl.pt to ship")
     claim_directory(out or WEIGHTS, make=False)
-    slim = {stage: _slim(load_checkpoint(run_dir / f"{stage}.pt"), run_dir.name) for stage in stages}
+    states = {stage: load_checkpoint(run_dir / f"{stage}.pt") for stage in stages}
+    for stage, state in states.items():
+        if differences := recipe_differences(state):
+            raise XvoeError(f"{run_dir / stage}.pt is not what its recipe makes ({'; '.join(differences[:3])}); "
+                            "ship runs of `xvoe pipeline --recipe NAME` as written; nothing was written")
+    slim = {stage: _slim(state, run_dir.name) for stage, state in states.items()}
     kept = sum(p.stat().st_size for p in Path(out or WEIGHTS).glob("*.pt") if p.stem not in slim)
     total = kept + sum(len(data) for data in slim.values())
     if total > BUDGET_BYTES:

@@ -34,7 +34,7 @@ class GenerateConfig:
     split: str = "train"
     videos: int = 10_000      # training videos
     pairs: int = 1_000        # test pairs per setting
-    size: int = 64
+    size: int = 32            # the default recipe's frames (a test holds the two together)
     frames: int = 15
     seed: int = 0
 

@@ -11,7 +11,7 @@ pixels. Schema (an interface; version in the attribute `xvoe_latents`):
 - extras: `pixels` int32 (N, T, K) mask pixel counts; `background_mean`, `background_std`
   float32 (N, T, D): the background component (floor and sky) that the composite needs.
 - attributes: `perception_checkpoint` (path), `perception_sha256`, `source` (data file),
-  `source_split`, `config` (JSON: preset, perception config, threshold, the data's config).
+  `source_split`, `config` (JSON: recipe, perception config, threshold, the data's config).
 """
 from __future__ import annotations
 
@@ -32,6 +32,7 @@ from ..models.perception import normalise
 from ..outputs import claim_file
 from .data import check_size, masked_inputs, visible_threshold
 from .perception import load_perception
+from .recipes import recipe_of
 
 LATENTS_VERSION = 1
 ARRAYS = ("mean", "std", "visible", "present", "pixels", "background_mean", "background_std")
@@ -157,7 +158,7 @@ def encode_split(model_ref: str | os.PathLike, data: str | os.PathLike, out: str
         arrays = {name: np.concatenate(values) for name, values in parts.items()}
         present = file["states"][..., present_column] > 0.5
         threshold = visible_threshold(size)
-        config = {"preset": state["config"]["preset"], "perception": state["config"]["perception"],
+        config = {"recipe": recipe_of(state["config"]), "perception": state["config"]["perception"],
                   "visible_threshold": threshold, "data": store.config_of(file)}
         attrs = {"perception_checkpoint": str(Path(state["path"]).resolve()),
                  "perception_sha256": sha256_of(state["path"]), "source": str(Path(data).resolve()),

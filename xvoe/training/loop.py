@@ -34,7 +34,7 @@ from ..errors import XvoeError
 from ..models.config import to_dict
 from ..outputs import claim_directory
 from .checkpoints import CHECKPOINT_FORMAT, load_checkpoint, save_checkpoint
-from .presets import TrainConfig
+from .recipes import TrainConfig
 
 
 @dataclass

@@ -13,7 +13,7 @@ from ..models.perception import ComponentVAE, PerceptionConfig
 from .checkpoints import load_checkpoint, resolve_run
 from .data import ShardedFrames
 from .loop import Job, checkpoint_path, fit, seed_everything, set_threads, setup_distributed
-from .presets import TrainConfig, preset
+from .recipes import TrainConfig, recipe, recipe_of
 
 
 def load_perception(model: str | os.PathLike, device: str | torch.device = "cpu"):
@@ -28,20 +28,20 @@ def load_perception(model: str | os.PathLike, device: str | torch.device = "cpu"
     return vae.to(device).eval(), state
 
 
-def perception_configs(preset_name: str, run_dir: Path, resume: bool, **train_overrides: Any):
-    """Model and training configs: the checkpoint's when resuming, else the preset's, with overrides."""
+def perception_configs(recipe_name: str, run_dir: Path, resume: bool, **train_overrides: Any):
+    """Model and training configs: the checkpoint's when resuming, else the recipe's, with overrides."""
     ckpt = checkpoint_path(run_dir, "perception")
     if resume and ckpt.exists():
         state = load_checkpoint(ckpt)
         model_config = from_dict(PerceptionConfig, state["config"]["perception"])
-        train_config, preset_name = from_dict(TrainConfig, state["train"]), state["config"]["preset"]
+        train_config, recipe_name = from_dict(TrainConfig, state["train"]), recipe_of(state["config"])
     else:
-        chosen = preset(preset_name)
+        chosen = recipe(recipe_name)
         model_config, train_config = chosen.perception, chosen.perception_train
-    return preset_name, model_config, override(train_config, **train_overrides)
+    return recipe_name, model_config, override(train_config, **train_overrides)
 
 
-def train_perception(data: str | os.PathLike | None, run_dir: str | os.PathLike, *, preset_name: str = "cpu",
+def train_perception(data: str | os.PathLike | None, run_dir: str | os.PathLike, *, recipe_name: str = "cpu",
                      resume: bool = False, overwrite: bool = False, progress: bool = True,
                      model_overrides: dict | None = None, **train_overrides: Any) -> Path:
     """What `xvoe train perception` does; also works under torchrun. A resumed run may leave
@@ -52,7 +52,7 @@ def train_perception(data: str | os.PathLike | None, run_dir: str | os.PathLike,
         if not (resume and checkpoint_path(run_dir, "perception").exists()):
             raise XvoeError("--data is required to start a run (the training split file)")
         data = load_checkpoint(checkpoint_path(run_dir, "perception"))["meta"]["data"]
-    preset_name, model_config, config = perception_configs(preset_name, run_dir, resume, **train_overrides)
+    recipe_name, model_config, config = perception_configs(recipe_name, run_dir, resume, **train_overrides)
     if resume and checkpoint_path(run_dir, "perception").exists():
         model_config = override_resumed(model_config, model_overrides, what="perception run")
     else:
@@ -65,6 +65,6 @@ def train_perception(data: str | os.PathLike | None, run_dir: str | os.PathLike,
                            batch_size=config.batch_size, shards=config.data_shards, rank=place.rank,
                            world=place.world, max_videos=config.max_videos, seed=config.seed,
                            cut_share=model_config.cut_share)
-    job = Job("perception", model, frames.batch, {"preset": preset_name, "perception": to_dict(model_config)},
+    job = Job("perception", model, frames.batch, {"recipe": recipe_name, "perception": to_dict(model_config)},
               items=lambda batch: batch.images, meta={"data": str(Path(data).resolve())})
     return fit(job, config, run_dir, place=place, resume=resume, overwrite=overwrite, progress=progress)

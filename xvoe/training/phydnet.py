@@ -22,7 +22,7 @@ from ..models.phydnet import PhyDNet, PhyDNetConfig, PhyDNetObjective, widen_lst
 from .checkpoints import load_checkpoint, resolve_run, save_checkpoint
 from .data import check_size, focus_on, owned_shards
 from .loop import Job, checkpoint_path, fit, seed_everything, set_threads, setup_distributed
-from .presets import TrainConfig, preset
+from .recipes import TrainConfig, recipe, recipe_of
 
 STAGE = "phydnet"
 LOSS_FIELDS = ("change_weight", "moment_weight")   # PhyDNetConfig fields a resumed run may change
@@ -54,28 +54,28 @@ class VideoBatches:
         return self.rgbd[torch.from_numpy(np.concatenate(picks) - self.start)]
 
 
-def phydnet_configs(preset_name: str, run_dir: Path, resume: bool, data: str | os.PathLike | None
+def phydnet_configs(recipe_name: str, run_dir: Path, resume: bool, data: str | os.PathLike | None
                     ) -> tuple[str, PhyDNetConfig, TrainConfig, str]:
-    """Model and training configs and the data file: the checkpoint's when resuming, else the preset's."""
+    """Model and training configs and the data file: the checkpoint's when resuming, else the recipe's."""
     ckpt = checkpoint_path(run_dir, STAGE)
     if resume and ckpt.exists():
         state = load_checkpoint(ckpt)
         model_config = from_dict(PhyDNetConfig, state["config"]["phydnet"])
-        train_config, preset_name = from_dict(TrainConfig, state["train"]), state["config"]["preset"]
-        return preset_name, model_config, train_config, str(data or state["meta"]["data"])
+        train_config, recipe_name = from_dict(TrainConfig, state["train"]), recipe_of(state["config"])
+        return recipe_name, model_config, train_config, str(data or state["meta"]["data"])
     if data is None:
         raise XvoeError(f"nothing to resume in {run_dir}: give the training split to start a run")
-    chosen = preset(preset_name)
-    return preset_name, chosen.phydnet, chosen.phydnet_train, str(data)
+    chosen = recipe(recipe_name)
+    return recipe_name, chosen.phydnet, chosen.phydnet_train, str(data)
 
 
-def train_phydnet(data: str | os.PathLike | None, run_dir: str | os.PathLike, *, preset_name: str = "cpu",
+def train_phydnet(data: str | os.PathLike | None, run_dir: str | os.PathLike, *, recipe_name: str = "cpu",
                   resume: bool = False, overwrite: bool = False, progress: bool = True,
                   model_overrides: dict | None = None, **train_overrides: Any) -> Path:
     """What `xvoe train phydnet` does (also under torchrun); returns RUN_DIR/phydnet.pt."""
     place = setup_distributed()
     run_dir = Path(run_dir)
-    preset_name, model_config, config, data = phydnet_configs(preset_name, run_dir, resume, data)
+    recipe_name, model_config, config, data = phydnet_configs(recipe_name, run_dir, resume, data)
     if resume and checkpoint_path(run_dir, STAGE).exists():
         model_config = override_resumed(model_config, model_overrides, LOSS_FIELDS, "PhyDNet")
     else:
@@ -89,7 +89,7 @@ def train_phydnet(data: str | os.PathLike | None, run_dir: str | os.PathLike, *,
                            max_videos=config.max_videos, seed=config.seed, focus_group=config.focus_group,
                            focus_share=config.focus_share)
     job = Job(STAGE, PhyDNetObjective(PhyDNet(model_config)), batches.batch,
-              {"preset": preset_name, "phydnet": to_dict(model_config)}, meta={"data": str(Path(data).resolve())})
+              {"recipe": recipe_name, "phydnet": to_dict(model_config)}, meta={"data": str(Path(data).resolve())})
     return fit(job, config, run_dir, place=place, resume=resume, overwrite=overwrite, progress=progress)
 
 

@@ -33,7 +33,7 @@ from .data import focus_on, owned_shards
 from .latents import encode_split, open_latents, picture_weights
 from .loop import Dist, Job, checkpoint_path, fit, seed_everything, set_threads, setup_distributed
 from .perception import load_perception
-from .presets import TrainConfig, preset
+from .recipes import TrainConfig, recipe, recipe_of
 
 STAGES = ("xpl", "plato")
 PROPOSAL_OBJECT_SHARE = 0.5   # the proposal stage rebuilds a seen object this often (else any slot); as
@@ -168,7 +168,7 @@ class LatentBatches:
 
 
 def stage_config(base: XPLConfig, stage: str, residual: bool, stop_gradient: bool, shape: tuple) -> XPLConfig:
-    """The preset's XPL config fitted to the cache's (T, K, D) and to the stage's variant."""
+    """The recipe's XPL config fitted to the cache's (T, K, D) and to the stage's variant."""
     frames, slots, dim = shape
     reasoning = replace(base.reasoning, latent_dim=dim, slots=slots, frames=max(frames, base.reasoning.frames))
     dynamics = replace(base.dynamics, latent_dim=dim, residual=residual and stage == "xpl")
@@ -177,7 +177,7 @@ def stage_config(base: XPLConfig, stage: str, residual: bool, stop_gradient: boo
 
 
 def train_xpl(latents: str | os.PathLike | None, run_dir: str | os.PathLike, *, stage: str = "xpl",
-              preset_name: str = "cpu", residual: bool = True, stop_gradient: bool = True,
+              recipe_name: str = "cpu", residual: bool = True, stop_gradient: bool = True,
               resume: bool = False, overwrite: bool = False, progress: bool = True, model_overrides: dict | None = None,
               **train_overrides: Any) -> Path:
     """What `xvoe train xpl|plato` does (also under torchrun). The checkpoint is RUN_DIR/STAGE.pt,
@@ -192,13 +192,13 @@ def train_xpl(latents: str | os.PathLike | None, run_dir: str | os.PathLike, *, 
     if resume and ckpt.exists():
         state = load_checkpoint(ckpt)
         model_config = from_dict(XPLConfig, state["config"]["xpl"])
-        config, preset_name = from_dict(TrainConfig, state["train"]), state["config"]["preset"]
+        config, recipe_name = from_dict(TrainConfig, state["train"]), recipe_of(state["config"])
         latents = latents or state["meta"]["latents"]
         model_config = override_resumed(model_config, model_overrides, what=f"{name} run")
     elif latents is None:
         raise XvoeError(f"nothing to resume in {run_dir}: give the latent cache to start a run")
     else:
-        chosen = preset(preset_name)
+        chosen = recipe(recipe_name)
         with open_latents(latents) as file:
             shape = file["mean"].shape[1:]
             if file.attrs.get("source_split") == "test":
@@ -217,7 +217,7 @@ def train_xpl(latents: str | os.PathLike | None, run_dir: str | os.PathLike, *, 
                             walls=model_config.inert_walls or model_config.wall_refill > 0,
                             wall_refill=model_config.wall_refill, outside=model_config.outside_refill,
                             focus_group=config.focus_group, focus_share=config.focus_share)
-    job = Job(name, XPL(model_config), batches.batch, {"preset": preset_name, "xpl": to_dict(model_config)},
+    job = Job(name, XPL(model_config), batches.batch, {"recipe": recipe_name, "xpl": to_dict(model_config)},
               meta={"latents": str(Path(latents).resolve())})
     return fit(job, config, run_dir, place=place, resume=resume, overwrite=overwrite, progress=progress)
 
@@ -460,11 +460,11 @@ def train_proposal(run_dir: str | os.PathLike, latents: str | os.PathLike | None
         raise XvoeError(f"no xpl.pt in {run_dir}: train the xpl stage first")
     xpl, xpl_state = load_xpl(xpl_path, proposal=False)
     ckpt = checkpoint_path(run_dir, "proposal")
-    preset_name = xpl_state["config"]["preset"]
+    recipe_name = recipe_of(xpl_state["config"])
     if resume and ckpt.exists():
         config = from_dict(TrainConfig, load_checkpoint(ckpt)["train"])
     else:
-        config = preset(preset_name).proposal_train
+        config = recipe(recipe_name).proposal_train
     config = override(override(config, **train_overrides), data_shards=config.data_shards or 1)
     set_threads(config, 1)
     seed_everything(config.seed)
@@ -475,7 +475,7 @@ def train_proposal(run_dir: str | os.PathLike, latents: str | os.PathLike | None
             "xpl_fingerprint": fingerprint(xpl_state["model"])}
     place = Dist(device=torch.device("cuda" if torch.cuda.is_available() else "cpu"))
     networks = ProposalNetworks(xpl.to(place.device), batches.empty)
-    job = Job("proposal", networks, batches.batch, {"preset": preset_name, "xpl": to_dict(xpl.config)}, meta=meta)
+    job = Job("proposal", networks, batches.batch, {"recipe": recipe_name, "xpl": to_dict(xpl.config)}, meta=meta)
     return fit(job, config, run_dir, place=place, resume=resume, overwrite=overwrite, progress=progress)
 
 

@@ -1,18 +1,19 @@
-"""Sizes of every network and training run, grouped into named presets.
+"""What a recipe is: every setting of every stage that makes a model, as data.
 
-A `Preset` holds one config per stage, so that a run at one scale is one name.
+A `Recipe` holds the training data's size, one network config and one training config per
+stage, and the phases that continue a stage (a resume with a new batch focus or learning
+rate is a written phase, not a hand-run step). The recipes themselves are the modules beside
+this one.
 """
 from __future__ import annotations
 
 from dataclasses import dataclass, field, fields
 
-from ..errors import XvoeError
-from ..models.config import field_type, parse_value
-from ..models.dynamics import DynamicsConfig
-from ..models.perception import PerceptionConfig
-from ..models.phydnet import PhyDNetConfig
-from ..models.reasoning import ReasoningConfig
-from ..models.xpl import XPLConfig
+from ...errors import XvoeError
+from ...models.config import field_type, parse_value
+from ...models.perception import PerceptionConfig
+from ...models.phydnet import PhyDNetConfig
+from ...models.xpl import XPLConfig
 
 
 @dataclass(frozen=True)
@@ -42,10 +43,11 @@ class TrainConfig:
 
 
 @dataclass(frozen=True)
-class Preset:
-    """Everything needed to build and train the model at one scale."""
+class Recipe:
+    """Everything needed to make every model from nothing: `xvoe pipeline --recipe NAME`."""
 
     name: str
+    train_videos: int = 10_000      # the training split the pipeline generates (frames: perception.image_size)
     perception: PerceptionConfig = field(default_factory=PerceptionConfig)
     perception_train: TrainConfig = field(default_factory=TrainConfig)
     xpl: XPLConfig = field(default_factory=XPLConfig)
@@ -62,62 +64,24 @@ class Preset:
     phydnet: PhyDNetConfig = field(default_factory=PhyDNetConfig)
     phydnet_train: TrainConfig = field(default_factory=lambda: TrainConfig(steps=300, batch_size=8, lr=3e-3,
                                                                            warmup_steps=20, decay_steps=300))
+    # phases that continue a stage's run, in order: (stage, its training from there on), each
+    # resumed from the checkpoint the phase before left, to `steps` in all
+    phases: tuple[tuple[str, TrainConfig], ...] = ()
 
+    def phases_of(self, stage: str) -> tuple[TrainConfig, ...]:
+        return tuple(train for name, train in self.phases if name == stage)
 
-PRESETS: dict[str, Preset] = {
-    # 2 CPU cores: 32x32 frames, a small CNN encoder and a light decoder. Each object's position is two
-    # latents the decoder draws from (found whole behind walls: amodal, cut_share), and the later
-    # stages weigh each latent by how much it moves the picture; walls are inert in the dynamics
-    # (docs/decisions.md, "The cpu preset").
-    "cpu": Preset(
-        name="cpu",
-        perception=PerceptionConfig(where_latents=True, amodal=True, cut_share=0.25),
-        xpl=XPLConfig(weigh_by_picture=True, inert_walls=True),
-    ),
-    # The cpu preset before where latents: the whole latent broadcast, every latent weighed alike;
-    # walls inert in the dynamics, Transformer 1 trained by the refill loss alone, its fills of
-    # objects outside the picture included, and a longer XPL stage (docs/decisions.md, "The
-    # cpu-broadcast preset and the shipped models").
-    "cpu-broadcast": Preset(
-        name="cpu-broadcast",
-        perception=PerceptionConfig(),
-        xpl=XPLConfig(inert_walls=True, stop_input_gradient=True, outside_refill=True),
-        xpl_train=TrainConfig(steps=12_000, batch_size=32, warmup_steps=100, decay_steps=8000),
-        # PLATO's predictive accuracy grows with its training time (docs/decisions.md, "PLATO's
-        # training length")
-        plato_train=TrainConfig(steps=60_000, batch_size=32, warmup_steps=100, decay_steps=15_000),
-        # the changing pixels weighed more in PhyDNet's training loss, and trained longer
-        # (docs/decisions.md, "PhyDNet's loss weight on changing pixels")
-        phydnet=PhyDNetConfig(change_weight=20.0),
-        phydnet_train=TrainConfig(steps=7500, batch_size=8, lr=2e-3, warmup_steps=100, decay_steps=2500),
-    ),
-    # The paper's sizes (appendix tables): 128x128, ViT encoder, D=32, 64-channel decoder; for GPUs.
-    "paper": Preset(
-        name="paper",
-        perception=PerceptionConfig(image_size=128, latent_dim=32, encoder="vit", decoder_channels=64,
-                                    decoder_extra_convs=1),
-        xpl=XPLConfig(reasoning=ReasoningConfig(latent_dim=32, width=256, layers=6, heads=8, mlp=256),
-                      dynamics=DynamicsConfig(latent_dim=32, hidden=512, mlp_layers=3, lstm=2056, buffer_heads=8)),
-        xpl_train=TrainConfig(steps=32_000, batch_size=500, warmup_steps=1000, decay_steps=10_000,
-                              checkpoint_minutes=10.0, log_every=100),
-        proposal_train=TrainConfig(steps=32_000, batch_size=500, warmup_steps=1000, decay_steps=10_000,
-                                   checkpoint_minutes=10.0, log_every=100),
-        perception_train=TrainConfig(steps=472_000, batch_size=36, lr=4e-4, warmup_steps=2000,
-                                     decay_steps=100_000, checkpoint_minutes=10.0, log_every=100),
-        # the original's sizes (64x64 -> 16x16 features, ConvLSTM 128-128-64), one more halving at 128x128;
-        # the paper's training table: 100 videos per batch, 70,000 steps, Adam, lr 0.001
-        phydnet=PhyDNetConfig(image_size=128, encoder_channels=(16, 32, 64, 64), lstm_channels=(128, 128, 64)),
-        phydnet_train=TrainConfig(steps=70_000, batch_size=100, lr=1e-3, warmup_steps=0, decay_steps=10**9,
-                                  checkpoint_minutes=10.0, log_every=100),
-    ),
-}
+    def training(self, stage: str) -> TrainConfig:
+        """The first phase of a stage: where a fresh run of it starts."""
+        if stage == "plato" and self.plato_train is not None:
+            return self.plato_train
+        return {"perception": self.perception_train, "xpl": self.xpl_train, "plato": self.xpl_train,
+                "xpl-noresidual": self.xpl_train, "proposal": self.proposal_train,
+                "phydnet": self.phydnet_train}[stage]
 
-
-def preset(name: str) -> Preset:
-    """The named preset, or a one-line error listing the known ones."""
-    if name not in PRESETS:
-        raise XvoeError(f"unknown preset {name!r}; choose one of {', '.join(PRESETS)}")
-    return PRESETS[name]
+    def final_training(self, stage: str) -> TrainConfig:
+        """The training config a finished run of the stage holds: its last phase's."""
+        return (self.training(stage), *self.phases_of(stage))[-1]
 
 
 MODEL_CONFIGS = {"perception": PerceptionConfig, "xpl": XPLConfig, "plato": XPLConfig, "phydnet": PhyDNetConfig}

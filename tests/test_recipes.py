@@ -1,0 +1,72 @@
+"""Recipes are code: each shipped checkpoint names a recipe whose configs are its own, the
+pipeline runs a recipe's later phases, and the defaults agree with the default recipe."""
+from __future__ import annotations
+
+from dataclasses import replace
+
+import pytest
+
+from xvoe.benchmark.generate import GenerateConfig
+from xvoe.errors import XvoeError
+from xvoe.training.checkpoints import WEIGHTS, load_checkpoint
+from xvoe.training.provenance import recipe_differences
+from xvoe.training.recipes import DEFAULT, RECIPES, TrainConfig, recipe, recipe_of
+
+FROM_THE_RECIPE = ("perception", "xpl", "proposal")
+# made by hand-run steps before recipes were code (docs/results.md, "The shipped models and
+# their recipes"); strict: once one is retrained by its recipe and shipped, move it up
+NOT_YET = ("plato", "phydnet", "xpl-noresidual")
+
+
+@pytest.mark.parametrize("name", FROM_THE_RECIPE)
+def test_a_shipped_checkpoint_holds_its_recipes_configs(name):
+    state = load_checkpoint(WEIGHTS / f"{name}.pt")
+    assert recipe_of(state["config"]) == DEFAULT
+    assert recipe_differences(state) == []
+
+
+@pytest.mark.parametrize("name", NOT_YET)
+@pytest.mark.xfail(strict=True, reason="shipped before its recipe was written; retrain with xvoe pipeline")
+def test_the_older_shipped_checkpoints_are_not_yet_their_recipes(name):
+    assert recipe_differences(load_checkpoint(WEIGHTS / f"{name}.pt")) == []
+
+
+def test_every_shipped_checkpoint_is_listed():
+    assert sorted(p.stem for p in WEIGHTS.glob("*.pt")) == sorted(FROM_THE_RECIPE + NOT_YET)
+
+
+def test_a_changed_setting_is_a_difference():
+    state = load_checkpoint(WEIGHTS / "xpl.pt")
+    state["config"] = {**state["config"], "xpl": {**state["config"]["xpl"], "inert_walls": False}}
+    state["train"] = {**state["train"], "lr": 0.5}
+    assert recipe_differences(state) == ["xpl.inert_walls: False != True", "train.lr: 0.5 != 0.001"]
+
+
+def test_the_seed_is_the_runs_own():
+    state = load_checkpoint(WEIGHTS / "xpl.pt")
+    assert recipe_differences({**state, "train": {**state["train"], "seed": 3}}) == []
+
+
+def test_generate_makes_the_frames_the_default_model_reads():
+    assert GenerateConfig().size == recipe(DEFAULT).perception.image_size
+
+
+def test_phases_continue_a_stage_and_the_last_is_what_a_run_holds():
+    base = TrainConfig(steps=10)
+    later = (("plato", TrainConfig(steps=20, focus_group="continuity", focus_share=0.5)),
+             ("plato", TrainConfig(steps=30)))
+    made = replace(RECIPES[DEFAULT], plato_train=base, phases=later)
+    assert made.training("plato") == base
+    assert made.phases_of("plato") == tuple(t for _, t in later)
+    assert made.final_training("plato").steps == 30
+    assert made.final_training("xpl") == made.xpl_train
+
+
+def test_an_unknown_recipe_is_a_one_line_error():
+    with pytest.raises(XvoeError, match="unknown recipe 'gpu'; choose one of cpu, paper"):
+        recipe("gpu")
+
+
+def test_older_checkpoints_name_a_preset_and_the_renamed_one_is_found():
+    assert recipe_of({"preset": "cpu-broadcast"}) == "cpu"
+    assert recipe_of({"recipe": "paper"}) == "paper"

@@ -1,0 +1,64 @@
+"""Whether a checkpoint is what its recipe makes: the stored configs against the recipe's.
+
+A checkpoint names its recipe; its network config and its last training config must be the
+ones the recipe gives its stage, so that `xvoe pipeline --recipe NAME --seed S` makes it
+again from nothing. What the data decide (the frames, slots and latent size a cache has,
+the latent weights measured on it) and what a run decides (its seed, data shards and
+threads) are taken from the checkpoint.
+"""
+from __future__ import annotations
+
+from dataclasses import replace
+
+from ..models.config import from_dict, to_dict
+from ..models.perception import PerceptionConfig
+from ..models.phydnet import PhyDNetConfig
+from ..models.xpl import XPLConfig
+from .recipes import TrainConfig, recipe, recipe_of
+from .xpl import stage_config
+
+RUN_FIELDS = ("seed", "data_shards", "threads")
+XPL_STAGES = {"xpl": ("xpl", True), "xpl-noresidual": ("xpl", False), "plato": ("plato", True), "proposal": ("xpl", True)}
+
+
+def expected_configs(state: dict) -> tuple[dict, dict]:
+    """The stored config and training config the checkpoint's recipe gives its stage."""
+    stage, config = state["stage"], state["config"]
+    chosen = recipe(recipe_of(config))
+    if stage == "perception":
+        model = {"perception": to_dict(chosen.perception)}
+    elif stage == "phydnet":
+        model = {"phydnet": to_dict(chosen.phydnet)}
+    else:
+        stored = from_dict(XPLConfig, config["xpl"])
+        kind, residual = XPL_STAGES[stage]
+        shape = (stored.reasoning.frames, stored.reasoning.slots, stored.reasoning.latent_dim)
+        fitted = stage_config(chosen.xpl, kind, residual, True, shape)
+        model = {"xpl": to_dict(replace(fitted, latent_weights=stored.latent_weights))}
+    model["recipe"] = chosen.name
+    train = to_dict(chosen.final_training(stage)) | {k: state["train"][k] for k in RUN_FIELDS}
+    return model, train
+
+
+def recipe_differences(state: dict) -> list[str]:
+    """Each setting in which the checkpoint differs from its recipe ("xpl.inert_walls: True != False");
+    empty when the recipe made it."""
+    model, train = expected_configs(state)
+    config = state["config"]
+    stored = {"recipe": recipe_of(config)}      # read as the loaders read it: a field added since takes its default
+    for key, cls in (("perception", PerceptionConfig), ("phydnet", PhyDNetConfig), ("xpl", XPLConfig)):
+        if key in config:
+            stored[key] = to_dict(from_dict(cls, config[key]))
+    return _differences(stored, model, "") + _differences(to_dict(from_dict(TrainConfig, state["train"])), train,
+                                                         "train.")
+
+
+def _differences(found: dict, wanted: dict, prefix: str) -> list[str]:
+    lines = []
+    for key in sorted(set(found) | set(wanted)):
+        a, b = found.get(key), wanted.get(key)
+        if isinstance(a, dict) and isinstance(b, dict):
+            lines += _differences(a, b, f"{prefix}{key}.")
+        elif a != b:
+            lines.append(f"{prefix}{key}: {a!r} != {b!r}")
+    return lines

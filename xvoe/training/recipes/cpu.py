@@ -1,0 +1,43 @@
+"""The default recipe, at the CPU scale: what `xvoe pipeline` runs and what the shipped models
+come from (docs/decisions.md, "The default recipe").
+
+32x32 RGBD frames, a small CNN encoder and a light decoder with the whole latent broadcast;
+walls inert in the dynamics, Transformer 1 trained by the refill loss alone, its fills of
+objects outside the picture trained; PLATO and PhyDNet trained longer, then with a share of
+each batch from the scenarios they were weakest in.
+"""
+from ...models.perception import PerceptionConfig
+from ...models.phydnet import PhyDNetConfig
+from ...models.xpl import XPLConfig
+from .recipe import Recipe, TrainConfig
+
+PLATO = TrainConfig(steps=60_000, batch_size=32, warmup_steps=100, decay_steps=15_000)
+PHYDNET = TrainConfig(steps=7_500, batch_size=8, lr=2e-3, warmup_steps=100, decay_steps=2_500)
+
+RECIPE = Recipe(
+    name="cpu",
+    train_videos=10_000,
+    perception=PerceptionConfig(),
+    xpl=XPLConfig(inert_walls=True, stop_input_gradient=True, outside_refill=True),
+    xpl_train=TrainConfig(steps=12_000, batch_size=32, warmup_steps=100, decay_steps=8_000),
+    # PLATO's predictive accuracy grows with its training time (docs/decisions.md, "PLATO's
+    # training length")
+    plato_train=PLATO,
+    # changing pixels weighed more in the training loss; 5x5 gates, so that a memory can follow a
+    # falling cube (docs/decisions.md, "PhyDNet's loss weight on changing pixels", "PhyDNet's
+    # ConvLSTM kernel")
+    phydnet=PhyDNetConfig(change_weight=20.0, lstm_kernel=5),
+    phydnet_train=PHYDNET,
+    phases=(
+        # the scenarios each baseline was weakest in, a share of every batch (docs/decisions.md,
+        # "The baselines' later phases")
+        ("plato", TrainConfig(**{**vars(PLATO), "steps": 75_000, "focus_group": "continuity",
+                                 "focus_share": 0.5})),
+        ("phydnet", TrainConfig(**{**vars(PHYDNET), "steps": 13_000, "focus_group": "permanence",
+                                   "focus_share": 0.5})),
+        ("phydnet", TrainConfig(**{**vars(PHYDNET), "steps": 17_000, "focus_group": "permanence",
+                                   "focus_share": 0.75})),
+        ("phydnet", TrainConfig(**{**vars(PHYDNET), "steps": 22_000, "lr": 4.5e-4,
+                                   "focus_group": "permanence,continuity", "focus_share": 0.75})),
+    ),
+)
