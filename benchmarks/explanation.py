@@ -13,6 +13,8 @@
     its RMS error per latent (the NLL model's motion_sigma stands for it).
 Also the paper's Fig. 5b: the spread of the first ten principal components of the dynamics
 targets with the residual (z(t+1) - z(t)) and without it (z(t+1)).
+Also why hidden_iou falls short (the decoded centre's offset, area and empty frames) and its
+ceiling: the IoU of a wholly visible cube's own latent, decoded (blocking S1).
 Last line: hidden_iou=0.NN mae_iou=0.NN dyn_mse=...
 """
 from __future__ import annotations
@@ -42,8 +44,12 @@ def encode(scorer, file, index: int) -> dict:
 
 
 @torch.no_grad()
-def hidden_iou(scorer, file, videos: list[int], names: list[str], columns: list[str]) -> float:
-    scores = []
+def hidden_explanations(scorer, file, videos: list[int], names: list[str], columns: list[str]) -> dict[str, float]:
+    """The never-seen cube's explanation, frame by frame against its true silhouette: the IoU
+    (hidden_iou), and why it falls short: how far the decoded centre is from the cube's (pixels,
+    median over frames that draw something), the decoded area over the true one (median), and
+    the share of frames that draw nothing."""
+    scores, offsets, areas, empty = [], [], [], []
     for index in videos:
         kinds = [names[k] for k in file["kind"][index]]
         states = file["states"][index]
@@ -60,6 +66,37 @@ def hidden_iou(scorer, file, videos: list[int], names: list[str], columns: list[
         masks = decoded_mask(scorer.vae.decode(explained[0, :, slot[0]]))
         truth = silhouette(states[:, hidden[0]], columns, "cube", masks.shape[-1])
         scores.append(np.mean([iou(m, g) for m, g in zip(masks, truth)]))
+        for mask, true in zip(masks, truth):
+            empty.append(not mask.any())
+            if mask.any() and true.any():
+                offsets.append(np.hypot(*(np.argwhere(mask).mean(0) - np.argwhere(true).mean(0))))
+                areas.append(mask.sum() / true.sum())
+    return {"iou": float(np.mean(scores)), "centre_px": float(np.median(offsets)) if offsets else float("nan"),
+            "area_ratio": float(np.median(areas)) if areas else float("nan"), "empty_share": float(np.mean(empty))}
+
+
+def hidden_iou(scorer, file, videos: list[int], names: list[str], columns: list[str]) -> float:
+    return hidden_explanations(scorer, file, videos, names, columns)["iou"]
+
+
+@torch.no_grad()
+def perception_iou(scorer, file, videos: list[int], names: list[str], columns: list[str]) -> float:
+    """The ceiling of any explanation this perception decodes: the IoU of a wholly visible
+    cube's own encoded latent, decoded, with its silhouette (all such frames of the videos)."""
+    scores = []
+    for index in videos:
+        kinds = [names[k] for k in file["kind"][index]]
+        states = file["states"][index]
+        cubes = [k for k, kind in enumerate(kinds) if kind == "cube"]
+        if not cubes:
+            continue
+        video = encode(scorer, file, index)
+        for k in cubes:
+            frames = np.flatnonzero(states[:, k, columns.index("visible")] >= 0.999)
+            if len(frames):
+                masks = decoded_mask(scorer.vae.decode(video["mean"][0, frames, k]))
+                truth = silhouette(states[frames, k], columns, "cube", masks.shape[-1])
+                scores += [iou(m, g) for m, g in zip(masks, truth)]
     return float(np.mean(scores))
 
 
@@ -126,7 +163,8 @@ def main() -> None:
     start = time.perf_counter()
     with store.open_dataset(args.data) as file:
         names, columns = list(file.attrs["kind_names"]), list(file["states"].attrs["state_columns"])
-        hidden = hidden_iou(scorer, file, pick(file, "blocking", "S2", 0, args.pairs), names, columns)
+        hidden = hidden_explanations(scorer, file, pick(file, "blocking", "S2", 0, args.pairs), names, columns)
+        ceiling = perception_iou(scorer, file, pick(file, "blocking", "S1", 0, args.pairs), names, columns)
         expected = [i for scenario in ("collision", "blocking", "permanence", "continuity")
                     for i in pick(file, scenario, "S1", 0, max(1, args.pairs // 4))]
         mae = mae_iou(scorer, file, expected, names, columns)
@@ -146,7 +184,10 @@ def main() -> None:
         ax.legend(fontsize=8)
         fig.tight_layout()
         fig.savefig(args.figure, dpi=90)
-    print(f"hidden_iou={hidden:.2f} mae_iou={mae:.2f} dyn_mse={dyn:.4f}")
+    print(f"the never-seen cube: decoded centre {hidden['centre_px']:.2f} px off (median), area {hidden['area_ratio']:.2f} "
+          f"of the true one, {100 * hidden['empty_share']:.0f}% of frames empty; the perception's own IoU of a "
+          f"wholly visible cube {ceiling:.2f}")
+    print(f"hidden_iou={hidden['iou']:.2f} mae_iou={mae:.2f} dyn_mse={dyn:.4f}")
 
 
 if __name__ == "__main__":

@@ -470,7 +470,8 @@ def train_proposal(run_dir: str | os.PathLike, latents: str | os.PathLike | None
     seed_everything(config.seed)
     latents = latents or xpl_state["meta"]["latents"]
     batches = ProposalBatches(str(latents), batch_size=config.batch_size, shards=config.data_shards,
-                              max_videos=config.max_videos, seed=config.seed)
+                              max_videos=config.max_videos, seed=config.seed, focus_group=config.focus_group,
+                              focus_share=config.focus_share)
     meta = {"latents": str(Path(latents).resolve()), "xpl": str(xpl_path.resolve()),
             "xpl_fingerprint": fingerprint(xpl_state["model"])}
     place = Dist(device=torch.device("cuda" if torch.cuda.is_available() else "cpu"))

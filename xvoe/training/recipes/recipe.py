@@ -36,7 +36,7 @@ class TrainConfig:
     threads: int = 0                # torch threads per process (0 = cores / processes)
     # this share of each batch comes from the training videos of `focus_group` that have a wall
     # (e.g. permanence, where cubes must be remembered behind it; several: permanence,continuity);
-    # 0 = uniform. PhyDNet, and the XPL and PLATO stages (through the split file the latent cache
+    # 0 = uniform. PhyDNet, and the XPL, PLATO and proposal stages (through the split file the latent cache
     # was encoded from)
     focus_group: str = ""
     focus_share: float = 0.0
