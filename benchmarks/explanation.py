@@ -71,12 +71,9 @@ def hidden_explanations(scorer, file, videos: list[int], names: list[str], colum
             if mask.any() and true.any():
                 offsets.append(np.hypot(*(np.argwhere(mask).mean(0) - np.argwhere(true).mean(0))))
                 areas.append(mask.sum() / true.sum())
-    return {"iou": float(np.mean(scores)), "centre_px": float(np.median(offsets)) if offsets else float("nan"),
+    return {"iou": float(np.mean(scores)), "per_video": scores,
+            "centre_px": float(np.median(offsets)) if offsets else float("nan"),
             "area_ratio": float(np.median(areas)) if areas else float("nan"), "empty_share": float(np.mean(empty))}
-
-
-def hidden_iou(scorer, file, videos: list[int], names: list[str], columns: list[str]) -> float:
-    return hidden_explanations(scorer, file, videos, names, columns)["iou"]
 
 
 @torch.no_grad()
@@ -101,7 +98,7 @@ def perception_iou(scorer, file, videos: list[int], names: list[str], columns: l
 
 
 @torch.no_grad()
-def mae_iou(scorer, file, videos: list[int], names: list[str], columns: list[str]) -> float:
+def mae_iou(scorer, file, videos: list[int], names: list[str], columns: list[str], per_object: bool = False):
     empty = scorer.vae.posterior(scorer.vae.blank())[0][0]      # the encoder's latent of a slot with no pixels
     scores = []
     for index in videos:
@@ -119,7 +116,7 @@ def mae_iou(scorer, file, videos: list[int], names: list[str], columns: list[str
             masks = decoded_mask(scorer.vae.decode(rebuilt[0, :, slot]))
             truth = silhouette(states[:, slot], columns, kind, masks.shape[-1])
             scores.append(np.mean([iou(m, g) for m, g in zip(masks, truth)]))
-    return float(np.mean(scores))
+    return float(np.mean(scores)) if not per_object else scores
 
 
 @torch.no_grad()
@@ -184,7 +181,8 @@ def main() -> None:
         ax.legend(fontsize=8)
         fig.tight_layout()
         fig.savefig(args.figure, dpi=90)
-    print(f"the never-seen cube: decoded centre {hidden['centre_px']:.2f} px off (median), area {hidden['area_ratio']:.2f} "
+    print(f"the never-seen cube: decoded centre {hidden['centre_px']:.2f} px off (median), "
+          f"area {hidden['area_ratio']:.2f} "
           f"of the true one, {100 * hidden['empty_share']:.0f}% of frames empty; the perception's own IoU of a "
           f"wholly visible cube {ceiling:.2f}")
     print(f"hidden_iou={hidden['iou']:.2f} mae_iou={mae:.2f} dyn_mse={dyn:.4f}")

@@ -28,9 +28,9 @@ import torch
 from ..benchmark import store
 from ..benchmark.generate import GenerateConfig, generate
 from ..errors import XvoeError
-from ..models.config import to_dict
 from ..evaluation.explain import explain
 from ..evaluation.score import load_model, score_split
+from ..models.config import to_dict
 from ..outputs import claim_directory
 from ..training.latents import encode_split
 from ..training.loop import checkpoint_path

@@ -18,7 +18,8 @@ from .recipes import TrainConfig, recipe, recipe_of
 from .xpl import stage_config
 
 RUN_FIELDS = ("seed", "data_shards", "threads")
-XPL_STAGES = {"xpl": ("xpl", True), "xpl-noresidual": ("xpl", False), "plato": ("plato", True), "proposal": ("xpl", True)}
+XPL_STAGES = {"xpl": ("xpl", True), "xpl-noresidual": ("xpl", False), "plato": ("plato", True),
+              "proposal": ("xpl", True)}
 
 
 def expected_configs(state: dict) -> tuple[dict, dict]:
