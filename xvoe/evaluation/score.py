@@ -240,19 +240,18 @@ def score_split(model: str | Scorer, data: str, out: str, *, how: str = "sum", v
     scorer = load_model(model) if isinstance(model, str) else model
     if extra is not None:
         extra.check(scorer)
-    with store.open_dataset(data, split="test"):
-        pass
-    out = claim_file(out, overwrite)
-    curves_path = claim_file(out.with_suffix(".curves.npz"), overwrite, what="the curves beside --out")
     with store.open_dataset(data, split="test") as file:
+        if scorer.image_size is not None:
+            check_size(file, scorer.image_size, f"the model {scorer.name}")
+        # after every check of the input: a refused run leaves nothing behind
+        out = claim_file(out, overwrite)
+        curves_path = claim_file(out.with_suffix(".curves.npz"), overwrite, what="the curves beside --out")
         count, frames_count, size = file["rgbd"].shape[:3]
         first, last = shard_rows(count, videos_per_batch, shard)
         labels = {name: (store.strings(file, name) if name in ("scenario", "setting") else file[name][:])
                   for name in ("scenario", "setting", "pair", "member", "possible")}
         curves = np.zeros((3, count, frames_count))     # s_img, s_dyn, s_rec
         values = [] if extra is not None else None
-        if scorer.image_size is not None:
-            check_size(file, scorer.image_size, f"the model {scorer.name}")
         for start in tqdm(range(first, last, videos_per_batch), desc=f"score {scorer.name}", unit="batch",
                           disable=not progress):
             stop = min(last, start + videos_per_batch)

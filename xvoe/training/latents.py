@@ -139,11 +139,9 @@ def encode_split(model_ref: str | os.PathLike, data: str | os.PathLike, out: str
     """What `xvoe encode` does: encode every frame of a split into a latent cache."""
     device = device or ("cuda" if torch.cuda.is_available() else "cpu")
     model, state = load_perception(model_ref, device)
-    with store.open_dataset(data):
-        pass
-    claim_file(out, overwrite)
     with store.open_dataset(data) as file:
         check_size(file, model.config.image_size, f"the checkpoint {state['path']}")
+        claim_file(out, overwrite)      # after every check of the input: a refused run leaves nothing behind
         count, frames, size = file["rgbd"].shape[:3]
         slots = int(file["states"].shape[2])
         present_column = list(file["states"].attrs["state_columns"]).index("present")
