@@ -111,7 +111,7 @@ def mae_iou(scorer, file, videos: list[int], names: list[str], columns: list[str
             visible[0, :, slot] = False
             mean[0, :, slot] = empty
             refined = scorer.xpl.refine(mean, visible)
-            keep = hide_slot(visible.shape, torch.tensor([slot]))
+            keep = scorer.xpl.proposal_keep(visible, ~hide_slot(visible.shape, torch.tensor([slot])))
             rebuilt, _ = scorer.xpl.transformer2(refined, keep)
             masks = decoded_mask(scorer.vae.decode(rebuilt[0, :, slot]))
             truth = silhouette(states[:, slot], columns, kind, masks.shape[-1])

@@ -178,6 +178,13 @@ def test_the_proposal_stage_trains_transformer2_alone_and_overlays_xpl(cache, tm
         assert same != name.startswith(("transformer2.", "existence.")), name
     untouched, _ = load_xpl(tmp_path, proposal=False)
     assert all(torch.equal(v, joint.state_dict()[k]) for k, v in untouched.state_dict().items())
+    # how Transformer 2 is used may change in the proposal stage, and goes with its checkpoint
+    train_proposal(tmp_path, progress=False, overwrite=True, model_overrides={"proposal_sees_seen": True},
+                   **{**TINY, "steps": 2})
+    assert load_xpl(tmp_path)[0].config.proposal_sees_seen
+    assert not load_xpl(tmp_path, proposal=False)[0].config.proposal_sees_seen
+    with pytest.raises(XvoeError, match="keeps its network"):
+        train_proposal(tmp_path, progress=False, overwrite=True, model_overrides={"inert_walls": False}, **TINY)
     # an xpl.pt trained again no longer matches: a clear error, not a silent mix
     train_xpl(cache, tmp_path, progress=False, overwrite=True, **{**TINY, "steps": 21})
     with pytest.raises(XvoeError, match="another xpl.pt"):

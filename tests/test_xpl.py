@@ -231,6 +231,26 @@ def test_explain_hides_a_never_seen_slot():
     assert torch.equal(mean[0, :, :3], z[0, :, :3])
 
 
+def test_transformer2_sees_what_was_seen_of_the_others_not_transformer1s_fills():
+    torch.manual_seed(0)
+    visible = torch.ones(2, T, K, dtype=torch.bool)
+    visible[:, :, 3] = False                         # never seen: the slot to explain
+    visible[:, 2:5, 0] = False                       # occluded: Transformer 1 fills these frames
+    refined = torch.randn(2, T, K, D)
+    other = refined.clone()
+    other[:, 2:5, 0] += 3.0                          # other fills of the occluded frames
+    for sees_seen in (False, True):
+        model = XPL(XPLConfig(reasoning=SMALL_REASONING, dynamics=SMALL_DYNAMICS,
+                              proposal_sees_seen=sees_seen)).eval()
+        with torch.no_grad():
+            first, scale, slot = model.explain(refined, visible)
+            second, _, _ = model.explain(other, visible)
+        assert slot.tolist() == [3, 3]
+        assert torch.equal(first[:, :, :3], refined[:, :, :3])       # only the explained slot is proposed
+        assert torch.all(scale[:, :, :3] == 0) and torch.all(scale[:, :, 3] > 0)
+        assert torch.equal(first[:, :, 3], second[:, :, 3]) == sees_seen
+
+
 @pytest.mark.parametrize("residual", [True, False])
 def test_the_dynamics_step_by_step_matches_the_whole_sequence(residual):
     torch.manual_seed(0)

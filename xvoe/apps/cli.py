@@ -140,7 +140,7 @@ def cmd_train(args: argparse.Namespace) -> None:
         raise XvoeError("--data is required to start a run (the training split, or for xpl and plato its latent "
                         "cache)")
     if stage == "proposal":
-        print(xvoe.train_proposal(args.out, args.data, **common, **train))
+        print(xvoe.train_proposal(args.out, args.data, model_overrides=model, **common, **train))
         return
     common |= {"recipe_name": args.recipe, "model_overrides": model}
     if stage == "perception":

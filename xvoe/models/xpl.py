@@ -51,6 +51,11 @@ class XPLConfig:
     # training walls' schedule (lowered over frames 1-3) and carry it into the balls' motion in
     # test videos whose wall stands from the start (S2, S3)
     inert_walls: bool = False
+    # Transformer 2 proposes the hidden object from what was seen of the other objects, not from
+    # Transformer 1's fills of their occluded frames: those fills assume nothing is hidden, so a
+    # ball that bounced off a never-seen cube is filled as if it rolled on, and the cube was
+    # proposed farther off (docs/decisions.md, "Transformer 2 sees what was seen")
+    proposal_sees_seen: bool = False
 
 
 class XPL(nn.Module):
@@ -90,10 +95,16 @@ class XPL(nn.Module):
         """
         unseen = never_seen(visible)
         slot = torch.where(unseen.any(1), unseen.float().argmax(1), torch.full_like(unseen[:, 0], -1, dtype=torch.long))
-        keep = hide_slot(visible.shape, slot.clamp_min(0))
-        keep[slot < 0] = True
-        mean, scale = self.transformer2(refined, keep)
-        return mean, scale, slot
+        proposed = ~hide_slot(visible.shape, slot.clamp_min(0))
+        proposed[slot < 0] = False
+        mean, scale = self.transformer2(refined, self.proposal_keep(visible, proposed))
+        return torch.where(proposed.unsqueeze(-1), mean, refined), scale * proposed.unsqueeze(-1), slot
+
+    def proposal_keep(self, visible: Tensor, proposed: Tensor) -> Tensor:
+        """Transformer 2's input mask: every entry but the proposed ones (B, T, K); with
+        proposal_sees_seen, also not the occluded frames of the other objects (Transformer 1's fills)."""
+        keep = ~proposed
+        return keep & occlusion_keep(visible) if self.config.proposal_sees_seen else keep
 
     def existence_logit(self, mean: Tensor, scale: Tensor) -> Tensor:
         """Logit (B,) that the filled slot holds a real object, from Transformer 2's mean and
@@ -167,7 +178,7 @@ class XPL(nn.Module):
         (the beta-NLL if beta > 0, see reasoning.gaussian_nll), and the cross-entropy of whether
         the slot held a seen object."""
         keep = hide_slot(visible.shape, slot)
-        mean, scale = self.transformer2(refined, keep)
+        mean, scale = self.transformer2(refined, self.proposal_keep(visible, ~keep))
         scale = scale.clamp_min(self.config.reasoning.min_scale)
         out = {"mae": gaussian_nll(mean, scale, refined, ~keep, beta)}
         rows = torch.arange(len(slot), device=refined.device)

@@ -33,7 +33,7 @@ from .data import focus_on, owned_shards
 from .latents import encode_split, open_latents, picture_weights
 from .loop import Dist, Job, checkpoint_path, fit, seed_everything, set_threads, setup_distributed
 from .perception import load_perception
-from .recipes import TrainConfig, recipe, recipe_of
+from .recipes import PROPOSAL_FIELDS, TrainConfig, recipe, recipe_of
 
 STAGES = ("xpl", "plato")
 PROPOSAL_OBJECT_SHARE = 0.5   # the proposal stage rebuilds a seen object this often (else any slot); as
@@ -446,12 +446,14 @@ def fingerprint(state: dict[str, Tensor], prefixes: tuple[str, ...] = ("transfor
 
 
 def train_proposal(run_dir: str | os.PathLike, latents: str | os.PathLike | None = None, *, resume: bool = False,
-                   overwrite: bool = False, progress: bool = True, **train_overrides: Any) -> Path:
+                   overwrite: bool = False, progress: bool = True, model_overrides: dict | None = None,
+                   **train_overrides: Any) -> Path:
     """What `xvoe train proposal` does: train Transformer 2 and the existence head of
     RUN_DIR/xpl.pt further on -log q(hidden object | the rest), on objects hidden in every
     frame of the training videos (the simulator's trajectories, encoded), into
     RUN_DIR/proposal.pt. In the joint stage they get one step in each of the XPL's few steps
-    and a hidden object is a rare draw; the explanation and the NLL's proposal need more."""
+    and a hidden object is a rare draw; the explanation and the NLL's proposal need more.
+    `model_overrides` may change how Transformer 2 is used (PROPOSAL_FIELDS), not its network."""
     if int(os.environ.get("WORLD_SIZE", "1")) > 1:
         raise XvoeError("the proposal stage runs in one process (a few minutes): launch it without torchrun")
     run_dir = Path(run_dir)
@@ -462,9 +464,12 @@ def train_proposal(run_dir: str | os.PathLike, latents: str | os.PathLike | None
     ckpt = checkpoint_path(run_dir, "proposal")
     recipe_name = recipe_of(xpl_state["config"])
     if resume and ckpt.exists():
-        config = from_dict(TrainConfig, load_checkpoint(ckpt)["train"])
+        state = load_checkpoint(ckpt)
+        config = from_dict(TrainConfig, state["train"])
+        xpl.config = from_dict(XPLConfig, state["config"]["xpl"])
     else:
         config = recipe(recipe_name).proposal_train
+    xpl.config = override_resumed(xpl.config, model_overrides, PROPOSAL_FIELDS, "proposal run")
     config = override(override(config, **train_overrides), data_shards=config.data_shards or 1)
     set_threads(config, 1)
     seed_everything(config.seed)
@@ -498,6 +503,7 @@ def load_xpl(model: str | os.PathLike, stage: str = "xpl", device: str | torch.d
             raise XvoeError(f"{tuned} was trained on another xpl.pt than {path}; retrain it "
                             "(xvoe train proposal --overwrite) or move it away")
         xpl.load_state_dict(extra["model"], strict=False)
+        xpl.config = from_dict(XPLConfig, extra["config"]["xpl"])     # how its Transformer 2 is used, too
         state["proposal"] = str(tuned)
     state["path"] = str(path)
     return xpl.to(device).eval(), state

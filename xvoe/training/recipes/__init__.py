@@ -8,7 +8,7 @@ from __future__ import annotations
 
 from ...errors import XvoeError
 from . import cpu, paper
-from .recipe import MODEL_CONFIGS, Recipe, TrainConfig, stage_settings
+from .recipe import MODEL_CONFIGS, PROPOSAL_FIELDS, Recipe, TrainConfig, stage_settings
 
 RECIPES: dict[str, Recipe] = {r.name: r for r in (cpu.RECIPE, paper.RECIPE)}
 DEFAULT = "cpu"
@@ -30,4 +30,5 @@ def recipe_of(config: dict) -> str:
     return RENAMED.get(config["preset"], config["preset"])
 
 
-__all__ = ["DEFAULT", "MODEL_CONFIGS", "RECIPES", "Recipe", "TrainConfig", "recipe", "recipe_of", "stage_settings"]
+__all__ = ["DEFAULT", "MODEL_CONFIGS", "PROPOSAL_FIELDS", "RECIPES", "Recipe", "TrainConfig", "recipe", "recipe_of",
+           "stage_settings"]

@@ -84,7 +84,10 @@ class Recipe:
         return (self.training(stage), *self.phases_of(stage))[-1]
 
 
-MODEL_CONFIGS = {"perception": PerceptionConfig, "xpl": XPLConfig, "plato": XPLConfig, "phydnet": PhyDNetConfig}
+MODEL_CONFIGS = {"perception": PerceptionConfig, "xpl": XPLConfig, "plato": XPLConfig, "phydnet": PhyDNetConfig,
+                 "proposal": XPLConfig}
+# what the proposal stage may change of the XPL it trains on: how Transformer 2 is used, not its network
+PROPOSAL_FIELDS = ("proposal_sees_seen",)
 
 
 def stage_settings(stage: str, assignments: list[str]) -> tuple[dict, dict]:
