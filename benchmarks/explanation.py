@@ -44,12 +44,15 @@ def encode(scorer, file, index: int) -> dict:
 
 
 @torch.no_grad()
-def hidden_explanations(scorer, file, videos: list[int], names: list[str], columns: list[str]) -> dict[str, float]:
+def hidden_explanations(scorer, file, videos: list[int], names: list[str], columns: list[str]) -> dict:
     """The never-seen cube's explanation, frame by frame against its true silhouette: the IoU
     (hidden_iou), and why it falls short: how far the decoded centre is from the cube's (pixels,
-    median over frames that draw something), the decoded area over the true one (median), and
-    the share of frames that draw nothing."""
-    scores, offsets, areas, empty = [], [], [], []
+    median over frames that draw something), how much of that lies along the ball's approach
+    (`away_px`, signed: > 0 farther from the ball than the cube), the decoded area over the true
+    one (median), the share of frames that draw nothing; and Transformer 1's fill of the ball in
+    the frames the wall hides it (`ball_fill_px`: its x less the true x, > 0 beyond it, median)."""
+    x = columns.index("x")
+    scores, offsets, away, areas, empty, ball_fill = [], [], [], [], [], []
     for index in videos:
         kinds = [names[k] for k in file["kind"][index]]
         states = file["states"][index]
@@ -66,14 +69,30 @@ def hidden_explanations(scorer, file, videos: list[int], names: list[str], colum
         masks = decoded_mask(scorer.vae.decode(explained[0, :, slot[0]]))
         truth = silhouette(states[:, hidden[0]], columns, "cube", masks.shape[-1])
         scores.append(np.mean([iou(m, g) for m, g in zip(masks, truth)]))
+        balls = [k for k, kind in enumerate(kinds) if kind == "ball"]
+        # +1 where the ball starts right of the cube: "away from the ball" is then -x
+        side = np.sign(states[0, balls[0], x] - states[0, hidden[0], x]) if balls else 0.0
         for mask, true in zip(masks, truth):
             empty.append(not mask.any())
             if mask.any() and true.any():
-                offsets.append(np.hypot(*(np.argwhere(mask).mean(0) - np.argwhere(true).mean(0))))
+                (my, mx), (ty, tx) = np.argwhere(mask).mean(0), np.argwhere(true).mean(0)
+                offsets.append(np.hypot(my - ty, mx - tx))
+                away.append(-(mx - tx) * side)
                 areas.append(mask.sum() / true.sum())
-    return {"iou": float(np.mean(scores)), "per_video": scores,
-            "centre_px": float(np.median(offsets)) if offsets else float("nan"),
-            "area_ratio": float(np.median(areas)) if areas else float("nan"), "empty_share": float(np.mean(empty))}
+        if balls:
+            ball = balls[0]
+            drawn = decoded_mask(scorer.vae.decode(refined[0, :, ball]))
+            present = states[:, ball, columns.index("present")] > 0
+            for t in np.flatnonzero(~video["visible"][0, :, ball].numpy() & present):
+                if drawn[t].any():     # the centre's x in pixels; states hold x in pixels too
+                    ball_fill.append(-(np.argwhere(drawn[t]).mean(0)[1] + 0.5 - states[t, ball, x]) * side)
+
+    def median(values: list) -> float:
+        return float(np.median(values)) if values else float("nan")
+
+    return {"iou": float(np.mean(scores)), "per_video": scores, "centre_px": median(offsets),
+            "away_px": median(away), "area_ratio": median(areas), "empty_share": float(np.mean(empty)),
+            "ball_fill_px": median(ball_fill)}
 
 
 @torch.no_grad()
@@ -181,10 +200,11 @@ def main() -> None:
         ax.legend(fontsize=8)
         fig.tight_layout()
         fig.savefig(args.figure, dpi=90)
-    print(f"the never-seen cube: decoded centre {hidden['centre_px']:.2f} px off (median), "
-          f"area {hidden['area_ratio']:.2f} "
+    print(f"the never-seen cube: decoded centre {hidden['centre_px']:.2f} px off (median; {hidden['away_px']:+.2f} "
+          f"px farther from the ball), area {hidden['area_ratio']:.2f} "
           f"of the true one, {100 * hidden['empty_share']:.0f}% of frames empty; the perception's own IoU of a "
-          f"wholly visible cube {ceiling:.2f}")
+          f"wholly visible cube {ceiling:.2f}; Transformer 1's fill of the ball behind the wall "
+          f"{hidden['ball_fill_px']:+.2f} px beyond the true ball (median)")
     print(f"hidden_iou={hidden['iou']:.2f} mae_iou={mae:.2f} dyn_mse={dyn:.4f}")
 
 
