@@ -191,19 +191,6 @@ def test_the_proposal_stage_trains_transformer2_alone_and_overlays_xpl(cache, tm
         load_xpl(tmp_path)
 
 
-def test_the_recipe_says_what_the_proposal_stages_transformer2_reads(cache, tmp_path, monkeypatch):
-    from dataclasses import replace
-
-    import xvoe.training.xpl as stage
-
-    small = stage.recipe("cpu")
-    monkeypatch.setattr(stage, "recipe", lambda name: replace(small, proposal_sees_seen=True))
-    train_xpl(cache, tmp_path, progress=False, **{**TINY, "steps": 3})
-    train_proposal(tmp_path, progress=False, **{**TINY, "steps": 2})
-    assert load_xpl(tmp_path)[0].config.proposal_sees_seen            # the proposal stage's Transformer 2
-    assert not load_xpl(tmp_path, proposal=False)[0].config.proposal_sees_seen     # the joint stage's
-
-
 def test_the_proposal_stage_resumes_exactly(cache, tmp_path):
     for run in ("a", "b"):
         train_xpl(cache, tmp_path / run, progress=False, **{**TINY, "steps": 10})

@@ -34,10 +34,8 @@ def expected_configs(state: dict) -> tuple[dict, dict]:
         stored = from_dict(XPLConfig, config["xpl"])
         kind, residual = XPL_STAGES[stage]
         shape = (stored.reasoning.frames, stored.reasoning.slots, stored.reasoning.latent_dim)
-        fitted = replace(stage_config(chosen.xpl, kind, residual, True, shape), latent_weights=stored.latent_weights)
-        if stage == "proposal":
-            fitted = replace(fitted, proposal_sees_seen=chosen.proposal_sees_seen)
-        model = {"xpl": to_dict(fitted)}
+        fitted = stage_config(chosen.xpl, kind, residual, True, shape)
+        model = {"xpl": to_dict(replace(fitted, latent_weights=stored.latent_weights))}
     model["recipe"] = chosen.name
     train = to_dict(chosen.final_training(stage)) | {k: state["train"][k] for k in RUN_FIELDS}
     return model, train

@@ -468,9 +468,7 @@ def train_proposal(run_dir: str | os.PathLike, latents: str | os.PathLike | None
         config = from_dict(TrainConfig, state["train"])
         xpl.config = from_dict(XPLConfig, state["config"]["xpl"])
     else:
-        chosen = recipe(recipe_name)
-        config = chosen.proposal_train
-        xpl.config = replace(xpl.config, proposal_sees_seen=chosen.proposal_sees_seen)
+        config = recipe(recipe_name).proposal_train
     xpl.config = override_resumed(xpl.config, model_overrides, PROPOSAL_FIELDS, "proposal run")
     config = override(override(config, **train_overrides), data_shards=config.data_shards or 1)
     set_threads(config, 1)

@@ -56,9 +56,6 @@ class Recipe:
     # Transformer 2 and the existence head trained further on hidden objects (the proposal stage)
     proposal_train: TrainConfig = field(default_factory=lambda: TrainConfig(steps=4000, batch_size=32,
                                                                             warmup_steps=100, decay_steps=1500))
-    # the proposal stage's Transformer 2 reads only what was seen of the other objects
-    # (XPLConfig.proposal_sees_seen), whatever the joint stage trained it on
-    proposal_sees_seen: bool = False
     # the PLATO baseline's training (None: xpl_train's). Without Transformer 1 it predicts the
     # raw latents directly, and every visible object costs its prediction error in every frame:
     # trained no longer than XPL, that cost outweighs the violations of the predictive settings
