@@ -47,6 +47,24 @@ def test_a_run_that_is_not_its_recipes_is_not_shipped(tmp_path):
     assert not (tmp_path / "weights").exists()
 
 
+def test_a_new_perception_is_not_shipped_without_the_models_that_read_it(tmp_path):
+    weights, run = tmp_path / "weights", tmp_path / "run"
+    weights.mkdir()
+    run.mkdir()
+    for stage in ("perception", "xpl", "plato"):
+        (weights / f"{stage}.pt").write_bytes((zoo.WEIGHTS / f"{stage}.pt").read_bytes())
+    for stage in ("perception", "xpl"):
+        state = torch.load(zoo.WEIGHTS / f"{stage}.pt", weights_only=False)
+        if stage == "perception":
+            first = next(iter(state["model"]))
+            state["model"][first] = state["model"][first] + 1.0     # another perception
+        torch.save(state, run / f"{stage}.pt")
+    before = {p.name: p.read_bytes() for p in weights.iterdir()}
+    with pytest.raises(XvoeError, match=r"not the shipped one, which plato.pt read"):
+        zoo.ship(run, weights)
+    assert {p.name: p.read_bytes() for p in weights.iterdir()} == before
+
+
 def test_unshipped_names_and_runs_give_one_line_errors(tmp_path, monkeypatch):
     monkeypatch.setattr(checkpoints, "WEIGHTS", tmp_path)
     with pytest.raises(XvoeError, match="not shipped"):

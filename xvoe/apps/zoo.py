@@ -42,6 +42,7 @@ def ship(run_dir: str | os.PathLike, out: str | os.PathLike | None = None) -> li
         if differences := recipe_differences(state):
             raise XvoeError(f"{run_dir / stage}.pt is not what its recipe makes ({'; '.join(differences[:3])}); "
                             "ship runs of `xvoe pipeline --recipe NAME` as written; nothing was written")
+    _check_shared_perception(states["perception"], Path(out or WEIGHTS), set(stages))
     slim = {stage: _slim(state, run_dir.name) for stage, state in states.items()}
     kept = sum(p.stat().st_size for p in Path(out or WEIGHTS).glob("*.pt") if p.stem not in slim)
     total = kept + sum(len(data) for data in slim.values())
@@ -54,6 +55,26 @@ def ship(run_dir: str | os.PathLike, out: str | os.PathLike | None = None) -> li
         for temporary, data in zip(temporaries, slim.values()):
             temporary.write_bytes(data)
     return targets
+
+
+# the shipped models that read the shared perception's latents
+READS_PERCEPTION = ("xpl", "plato", "xpl-noresidual", "proposal")
+
+
+def _check_shared_perception(perception: dict, out: Path, shipping: set[str]) -> None:
+    """A new perception.pt changes the latents that every XPL-family model there was trained on:
+    those left behind would read latents they never saw."""
+    current = out / "perception.pt"
+    if not current.is_file():
+        return
+    old = load_checkpoint(current)["model"]
+    if old.keys() == perception["model"].keys() and all(torch.equal(old[k], perception["model"][k]) for k in old):
+        return
+    stranded = [s for s in READS_PERCEPTION if (out / f"{s}.pt").is_file() and s not in shipping]
+    if stranded:
+        names = ", ".join(f"{s}.pt" for s in stranded)
+        raise XvoeError(f"the run's perception.pt is not the shipped one, which {names} read; ship a run that "
+                        "trained them on its perception too; nothing was written")
 
 
 def _slim(state: dict, run_name: str) -> bytes:
