@@ -117,7 +117,8 @@ def perception_iou(scorer, file, videos: list[int], names: list[str], columns: l
 
 
 @torch.no_grad()
-def mae_iou(scorer, file, videos: list[int], names: list[str], columns: list[str], per_object: bool = False):
+def mae_iou(scorer, file, videos: list[int], names: list[str], columns: list[str]) -> list[float]:
+    """The IoU of each ball or cube rebuilt by Transformer 2 with its silhouette (mae_iou is their mean)."""
     empty = scorer.vae.posterior(scorer.vae.blank())[0][0]      # the encoder's latent of a slot with no pixels
     scores = []
     for index in videos:
@@ -135,7 +136,7 @@ def mae_iou(scorer, file, videos: list[int], names: list[str], columns: list[str
             masks = decoded_mask(scorer.vae.decode(rebuilt[0, :, slot]))
             truth = silhouette(states[:, slot], columns, kind, masks.shape[-1])
             scores.append(np.mean([iou(m, g) for m, g in zip(masks, truth)]))
-    return float(np.mean(scores)) if not per_object else scores
+    return scores
 
 
 @torch.no_grad()
@@ -183,7 +184,7 @@ def main() -> None:
         ceiling = perception_iou(scorer, file, pick(file, "blocking", "S1", 0, args.pairs), names, columns)
         expected = [i for scenario in ("collision", "blocking", "permanence", "continuity")
                     for i in pick(file, scenario, "S1", 0, max(1, args.pairs // 4))]
-        mae = mae_iou(scorer, file, expected, names, columns)
+        mae = float(np.mean(mae_iou(scorer, file, expected, names, columns)))
         dyn, latent_rms, residual, direct = dynamics_error(scorer, file, expected)
     spread_residual, spread_direct = principal_spread(residual), principal_spread(direct)
     print(f"videos: {args.pairs} blocking S2, {len(expected)} expected S1; {time.perf_counter() - start:.0f} s")

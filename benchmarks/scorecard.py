@@ -121,7 +121,7 @@ def main() -> None:
         card.append(goal("hidden cube proposed farther from the ball by (px, median, reported)", explained["away_px"],
                          None, above=False))
         expected = [i for s in SCENARIOS for i in pick(file, s, "S1", 0, max(1, args.pairs // 4))]
-        rebuilt = mae_iou(model, file, expected, names, columns, per_object=True)
+        rebuilt = mae_iou(model, file, expected, names, columns)
         card.append(goal("mae_iou (reported, no goal)", np.mean(rebuilt), None, interval=bootstrap(rebuilt)))
     hidden, seen = kinds == "hidden", kinds == "seen"
     if hidden.any():

@@ -54,7 +54,7 @@ class XPLConfig:
     # Transformer 2 proposes the hidden object from what was seen of the other objects, not from
     # Transformer 1's fills of their occluded frames: those fills assume nothing is hidden, so a
     # ball that bounced off a never-seen cube is filled as if it rolled on, and the cube was
-    # proposed farther off (docs/decisions.md, "Transformer 2 sees what was seen")
+    # proposed farther off (docs/decisions.md, "Not kept: Transformer 2 reading the seen entries only")
     proposal_sees_seen: bool = False
 
 

@@ -207,7 +207,7 @@ def train_xpl(latents: str | os.PathLike | None, run_dir: str | os.PathLike, *, 
                                 **(model_overrides or {}))
         if model_config.weigh_by_picture and not model_config.latent_weights:
             model_config = replace(model_config, latent_weights=cache_picture_weights(latents))
-        config = chosen.plato_train if stage == "plato" and chosen.plato_train else chosen.xpl_train
+        config = chosen.training(stage)
     config = override(config, **train_overrides)
     config = override(config, data_shards=config.data_shards or place.world)
     set_threads(config, int(os.environ.get("LOCAL_WORLD_SIZE", "1")))

@@ -6,6 +6,8 @@ walls inert in the dynamics, Transformer 1 trained by the refill loss alone, its
 objects outside the picture trained; PLATO and PhyDNet trained longer, then with a share of
 each batch from the scenarios they were weakest in.
 """
+from dataclasses import replace
+
 from ...models.perception import PerceptionConfig
 from ...models.phydnet import PhyDNetConfig
 from ...models.xpl import XPLConfig
@@ -31,13 +33,10 @@ RECIPE = Recipe(
     phases=(
         # the scenarios each baseline was weakest in, a share of every batch (docs/decisions.md,
         # "The baselines' later phases")
-        ("plato", TrainConfig(**{**vars(PLATO), "steps": 75_000, "focus_group": "continuity",
-                                 "focus_share": 0.5})),
-        ("phydnet", TrainConfig(**{**vars(PHYDNET), "steps": 13_000, "focus_group": "permanence",
-                                   "focus_share": 0.5})),
-        ("phydnet", TrainConfig(**{**vars(PHYDNET), "steps": 17_000, "focus_group": "permanence",
-                                   "focus_share": 0.75})),
-        ("phydnet", TrainConfig(**{**vars(PHYDNET), "steps": 22_000, "lr": 4.5e-4,
-                                   "focus_group": "permanence,continuity", "focus_share": 0.75})),
+        ("plato", replace(PLATO, steps=75_000, focus_group="continuity", focus_share=0.5)),
+        ("phydnet", replace(PHYDNET, steps=13_000, focus_group="permanence", focus_share=0.5)),
+        ("phydnet", replace(PHYDNET, steps=17_000, focus_group="permanence", focus_share=0.75)),
+        ("phydnet", replace(PHYDNET, steps=22_000, lr=4.5e-4, focus_group="permanence,continuity",
+                            focus_share=0.75)),
     ),
 )
