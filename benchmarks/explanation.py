@@ -13,9 +13,12 @@
     its RMS error per latent (the NLL model's motion_sigma stands for it).
 Also the paper's Fig. 5b: the spread of the first ten principal components of the dynamics
 targets with the residual (z(t+1) - z(t)) and without it (z(t+1)).
+(d) fill_iou: permanence S1 expected videos, Transformer 1's fills of the cubes a wall hides
+    after they were seen, against their true silhouettes (and the centre's offset, also at the
+    frame before the wall is lifted: what the MSE score's dynamics term pays at the reveal).
 Also why hidden_iou falls short (the decoded centre's offset, area and empty frames) and its
 ceiling: the IoU of a wholly visible cube's own latent, decoded (blocking S1).
-Last line: hidden_iou=0.NN mae_iou=0.NN dyn_mse=...
+Last line: hidden_iou=0.NN mae_iou=0.NN fill_iou=0.NN dyn_mse=...
 """
 from __future__ import annotations
 
@@ -93,6 +96,46 @@ def hidden_explanations(scorer, file, videos: list[int], names: list[str], colum
     return {"iou": float(np.mean(scores)), "per_video": scores, "centre_px": median(offsets),
             "away_px": median(away), "area_ratio": median(areas), "empty_share": float(np.mean(empty)),
             "ball_fill_px": median(ball_fill)}
+
+
+@torch.no_grad()
+def hidden_fills(scorer, file, videos: list[int], names: list[str], columns: list[str]) -> dict:
+    """Transformer 1's fills of the cubes a wall hides after they were seen (permanence S1,
+    expected member: they fall behind it, land, and are shown again), against their true
+    silhouettes in the hidden frames: the mean IoU, the decoded centre's offset (pixels,
+    median), and the offset at the last hidden frame alone. The MSE score's dynamics term
+    compares the frame after it with the prediction from that fill: a fill that is off costs the
+    possible member at the reveal, and the impossible one, whose cube never shows again, does not
+    pay it."""
+    scores, offsets, before_reveal = [], [], []
+    for index in videos:
+        kinds = [names[k] for k in file["kind"][index]]
+        states = file["states"][index]
+        video = encode(scorer, file, index)
+        refined = scorer.xpl.refine(video["mean"], video["visible"])
+        for k, kind in enumerate(kinds):
+            seen = video["visible"][0, :, k].numpy()
+            hidden = ~seen & (states[:, k, columns.index("present")] > 0)
+            if kind != "cube" or not seen.any():
+                continue
+            frames = [t for t in np.flatnonzero(hidden) if seen[:t].any()]     # hidden after it was seen
+            if not frames:
+                continue
+            masks = decoded_mask(scorer.vae.decode(refined[0, frames, k]))
+            truth = silhouette(states[frames, k], columns, "cube", masks.shape[-1])
+            scores += [iou(m, g) for m, g in zip(masks, truth)]
+            for t, mask, true in zip(frames, masks, truth):
+                if mask.any() and true.any():
+                    offset = float(np.hypot(*(np.argwhere(mask).mean(0) - np.argwhere(true).mean(0))))
+                    offsets.append(offset)
+                    if t + 1 < len(seen) and seen[t + 1]:
+                        before_reveal.append(offset)
+
+    def median(values: list) -> float:
+        return float(np.median(values)) if values else float("nan")
+
+    return {"iou": float(np.mean(scores)) if scores else float("nan"), "centre_px": median(offsets),
+            "before_reveal_px": median(before_reveal), "frames": len(scores)}
 
 
 @torch.no_grad()
@@ -185,6 +228,7 @@ def main() -> None:
         expected = [i for scenario in ("collision", "blocking", "permanence", "continuity")
                     for i in pick(file, scenario, "S1", 0, max(1, args.pairs // 4))]
         mae = float(np.mean(mae_iou(scorer, file, expected, names, columns)))
+        fills = hidden_fills(scorer, file, pick(file, "permanence", "S1", 0, args.pairs), names, columns)
         dyn, latent_rms, residual, direct = dynamics_error(scorer, file, expected)
     spread_residual, spread_direct = principal_spread(residual), principal_spread(direct)
     print(f"videos: {args.pairs} blocking S2, {len(expected)} expected S1; {time.perf_counter() - start:.0f} s")
@@ -206,7 +250,10 @@ def main() -> None:
           f"of the true one, {100 * hidden['empty_share']:.0f}% of frames empty; the perception's own IoU of a "
           f"wholly visible cube {ceiling:.2f}; Transformer 1's fill of the ball behind the wall "
           f"{hidden['ball_fill_px']:+.2f} px beyond the true ball (median)")
-    print(f"hidden_iou={hidden['iou']:.2f} mae_iou={mae:.2f} dyn_mse={dyn:.4f}")
+    print(f"Transformer 1's fills of the cubes hidden after they were seen (permanence S1, expected; "
+          f"{fills['frames']} frames): IoU {fills['iou']:.2f}, centre {fills['centre_px']:.2f} px off (median), "
+          f"{fills['before_reveal_px']:.2f} px at the frame before the reveal")
+    print(f"hidden_iou={hidden['iou']:.2f} mae_iou={mae:.2f} fill_iou={fills['iou']:.2f} dyn_mse={dyn:.4f}")
 
 
 if __name__ == "__main__":
