@@ -103,11 +103,12 @@ def hidden_fills(scorer, file, videos: list[int], names: list[str], columns: lis
     """Transformer 1's fills of the cubes a wall hides after they were seen (permanence S1,
     expected member: they fall behind it, land, and are shown again), against their true
     silhouettes in the hidden frames: the mean IoU, the decoded centre's offset (pixels,
-    median), and the offset at the last hidden frame alone. The MSE score's dynamics term
+    median), the offset at the last hidden frame alone, and the share of fills that draw more
+    than three times the cube's area (a fill that took on the wall's shape). The MSE score's dynamics term
     compares the frame after it with the prediction from that fill: a fill that is off costs the
     possible member at the reveal, and the impossible one, whose cube never shows again, does not
     pay it."""
-    scores, offsets, before_reveal = [], [], []
+    scores, offsets, before_reveal, oversized = [], [], [], []
     for index in videos:
         kinds = [names[k] for k in file["kind"][index]]
         states = file["states"][index]
@@ -125,6 +126,8 @@ def hidden_fills(scorer, file, videos: list[int], names: list[str], columns: lis
             truth = silhouette(states[frames, k], columns, "cube", masks.shape[-1])
             scores += [iou(m, g) for m, g in zip(masks, truth)]
             for t, mask, true in zip(frames, masks, truth):
+                if true.any():
+                    oversized.append(mask.sum() > 3 * true.sum())
                 if mask.any() and true.any():
                     offset = float(np.hypot(*(np.argwhere(mask).mean(0) - np.argwhere(true).mean(0))))
                     offsets.append(offset)
@@ -135,7 +138,8 @@ def hidden_fills(scorer, file, videos: list[int], names: list[str], columns: lis
         return float(np.median(values)) if values else float("nan")
 
     return {"iou": float(np.mean(scores)) if scores else float("nan"), "centre_px": median(offsets),
-            "before_reveal_px": median(before_reveal), "frames": len(scores)}
+            "before_reveal_px": median(before_reveal), "oversized_share": float(np.mean(oversized)),
+            "frames": len(scores)}
 
 
 @torch.no_grad()
@@ -252,7 +256,8 @@ def main() -> None:
           f"{hidden['ball_fill_px']:+.2f} px beyond the true ball (median)")
     print(f"Transformer 1's fills of the cubes hidden after they were seen (permanence S1, expected; "
           f"{fills['frames']} frames): IoU {fills['iou']:.2f}, centre {fills['centre_px']:.2f} px off (median), "
-          f"{fills['before_reveal_px']:.2f} px at the frame before the reveal")
+          f"{fills['before_reveal_px']:.2f} px at the frame before the reveal, "
+          f"{100 * fills['oversized_share']:.1f}% of them drawing over 3x the cube's area")
     print(f"hidden_iou={hidden['iou']:.2f} mae_iou={mae:.2f} fill_iou={fills['iou']:.2f} dyn_mse={dyn:.4f}")
 
 
