@@ -32,7 +32,7 @@ def main() -> None:
     with store.open_dataset(args.data) as file:
         video = encode_videos(scorer, file, args.index, args.index + 1)
     with torch.no_grad():
-        refined = scorer.xpl.refine(video["mean"], video["visible"])[0]
+        refined = scorer.xpl.refine(video["mean"], video["visible"], video["occluder"])[0]
         occupied = video["visible"][0].any(0)
         hidden = int((~occupied).float().argmax())
         scene = XPLScene(scorer.vae, scorer.xpl, refined, scorer.vae.decode(video["background"][0]),

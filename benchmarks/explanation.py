@@ -64,7 +64,7 @@ def hidden_explanations(scorer, file, videos: list[int], names: list[str], colum
         if len(hidden) != 1:
             continue
         video = encode(scorer, file, index)
-        refined = scorer.xpl.refine(video["mean"], video["visible"])
+        refined = scorer.xpl.refine(video["mean"], video["visible"], video["occluder"])
         explained, _, slot = scorer.xpl.explain(refined, video["visible"])
         if slot[0] < 0:
             scores.append(0.0)
@@ -113,7 +113,7 @@ def hidden_fills(scorer, file, videos: list[int], names: list[str], columns: lis
         kinds = [names[k] for k in file["kind"][index]]
         states = file["states"][index]
         video = encode(scorer, file, index)
-        refined = scorer.xpl.refine(video["mean"], video["visible"])
+        refined = scorer.xpl.refine(video["mean"], video["visible"], video["occluder"])
         for k, kind in enumerate(kinds):
             seen = video["visible"][0, :, k].numpy()
             hidden = ~seen & (states[:, k, columns.index("present")] > 0)
@@ -177,7 +177,7 @@ def mae_iou(scorer, file, videos: list[int], names: list[str], columns: list[str
             visible, mean = video["visible"].clone(), video["mean"].clone()
             visible[0, :, slot] = False
             mean[0, :, slot] = empty
-            refined = scorer.xpl.refine(mean, visible)
+            refined = scorer.xpl.refine(mean, visible, video["occluder"])
             keep = scorer.xpl.proposal_keep(visible, ~hide_slot(visible.shape, torch.tensor([slot])))
             rebuilt, _ = scorer.xpl.transformer2(refined, keep)
             masks = decoded_mask(scorer.vae.decode(rebuilt[0, :, slot]))
@@ -193,7 +193,7 @@ def dynamics_error(scorer, file, videos: list[int]) -> tuple[float, float, np.nd
     errors, latent_errors, residual_targets, direct_targets = [], [], [], []
     for index in videos:
         video = encode(scorer, file, index)
-        refined = scorer.xpl.refine(video["mean"], video["visible"])
+        refined = scorer.xpl.refine(video["mean"], video["visible"], video["occluder"])
         occupied = video["visible"].any(1)
         predicted = scorer.xpl.predict(refined, video["occluder"])
         background = scorer.vae.decode(video["background"][0])[None]

@@ -73,7 +73,7 @@ def score_pair(scorer, batch: dict, truth: torch.Tensor, seen_without_walls: tor
     """Total score, excess and s_dyn of both members with Transformer 1's fills, with the true
     latents in the fills, and with them also in the entries `partly_hidden` (2, T, K) by a wall."""
     visible, occluder = batch["visible"], batch["occluder"]
-    refined, _, occupied = explained_latents(scorer.xpl, batch["mean"], visible)
+    refined, _, occupied = explained_latents(scorer.xpl, batch["mean"], visible, batch["occluder"])
     hidden = ~visible & ~occluder[:, None, :] & seen_without_walls
     filled = hidden & visible.any(dim=1, keepdim=True)
     error = ((refined - truth) ** 2).sum(-1)

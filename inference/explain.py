@@ -63,7 +63,7 @@ def nll_explanation(vae, xpl, video: dict, particles: int, title: str = "", obse
                              one["occluder"], InferenceConfig(particles=particles), seed=seed, top=hypotheses)
     result = found.result
     posterior = hidden_posterior(result)
-    refined = xpl.refine(video["mean"], video["visible"])
+    refined = xpl.refine(video["mean"], video["visible"], video["occluder"])
     occupied = video["visible"].any(dim=1)
     slot = result.hidden_slot if posterior is not None else -1
     if posterior is not None:

@@ -69,7 +69,7 @@ def nll_surprise(vae: ComponentVAE, xpl: XPL, frames: Tensor, mean: Tensor, visi
     if method not in ("smc", "importance"):
         raise ValueError(f"method must be smc or importance, not {method!r}")
     generator = generator_from(seed)
-    refined = xpl.refine(mean[None], visible[None])
+    refined = xpl.refine(mean[None], visible[None], occluder[None])
     explained, scale, slot = xpl.explain(refined, visible[None])
     unseen = never_seen(visible[None])[0]
     hidden = int(slot[0]) if slot[0] >= 0 else int(unseen.float().argmax())

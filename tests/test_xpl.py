@@ -152,6 +152,52 @@ def test_inert_walls_leave_the_walls_out_of_the_dynamics_loss():
                                   plain.losses(z, visible, walls=walls)["dynamics"])
 
 
+def test_unread_entries_reach_no_other_token():
+    """Entries marked unread change no other entry's prediction, whatever they hold."""
+    torch.manual_seed(11)
+    model = ReasoningTransformer(SMALL_REASONING).eval()
+    z, keep = torch.randn(2, T, K, D), torch.rand(2, T, K) > 0.4
+    unread = torch.zeros(2, T, K, dtype=torch.bool)
+    unread[:, :, 1] = True
+    keep[:, :, 1] = True
+    moved = z.clone()
+    moved[:, :, 1] += 5.0
+    with torch.no_grad():
+        mean, scale = model(z, keep, unread)
+        mean2, scale2 = model(moved, keep, unread)
+        others = ~unread
+        torch.testing.assert_close(mean2[others], mean[others])
+        torch.testing.assert_close(scale2[others], scale[others])
+        assert not torch.allclose(model(moved, keep)[0][~keep], model(z, keep)[0][~keep])
+
+
+def test_transformer1_blind_to_walls_fills_alike_whatever_the_wall_holds():
+    """With refill_ignores_walls, Transformer 1's fills and its refill loss do not depend on the
+    walls' latents, the walls' own entries are rebuilt by no loss, and refine needs the walls."""
+    torch.manual_seed(12)
+    config = XPLConfig(reasoning=SMALL_REASONING, dynamics=SMALL_DYNAMICS, inert_walls=True,
+                       refill_ignores_walls=True)
+    model = XPL(config)
+    z, visible = torch.randn(2, T, K, D), torch.rand(2, T, K) > 0.3
+    visible[:, 0] = True
+    walls = torch.tensor([[False, False, True, False], [True, False, False, False]])
+    moved = z.clone()
+    moved[0, :, 2] += 4.0
+    moved[1, :, 0] -= 4.0
+    refill = torch.zeros(2, T, K, dtype=torch.bool)
+    refill[:, 1:3] = True                                   # walls' entries among them
+    order = torch.stack([torch.randperm(K) for _ in range(2)])
+    model.eval()
+    with torch.no_grad():
+        others = ~walls[:, None, :].expand_as(visible)
+        torch.testing.assert_close(model.refine(moved, visible, walls)[others], model.refine(z, visible, walls)[others])
+        model.train()
+        losses = [model.losses(x, visible, order, refill=refill, walls=walls)["refill"] for x in (z, moved)]
+        torch.testing.assert_close(losses[1], losses[0])
+    with pytest.raises(ValueError, match="wall slots"):
+        model.refine(z, visible)
+
+
 def test_stop_input_gradient_leaves_transformer1_to_the_refill_loss():
     """With stop_input_gradient the dynamics loss trains the dynamics only; without it, it
     reaches Transformer 1 through its fills (stop_target_gradient keeps the target out)."""

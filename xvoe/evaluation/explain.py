@@ -84,7 +84,7 @@ def _pictures(vae, refined: torch.Tensor, occupied: torch.Tensor, video: dict,
 @torch.no_grad()
 def explain(scorer: Scorer, data: str, index: int) -> Explanation:
     video, rgbd, title = _read_video(scorer, data, index)
-    refined, slot, occupied = explained_latents(scorer.xpl, video["mean"], video["visible"])
+    refined, slot, occupied = explained_latents(scorer.xpl, video["mean"], video["visible"], video["occluder"])
     behind, alone = _pictures(scorer.vae, refined, occupied, video, int(slot[0]))
     return Explanation(rgbd, behind, alone, int(slot[0]), title)
 

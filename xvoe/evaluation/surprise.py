@@ -45,11 +45,11 @@ class Surprise:
         return excess(self.s_img, self.s_dyn, self.s_rec)
 
 
-def explained_latents(xpl: XPL, mean: Tensor, visible: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+def explained_latents(xpl: XPL, mean: Tensor, visible: Tensor, occluder: Tensor) -> tuple[Tensor, Tensor, Tensor]:
     """Transformer 1's refined latents with Transformer 2's explanation filled in, the slot it
     filled (B,) (-1 if none, or without reasoning), and the occupied slots (B, K): seen at some
     frame, or explained."""
-    refined = xpl.refine(mean, visible)
+    refined = xpl.refine(mean, visible, occluder)
     slot = torch.full(mean.shape[:1], -1, dtype=torch.long, device=mean.device)
     if xpl.config.use_reasoning:
         refined, _, slot = xpl.explain(refined, visible)
@@ -64,7 +64,7 @@ def mse_surprise(vae: ComponentVAE, xpl: XPL, frames: Tensor, mean: Tensor, visi
     """frames: (B, T, 4, H, W) in [-1, 1]; mean: (B, T, K, D) posterior means; visible:
     (B, T, K) bool; background: (B, T, D) the background component's means; occluder: (B, K)
     bool, the wall slots."""
-    refined, slot, occupied = explained_latents(xpl, mean, visible)
+    refined, slot, occupied = explained_latents(xpl, mean, visible, occluder)
     return Surprise(*latent_surprise(vae, xpl, frames, refined, occupied, visible, background, occluder), slot)
 
 

@@ -43,8 +43,9 @@ class ReasoningTransformer(nn.Module):
                                              enable_nested_tensor=False)
         self.head = nn.Linear(config.width, 2 * config.latent_dim)
 
-    def forward(self, z: Tensor, keep: Tensor) -> tuple[Tensor, Tensor]:
-        """z: (B, T, K, D) latents; keep: (B, T, K) bool, True where z is observed.
+    def forward(self, z: Tensor, keep: Tensor, unread: Tensor | None = None) -> tuple[Tensor, Tensor]:
+        """z: (B, T, K, D) latents; keep: (B, T, K) bool, True where z is observed; unread:
+        (B, T, K) bool, entries no token attends to (their own outputs then carry nothing).
 
         Returns the completed latents (observed entries exactly as given) and the predicted
         standard deviation of every entry (0 where observed).
@@ -56,7 +57,8 @@ class ReasoningTransformer(nn.Module):
         kept = keep.unsqueeze(-1).to(z.dtype)
         tokens = self.embed(z) * kept + self.mask_token * (1 - kept)
         tokens = tokens + self.position[:frames]
-        hidden = self.encoder(tokens.reshape(batch, frames * slots, -1))
+        padding = None if unread is None else unread.reshape(batch, frames * slots)
+        hidden = self.encoder(tokens.reshape(batch, frames * slots, -1), src_key_padding_mask=padding)
         prediction, raw_scale = self.head(hidden).reshape(batch, frames, slots, 2 * dim).chunk(2, dim=-1)
         mean = z * kept + prediction * (1 - kept)
         scale = (F.softplus(raw_scale) + self.config.min_scale) * (1 - kept)

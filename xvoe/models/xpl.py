@@ -56,6 +56,11 @@ class XPLConfig:
     # ball that bounced off a never-seen cube is filled as if it rolled on, and the cube was
     # proposed farther off (docs/decisions.md, "Not kept: Transformer 2 reading the seen entries only")
     proposal_sees_seen: bool = False
+    # Transformer 1 reads no wall entry (and rebuilds none): a wall touches nothing (see
+    # inert_walls), so no fill needs it, and a fill that attends to it can take on the wall's
+    # latent, which draws a wall where a hidden cube stands (docs/decisions.md, "Transformer 1
+    # blind to the walls")
+    refill_ignores_walls: bool = False
 
 
 class XPL(nn.Module):
@@ -80,11 +85,20 @@ class XPL(nn.Module):
         each from the frames before it; walls (B, K) bool are inert if the config says so."""
         return self.dynamics(refined[:, :-1], walls if self.config.inert_walls else None)
 
-    def refine(self, z: Tensor, visible: Tensor) -> Tensor:
-        """Fill the frames in which a seen object is occluded (Transformer 1)."""
+    def refine(self, z: Tensor, visible: Tensor, walls: Tensor | None = None) -> Tensor:
+        """Fill the frames in which a seen object is occluded (Transformer 1); walls (B, K)
+        bool, the wall slots, are needed if Transformer 1 ignores them."""
         if not self.config.use_reasoning:
             return z
-        return self.transformer1(z, occlusion_keep(visible))[0]
+        return self.transformer1(z, occlusion_keep(visible), self.unread_walls(visible, walls))[0]
+
+    def unread_walls(self, visible: Tensor, walls: Tensor | None) -> Tensor | None:
+        """Transformer 1's unread entries (B, T, K): the walls' if the config says so, else None."""
+        if not self.config.refill_ignores_walls:
+            return None
+        if walls is None:
+            raise ValueError("this XPL's Transformer 1 ignores the walls: refine needs the wall slots (B, K)")
+        return walls[:, None, :].expand_as(visible)
 
     def explain(self, refined: Tensor, visible: Tensor) -> tuple[Tensor, Tensor, Tensor]:
         """Transformer 2's proposal for an object seen in no frame.
@@ -142,8 +156,10 @@ class XPL(nn.Module):
         out = {}
         if self.config.use_reasoning:
             keep = occlusion_keep(visible)
-            refined = self.transformer1(z, keep & ~refill)[0]
+            refined = self.transformer1(z, keep & ~refill, self.unread_walls(visible, walls))[0]
             rebuilt = refill | (outside & ~keep)
+            if self.config.refill_ignores_walls:
+                rebuilt = rebuilt & ~walls[:, None, :]
             if rebuilt.any():
                 out["refill"] = (self._weighted_square(refined - z) * rebuilt).sum() / rebuilt.sum()
             fills = refined if not self.config.stop_target_gradient else refined.detach()

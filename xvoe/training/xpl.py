@@ -214,7 +214,7 @@ def train_xpl(latents: str | os.PathLike | None, run_dir: str | os.PathLike, *, 
     seed_everything(config.seed)
     batches = LatentBatches(str(latents), batch_size=config.batch_size, shards=config.data_shards, rank=place.rank,
                             world=place.world, max_videos=config.max_videos, seed=config.seed,
-                            walls=model_config.inert_walls or model_config.wall_refill > 0,
+                            walls=model_config.inert_walls or model_config.wall_refill > 0 or model_config.refill_ignores_walls,
                             wall_refill=model_config.wall_refill, outside=model_config.outside_refill,
                             focus_group=config.focus_group, focus_share=config.focus_share)
     job = Job(name, XPL(model_config), batches.batch, {"recipe": recipe_name, "xpl": to_dict(model_config)},
@@ -361,10 +361,11 @@ class ProposalNetworks(nn.Module):
         self.register_buffer("empty", empty, persistent=False)
 
     def forward(self, batch: ProposalBatch) -> dict[str, Tensor]:
-        raw, visible, target = permute_slots(batch.mean, batch.visible, batch.target, order=batch.order)
+        walls = batch.walls.unsqueeze(1).expand_as(batch.visible)
+        raw, visible, target, walls = permute_slots(batch.mean, batch.visible, batch.target, walls, order=batch.order)
         rebuilt = ~hide_slot(visible.shape, batch.hidden)
         with torch.no_grad():
-            context = self.refine(torch.where(rebuilt.unsqueeze(-1), self.empty, raw), visible & ~rebuilt)
+            context = self.refine(torch.where(rebuilt.unsqueeze(-1), self.empty, raw), visible & ~rebuilt, walls[:, 0])
         out = self.losses(torch.where(rebuilt.unsqueeze(-1), target, context), visible, batch.hidden, PROPOSAL_BETA)
         out["loss"] = out["mae"] + out["existence"]
         return out
