@@ -33,8 +33,9 @@ from xvoe.benchmark import store
 from xvoe.benchmark.videos import silhouette
 from xvoe.evaluation.explain import decoded_mask, iou
 from xvoe.evaluation.score import encode_videos, load_model
+from xvoe.evaluation.surprise import explained_latents
 from xvoe.models.reasoning import hide_slot
-from xvoe.models.slots import composite, decode_slots
+from xvoe.models.slots import behind_walls, composite, decode_slots, scene_layers
 
 
 def pick(file, scenario: str, setting: str, member: int, limit: int) -> list[int]:
@@ -108,7 +109,7 @@ def hidden_fills(scorer, file, videos: list[int], names: list[str], columns: lis
     compares the frame after it with the prediction from that fill: a fill that is off costs the
     possible member at the reveal, and the impossible one, whose cube never shows again, does not
     pay it."""
-    scores, offsets, before_reveal, oversized = [], [], [], []
+    scores, offsets, before_reveal, oversized, worst = [], [], [], [], (0, -1)
     for index in videos:
         kinds = [names[k] for k in file["kind"][index]]
         states = file["states"][index]
@@ -128,6 +129,7 @@ def hidden_fills(scorer, file, videos: list[int], names: list[str], columns: lis
             for t, mask, true in zip(frames, masks, truth):
                 if true.any():
                     oversized.append(mask.sum() > 3 * true.sum())
+                    worst = max(worst, (mask.sum() / true.sum(), index))
                 if mask.any() and true.any():
                     offset = float(np.hypot(*(np.argwhere(mask).mean(0) - np.argwhere(true).mean(0))))
                     offsets.append(offset)
@@ -139,7 +141,34 @@ def hidden_fills(scorer, file, videos: list[int], names: list[str], columns: lis
 
     return {"iou": float(np.mean(scores)) if scores else float("nan"), "centre_px": median(offsets),
             "before_reveal_px": median(before_reveal), "oversized_share": float(np.mean(oversized)),
-            "frames": len(scores)}
+            "frames": len(scores), "largest": int(worst[1])}
+
+
+@torch.no_grad()
+def draw_fills(scorer, file, index: int, path: str, title: str) -> None:
+    """A video's frames over the composite of its refined moving slots, each under a wall
+    they stand behind drawn as in the MSE score's dynamics term (the wall left out), and the
+    dynamics' prediction of it: where a fill took on a wall's shape, it shows."""
+    video = encode(scorer, file, index)
+    refined, slot, occupied = explained_latents(scorer.xpl, video["mean"], video["visible"], video["occluder"])
+    frames = video["frames"].shape[1]
+    background = scorer.vae.decode(video["background"][0])[None]
+    layers, walls = scene_layers(scorer.vae, refined, occupied, video["visible"], video["occluder"])
+    moving = occupied & ~video["occluder"]
+    predicted = behind_walls(decode_slots(scorer.vae, scorer.xpl.predict(refined, video["occluder"]), moving),
+                             video["visible"][:, 1:], video["occluder"], walls[:, 1:])
+    rows = [("frames", video["frames"][0]), ("fills", composite(scorer.vae, background, layers, moving)[0]),
+            ("predicted", torch.cat([background[0, :1], composite(scorer.vae, background[:, 1:], predicted, moving)[0]]))]
+    fig, axes = plt.subplots(3, frames, figsize=(frames * 0.62, 2.2))
+    for row, (name, pictures) in enumerate(rows):
+        for t in range(frames):
+            axes[row, t].imshow(((pictures[t, :3].permute(1, 2, 0).numpy() + 1) / 2).clip(0, 1))
+            axes[row, t].set_xticks([])
+            axes[row, t].set_yticks([])
+        axes[row, 0].set_ylabel(name, fontsize=6)
+    fig.suptitle(f"{title}: video {index}", fontsize=7)
+    fig.tight_layout(pad=0.2)
+    fig.savefig(path, dpi=60)
 
 
 @torch.no_grad()
@@ -221,6 +250,9 @@ def main() -> None:
     parser.add_argument("--data", required=True, help="a test split at the model's resolution")
     parser.add_argument("--pairs", type=int, default=100, help="videos of each kind to measure")
     parser.add_argument("--figure", help="where to draw Fig. 5b (PNG)")
+    parser.add_argument("--fills-figure", help="where to draw a permanence S1 video's fills and their prediction (PNG)")
+    parser.add_argument("--fills-video", type=int, help="that video's index (default: the measured one whose fill "
+                        "is largest against its cube)")
     args = parser.parse_args()
     torch.set_num_threads(2)
     scorer = load_model(args.model)
@@ -233,6 +265,9 @@ def main() -> None:
                     for i in pick(file, scenario, "S1", 0, max(1, args.pairs // 4))]
         mae = float(np.mean(mae_iou(scorer, file, expected, names, columns)))
         fills = hidden_fills(scorer, file, pick(file, "permanence", "S1", 0, args.pairs), names, columns)
+        if args.fills_figure:
+            draw_fills(scorer, file, fills["largest"] if args.fills_video is None else args.fills_video,
+                       args.fills_figure, args.model)
         dyn, latent_rms, residual, direct = dynamics_error(scorer, file, expected)
     spread_residual, spread_direct = principal_spread(residual), principal_spread(direct)
     print(f"videos: {args.pairs} blocking S2, {len(expected)} expected S1; {time.perf_counter() - start:.0f} s")
