@@ -23,6 +23,7 @@ Last line: hidden_iou=0.NN mae_iou=0.NN fill_iou=0.NN dyn_mse=...
 from __future__ import annotations
 
 import argparse
+from pathlib import Path
 import time
 
 import matplotlib.pyplot as plt
@@ -267,7 +268,7 @@ def main() -> None:
         fills = hidden_fills(scorer, file, pick(file, "permanence", "S1", 0, args.pairs), names, columns)
         if args.fills_figure:
             draw_fills(scorer, file, fills["largest"] if args.fills_video is None else args.fills_video,
-                       args.fills_figure, args.model)
+                       args.fills_figure, Path(args.model).name)
         dyn, latent_rms, residual, direct = dynamics_error(scorer, file, expected)
     spread_residual, spread_direct = principal_spread(residual), principal_spread(direct)
     print(f"videos: {args.pairs} blocking S2, {len(expected)} expected S1; {time.perf_counter() - start:.0f} s")
