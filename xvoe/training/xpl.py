@@ -486,10 +486,12 @@ def train_proposal(run_dir: str | os.PathLike, latents: str | os.PathLike | None
 
 
 def load_xpl(model: str | os.PathLike, stage: str = "xpl", device: str | torch.device = "cpu",
-             proposal: bool = True) -> tuple[XPL, dict]:
+             proposal: bool = True, trajectory: bool = True) -> tuple[XPL, dict]:
     """A trained XPL (or PLATO) model in eval mode, and its checkpoint's contents. An xpl.pt
     with a proposal.pt beside it (the proposal stage ran) gets that checkpoint's Transformer 2
-    and existence head, unless `proposal` is False."""
+    and existence head, unless `proposal` is False; with a trajectory.pt beside it (the
+    trajectory stage ran), the NLL's learned proposal as `xpl.trajectory`, unless `trajectory`
+    or `proposal` is False (it was trained on this Transformer 2's marginals)."""
     path = resolve_run(model, stage)
     state = load_checkpoint(path)
     if state["stage"] not in ("xpl", "plato", "xpl-noresidual"):
@@ -505,5 +507,11 @@ def load_xpl(model: str | os.PathLike, stage: str = "xpl", device: str | torch.d
         xpl.load_state_dict(extra["model"], strict=False)
         xpl.config = from_dict(XPLConfig, extra["config"]["xpl"])     # how its Transformer 2 is used, too
         state["proposal"] = str(tuned)
+    learned = path.parent / "trajectory.pt"
+    if proposal and trajectory and state["stage"] == "xpl" and learned.is_file():
+        from .trajectory import load_trajectory     # it builds on this module
+
+        xpl.trajectory = load_trajectory(learned, xpl)
+        state["trajectory"] = str(learned)
     state["path"] = str(path)
     return xpl.to(device).eval(), state
