@@ -95,6 +95,10 @@ class InferenceConfig:
     # has one: one more equal-weight component beside the fused ones, which stay to keep the
     # estimator safe where it is wrong (docs/decisions.md, "The trajectory proposal")
     trajectory_proposal: bool = True
+    # after the first frame the learned component's scale is at least this times the transition's:
+    # trained on real objects' steps it is narrower than the model's own transition, and a
+    # proposal narrower than the target lets a few draws take all the weight (0: as learned)
+    trajectory_scale_floor: float = 1.0
 
 
 def pixel_log_normaliser(pixels: int, sigma: float) -> float:

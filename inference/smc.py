@@ -313,8 +313,11 @@ class HiddenTrajectory:
             components = [fuse(prior_loc, prior_scale, loc, scale * widening) for widening in widenings]
         if self.proposal.trajectory is not None and self.config.trajectory_proposal:
             with torch.no_grad():       # a network's parameters must not make the draws need gradients
-                learned = self.proposal.trajectory(t, previous, prior_loc, loc, scale)
-            components.append(tuple(part.to(prior_loc.dtype) for part in learned))
+                learned_loc, learned_scale = (part.to(prior_loc.dtype) for part in
+                                              self.proposal.trajectory(t, previous, prior_loc, loc, scale))
+            if t > 0 and self.config.trajectory_scale_floor > 0:
+                learned_scale = torch.maximum(learned_scale, prior_scale * self.config.trajectory_scale_floor)
+            components.append((learned_loc, learned_scale))
         return torch.stack([c[0] for c in components], dim=1), torch.stack([c[1] for c in components], dim=1)
 
     def select(self, state: Particles, index: Tensor) -> Particles:

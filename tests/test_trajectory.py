@@ -174,3 +174,18 @@ def test_the_cli_refuses_a_run_without_xpl(tmp_path):
     assert done.returncode == 2
     assert len(done.stderr.strip().splitlines()) == 1 and "no xpl.pt" in done.stderr
     assert not (tmp_path / "trajectory.pt").exists()
+
+
+@pytest.mark.usefixtures("double_precision")
+def test_the_learned_scale_is_floored_at_the_transitions_after_the_first_frame():
+    proposal = rough_proposal()
+    proposal.trajectory = TrajectoryProposal(TrajectoryConfig(latent_dim=2, frames=LT, hidden=8, step_scale=0.01))
+    frames = simulated_frames()
+    for floor, expected in ((1.0, 0.3), (0.0, 0.01)):
+        settings = linear_config(trajectory_scale_floor=floor)
+        model = HiddenTrajectory(LinearSteps(linear_scene(), frames, settings), settings, proposal)
+        prior_scale = torch.full((3, 2), 0.3)
+        _, scales = model.proposal_at(2, torch.zeros(3, 2), prior_scale, torch.zeros(3, 2))
+        torch.testing.assert_close(scales[:, -1], torch.full((3, 2), expected))
+        _, first = model.proposal_at(0, torch.zeros(3, 2), torch.ones(3, 2), torch.zeros(3, 2))
+        torch.testing.assert_close(first[:, -1], torch.full((3, 2), 0.6))       # the marginal's at t = 0
