@@ -8,8 +8,12 @@ import torch
 from test_smc import T as LT
 from test_smc import config as linear_config
 from test_smc import kalman, linear_scene, rough_proposal, simulated_frames
-from test_train_xpl import TINY, cache, losses  # noqa: F401 - cache is a fixture
-from test_train_xpl import tiny_recipe  # noqa: F401 - an autouse fixture: the xpl stage's tiny networks
+from test_train_xpl import (  # noqa: F401 - cache is a fixture
+    TINY,
+    cache,
+    losses,
+    tiny_recipe,  # noqa: F401 - an autouse fixture: the xpl stage's tiny networks
+)
 
 from inference.smc import HiddenTrajectory, LinearSteps, run_smc
 from xvoe.errors import XvoeError

@@ -26,7 +26,7 @@ from ..models.xpl import XPL, permute_slots
 from .checkpoints import load_checkpoint
 from .loop import Dist, Job, checkpoint_path, fit, seed_everything, set_threads
 from .recipes import TrainConfig, recipe, recipe_of
-from .xpl import ProposalBatch, ProposalBatches, fingerprint, load_xpl
+from .xpl import ProposalBatch, ProposalBatches, fingerprint, run_xpl
 
 # the networks whose outputs the trajectory proposal reads: Transformer 2 too (its marginals),
 # so a proposal.pt trained again makes an older trajectory.pt refuse to load
@@ -112,13 +112,9 @@ def train_trajectory(run_dir: str | os.PathLike, latents: str | os.PathLike | No
                      **train_overrides: Any) -> Path:
     """What `xvoe train trajectory` does: train RUN_DIR/trajectory.pt, the NLL's learned
     proposal of whole trajectories, for the frozen RUN_DIR/xpl.pt (with its proposal.pt)."""
-    if int(os.environ.get("WORLD_SIZE", "1")) > 1:
-        raise XvoeError("the trajectory stage runs in one process: launch it without torchrun")
     run_dir = Path(run_dir)
-    xpl_path = checkpoint_path(run_dir, "xpl")
-    if not xpl_path.is_file():
-        raise XvoeError(f"no xpl.pt in {run_dir}: train the xpl stage first (and the proposal stage)")
-    xpl, xpl_state = load_xpl(xpl_path, trajectory=False)
+    xpl_path, xpl, xpl_state = run_xpl(run_dir, "trajectory", "the xpl stage (and the proposal stage)",
+                                       trajectory=False)
     if not xpl.config.use_reasoning:
         raise XvoeError(f"{xpl_path} has no Transformer 2 (a PLATO model?): the trajectory proposal needs one")
     ckpt = checkpoint_path(run_dir, "trajectory")
