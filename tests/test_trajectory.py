@@ -74,7 +74,8 @@ def test_the_smc_with_a_learned_component_matches_the_kalman_filter(particles):
     learned = randomised(TrajectoryConfig(latent_dim=2, frames=LT, hidden=8, step_scale=0.3))
     proposal = rough_proposal()
     proposal.trajectory = learned
-    model = HiddenTrajectory(LinearSteps(linear_scene(), frames, linear_config()), linear_config(), proposal)
+    settings = linear_config(trajectory_proposal=True)
+    model = HiddenTrajectory(LinearSteps(linear_scene(), frames, settings), settings, proposal)
     found = run_smc(model, particles, runs=runs, generator=torch.Generator().manual_seed(2))
     exact = kalman(frames)
     ratio = torch.exp(found.log_evidence - exact)
@@ -163,11 +164,11 @@ def test_nll_surprise_uses_the_learned_component_only_when_switched_on():
 
     vae, xpl = tiny_models()
     args = video()
-    settings = InferenceConfig(particles=16, smc_pilot=0)
+    settings = InferenceConfig(particles=16, smc_pilot=0, trajectory_proposal=True)
     without = nll_surprise(vae, xpl, *args, settings, seed=3)
     xpl.trajectory = randomised(TrajectoryConfig(latent_dim=args[1].shape[-1], frames=T, hidden=8))
     on = nll_surprise(vae, xpl, *args, settings, seed=3)
-    off = nll_surprise(vae, xpl, *args, InferenceConfig(particles=16, smc_pilot=0, trajectory_proposal=False), seed=3)
+    off = nll_surprise(vae, xpl, *args, InferenceConfig(particles=16, smc_pilot=0), seed=3)     # off by default
     assert off.nll == without.nll and on.nll != without.nll and math.isfinite(on.nll)
     assert on.nll == nll_surprise(vae, xpl, *args, settings, seed=3).nll
 
@@ -186,7 +187,7 @@ def test_the_learned_scale_is_floored_at_the_transitions_after_the_first_frame()
     proposal.trajectory = TrajectoryProposal(TrajectoryConfig(latent_dim=2, frames=LT, hidden=8, step_scale=0.01))
     frames = simulated_frames()
     for floor, expected in ((1.0, 0.3), (0.0, 0.01)):
-        settings = linear_config(trajectory_scale_floor=floor)
+        settings = linear_config(trajectory_proposal=True, trajectory_scale_floor=floor)
         model = HiddenTrajectory(LinearSteps(linear_scene(), frames, settings), settings, proposal)
         prior_scale = torch.full((3, 2), 0.3)
         _, scales = model.proposal_at(2, torch.zeros(3, 2), prior_scale, torch.zeros(3, 2))
