@@ -146,12 +146,14 @@ def test_the_stage_resumes_exactly(cache, tmp_path):  # noqa: F811
     for run in ("a", "b"):
         train_xpl(cache, tmp_path / run, progress=False, **{**TINY, "steps": 5})
     straight = train_trajectory(tmp_path / "a", progress=False, **{**TINY, "steps": 20})
-    train_trajectory(tmp_path / "b", progress=False, **{**TINY, "steps": 8})
+    copy = tmp_path / "copy.h5"                  # a cache of its own: a resumed run goes on with it
+    copy.write_bytes(cache.read_bytes())
+    train_trajectory(tmp_path / "b", copy, progress=False, **{**TINY, "steps": 8})
     with pytest.raises(XvoeError, match="--resume"):
-        train_trajectory(tmp_path / "b", progress=False, **{**TINY, "steps": 20})
+        train_trajectory(tmp_path / "b", copy, progress=False, **{**TINY, "steps": 20})
     resumed = train_trajectory(tmp_path / "b", progress=False, resume=True, **{**TINY, "steps": 20})
     a, b = torch.load(straight, weights_only=False), torch.load(resumed, weights_only=False)
-    assert a["step"] == b["step"] == 20
+    assert a["step"] == b["step"] == 20 and b["meta"]["latents"] == str(copy.resolve())
     for name, value in a["model"].items():
         torch.testing.assert_close(value, b["model"][name], msg=name)
 

@@ -119,14 +119,14 @@ def train_trajectory(run_dir: str | os.PathLike, latents: str | os.PathLike | No
         raise XvoeError(f"{xpl_path} has no Transformer 2 (a PLATO model?): the trajectory proposal needs one")
     ckpt = checkpoint_path(run_dir, "trajectory")
     recipe_name = recipe_of(xpl_state["config"])
-    latents = latents or xpl_state["meta"].get("latents")
     if resume and ckpt.exists():
         state = load_checkpoint(ckpt)
         config = from_dict(TrainConfig, state["train"])
         model_config = override_resumed(from_dict(TrajectoryConfig, state["config"]["trajectory"]), model_overrides,
                                         what="trajectory run")
-        latents = latents if latents is not None else state["meta"]["latents"]
+        latents = latents or state["meta"]["latents"]      # the run's own cache, not the xpl stage's
     else:
+        latents = latents or xpl_state["meta"].get("latents")
         config = recipe(recipe_name).trajectory_train
         reasoning = xpl.config.reasoning
         model_config = override(TrajectoryConfig(latent_dim=reasoning.latent_dim, frames=reasoning.frames),
