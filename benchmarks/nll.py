@@ -4,7 +4,7 @@ repeatability between seeds, and its accuracy against the MSE score on the same 
     python benchmarks/nll.py --model NAME_OR_RUN --data test.h5 [--particles 64] [--pairs N] [--threads 2]
                              [--method smc|importance] [--seeds 0,1] [--smc-moves N] [--smc-pilot N]
                              [--motion-sigma S] [--pixel-sigma S] [--refine-steps N] [--proposal-widening F]
-                             [--independent-guide]
+                             [--independent-guide] [--trajectory-proposal] [--trajectory-scale-floor F]
 
 Scores the first N pairs of every S1 and S3 setting and of blocking S2 with both surprise
 definitions, each video encoded once (as `xvoe score --surprise both` does), the NLL once per
@@ -158,6 +158,12 @@ def main() -> None:
     parser.add_argument("--independent-guide", action="store_true",
                         help="draw the hidden trajectory frame by frame from Transformer 2 alone (the guide "
                              "before it was fused with the dynamics' step), for comparison")
+    parser.add_argument("--trajectory-proposal", action="store_true",
+                        help="mix the learned trajectory proposal (trajectory.pt beside xpl.pt) into the SMC's "
+                             "proposal (off by default)")
+    parser.add_argument("--trajectory-scale-floor", type=float, default=InferenceConfig.trajectory_scale_floor,
+                        help="the learned component's scale after the first frame is at least this times the "
+                             f"transition's, 0: as learned (default {InferenceConfig.trajectory_scale_floor})")
     args = parser.parse_args()
     try:
         run(args)
@@ -176,7 +182,10 @@ def run(args: argparse.Namespace) -> None:
                              refine_rate=args.refine_rate, proposal_widening=args.proposal_widening,
                              guide_follows_dynamics=not args.independent_guide, method=args.method,
                              smc_moves=args.smc_moves, smc_pilot=args.smc_pilot, smc_first=args.smc_first,
-                             smc_proposal_widening=widenings(args.smc_proposal_widening))
+                             smc_proposal_widening=widenings(args.smc_proposal_widening),
+                             trajectory_proposal=args.trajectory_proposal,
+                             trajectory_scale_floor=args.trajectory_scale_floor)
+    args.learned = scorer.xpl.trajectory is not None and config.trajectory_proposal
     rows, nll_seconds, mse_seconds = [], 0.0, 0.0
     with store.open_dataset(args.data) as file:
         check_size(file, scorer.image_size, f"the model {scorer.name}")
@@ -215,7 +224,9 @@ def report(table: dict[str, np.ndarray], args: argparse.Namespace, nll_seconds: 
           f"smc first frame {args.smc_first}, smc proposal widening {args.smc_proposal_widening}, "
           f"{'independent' if args.independent_guide else 'dynamics-fused'} guide, motion sigma {args.motion_sigma}, "
           f"pixel sigma {args.pixel_sigma}, {args.refine_steps} steps out of sight at rate {args.refine_rate}, "
-          f"proposal widening {args.proposal_widening}")
+          f"proposal widening {args.proposal_widening}, "
+          f"{'with' if getattr(args, 'learned', False) else 'without'} the learned trajectory proposal"
+          + (f" (scale floor {args.trajectory_scale_floor})" if getattr(args, "learned", False) else ""))
     print(f"NLL scoring: {speed:.2f} videos/s (first seed, encoding included, {nll_seconds:.0f} s); "
           f"MSE scoring: {videos / mse_seconds:.1f} videos/s (encoding included)")
     cpu = table["cpu_seconds"]      # the process's CPU time: less sensitive than the clock to other jobs

@@ -91,12 +91,30 @@ class InferenceConfig:
     # marginals costs weight variance at each step: the wide component keeps the particles near
     # the dynamics, the narrow one finds the hypotheses that the marginals point at
     smc_proposal_widening: float | tuple[float, ...] | None = (3.0, 10.0)
+    # the SMC's proposal mixes in the learned trajectory proposal (trajectory.pt) where the model
+    # has one: one more equal-weight component beside the fused ones, which stay to keep the
+    # estimator safe where it is wrong. Off: measured, it did not raise the ESS and widened the
+    # seed-to-seed spread (docs/decisions.md, "The trajectory proposal")
+    trajectory_proposal: bool = False
+    # after the first frame the learned component's scale is at least this times the transition's:
+    # trained on real objects' steps it is narrower than the model's own transition, and a
+    # proposal narrower than the target lets a few draws take all the weight (0: as learned)
+    trajectory_scale_floor: float = 1.0
 
 
 def pixel_log_normaliser(pixels: int, sigma: float) -> float:
     """log of the normaliser of an isotropic Gaussian over `pixels` values: the pixel
     likelihood's constant, also that of a reference drawing scored the same way."""
     return pixels * (math.log(sigma) + 0.5 * math.log(2 * math.pi))
+
+
+class StepProposal(Protocol):
+    """A learned proposal of frame t given the particle's past (`xvoe.models.trajectory`):
+    mean and scale (n, D) from t, the previous draws, the dynamics' mean and Transformer 2's
+    marginal at t (n, D each)."""
+
+    def __call__(self, t: int, previous: Tensor, prediction: Tensor, marginal_loc: Tensor,
+                 marginal_scale: Tensor) -> tuple[Tensor, Tensor]: ...
 
 
 @dataclass
@@ -106,6 +124,8 @@ class Proposal:
     p_exists: Tensor                # scalar
     loc: Tensor                     # (T, D)
     scale: Tensor                   # (T, D)
+    # the SMC's learned component of whole trajectories (None: the fused ones alone)
+    trajectory: StepProposal | None = None
 
 
 class HiddenObjectModel(nn.Module):

@@ -246,7 +246,8 @@ class HiddenTrajectory:
             prior_loc, prior_scale = self.steps.initial(n)
         else:
             prior_loc, prior_scale = state.loc, torch.full_like(state.loc, self.config.transition_sigma)
-        locs, scales = self.proposal_at(t, prior_loc, prior_scale)
+        previous = state.trajectory[:, -1] if t > 0 else torch.zeros_like(prior_loc)
+        locs, scales = self.proposal_at(t, prior_loc, prior_scale, previous)
         chosen = torch.randint(locs.shape[1], (n,), generator=generator)
         rows = torch.arange(n)
         loc, scale = locs[rows, chosen], scales[rows, chosen]
@@ -290,22 +291,34 @@ class HiddenTrajectory:
                            torch.where(accept, moved.log_q, state.log_q))
         return result, result.increment
 
-    def proposal_at(self, t: int, prior_loc: Tensor, prior_scale: Tensor) -> tuple[Tensor, Tensor]:
+    def proposal_at(self, t: int, prior_loc: Tensor, prior_scale: Tensor,
+                    previous: Tensor) -> tuple[Tensor, Tensor]:
         """Means and scales (n, C, D) of the proposal's C components for frame t: the
         dynamics' step fused with Transformer 2's marginal widened by each of
-        `smc_proposal_widening` (an equal-weight mixture)."""
+        `smc_proposal_widening`, and the learned trajectory proposal given the particle's
+        previous draw `previous` (n, D) where there is one and `trajectory_proposal` is on (an
+        equal-weight mixture: every component is a function of the particle's past, so the
+        mixture's density is the one each draw came from)."""
         if self.proposal is None:
             return prior_loc[:, None], prior_scale[:, None]
         loc, scale = self.proposal.loc[t].expand_as(prior_loc), self.proposal.scale[t].expand_as(prior_loc)
         if not self.config.guide_follows_dynamics:
-            return loc[:, None], scale[:, None]
-        widenings = self.config.smc_proposal_widening
-        if widenings is None:
-            widenings = (self.config.proposal_widening,)
-        elif isinstance(widenings, (int, float)):
-            widenings = (widenings,)
-        fused = [fuse(prior_loc, prior_scale, loc, scale * widening) for widening in widenings]
-        return torch.stack([f[0] for f in fused], dim=1), torch.stack([f[1] for f in fused], dim=1)
+            components = [(loc, scale)]
+        else:
+            widenings = self.config.smc_proposal_widening
+            if widenings is None:
+                widenings = (self.config.proposal_widening,)
+            elif isinstance(widenings, (int, float)):
+                widenings = (widenings,)
+            components = [fuse(prior_loc, prior_scale, loc, scale * widening) for widening in widenings]
+        if self.proposal.trajectory is not None and self.config.trajectory_proposal:
+            with torch.no_grad():       # a network's parameters must not make the draws need gradients
+                learned_loc, learned_scale = (part.to(prior_loc.dtype) for part in
+                                              self.proposal.trajectory(t, previous, prior_loc, loc, scale))
+            if t > 0 and self.config.trajectory_scale_floor > 0:
+                learned_scale = torch.maximum(learned_scale, prior_scale * self.config.trajectory_scale_floor)
+            components.append((learned_loc, learned_scale))
+        return torch.stack([c[0] for c in components], dim=1), torch.stack([c[1] for c in components], dim=1)
 
     def select(self, state: Particles, index: Tensor) -> Particles:
         def pick(value):

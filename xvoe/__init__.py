@@ -35,6 +35,7 @@ _HOMES = {
     "xvoe.training.perception": ("train_perception",),
     "xvoe.training.latents": ("encode_split",),
     "xvoe.training.xpl": ("train_xpl", "train_proposal", "latent_cache_for"),
+    "xvoe.training.trajectory": ("train_trajectory",),
     "xvoe.training.phydnet": ("train_phydnet",),
     "xvoe.training.dataset": ("SplitDataset",),
     "xvoe.evaluation.score": ("Scorer", "load_model", "SurpriseModel", "Videos", "merge_scores"),

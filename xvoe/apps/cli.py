@@ -136,11 +136,14 @@ def cmd_train(args: argparse.Namespace) -> None:
     claim_directory(args.out, make=False)       # a bad --out is found before any data is read
     train, model = _train_overrides(args, stage)
     common = {"resume": args.resume, "overwrite": args.overwrite, "progress": not args.quiet}
-    if stage != "proposal" and args.data is None and not args.resume:
+    if stage not in AFTER_XPL and args.data is None and not args.resume:
         raise XvoeError("--data is required to start a run (the training split, or for xpl and plato its latent "
                         "cache)")
     if stage == "proposal":
         print(xvoe.train_proposal(args.out, args.data, model_overrides=model, **common, **train))
+        return
+    if stage == "trajectory":
+        print(xvoe.train_trajectory(args.out, args.data, model_overrides=model, **common, **train))
         return
     common |= {"recipe_name": args.recipe, "model_overrides": model}
     if stage == "perception":
@@ -166,20 +169,23 @@ STAGE_HELP = {
     "xpl": "Transformers 1 and 2 and the dynamics, on the latent cache (a split is encoded first)",
     "plato": "the PLATO baseline: the dynamics alone, on the latent cache",
     "proposal": "Transformer 2 and the existence head further, on hidden objects (after xpl)",
+    "trajectory": "the NLL's learned proposal of a hidden object's whole trajectory (after xpl and proposal)",
     "phydnet": "the PhyDNet baseline, on a training split's pixels",
 }
 FOCUS_STAGES = ("phydnet", "xpl", "plato")     # the stages whose batches can focus on one group
+AFTER_XPL = ("proposal", "trajectory")          # the stages that build on the run's xpl.pt
 
 
 def add_train_parser(verbs) -> None:
     train = verbs.add_parser(
         "train", help="train one stage of the XPL model, or a baseline, into a run directory",
         description="xvoe train STAGE: one stage into a run directory (STAGE.pt checkpoint and STAGE.csv "
-                    "losses). Each stage runs unchanged under torchrun --nproc_per_node N (not proposal).")
+                    "losses). Each stage runs unchanged under torchrun --nproc_per_node N (not proposal or "
+                    "trajectory).")
     stages = train.add_subparsers(dest="stage", required=True, metavar="STAGE", parser_class=_Parser)
     for stage, help_text in STAGE_HELP.items():
         parser = stages.add_parser(stage, help=help_text, description=f"Train {help_text}.")
-        if stage == "proposal":
+        if stage in AFTER_XPL:
             parser.add_argument("--data", help="the latent cache (default: the one the run's xpl stage used)")
         elif stage in ("xpl", "plato"):
             parser.add_argument("--data", help="the latent cache, or a training split to encode into one first")
@@ -187,7 +193,7 @@ def add_train_parser(verbs) -> None:
         else:
             parser.add_argument("--data", help="the training split file (HDF5)")
         parser.add_argument("--out", required=True, help="the run directory")
-        if stage != "proposal":
+        if stage not in AFTER_XPL:
             parser.add_argument("--recipe", default="cpu",
                                 help="the recipe whose sizes and settings start the run: cpu (default) or paper")
         parser.add_argument("--steps", type=_positive, help="training steps (default: the recipe's)")

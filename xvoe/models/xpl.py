@@ -74,6 +74,9 @@ class XPL(nn.Module):
             # q(a hidden object exists | what Transformer 2 proposes for the slot it filled):
             # the amortised existence probability of the inference model's guide
             self.existence = mlp(2 * config.reasoning.latent_dim * config.reasoning.frames, 64, 1, 1)
+        # the NLL's learned proposal of whole trajectories (trajectory.pt beside xpl.pt, `load_xpl`);
+        # no part of XPL's own training
+        self.trajectory: nn.Module | None = None
 
     def forward(self, batch) -> dict[str, Tensor]:
         """The training objective of a LatentBatch (what the training loop calls)."""
@@ -109,10 +112,16 @@ class XPL(nn.Module):
         """
         unseen = never_seen(visible)
         slot = torch.where(unseen.any(1), unseen.float().argmax(1), torch.full_like(unseen[:, 0], -1, dtype=torch.long))
+        mean, scale = self.propose(refined, visible, slot)
+        return mean, scale, slot
+
+    def propose(self, refined: Tensor, visible: Tensor, slot: Tensor) -> tuple[Tensor, Tensor]:
+        """Transformer 2's latents and scales (B, T, K, D) with slot `slot` (B,) hidden in every
+        frame and rebuilt (-1: none; latents unchanged, scales 0 outside the rebuilt slot)."""
         proposed = ~hide_slot(visible.shape, slot.clamp_min(0))
         proposed[slot < 0] = False
         mean, scale = self.transformer2(refined, self.proposal_keep(visible, proposed))
-        return torch.where(proposed.unsqueeze(-1), mean, refined), scale * proposed.unsqueeze(-1), slot
+        return torch.where(proposed.unsqueeze(-1), mean, refined), scale * proposed.unsqueeze(-1)
 
     def proposal_keep(self, visible: Tensor, proposed: Tensor) -> Tensor:
         """Transformer 2's input mask: every entry but the proposed ones (B, T, K); with

@@ -455,13 +455,8 @@ def train_proposal(run_dir: str | os.PathLike, latents: str | os.PathLike | None
     RUN_DIR/proposal.pt. In the joint stage they get one step in each of the XPL's few steps
     and a hidden object is a rare draw; the explanation and the NLL's proposal need more.
     `model_overrides` may change how Transformer 2 is used (PROPOSAL_FIELDS), not its network."""
-    if int(os.environ.get("WORLD_SIZE", "1")) > 1:
-        raise XvoeError("the proposal stage runs in one process (a few minutes): launch it without torchrun")
     run_dir = Path(run_dir)
-    xpl_path = checkpoint_path(run_dir, "xpl")
-    if not xpl_path.is_file():
-        raise XvoeError(f"no xpl.pt in {run_dir}: train the xpl stage first")
-    xpl, xpl_state = load_xpl(xpl_path, proposal=False)
+    xpl_path, xpl, xpl_state = run_xpl(run_dir, "proposal", "the xpl stage", proposal=False)
     ckpt = checkpoint_path(run_dir, "proposal")
     recipe_name = recipe_of(xpl_state["config"])
     if resume and ckpt.exists():
@@ -486,11 +481,24 @@ def train_proposal(run_dir: str | os.PathLike, latents: str | os.PathLike | None
     return fit(job, config, run_dir, place=place, resume=resume, overwrite=overwrite, progress=progress)
 
 
+def run_xpl(run_dir: Path, stage: str, needs: str, **loading: bool) -> tuple[Path, XPL, dict]:
+    """RUN_DIR/xpl.pt, loaded (`load_xpl` with `loading`), for a stage that trains on top of it in
+    one process (a few minutes); an error naming what to train first (`needs`) if it is missing."""
+    if int(os.environ.get("WORLD_SIZE", "1")) > 1:
+        raise XvoeError(f"the {stage} stage runs in one process (a few minutes): launch it without torchrun")
+    xpl_path = checkpoint_path(run_dir, "xpl")
+    if not xpl_path.is_file():
+        raise XvoeError(f"no xpl.pt in {run_dir}: train {needs} first")
+    return (xpl_path, *load_xpl(xpl_path, **loading))
+
+
 def load_xpl(model: str | os.PathLike, stage: str = "xpl", device: str | torch.device = "cpu",
-             proposal: bool = True) -> tuple[XPL, dict]:
+             proposal: bool = True, trajectory: bool = True) -> tuple[XPL, dict]:
     """A trained XPL (or PLATO) model in eval mode, and its checkpoint's contents. An xpl.pt
     with a proposal.pt beside it (the proposal stage ran) gets that checkpoint's Transformer 2
-    and existence head, unless `proposal` is False."""
+    and existence head, unless `proposal` is False; with a trajectory.pt beside it (the
+    trajectory stage ran), the NLL's learned proposal as `xpl.trajectory`, unless `trajectory`
+    or `proposal` is False (it was trained on this Transformer 2's marginals)."""
     path = resolve_run(model, stage)
     state = load_checkpoint(path)
     if state["stage"] not in ("xpl", "plato", "xpl-noresidual"):
@@ -506,5 +514,11 @@ def load_xpl(model: str | os.PathLike, stage: str = "xpl", device: str | torch.d
         xpl.load_state_dict(extra["model"], strict=False)
         xpl.config = from_dict(XPLConfig, extra["config"]["xpl"])     # how its Transformer 2 is used, too
         state["proposal"] = str(tuned)
+    learned = path.parent / "trajectory.pt"
+    if proposal and trajectory and state["stage"] == "xpl" and learned.is_file():
+        from .trajectory import load_trajectory  # it builds on this module
+
+        xpl.trajectory = load_trajectory(learned, xpl)
+        state["trajectory"] = str(learned)
     state["path"] = str(path)
     return xpl.to(device).eval(), state

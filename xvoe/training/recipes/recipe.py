@@ -13,6 +13,7 @@ from ...errors import XvoeError
 from ...models.config import field_type, parse_value
 from ...models.perception import PerceptionConfig
 from ...models.phydnet import PhyDNetConfig
+from ...models.trajectory import TrajectoryConfig
 from ...models.xpl import XPLConfig
 
 
@@ -56,6 +57,9 @@ class Recipe:
     # Transformer 2 and the existence head trained further on hidden objects (the proposal stage)
     proposal_train: TrainConfig = field(default_factory=lambda: TrainConfig(steps=4000, batch_size=32,
                                                                             warmup_steps=100, decay_steps=1500))
+    # the NLL's learned proposal of whole trajectories (the trajectory stage, after proposal)
+    trajectory_train: TrainConfig = field(default_factory=lambda: TrainConfig(steps=2000, batch_size=32,
+                                                                              warmup_steps=100, decay_steps=1000))
     # the PLATO baseline's training (None: xpl_train's). Without Transformer 1 it predicts the
     # raw latents directly, and every visible object costs its prediction error in every frame:
     # trained no longer than XPL, that cost outweighs the violations of the predictive settings
@@ -77,6 +81,7 @@ class Recipe:
             return self.plato_train
         return {"perception": self.perception_train, "xpl": self.xpl_train, "plato": self.xpl_train,
                 "xpl-noresidual": self.xpl_train, "proposal": self.proposal_train,
+                "trajectory": self.trajectory_train,
                 "phydnet": self.phydnet_train}[stage]
 
     def final_training(self, stage: str) -> TrainConfig:
@@ -85,7 +90,7 @@ class Recipe:
 
 
 MODEL_CONFIGS = {"perception": PerceptionConfig, "xpl": XPLConfig, "plato": XPLConfig, "phydnet": PhyDNetConfig,
-                 "proposal": XPLConfig}
+                 "proposal": XPLConfig, "trajectory": TrajectoryConfig}
 # what the proposal stage may change of the XPL it trains on: how Transformer 2 is used, not its network
 PROPOSAL_FIELDS = ("proposal_sees_seen",)
 
