@@ -96,7 +96,7 @@ class TrajectoryNetworks(nn.Module):
         real = visible[rows, :, hidden].any(dim=1) & ~walls[rows, hidden]
         rebuilt = ~hide_slot(visible.shape, hidden)
         unseen = visible & ~rebuilt                         # the object was never seen, as at test
-        refined = xpl.refine(torch.where(rebuilt.unsqueeze(-1), self.empty, raw), unseen)
+        refined = xpl.refine(torch.where(rebuilt.unsqueeze(-1), self.empty, raw), unseen, walls)
         mean, scale = xpl.propose(refined, unseen, hidden)
         loc = mean[rows, :, hidden]
         scale = scale[rows, :, hidden].clamp_min(xpl.config.reasoning.min_scale)
