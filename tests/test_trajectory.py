@@ -18,6 +18,7 @@ from test_train_xpl import (  # noqa: F401 - cache is a fixture
 from inference.smc import HiddenTrajectory, LinearSteps, run_smc
 from xvoe.errors import XvoeError
 from xvoe.models.trajectory import TrajectoryConfig, TrajectoryProposal
+from xvoe.training.trajectory import with_trajectory
 from xvoe.training.xpl import load_xpl, train_proposal, train_xpl
 
 
@@ -129,15 +130,16 @@ def test_the_stage_lowers_the_csis_loss_trains_the_proposal_alone_and_loads_besi
     assert state["model"] and all(name.startswith("proposal.") for name in state["model"])
     assert state["step"] == 60 and state["optimizer"] and state["meta"]["xpl_fingerprint"]
     xpl, loaded = load_xpl(tmp_path)
-    assert loaded["trajectory"] == str(path) and isinstance(xpl.trajectory, TrajectoryProposal)
+    assert xpl.trajectory is None                      # load_xpl leaves it to with_trajectory
+    assert with_trajectory(xpl, loaded)["trajectory"] == str(path) and isinstance(xpl.trajectory, TrajectoryProposal)
     assert not xpl.trajectory.training
     assert all(torch.equal(value, xpl.state_dict()[name]) for name, value in before.items())   # XPL untouched
-    assert load_xpl(tmp_path, trajectory=False)[0].trajectory is None
     # a proposal.pt trained afterwards changes Transformer 2's marginals: the old trajectory.pt is refused
     train_proposal(tmp_path, progress=False, **{**TINY, "steps": 3})
     with pytest.raises(XvoeError, match="another xpl.pt or proposal.pt"):
-        load_xpl(tmp_path)
-    assert load_xpl(tmp_path, proposal=False)[0].trajectory is None
+        with_trajectory(*load_xpl(tmp_path))
+    without = load_xpl(tmp_path, proposal=False)
+    assert with_trajectory(*without)["stage"] == "xpl" and without[0].trajectory is None
 
 
 def test_the_stage_resumes_exactly(cache, tmp_path):  # noqa: F811

@@ -32,6 +32,7 @@ from ..training.data import check_size, visible_threshold
 from ..training.latents import encode_frames
 from ..training.perception import load_perception
 from ..training.phydnet import load_phydnet
+from ..training.trajectory import with_trajectory
 from ..training.xpl import load_xpl
 from .metrics import excess
 from .surprise import aggregate, mse_surprise
@@ -162,7 +163,8 @@ def load_model(model: str, device: str = "cpu") -> Scorer:
         net = load_phydnet(run_dir / "phydnet.pt", device)[0]
         return Scorer(stage, None, None, phydnet=net, custom=PhyDNetSurprise(net))
     vae, _ = load_perception(run_dir, device)
-    xpl, _ = load_xpl(run_dir, stage, device)
+    xpl, state = load_xpl(run_dir, stage, device)
+    with_trajectory(xpl, state)
     return Scorer(stage, vae, xpl)
 
 

@@ -113,8 +113,7 @@ def train_trajectory(run_dir: str | os.PathLike, latents: str | os.PathLike | No
     """What `xvoe train trajectory` does: train RUN_DIR/trajectory.pt, the NLL's learned
     proposal of whole trajectories, for the frozen RUN_DIR/xpl.pt (with its proposal.pt)."""
     run_dir = Path(run_dir)
-    xpl_path, xpl, xpl_state = run_xpl(run_dir, "trajectory", "the xpl stage (and the proposal stage)",
-                                       trajectory=False)
+    xpl_path, xpl, xpl_state = run_xpl(run_dir, "trajectory", "the xpl stage (and the proposal stage)")
     if not xpl.config.use_reasoning:
         raise XvoeError(f"{xpl_path} has no Transformer 2 (a PLATO model?): the trajectory proposal needs one")
     ckpt = checkpoint_path(run_dir, "trajectory")
@@ -162,3 +161,15 @@ def load_trajectory(path: str | os.PathLike, xpl: XPL) -> TrajectoryProposal:
     proposal = TrajectoryProposal(from_dict(TrajectoryConfig, state["config"]["trajectory"]))
     proposal.load_state_dict({name.removeprefix("proposal."): value for name, value in state["model"].items()})
     return proposal.eval()
+
+
+def with_trajectory(xpl: XPL, state: dict) -> dict:
+    """Attach the NLL's learned proposal, trajectory.pt beside the xpl.pt that `load_xpl` read
+    (`state`), as `xpl.trajectory`, where the trajectory stage ran and the proposal.pt it was
+    trained on was loaded; the checkpoint's contents, with "trajectory" its path if attached."""
+    learned = Path(state["path"]).parent / "trajectory.pt"
+    proposal_loaded = "proposal" in state or not (learned.parent / "proposal.pt").is_file()
+    if state["stage"] == "xpl" and proposal_loaded and learned.is_file():
+        xpl.trajectory = load_trajectory(learned, xpl)
+        state["trajectory"] = str(learned)
+    return state

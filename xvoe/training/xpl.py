@@ -493,12 +493,11 @@ def run_xpl(run_dir: Path, stage: str, needs: str, **loading: bool) -> tuple[Pat
 
 
 def load_xpl(model: str | os.PathLike, stage: str = "xpl", device: str | torch.device = "cpu",
-             proposal: bool = True, trajectory: bool = True) -> tuple[XPL, dict]:
+             proposal: bool = True) -> tuple[XPL, dict]:
     """A trained XPL (or PLATO) model in eval mode, and its checkpoint's contents. An xpl.pt
     with a proposal.pt beside it (the proposal stage ran) gets that checkpoint's Transformer 2
-    and existence head, unless `proposal` is False; with a trajectory.pt beside it (the
-    trajectory stage ran), the NLL's learned proposal as `xpl.trajectory`, unless `trajectory`
-    or `proposal` is False (it was trained on this Transformer 2's marginals)."""
+    and existence head, unless `proposal` is False. The NLL's learned trajectory proposal is
+    attached apart (`xvoe.training.trajectory.with_trajectory`)."""
     path = resolve_run(model, stage)
     state = load_checkpoint(path)
     if state["stage"] not in ("xpl", "plato", "xpl-noresidual"):
@@ -514,11 +513,5 @@ def load_xpl(model: str | os.PathLike, stage: str = "xpl", device: str | torch.d
         xpl.load_state_dict(extra["model"], strict=False)
         xpl.config = from_dict(XPLConfig, extra["config"]["xpl"])     # how its Transformer 2 is used, too
         state["proposal"] = str(tuned)
-    learned = path.parent / "trajectory.pt"
-    if proposal and trajectory and state["stage"] == "xpl" and learned.is_file():
-        from .trajectory import load_trajectory  # it builds on this module
-
-        xpl.trajectory = load_trajectory(learned, xpl)
-        state["trajectory"] = str(learned)
     state["path"] = str(path)
     return xpl.to(device).eval(), state
