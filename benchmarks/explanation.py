@@ -23,8 +23,8 @@ Last line: hidden_iou=0.NN mae_iou=0.NN fill_iou=0.NN dyn_mse=...
 from __future__ import annotations
 
 import argparse
-from pathlib import Path
 import time
+from pathlib import Path
 
 import matplotlib.pyplot as plt
 import numpy as np
@@ -158,8 +158,9 @@ def draw_fills(scorer, file, index: int, path: str, title: str) -> None:
     moving = occupied & ~video["occluder"]
     predicted = behind_walls(decode_slots(scorer.vae, scorer.xpl.predict(refined, video["occluder"]), moving),
                              video["visible"][:, 1:], video["occluder"], walls[:, 1:])
+    expected = composite(scorer.vae, background[:, 1:], predicted, moving)[0]
     rows = [("frames", video["frames"][0]), ("fills", composite(scorer.vae, background, layers, moving)[0]),
-            ("predicted", torch.cat([background[0, :1], composite(scorer.vae, background[:, 1:], predicted, moving)[0]]))]
+            ("predicted", torch.cat([background[0, :1], expected]))]
     fig, axes = plt.subplots(3, frames, figsize=(frames * 0.62, 2.2))
     for row, (name, pictures) in enumerate(rows):
         for t in range(frames):

@@ -94,7 +94,7 @@ class InferenceConfig:
     # the SMC's proposal mixes in the learned trajectory proposal (trajectory.pt) where the model
     # has one: one more equal-weight component beside the fused ones, which stay to keep the
     # estimator safe where it is wrong. Off: measured, it did not raise the ESS and widened the
-    # seed-to-seed spread (docs/decisions.md, "The trajectory proposal")
+    # seed-to-seed spread (docs/decisions.md, "The trajectory proposal: mixed with the fused ones, off by default")
     trajectory_proposal: bool = False
     # after the first frame the learned component's scale is at least this times the transition's:
     # trained on real objects' steps it is narrower than the model's own transition, and a

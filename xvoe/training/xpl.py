@@ -212,9 +212,9 @@ def train_xpl(latents: str | os.PathLike | None, run_dir: str | os.PathLike, *, 
     config = override(config, data_shards=config.data_shards or place.world)
     set_threads(config, int(os.environ.get("LOCAL_WORLD_SIZE", "1")))
     seed_everything(config.seed)
+    needs_walls = model_config.inert_walls or model_config.wall_refill > 0 or model_config.refill_ignores_walls
     batches = LatentBatches(str(latents), batch_size=config.batch_size, shards=config.data_shards, rank=place.rank,
-                            world=place.world, max_videos=config.max_videos, seed=config.seed,
-                            walls=model_config.inert_walls or model_config.wall_refill > 0 or model_config.refill_ignores_walls,
+                            world=place.world, max_videos=config.max_videos, seed=config.seed, walls=needs_walls,
                             wall_refill=model_config.wall_refill, outside=model_config.outside_refill,
                             focus_group=config.focus_group, focus_share=config.focus_share)
     job = Job(name, XPL(model_config), batches.batch, {"recipe": recipe_name, "xpl": to_dict(model_config)},

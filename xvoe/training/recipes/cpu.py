@@ -22,7 +22,8 @@ RECIPE = Recipe(
     perception=PerceptionConfig(),
     xpl=XPLConfig(inert_walls=True, stop_input_gradient=True, outside_refill=True),
     xpl_train=TrainConfig(steps=12_000, batch_size=32, warmup_steps=100, decay_steps=8_000),
-    # the NLL's learned trajectory proposal (docs/decisions.md, "The trajectory proposal")
+    # the NLL's learned trajectory proposal (docs/decisions.md, "The trajectory proposal: mixed
+    # with the fused ones, off by default")
     trajectory_train=TrainConfig(steps=4_000, batch_size=32, lr=1e-3, warmup_steps=100, decay_steps=1_500),
     # PLATO's predictive accuracy grows with its training time (docs/decisions.md, "PLATO's
     # training length")
