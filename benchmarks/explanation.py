@@ -34,9 +34,9 @@ from xvoe.benchmark import store
 from xvoe.benchmark.videos import silhouette
 from xvoe.evaluation.explain import decoded_mask, iou
 from xvoe.evaluation.score import encode_videos, load_model
-from xvoe.evaluation.surprise import explained_latents
+from xvoe.evaluation.surprise import dynamics_composites, explained_latents
 from xvoe.models.reasoning import hide_slot
-from xvoe.models.slots import behind_walls, composite, decode_slots, scene_layers
+from xvoe.models.slots import composite, decode_slots, scene_layers
 
 
 def pick(file, scenario: str, setting: str, member: int, limit: int) -> list[int]:
@@ -155,12 +155,11 @@ def draw_fills(scorer, file, index: int, path: str, title: str) -> None:
     frames = video["frames"].shape[1]
     background = scorer.vae.decode(video["background"][0])[None]
     layers, walls = scene_layers(scorer.vae, refined, occupied, video["visible"], video["occluder"])
-    moving = occupied & ~video["occluder"]
-    predicted = behind_walls(decode_slots(scorer.vae, scorer.xpl.predict(refined, video["occluder"]), moving),
-                             video["visible"][:, 1:], video["occluder"], walls[:, 1:])
-    expected = composite(scorer.vae, background[:, 1:], predicted, moving)[0]
-    rows = [("frames", video["frames"][0]), ("fills", composite(scorer.vae, background, layers, moving)[0]),
-            ("predicted", torch.cat([background[0, :1], expected]))]
+    seen, expected = dynamics_composites(scorer.vae, scorer.xpl, refined, layers, walls, occupied, video["visible"],
+                                         video["occluder"], background)
+    first = composite(scorer.vae, background[:, :1], layers[:, :1], occupied & ~video["occluder"])[0]
+    rows = [("frames", video["frames"][0]), ("fills", torch.cat([first, seen[0]])),
+            ("predicted", torch.cat([background[0, :1], expected[0]]))]
     fig, axes = plt.subplots(3, frames, figsize=(frames * 0.62, 2.2))
     for row, (name, pictures) in enumerate(rows):
         for t in range(frames):

@@ -81,14 +81,24 @@ def latent_surprise(vae: ComponentVAE, xpl: XPL, frames: Tensor, refined: Tensor
     seen_layers = torch.where(visible[..., None, None, None], layers, vae.blank()[0])
     s_rec = (frames - composite(vae, background_pictures, seen_layers, occupied)).pow(2).flatten(2).sum(2)
 
+    seen, expected = dynamics_composites(vae, xpl, refined, layers, walls, occupied, visible, occluder,
+                                         background_pictures)
+    s_dyn = torch.zeros_like(s_img)
+    s_dyn[:, 1:] = (seen - expected).pow(2).flatten(2).sum(2)
+    return s_img, s_dyn, s_rec
+
+
+def dynamics_composites(vae: ComponentVAE, xpl: XPL, refined: Tensor, layers: Tensor, walls: Tensor,
+                        occupied: Tensor, visible: Tensor, occluder: Tensor,
+                        background_pictures: Tensor) -> tuple[Tensor, Tensor]:
+    """The two pictures s_dyn compares, frames 1..T-1 (B, T-1, 4, H, W): the moving slots'
+    `scene_layers` (`layers`, `walls`) composited, and the dynamics' prediction of them, each
+    behind the walls it was not seen in front of; the walls themselves left out of both."""
     moving = occupied & ~occluder
     predicted = xpl.predict(refined, occluder)
     predicted_layers = behind_walls(decode_slots(vae, predicted, moving), visible[:, 1:], occluder, walls[:, 1:])
     seen = composite(vae, background_pictures[:, 1:], layers[:, 1:], moving)
-    expected = composite(vae, background_pictures[:, 1:], predicted_layers, moving)
-    s_dyn = torch.zeros_like(s_img)
-    s_dyn[:, 1:] = (seen - expected).pow(2).flatten(2).sum(2)
-    return s_img, s_dyn, s_rec
+    return seen, composite(vae, background_pictures[:, 1:], predicted_layers, moving)
 
 
 def aggregate(per_frame: Tensor, how: str) -> Tensor:

@@ -74,7 +74,8 @@ class XPL(nn.Module):
             # q(a hidden object exists | what Transformer 2 proposes for the slot it filled):
             # the amortised existence probability of the inference model's guide
             self.existence = mlp(2 * config.reasoning.latent_dim * config.reasoning.frames, 64, 1, 1)
-        # the NLL's learned proposal of whole trajectories (trajectory.pt beside xpl.pt, `load_xpl`);
+        # the NLL's learned proposal of whole trajectories (trajectory.pt beside xpl.pt, attached by
+        # xvoe.training.trajectory.with_trajectory);
         # no part of XPL's own training
         self.trajectory: nn.Module | None = None
 
@@ -164,11 +165,11 @@ class XPL(nn.Module):
         refill = refill & visible
         out = {}
         if self.config.use_reasoning:
-            keep = occlusion_keep(visible)
-            refined = self.transformer1(z, keep & ~refill, self.unread_walls(visible, walls))[0]
+            keep, unread = occlusion_keep(visible), self.unread_walls(visible, walls)
+            refined = self.transformer1(z, keep & ~refill, unread)[0]
             rebuilt = refill | (outside & ~keep)
-            if self.config.refill_ignores_walls:
-                rebuilt = rebuilt & ~walls[:, None, :]
+            if unread is not None:                 # what Transformer 1 does not read, it does not rebuild
+                rebuilt = rebuilt & ~unread
             if rebuilt.any():
                 out["refill"] = (self._weighted_square(refined - z) * rebuilt).sum() / rebuilt.sum()
             fills = refined if not self.config.stop_target_gradient else refined.detach()
