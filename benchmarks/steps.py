@@ -12,6 +12,14 @@ step, the peak resident memory, and the wall time over the reference's ("vs ref"
 below 0.5x at the paper preset). The reference (TensorFlow, 2 threads, a 32-channel decoder):
 383 ms per 128x128 frame, 539 ms per video, 881 ms per video.
 
+It also counts each step's multiply-accumulates (torch's FlopCounterMode: matrix products,
+convolutions and attention, forward and backward; the fused LSTM is not counted, so the XPL
+figure is a floor) and sets them against this machine's own rate: a large matrix product timed
+in the same process ("peak"). Rates are per core, multiply-accumulates per CPU second, so that
+other jobs on the machine move them little. "goal needs" is the rate per core at which our step
+would have to run on --threads cores for half the reference's time: above the peak, the goal
+cannot be met by making the step faster, only by a step with fewer operations.
+
     python benchmarks/steps.py --recipe paper --decoder-channels 32
     python benchmarks/steps.py --recipe cpu --stages score
 
@@ -28,6 +36,7 @@ from dataclasses import replace
 
 import numpy as np
 import torch
+from torch.utils.flop_counter import FlopCounterMode
 
 from xvoe.evaluation.surprise import mse_surprise
 from xvoe.models.perception import ComponentVAE, normalise
@@ -113,6 +122,33 @@ def score_step(perception, xpl_config, videos: int, rng: np.random.Generator):
     return step
 
 
+def counted_gmacs(step) -> float:
+    """Multiply-accumulates (10^9) of one run of the step, as torch counts them (2 FLOPs each)."""
+    counter = FlopCounterMode(display=False)
+    fastpath = torch.backends.mha.get_fastpath_enabled()
+    torch.backends.mha.set_fastpath_enabled(False)      # the Transformer's fused inference op is not counted
+    try:
+        with counter:
+            step()
+    finally:
+        torch.backends.mha.set_fastpath_enabled(fastpath)
+    return counter.get_total_flops() / 2e9
+
+
+def matmul_peak(size: int = 2048, repeats: int = 5) -> float:
+    """GMAC per CPU second of a large float32 matrix product: the fastest one core runs the
+    operations the steps are made of (median over repeats, after one warm-up)."""
+    generator = torch.Generator().manual_seed(0)
+    a, b = (torch.randn(size, size, generator=generator) for _ in range(2))
+    a @ b
+    times = []
+    for _ in range(repeats):
+        start = time.process_time()
+        a @ b
+        times.append(time.process_time() - start)
+    return size ** 3 / statistics.median(times) / 1e9
+
+
 def measure(step, warmup: int, repeats: int) -> dict[str, float]:
     """Median wall and CPU time (user + system, all threads) of a step, and its mean minor faults
     and kernel share over the repeats."""
@@ -155,17 +191,22 @@ def main() -> None:
         perception = replace(perception, decoder_channels=args.decoder_channels)
     print(f"recipe {args.recipe}: {perception.image_size}px, decoder {perception.decoder_channels} channels, "
           f"{args.threads} threads, allocator tuned: {allocator_tuned()}, torch {torch.__version__}")
+    peak = matmul_peak()
+    print(f"peak: a 2048x2048 matrix product runs at {peak:.1f} GMAC per CPU second")
     print(f"{'stage':<11} {'ms/item':>9} {'+-':>6} {'vs ref':>7} {'cpu ms/item':>12} {'faults/step':>12} "
-          f"{'kernel':>7}  items/step")
+          f"{'kernel':>7} {'GMAC/item':>10} {'GMAC/cpu-s':>10} {'goal needs':>11}  items/step")
     builders = {"perception": lambda rng: (perception_step(perception, args.frames, rng), args.frames),
                 "xpl": lambda rng: (xpl_step(chosen.xpl, args.videos, rng), args.videos),
                 "score": lambda rng: (score_step(perception, chosen.xpl, args.score_videos, rng), args.score_videos)}
     for stage in args.stages.split(","):
         step, items = builders[stage](np.random.default_rng(args.seed))
         found = measure(step, args.warmup, args.repeats)
+        gmacs = counted_gmacs(step) / items
         ms = 1000 * found["wall"] / items
+        needs = gmacs / (REFERENCE_MS[stage] / 2 / 1000) / args.threads     # per core, for half the reference's time
         print(f"{stage:<11} {ms:9.1f} {1000 * found['spread'] / items:6.1f} {ms / REFERENCE_MS[stage]:6.2f}x "
-              f"{1000 * found['cpu'] / items:12.1f} {found['faults']:12.0f} {found['kernel']:7.1%}  "
+              f"{1000 * found['cpu'] / items:12.1f} {found['faults']:12.0f} {found['kernel']:7.1%} "
+              f"{gmacs:10.2f} {gmacs / (found['cpu'] / items):10.1f} {needs:7.1f} ({needs / peak:.1f}x peak)  "
               f"{items} {UNIT[stage]}s", flush=True)
     print(f"peak resident memory {resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2**20:.2f} GiB")
 
