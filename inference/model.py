@@ -4,7 +4,8 @@ Generative story: the latents of the objects that are seen are given (they live 
 `Scene`); a hidden object exists with prior probability p (site `exists`); if it does, its
 latent trajectory starts from the latent prior and follows the scene's dynamics with
 Gaussian transitions (sites `z_0` ... `z_{T-1}`); every frame is rendered from all latents
-and observed under a Gaussian pixel likelihood (site `frames`).
+and observed under a Gaussian pixel likelihood (site `frames`), less a penalty for every pixel
+the hidden object shows in front of everything else: the encoder reported no object there.
 
 The guide proposes `exists` from its own amortised probability and the trajectory from a
 per-frame Gaussian (in XPL: Transformer 2's mean and scale), by default fused with the
@@ -47,8 +48,9 @@ class Scene(Protocol):
     def empty(self) -> Tensor:
         """Expected frames (T, ...) without a hidden object."""
 
-    def render(self, trajectory: Tensor) -> Tensor:
-        """Expected frames (M, T, ...) with a hidden object on each trajectory (M, T, D)."""
+    def draw(self, trajectory: Tensor) -> tuple[Tensor, Tensor]:
+        """Expected frames (M, T, ...) with a hidden object on each trajectory (M, T, D), and
+        the pixels (M, T) where it would be in plain view (its exposure)."""
 
 
 @dataclass(frozen=True)
@@ -59,6 +61,11 @@ class InferenceConfig:
     # (docs/decisions.md, "NLL pixel sigma")
     pixel_sigma: float = 0.5
     transition_sigma: float = 0.1   # standard deviation of the hidden object's dynamics
+    # nats per pixel of the hidden object's exposure (what it shows in front of everything else):
+    # the encoder reported no object in its slot, and that silence is evidence against one in the
+    # open; without it a never-seen object is drawn in plain view to patch what the seen slots
+    # reconstruct badly (docs/decisions.md, "NLL exposure penalty")
+    exposure_penalty: float = 12.0
     # standard deviation of the seen objects' latents around the dynamics: the dynamics' own RMS
     # one-step error per latent (docs/decisions.md, "NLL motion sigma")
     motion_sigma: float = 0.2
@@ -154,10 +161,10 @@ class HiddenObjectModel(nn.Module):
         return exists
 
     def pixel_log_likelihood(self, trajectory: Tensor, alive: Tensor, frames: Tensor) -> Tensor:
-        """log N(frames | rendered frames, pixel_sigma^2) of each particle (N,), summed in
-        float64. Every particle without a hidden object shows the same frames, so they are
-        rendered and scored once; a (N, T, 4, H, W) density of 64 particles cost a third of
-        the scoring time."""
+        """log N(frames | rendered frames, pixel_sigma^2) of each particle (N,), less the
+        exposure penalty of its hidden object, summed in float64. Every particle without a
+        hidden object shows the same frames, so they are rendered and scored once; a
+        (N, T, 4, H, W) density of 64 particles cost a third of the scoring time."""
         sigma = self.config.pixel_sigma
         constant = pixel_log_normaliser(frames.numel(), sigma)
 
@@ -169,7 +176,8 @@ class HiddenObjectModel(nn.Module):
         if not alive.all():
             result[~alive] = log_density(self.scene.empty())
         if alive.any():
-            result[alive] = log_density(self.scene.render(trajectory[alive]))
+            expected, exposure = self.scene.draw(trajectory[alive])
+            result[alive] = log_density(expected) - self.config.exposure_penalty * exposure.sum(-1, dtype=torch.float64)
         return result
 
     def _transition(self, history: Tensor, alive: Tensor) -> Tensor:
@@ -241,3 +249,7 @@ class LinearGaussianScene(nn.Module):
 
     def render(self, trajectory: Tensor) -> Tensor:
         return self.background + trajectory @ self.H.T              # (M, T, obs)
+
+    def draw(self, trajectory: Tensor) -> tuple[Tensor, Tensor]:
+        """The frames and no exposure: nothing hides this scene's object."""
+        return self.render(trajectory), trajectory.new_zeros(trajectory.shape[:2])

@@ -428,7 +428,9 @@ class XPLSteps:
 
     def frame_log_likelihood(self, t: int, z: Tensor) -> Tensor:
         chosen = torch.full((len(z),), t, dtype=torch.long)
-        return pixel_frame_log_density(self.scene.render_frames(z, chosen), self.observed[t], self.config.pixel_sigma)
+        expected, exposure = self.scene.draw_frames(z, chosen)
+        pixels = pixel_frame_log_density(expected, self.observed[t], self.config.pixel_sigma)
+        return pixels - self.config.exposure_penalty * exposure.to(torch.float64)
 
     def advance(self, t: int, z: Tensor, carried: Any) -> tuple[Tensor, Any, Tensor]:
         scene = self.scene.refined[t].expand(len(z), *self.scene.refined.shape[1:]).clone()

@@ -115,9 +115,11 @@ def refine_out_of_sight(scene: XPLScene, loc: Tensor, frames: Tensor, config: In
     every = torch.arange(len(loc))
 
     def extra_cost(latents: Tensor, chosen: Tensor) -> Tensor:
-        """Nats (F,) the hidden object's pictures add in the frames `chosen`."""
-        extra = (scene.render_frames(latents, chosen) - frames[chosen]).square() - without[chosen]
-        return extra.clamp_min(0.0).sum(dim=(1, 2, 3)) / (2 * config.pixel_sigma ** 2)
+        """Nats (F,) the hidden object's pictures and its exposure add in the frames `chosen`."""
+        expected, exposure = scene.draw_frames(latents, chosen)
+        extra = (expected - frames[chosen]).square() - without[chosen]
+        pixels = extra.clamp_min(0.0).sum(dim=(1, 2, 3)) / (2 * config.pixel_sigma ** 2)
+        return pixels + config.exposure_penalty * exposure
 
     chosen = every[extra_cost(loc, every) > config.refine_tolerance]
     if len(chosen) == 0:

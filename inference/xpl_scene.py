@@ -95,9 +95,14 @@ class XPLScene(nn.Module):
         return self._empty
 
     def render(self, trajectory: Tensor) -> Tensor:
-        """Expected frames (M, T, 4, H, W) with a hidden object on each trajectory (M, T, D):
-        only the hidden latents are decoded, and added to the softmax the fixed layers left
-        (`_partial_composite`)."""
+        """Expected frames (M, T, 4, H, W) with a hidden object on each trajectory (M, T, D)."""
+        return self.draw(trajectory)[0]
+
+    def draw(self, trajectory: Tensor) -> tuple[Tensor, Tensor]:
+        """Expected frames (M, T, 4, H, W) with a hidden object on each trajectory (M, T, D),
+        and its exposure (M, T): how many pixels it holds in front of everything else, where
+        the encoder would have seen it. Only the hidden latents are decoded, and added to the
+        softmax the fixed layers left (`_partial_composite`)."""
         pictures = self.vae.decode(trajectory.reshape(-1, self.dim)).reshape(len(trajectory), self.frames,
                                                                              *self.layers.shape[-3:])
         return self._composite_hidden(push_behind(pictures, self.walls))
@@ -105,6 +110,10 @@ class XPLScene(nn.Module):
     def render_frames(self, latents: Tensor, frames: Tensor) -> Tensor:
         """Expected frames (F, 4, H, W) at the frame indices `frames` (F,), with the hidden
         object's latents there (F, D)."""
+        return self.draw_frames(latents, frames)[0]
+
+    def draw_frames(self, latents: Tensor, frames: Tensor) -> tuple[Tensor, Tensor]:
+        """`render_frames` and the hidden object's exposure (F,) in each of those frames."""
         return self._composite_hidden(push_behind(self.vae.decode(latents), self.walls[frames]), frames)
 
     def _composite(self, layers: Tensor) -> Tensor:
@@ -124,15 +133,18 @@ class XPLScene(nn.Module):
         weights = torch.exp(logits - top[:, None])
         return top, weights.sum(dim=1), (weights * layers).sum(dim=1)
 
-    def _composite_hidden(self, pictures: Tensor, frames: Tensor | slice = slice(None)) -> Tensor:
+    def _composite_hidden(self, pictures: Tensor, frames: Tensor | slice = slice(None)) -> tuple[Tensor, Tensor]:
         """Frames (B, T, 4, H, W) with the hidden slot's pictures (B, T, 4, H, W): the same
         softmax as `_composite`, finished from the fixed layers' partial sums; `frames` picks
-        the frames the pictures are of."""
+        the frames the pictures are of. Also the hidden slot's exposure (B, T): its share of
+        the softmax summed over the pixels (about 1 where it is nearest, 0 behind a wall)."""
         top, total, weighted = (part[frames] for part in self._fixed)
         logits = self.vae.composite_logits(pictures)
         peak = torch.maximum(top, logits)
         fixed, own = torch.exp(top - peak), torch.exp(logits - peak)
-        return (weighted * fixed + pictures * own) / (total * fixed + own)
+        normaliser = total * fixed + own
+        exposure = (own / normaliser).sum(dim=(-3, -2, -1))
+        return (weighted * fixed + pictures * own) / normaliser, exposure
 
     def seen_motion(self, trajectory: Tensor, exists: Tensor) -> tuple[Tensor, Tensor, Tensor]:
         """The dynamics' prediction (N, T-1, M, D) of the moving seen slots, their refined

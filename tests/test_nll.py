@@ -23,6 +23,7 @@ from xvoe.evaluation.score import encode_videos, load_model
 from xvoe.models.dynamics import DynamicsConfig
 from xvoe.models.perception import ComponentVAE, PerceptionConfig
 from xvoe.models.reasoning import ReasoningConfig
+from xvoe.models.slots import push_behind
 from xvoe.models.xpl import XPL, XPLConfig
 
 T, K, D = 5, 4, 6
@@ -210,7 +211,7 @@ def test_the_scene_composites_a_hidden_picture_as_the_full_softmax_does():
         pictures = vae.decode(torch.randn(2 * T, D)).reshape(2, T, 4, 16, 16)
         layers = scene.layers.expand(2, *scene.layers.shape).clone()
         layers[:, :, 3] = pictures
-        torch.testing.assert_close(scene._composite_hidden(pictures), scene._composite(layers), atol=1e-5, rtol=1e-4)
+        torch.testing.assert_close(scene._composite_hidden(pictures)[0], scene._composite(layers), atol=1e-5, rtol=1e-4)
 
 
 def tiny_scene():
@@ -226,7 +227,7 @@ def test_the_pixel_likelihood_is_the_gaussian_density_of_every_particles_frames(
     """Particles without a hidden object are scored once; each must still get the density of
     its own full render."""
     scene, frames = tiny_scene()
-    model = HiddenObjectModel(scene, InferenceConfig(pixel_sigma=0.3))
+    model = HiddenObjectModel(scene, InferenceConfig(pixel_sigma=0.3, exposure_penalty=0.0))
     trajectory, alive = torch.randn(5, T, D), torch.tensor([True, False, True, False, False])
     with torch.no_grad():
         found = model.pixel_log_likelihood(trajectory, alive, frames)
@@ -262,6 +263,73 @@ def test_the_seen_objects_motion_is_observed_only_where_the_encoder_saw_them():
     assert (density.sum(dim=(1, 2, 3)) - expected).abs().min() > 1e-3      # the fills would have counted
 
 
+def hand_made_scene():
+    """The tiny scene with hand-made layers: a background at the far plane, a wall over the
+    left half (a seen one), every other slot blank."""
+    scene, frames = tiny_scene()
+    far, blank = 1.0, 1.5
+    scene.background[:, 3] = far
+    scene.layers[..., 3, :, :] = blank
+    scene.layers[:, 0, 3, :, :8] = -0.5
+    scene.walls[:] = blank
+    scene.walls[..., :8] = -0.5
+    scene._fixed = scene._partial_composite()
+    return scene, frames
+
+
+def test_the_exposure_counts_the_pixels_a_hidden_object_shows_in_front_of_everything():
+    """A 3x3 object in the open shows 9 pixels; one behind the wall shows none."""
+    scene, _ = hand_made_scene()
+    pictures = torch.full((1, T, 4, 16, 16), 1.5)
+    pictures[..., 3, 2:5, 10:13] = 0.0      # in the open, nearer than the background
+    pictures[..., 3, 8:11, 2:5] = 0.0       # behind the wall: pushed back, the wall stays in front
+    with torch.no_grad():
+        drawn, exposure = scene._composite_hidden(push_behind(pictures, scene.walls))
+    torch.testing.assert_close(exposure, torch.full((1, T), 9.0), atol=1e-3, rtol=0)
+    assert (drawn[..., 3, 8:11, 2:5] == -0.5).all()       # the wall is what the frames show there
+
+
+def test_the_exposure_penalty_costs_its_nats_per_exposed_pixel():
+    scene, frames = tiny_scene()
+    trajectory, alive = torch.randn(5, T, D), torch.tensor([True, False, True, False, True])
+    with torch.no_grad():
+        plain = HiddenObjectModel(scene, InferenceConfig(exposure_penalty=0.0)).pixel_log_likelihood(
+            trajectory, alive, frames)
+        penalised = HiddenObjectModel(scene, InferenceConfig(exposure_penalty=2.0)).pixel_log_likelihood(
+            trajectory, alive, frames)
+        _, exposure = scene.draw(trajectory)
+    assert (exposure > 0).all()
+    expected = plain - 2.0 * exposure.double().sum(-1) * alive
+    torch.testing.assert_close(penalised, expected, atol=1e-6, rtol=1e-9)
+
+
+def blob_decoder(z: torch.Tensor) -> torch.Tensor:
+    """A hand-made decoder: a round object in the objects' lane (depth 0) centred where latents
+    0 and 1 say, on the blank (depth 1.5) elsewhere."""
+    ys, xs = torch.meshgrid(torch.arange(16.0), torch.arange(16.0), indexing="ij")
+    centre_x, centre_y = 8 + 4 * z[:, 0, None, None], 8 + 4 * z[:, 1, None, None]
+    shape = torch.exp(-((xs - centre_x) ** 2 + (ys - centre_y) ** 2) / (2 * 2.0 ** 2))
+    depth = 1.5 * (1 - shape)
+    return torch.stack([shape, shape, shape, depth], dim=1)
+
+
+def test_moving_the_proposal_out_of_sight_hides_it_behind_the_wall():
+    """With the exposure penalty the steps also take the object out of plain view: an object
+    astride the wall's edge (the wall covers the left half) is moved behind it."""
+    scene, frames = hand_made_scene()
+    scene.vae.decode = blob_decoder
+    loc = torch.zeros(T, D)
+    loc[:, 0] = 0.3                         # centred at x = 9.2, the wall ends at x = 8
+    config = InferenceConfig(pixel_sigma=100.0, refine_steps=30, refine_rate=0.1, refine_tolerance=0.0,
+                             exposure_penalty=1.0)
+    with torch.no_grad():
+        before = scene.draw(loc[None])[1][0]
+        moved = refine_out_of_sight(scene, loc, frames, config)
+        after = scene.draw(moved[None])[1][0]
+    assert (before > 5.0).all()
+    assert (after < 0.2 * before).all() and (moved[:, 0] < loc[:, 0]).all()
+
+
 def test_render_frames_is_the_render_at_those_frames():
     scene, _ = tiny_scene()
     trajectory, chosen = torch.randn(1, T, D), torch.tensor([0, 2, 3])
@@ -283,7 +351,8 @@ def test_moving_the_proposal_out_of_sight_lowers_its_cost_and_leaves_hidden_fram
     loc = torch.randn(T, D)
     before = extra_nats(scene, loc, frames, 0.1)
     tolerance = float(before.median())                  # frames at or under it count as out of sight
-    config = InferenceConfig(pixel_sigma=0.1, refine_steps=20, refine_rate=0.1, refine_tolerance=tolerance)
+    config = InferenceConfig(pixel_sigma=0.1, refine_steps=20, refine_rate=0.1, refine_tolerance=tolerance,
+                             exposure_penalty=0.0)
     moved = refine_out_of_sight(scene, loc, frames, config)
     after = extra_nats(scene, moved, frames, 0.1)
     kept = before <= tolerance
