@@ -89,6 +89,21 @@ def test_scoring_in_shards_merges_to_the_bytes_of_one_run(test_file, tmp_path, c
     assert "do not follow each other" in capsys.readouterr().err
 
 
+def test_scoring_in_worker_processes_writes_the_bytes_of_one_run(test_file, tmp_path, capsys):
+    model = str(EXAMPLES / "frame_change.py:FrameChange")
+    for name, extra in (("whole", []), ("workers", ["--workers", "2"])):
+        assert main(["score", "--model", model, "--data", str(test_file), "--batch", "8", "--out",
+                     str(tmp_path / f"{name}.csv"), "--quiet", *extra]) == 0
+    for suffix in (".csv", ".curves.npz"):
+        assert (tmp_path / f"workers{suffix}").read_bytes() == (tmp_path / f"whole{suffix}").read_bytes()
+    assert sorted(path.name for path in tmp_path.iterdir()) == [
+        "whole.csv", "whole.curves.npz", "workers.csv", "workers.curves.npz"]     # no parts left behind
+    capsys.readouterr()
+    assert main(["score", "--model", model, "--data", str(test_file), "--out", str(tmp_path / "workers.csv"),
+                 "--workers", "2", "--quiet"]) == 2
+    assert "exists" in capsys.readouterr().err
+
+
 def test_the_split_as_a_pytorch_dataset_reads_the_same_in_loader_workers(test_file):
     import torch
     from torch.utils.data import DataLoader

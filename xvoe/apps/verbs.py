@@ -6,7 +6,14 @@ notebooks and a user's own script alike.
 """
 from __future__ import annotations
 
+import os
+import tempfile
+from concurrent.futures import ProcessPoolExecutor
+from multiprocessing import get_context
 from pathlib import Path
+
+import torch
+from tqdm.auto import tqdm
 
 from inference.explain import explain_nll
 from inference.score import NLLColumns
@@ -14,14 +21,15 @@ from inference.score import NLLColumns
 from ..errors import XvoeError
 from ..evaluation.explain import Explanation, explain_drawn
 from ..evaluation.explain import explain as explain_mse
-from ..evaluation.score import Scorer, load_model, score_split
+from ..evaluation.score import Scorer, load_model, merge_scores, score_split
+from ..outputs import claim_file
 
 SURPRISES = ("mse", "nll", "both")
 
 
 def score(model: str | Scorer, data: str | Path, out: str | Path, *, surprise: str = "mse", particles: int = 64,
           seed: int = 0, how: str = "sum", videos_per_batch: int = 16, shard: tuple[int, int] = (0, 1),
-          overwrite: bool = False, progress: bool = True) -> Path:
+          workers: int = 1, overwrite: bool = False, progress: bool = True) -> Path:
     """Score every video of a test split into a CSV (and the per-frame curves beside it).
 
     surprise: "mse", the paper's score; "nll", -log p(video) under the Pyro model (the score
@@ -29,13 +37,46 @@ def score(model: str | Scorer, data: str | Path, out: str | Path, *, surprise: s
     MSE score with the NLL's columns beside it. shard: (I, N) scores part I of N, for
     `merge_scores` to join (xvoe score --shard / --merge). model: a name (`xpl`, `random`, ...), a run
     directory, a checkpoint, or a loaded `Scorer`. seed: the NLL's random draws (each video's
-    from a generator of its own), so that a score file can be reproduced and its spread measured."""
+    from a generator of its own), so that a score file can be reproduced and its spread measured.
+    workers: processes that each score a shard with the cores shared out, then merged: the
+    bytes of one run with as many threads as each worker has. On 2 cores the NLL's small
+    tensors keep two processes busier than two threads (docs/decisions.md, "Scoring in worker
+    processes")."""
     if surprise not in SURPRISES:
         raise XvoeError(f"--surprise must be mse, nll or both, not {surprise!r}")
+    if workers < 1:
+        raise XvoeError(f"--workers must be at least 1, not {workers}")
+    if workers > 1:
+        if shard != (0, 1):
+            raise XvoeError("--workers shards the split itself; leave out --shard")
+        return _score_in_workers(model, data, out, workers, overwrite, progress, surprise=surprise,
+                                 particles=particles, seed=seed, how=how, videos_per_batch=videos_per_batch)
     extra = NLLColumns(particles, seed) if surprise != "mse" else None
     return score_split(model, str(data), str(out), how=how, videos_per_batch=videos_per_batch, extra=extra,
                        score_column="nll" if surprise == "nll" else "score", shard=shard, overwrite=overwrite,
                        progress=progress)
+
+
+def _score_in_workers(model: str | Scorer, data: str | Path, out: str | Path, workers: int, overwrite: bool,
+                      progress: bool, **settings) -> Path:
+    """`score` in `workers` spawned processes, shard I in process I, merged into `out`. The
+    first process draws its progress bar (the shards are of one size)."""
+    claim_file(out, overwrite)      # refused before any work, as one run would be
+    threads = max(1, len(os.sched_getaffinity(0)) // workers)
+    with tempfile.TemporaryDirectory(dir=Path(out).parent, prefix=".score-parts-") as parts_dir:
+        parts = [Path(parts_dir) / f"part{index}.csv" for index in range(workers)]
+        with ProcessPoolExecutor(workers, mp_context=get_context("spawn"), initializer=_worker_threads,
+                                 initargs=(threads,)) as pool:
+            running = [pool.submit(score, model, data, part, shard=(index, workers), progress=progress and index == 0,
+                                   **settings) for index, part in enumerate(parts)]
+            for done in tqdm(running, desc="score shards", unit="shard", disable=not progress):
+                done.result()
+        return merge_scores(parts, out, overwrite=overwrite)
+
+
+def _worker_threads(threads: int) -> None:
+    os.environ["OMP_NUM_THREADS"] = str(threads)
+    torch.set_num_threads(threads)
 
 
 def explain(model: str | Scorer, data: str | Path, index: int, *, surprise: str = "mse", particles: int = 64,
