@@ -13,7 +13,6 @@ from multiprocessing import get_context
 from pathlib import Path
 
 import torch
-from tqdm.auto import tqdm
 
 from inference.explain import explain_nll
 from inference.score import NLLColumns
@@ -69,7 +68,7 @@ def _score_in_workers(model: str | Scorer, data: str | Path, out: str | Path, wo
                                  initargs=(threads,)) as pool:
             running = [pool.submit(score, model, data, part, shard=(index, workers), progress=progress and index == 0,
                                    **settings) for index, part in enumerate(parts)]
-            for done in tqdm(running, desc="score shards", unit="shard", disable=not progress):
+            for done in running:
                 done.result()
         return merge_scores(parts, out, overwrite=overwrite)
 
