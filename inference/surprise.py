@@ -5,6 +5,7 @@ hidden object exists. Every estimate comes from a seed (or a torch.Generator): t
 gives the same bytes, whatever was drawn before."""
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import torch
@@ -124,18 +125,38 @@ def refine_out_of_sight(scene: XPLScene, loc: Tensor, frames: Tensor, config: In
     chosen = every[extra_cost(loc, every) > config.refine_tolerance]
     if len(chosen) == 0:
         return loc
-    with torch.enable_grad():
-        moved = loc[chosen].clone().requires_grad_(True)
-        optimiser = torch.optim.Adam([moved], lr=config.refine_rate)
-        for _ in range(config.refine_steps):
-            cost = extra_cost(moved, chosen)
+    moved = loc[chosen].clone()
+    adam = AdamSteps(config.refine_rate)
+    for _ in range(config.refine_steps):
+        with torch.enable_grad():
+            latents = moved.requires_grad_(True)
+            cost = extra_cost(latents, chosen)
             if float(cost.detach().max()) <= config.refine_tolerance:
                 break
-            moved.grad, = torch.autograd.grad(cost.sum(), moved)    # not the networks' weights
-            optimiser.step()
+            gradient, = torch.autograd.grad(cost.sum(), latents)    # not the networks' weights
+        moved = adam.step(moved.detach(), gradient)
     refined = loc.clone()
     refined[chosen] = moved.detach()
     return refined
+
+
+class AdamSteps:
+    """Adam's update (torch.optim.Adam's defaults) of one tensor. Written out because the first
+    torch.optim optimiser of a process imports torch._dynamo, two seconds that the first NLL
+    score or explanation of a notebook would wait for five small steps."""
+
+    def __init__(self, rate: float, betas: tuple[float, float] = (0.9, 0.999), eps: float = 1e-8):
+        self.rate, self.betas, self.eps = rate, betas, eps
+        self.count, self.first, self.second = 0, None, None
+
+    def step(self, value: Tensor, gradient: Tensor) -> Tensor:
+        (b1, b2), self.count = self.betas, self.count + 1
+        if self.first is None:
+            self.first, self.second = torch.zeros_like(value), torch.zeros_like(value)
+        self.first = b1 * self.first + (1 - b1) * gradient
+        self.second = b2 * self.second + (1 - b2) * gradient.square()
+        denominator = (self.second.sqrt() / math.sqrt(1 - b2 ** self.count)) + self.eps
+        return value - (self.rate / (1 - b1 ** self.count)) * self.first / denominator
 
 
 @dataclass

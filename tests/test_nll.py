@@ -12,7 +12,8 @@ import xvoe
 from inference.explain import nll_explanation
 from inference.importance import importance
 from inference.model import HiddenObjectModel, InferenceConfig, Proposal
-from inference.surprise import BRANCH_SAMPLES, defensive, hidden_posterior, nll_surprise, refine_out_of_sight
+from inference.surprise import (BRANCH_SAMPLES, AdamSteps, defensive, hidden_posterior, nll_surprise,
+                                refine_out_of_sight)
 from inference.xpl_scene import XPLScene
 from xvoe.apps.cli import main
 from xvoe.apps.figures import plot_explanation
@@ -359,3 +360,18 @@ def test_moving_the_proposal_out_of_sight_lowers_its_cost_and_leaves_hidden_fram
     assert kept.sum() == 3 and torch.equal(moved[kept], loc[kept])
     assert (after[~kept] < 0.8 * before[~kept]).all()
     assert all(p.grad is None for p in scene.parameters())           # the networks are not trained
+
+
+def test_the_refinement_steps_are_torch_adams():
+    start = torch.tensor([[1.5, -2.0], [0.3, 4.0]])
+    target = torch.tensor([[0.0, 1.0], [2.0, -1.0]])
+    reference = start.clone().requires_grad_(True)
+    optimiser = torch.optim.Adam([reference], lr=0.1)
+    adam, ours = AdamSteps(0.1), start.clone()
+    for _ in range(6):
+        optimiser.zero_grad()
+        ((reference - target) ** 4).sum().backward()
+        optimiser.step()
+        ours = adam.step(ours, 4 * (ours - target) ** 3)
+    assert torch.allclose(ours, reference.detach(), atol=1e-6)
+    assert not torch.allclose(ours, start)
