@@ -12,8 +12,7 @@ import xvoe
 from inference.explain import nll_explanation
 from inference.importance import importance
 from inference.model import HiddenObjectModel, InferenceConfig, Proposal
-from inference.surprise import (BRANCH_SAMPLES, AdamSteps, defensive, hidden_posterior, nll_surprise,
-                                refine_out_of_sight)
+from inference.surprise import BRANCH_SAMPLES, AdamSteps, defensive, hidden_posterior, nll_surprise, refine_out_of_sight
 from inference.xpl_scene import XPLScene
 from xvoe.apps.cli import main
 from xvoe.apps.figures import plot_explanation
