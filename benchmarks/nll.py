@@ -88,7 +88,7 @@ def score_range(scorer, file, start: int, stop: int, config: InferenceConfig,
             row["cpu_seconds"] = row.get("cpu_seconds", time.process_time() - cpu)
             if n == 0:
                 row |= {"nll": found.nll, "ess": found.ess, "holding_ess": found.holding_ess,
-                        "p_hidden": found.p_hidden}
+                        "p_hidden": found.p_hidden, "particles": getattr(found.estimate, "particles", "")}
             row[f"nll_{n}"] = found.nll
         rows.append(row)
     nll_done = time.perf_counter()
@@ -138,8 +138,9 @@ def main() -> None:
                         help="SMC particles of the first frame, resampled down to --particles (0: as many; "
                              f"default {InferenceConfig.smc_first})")
     parser.add_argument("--rows", help="also write each video's figures to this CSV")
-    parser.add_argument("--smc-pilot", type=int, default=InferenceConfig.smc_pilot,
-                        help=f"particles of the SMC's pilot run, 0: none (default {InferenceConfig.smc_pilot})")
+    parser.add_argument("--smc-pilot", default=str(InferenceConfig.smc_pilot).strip("()").replace(" ", ""),
+                        help="particles of the SMC's pilot run, or several comma-separated run in turn; 0: none "
+                             f"(default {InferenceConfig.smc_pilot})")
     parser.add_argument("--motion-sigma", type=float, default=InferenceConfig.motion_sigma,
                         help="standard deviation of the seen objects' latents around the dynamics "
                              f"(default {InferenceConfig.motion_sigma})")
@@ -185,7 +186,8 @@ def run(args: argparse.Namespace) -> None:
                              exposure_penalty=args.exposure_penalty, refine_steps=args.refine_steps,
                              refine_rate=args.refine_rate, proposal_widening=args.proposal_widening,
                              guide_follows_dynamics=not args.independent_guide, method=args.method,
-                             smc_moves=args.smc_moves, smc_pilot=args.smc_pilot, smc_first=args.smc_first,
+                             smc_moves=args.smc_moves, smc_pilot=tuple(int(v) for v in args.smc_pilot.split(",")),
+                             smc_first=args.smc_first,
                              smc_proposal_widening=widenings(args.smc_proposal_widening),
                              trajectory_proposal=args.trajectory_proposal,
                              trajectory_scale_floor=args.trajectory_scale_floor)

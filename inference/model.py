@@ -87,10 +87,11 @@ class InferenceConfig:
     # object videos for the same evidence and a seed-to-seed spread as wide (NOTES-38.md)
     smc_moves: int = 0
     smc_max_levels: int = 40
-    # SMC first runs this many particles (0: none); where the branch with a hidden object then
-    # trails the one without by more than smc_pilot_margin nats, it changes log p(x) by less
-    # than exp(-margin) and the full run is skipped (most videos show every object)
-    smc_pilot: int = 16
+    # SMC first runs this many particles (0: none), or several pilots in turn (a tuple, smallest
+    # first); where the branch with a hidden object then trails the one without by more than
+    # smc_pilot_margin nats, it changes log p(x) by less than exp(-margin) and the larger runs
+    # are skipped (most videos show every object)
+    smc_pilot: int | tuple[int, ...] = 16
     smc_pilot_margin: float = 30.0
     smc_first: int = 0     # particles of the SMC's first frame, resampled down to `particles` (0: as many)
     # proposal_widening for the SMC (None: the same); several: an equal-weight mixture of the

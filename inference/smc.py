@@ -538,14 +538,15 @@ def smc_evidence(scene, frames: Tensor, config: InferenceConfig, proposal: Propo
                            float(particles), float(particles), 0, 0, 0, particles, None, None)
     model = HiddenTrajectory(steps, config, proposal)
     run = None
-    if 0 < config.smc_pilot < particles:
-        pilot = run_smc(model, config.smc_pilot, threshold=config.resample_threshold, generator=generator,
+    for size in pilot_sizes(config):
+        pilot = run_smc(model, size, threshold=config.resample_threshold, generator=generator,
                         moves=config.smc_moves, max_levels=config.smc_max_levels,
-                        first=config.smc_first * config.smc_pilot // particles)
+                        first=config.smc_first * size // particles)
         gap = ((math.log1p(-config.prior_hidden) + log_empty)
                - (math.log(config.prior_hidden) + float(pilot.log_evidence[0])))
         if gap > config.smc_pilot_margin:
-            run, particles = pilot, config.smc_pilot
+            run, particles = pilot, size
+            break
     if run is None:
         run = run_smc(model, particles, threshold=config.resample_threshold, generator=generator,
                       moves=config.smc_moves, max_levels=config.smc_max_levels, first=config.smc_first)
@@ -555,6 +556,15 @@ def smc_evidence(scene, frames: Tensor, config: InferenceConfig, proposal: Propo
                        int(run.lineages[0]), int(run.resampled[0].sum()), int(run.levels[0].sum()), particles,
                        run.state.trajectory,
                        run.log_weights[0])
+
+
+def pilot_sizes(config: InferenceConfig) -> tuple[int, ...]:
+    """The pilot runs' particle counts, smallest first: those of config.smc_pilot between 0 and
+    config.particles."""
+    sizes = (config.smc_pilot,) if isinstance(config.smc_pilot, int) else tuple(config.smc_pilot)
+    if list(sizes) != sorted(sizes):
+        raise ValueError(f"smc_pilot's runs go smallest first, not {sizes}")
+    return tuple(size for size in sizes if 0 < size < config.particles)
 
 
 # --- explanations, plural -----------------------------------------------------------------

@@ -216,6 +216,15 @@ def test_the_pilot_skips_the_full_run_only_where_the_object_cannot_matter():
     far = LinearGaussianScene(T, M_0 + 20.0, 0.1, A, H, BACKGROUND)
     skipped = smc_evidence(far, blank, config(particles=64, smc_pilot=8), None, torch.Generator().manual_seed(0))
     assert skipped.particles == 8 and skipped.p_hidden < 1e-10
+    staged = config(particles=64, smc_pilot=(4, 16))         # the smallest pilot that settles it is kept
+    assert smc_evidence(far, blank, staged, None, torch.Generator().manual_seed(0)).particles == 4
+    assert smc_evidence(linear_scene(), frames, staged, None, torch.Generator().manual_seed(0)).particles == 64
+
+
+def test_pilots_must_come_smallest_first():
+    with pytest.raises(ValueError, match="smallest first"):
+        smc_evidence(linear_scene(), simulated_frames(), config(particles=64, smc_pilot=(16, 4)), None,
+                     torch.Generator().manual_seed(0))
 
 
 def test_the_same_seed_gives_the_same_estimate_and_leaves_the_global_state_alone():

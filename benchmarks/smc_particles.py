@@ -1,0 +1,73 @@
+"""What a particle costs in the NLL's SMC, by the number run together on one video.
+
+    python benchmarks/smc_particles.py [--model xpl] --data val.h5 [--video 0] [--threads 1]
+
+Batching particles (or several videos' particles) into larger tensors pays only where a
+particle's cost falls as more run together. Prints, for 16, 64 and 128 particles, one whole
+SMC run (median of 3) and its two costs per frame: the pixel likelihood (decoding each particle's
+picture) and the dynamics' step. Last line: ms_per_particle_16=N.NN ms_per_particle_128=N.NN ratio=N.NN
+"""
+from __future__ import annotations
+
+import argparse
+import statistics
+import time
+
+import torch
+
+from inference.model import InferenceConfig, Proposal
+from inference.smc import HiddenTrajectory, XPLSteps, run_smc
+from inference.xpl_scene import XPLScene
+from xvoe.benchmark import store
+from xvoe.evaluation.score import encode_videos, load_model
+from xvoe.models.reasoning import never_seen
+
+
+def median_seconds(call, repeats: int = 3) -> float:
+    call()
+    times = []
+    for _ in range(repeats):
+        start = time.perf_counter()
+        call()
+        times.append(time.perf_counter() - start)
+    return statistics.median(times)
+
+
+@torch.no_grad()
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--model", default="xpl")
+    parser.add_argument("--data", required=True, help="a test split at the model's resolution")
+    parser.add_argument("--video", type=int, default=0)
+    parser.add_argument("--threads", type=int, default=1)
+    args = parser.parse_args()
+    torch.set_num_threads(args.threads)
+    scorer = load_model(args.model)
+    vae, xpl, config = scorer.vae, scorer.xpl, InferenceConfig()
+    with store.open_dataset(args.data) as file:
+        batch = encode_videos(scorer, file, args.video, args.video + 1)
+    frames, mean, visible, background, occluder = (batch[k][0] for k in
+                                                   ("frames", "mean", "visible", "background", "occluder"))
+    refined = xpl.refine(mean[None], visible[None], occluder[None])
+    explained, scale, slot = xpl.explain(refined, visible[None])
+    hidden = int(slot[0]) if slot[0] >= 0 else int(never_seen(visible[None])[0].float().argmax())
+    scene = XPLScene(vae, xpl, refined[0], vae.decode(background), visible, occluder, hidden)
+    proposal = Proposal(torch.tensor(0.5), explained[0, :, hidden], scale[0, :, hidden], None)
+    model = HiddenTrajectory(XPLSteps(scene, frames, config), config, proposal)
+    per_particle = {}
+    for n in (16, 64, 128):
+        whole = median_seconds(lambda n=n: run_smc(model, n, generator=torch.Generator().manual_seed(0)))
+        z = torch.randn(n, scene.dim, generator=torch.Generator().manual_seed(1))
+        state, _ = model.step(0, model.start(n), torch.Generator().manual_seed(2))
+        likelihood = median_seconds(lambda z=z: model.steps.frame_log_likelihood(1, z))
+        dynamics = median_seconds(lambda z=z, state=state: model.steps.advance(1, z, state.carried))
+        per_particle[n] = whole / n * 1000
+        print(f"{n:4d} particles: SMC run {whole * 1000:7.1f} ms ({per_particle[n]:.2f} ms a particle); "
+              f"a frame's likelihood {likelihood * 1000:.1f} ms, dynamics step {dynamics * 1000:.1f} ms")
+    print(f"video {args.video} of {args.data}, {scene.frames} frames, {args.threads} thread(s)")
+    print(f"ms_per_particle_16={per_particle[16]:.2f} ms_per_particle_128={per_particle[128]:.2f} "
+          f"ratio={per_particle[16] / per_particle[128]:.2f}")
+
+
+if __name__ == "__main__":
+    main()
