@@ -18,8 +18,10 @@ from xvoe.benchmark import store
 from xvoe.evaluation.score import encode_videos, load_model
 
 
-def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+def one_video(description: str) -> tuple[argparse.Namespace, object, list]:
+    """The arguments of a one-video benchmark (--model, --data, --video, --threads), the model,
+    and that video encoded: frames, latents, visibility, background, walls."""
+    parser = argparse.ArgumentParser(description=description)
     parser.add_argument("--model", default="xpl")
     parser.add_argument("--data", required=True, help="a test split at the model's resolution")
     parser.add_argument("--video", type=int, default=0)
@@ -29,7 +31,11 @@ def main() -> None:
     scorer = load_model(args.model)
     with store.open_dataset(args.data) as file:
         batch = encode_videos(scorer, file, args.video, args.video + 1)
-    video = [batch[k][0] for k in ("frames", "mean", "visible", "background", "occluder")]
+    return args, scorer, [batch[k][0] for k in ("frames", "mean", "visible", "background", "occluder")]
+
+
+def main() -> None:
+    args, scorer, video = one_video(__doc__.splitlines()[0])
     seconds = []
     for _ in range(2):
         start = time.perf_counter()

@@ -9,17 +9,15 @@ picture) and the dynamics' step. Last line: ms_per_particle_16=N.NN ms_per_parti
 """
 from __future__ import annotations
 
-import argparse
 import statistics
 import time
 
 import torch
+from nll_latency import one_video
 
 from inference.model import InferenceConfig, Proposal
 from inference.smc import HiddenTrajectory, XPLSteps, run_smc
 from inference.xpl_scene import XPLScene
-from xvoe.benchmark import store
-from xvoe.evaluation.score import encode_videos, load_model
 from xvoe.models.reasoning import never_seen
 
 
@@ -35,19 +33,8 @@ def median_seconds(call, repeats: int = 3) -> float:
 
 @torch.no_grad()
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--model", default="xpl")
-    parser.add_argument("--data", required=True, help="a test split at the model's resolution")
-    parser.add_argument("--video", type=int, default=0)
-    parser.add_argument("--threads", type=int, default=1)
-    args = parser.parse_args()
-    torch.set_num_threads(args.threads)
-    scorer = load_model(args.model)
+    args, scorer, (frames, mean, visible, background, occluder) = one_video(__doc__.splitlines()[0])
     vae, xpl, config = scorer.vae, scorer.xpl, InferenceConfig()
-    with store.open_dataset(args.data) as file:
-        batch = encode_videos(scorer, file, args.video, args.video + 1)
-    frames, mean, visible, background, occluder = (batch[k][0] for k in
-                                                   ("frames", "mean", "visible", "background", "occluder"))
     refined = xpl.refine(mean[None], visible[None], occluder[None])
     explained, scale, slot = xpl.explain(refined, visible[None])
     hidden = int(slot[0]) if slot[0] >= 0 else int(never_seen(visible[None])[0].float().argmax())
