@@ -17,8 +17,7 @@ from nll_latency import one_video
 
 from inference.model import InferenceConfig, Proposal
 from inference.smc import HiddenTrajectory, XPLSteps, run_smc
-from inference.xpl_scene import XPLScene
-from xvoe.models.reasoning import never_seen
+from inference.surprise import hidden_object_scene
 
 
 def median_seconds(call, repeats: int = 3) -> float:
@@ -35,11 +34,8 @@ def median_seconds(call, repeats: int = 3) -> float:
 def main() -> None:
     args, scorer, (frames, mean, visible, background, occluder) = one_video(__doc__.splitlines()[0])
     vae, xpl, config = scorer.vae, scorer.xpl, InferenceConfig()
-    refined = xpl.refine(mean[None], visible[None], occluder[None])
-    explained, scale, slot = xpl.explain(refined, visible[None])
-    hidden = int(slot[0]) if slot[0] >= 0 else int(never_seen(visible[None])[0].float().argmax())
-    scene = XPLScene(vae, xpl, refined[0], vae.decode(background), visible, occluder, hidden)
-    proposal = Proposal(torch.tensor(0.5), explained[0, :, hidden], scale[0, :, hidden], None)
+    scene, loc, spread, _ = hidden_object_scene(vae, xpl, mean, visible, background, occluder)
+    proposal = Proposal(torch.tensor(0.5), loc, spread, None)
     model = HiddenTrajectory(XPLSteps(scene, frames, config), config, proposal)
     per_particle = {}
     for n in (16, 64, 128):

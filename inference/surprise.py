@@ -70,15 +70,9 @@ def nll_surprise(vae: ComponentVAE, xpl: XPL, frames: Tensor, mean: Tensor, visi
     if method not in ("smc", "importance"):
         raise ValueError(f"method must be smc or importance, not {method!r}")
     generator = generator_from(seed)
-    refined = xpl.refine(mean[None], visible[None], occluder[None])
-    explained, scale, slot = xpl.explain(refined, visible[None])
-    unseen = never_seen(visible[None])[0]
-    hidden = int(slot[0]) if slot[0] >= 0 else int(unseen.float().argmax())
-    free = bool(unseen.any())
-    background_pictures = vae.decode(background)
-    scene = XPLScene(vae, xpl, refined[0], background_pictures, visible, occluder, hidden)
+    scene, loc, spread, free = hidden_object_scene(vae, xpl, mean, visible, background, occluder)
+    hidden = scene.hidden
     model = HiddenObjectModel(scene, config)
-    loc, spread = explained[0, :, hidden], scale[0, :, hidden].clamp_min(xpl.config.reasoning.min_scale)
     p_exists = torch.sigmoid(xpl.existence_logit(loc[None], spread[None]))[0] if free else torch.tensor(0.0)
     if free and config.refine_steps:
         loc = refine_out_of_sight(scene, loc, frames, config)
@@ -95,6 +89,20 @@ def nll_surprise(vae: ComponentVAE, xpl: XPL, frames: Tensor, mean: Tensor, visi
     alive = estimate.guide_trace.nodes["exists"]["value"].bool()
     holding = float(effective_sample_size(estimate.log_weights[alive])) if alive.any() else 0.0
     return NLLSurprise(estimate.nll, estimate.ess, p_hidden, hidden if free else -1, estimate, holding, "importance")
+
+
+def hidden_object_scene(vae: ComponentVAE, xpl: XPL, mean: Tensor, visible: Tensor, background: Tensor,
+                        occluder: Tensor) -> tuple[XPLScene, Tensor, Tensor, bool]:
+    """One video's scene for the Pyro model (arguments as `nll_surprise`'s), Transformer 2's
+    mean and scale (T, D) for the hidden slot (the one it explained, else the first never-seen
+    one), and whether any slot is free for a hidden object."""
+    refined = xpl.refine(mean[None], visible[None], occluder[None])
+    explained, scale, slot = xpl.explain(refined, visible[None])
+    unseen = never_seen(visible[None])[0]
+    hidden = int(slot[0]) if slot[0] >= 0 else int(unseen.float().argmax())
+    scene = XPLScene(vae, xpl, refined[0], vae.decode(background), visible, occluder, hidden)
+    loc, spread = explained[0, :, hidden], scale[0, :, hidden].clamp_min(xpl.config.reasoning.min_scale)
+    return scene, loc, spread, bool(unseen.any())
 
 
 def effective_sample_size(log_weights: Tensor) -> Tensor:
