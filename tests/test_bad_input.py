@@ -114,6 +114,7 @@ def case_lines(files, tmp: Path) -> list[tuple[list[str], str]]:
         (["train", "xpl", "--data", train, "--out", str(tmp / "run"), "--set", "nonsense=1"], "no field"),
         (["train", "xpl", "--data", train, "--out", str(tmp / "run"), "--set", "steps=many"], "whole number"),
         (["pipeline", "--out", str(tmp / "p"), "--models", ""], "names no model"),
+        (["pipeline", "--out", str(tmp / "p"), "--train-processes", "-1"], "--train-processes must be"),
         (["pipeline", "--out", str(a_file), "--models", "random", "--train-videos", "2", "--pairs", "1"],
          "is a file"),
         (["ship", str(tmp / "corrupt"), "--out", str(tmp / "weights")], "not a readable xvoe checkpoint"),
@@ -133,7 +134,7 @@ def test_every_bad_input_gets_one_line_exit_2_and_changes_nothing(files, tmp_pat
         assert "Traceback" not in err
         assert snapshot(tmp_path) == before, args
         tried += 1
-    assert tried == 5 * len(MALFORMED) + 21
+    assert tried == 5 * len(MALFORMED) + 22
 
 
 def test_a_stale_latent_cache_of_another_split_is_refused(files, tmp_path, capsys):

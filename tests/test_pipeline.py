@@ -29,11 +29,13 @@ def tiny_cpu_recipe(monkeypatch):
 
 
 def test_tiny_pipeline_runs_end_to_end_and_skips_done_stages(tmp_path, tiny_cpu_recipe):
-    config = PipelineConfig(str(tmp_path / "run"), train_videos=12, pairs=2, models=("xpl", "plato", "random"),
-                            workers=1, progress=False)
+    config = PipelineConfig(str(tmp_path / "run"), train_videos=24, pairs=2, models=("xpl", "plato", "random"),
+                            workers=1, progress=False, train_processes=2)
     report = run_pipeline(config)
     run = tmp_path / "run"
     text = report.read_text()
+    # the perception, XPL and PLATO stages trained in two processes, each phase of PLATO too
+    assert all(load_checkpoint(run / f"{stage}.pt")["world"] == 2 for stage in ("perception", "xpl", "plato"))
     assert "Holistic" in text and "| collision |" in text and "continuity S3" in text
     for model in ("xpl", "plato", "random"):
         assert (run / "scores" / f"{model}.csv").exists()
@@ -116,7 +118,8 @@ def test_models_trained_side_by_side_match_one_after_another(tmp_path, tiny_cpu_
     lane_threads = max(1, len(os.sched_getaffinity(0)) // 2)     # what each of two lanes gets
     for jobs in (1, 2):
         config = PipelineConfig(str(tmp_path / f"jobs{jobs}"), train_videos=8, pairs=1,
-                                models=("xpl", "plato", "random"), workers=1, progress=False, jobs=jobs)
+                                models=("xpl", "plato", "random"), workers=1, progress=False, jobs=jobs,
+                                train_processes=1)
         if jobs == 2:
             shutil.copytree(runs[1] / "data", tmp_path / "jobs2" / "data")
             for name in ("perception.pt", "latents-train.h5"):

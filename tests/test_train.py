@@ -166,3 +166,15 @@ def test_cut_objects_do_not_depend_on_the_process_count(tiny_file):
     assert torch.equal(torch.cat([h.object_inputs for h in halves]), whole.object_inputs)
     assert torch.equal(torch.cat([h.objects for h in halves]), whole.objects)
     assert not torch.equal(whole.object_inputs, whole.objects)        # some were cut
+
+
+def test_bad_input_in_training_processes_reads_as_it_does_in_one(tmp_path):
+    """A stage started by `on_cores` in two processes stops with the stage's own message."""
+    from xvoe.training.launch import on_cores
+    from xvoe.training.xpl import train_xpl
+
+    for processes in (1, 2):
+        with pytest.raises(XvoeError, match="give the latent cache to start a run"):
+            on_cores(train_xpl, processes, latents=None, run_dir=str(tmp_path / "run"))
+    with pytest.raises(ValueError, match="at least 1"):
+        on_cores(train_xpl, 0)

@@ -96,7 +96,7 @@ def cmd_explain(args: argparse.Namespace) -> None:
 def cmd_pipeline(args: argparse.Namespace) -> None:
     models = tuple(m.strip() for m in args.models.split(",") if m.strip())
     print(xvoe.run_pipeline(xvoe.PipelineConfig(args.out, args.recipe, args.train_videos, args.pairs, models, args.seed,
-                                      args.workers, not args.quiet, args.jobs)))
+                                      args.workers, not args.quiet, args.jobs, args.train_processes)))
 
 
 def cmd_metrics(args: argparse.Namespace) -> None:
@@ -349,6 +349,9 @@ def build_parser() -> argparse.ArgumentParser:
     pipeline.add_argument("--jobs", type=int, default=1,
                           help="models trained side by side, the cores shared out (0: one per core; default 1: "
                                "one at a time); more lanes hold more memory")
+    pipeline.add_argument("--train-processes", type=int, default=0,
+                          help="one-thread processes that train the perception, XPL and PLATO stages together "
+                               "(default 0: one per core)")
     pipeline.add_argument("--quiet", action="store_true", help="no progress bars")
     pipeline.set_defaults(run=cmd_pipeline)
 

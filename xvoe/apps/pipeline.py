@@ -33,6 +33,7 @@ from ..evaluation.score import load_model, score_split
 from ..models.config import to_dict
 from ..outputs import claim_directory
 from ..training.latents import encode_split
+from ..training.launch import on_cores
 from ..training.loop import checkpoint_path
 from ..training.perception import train_perception
 from ..training.phydnet import train_phydnet
@@ -57,6 +58,8 @@ class PipelineConfig:
     progress: bool = True
     jobs: int = 1       # models trained side by side, each with cores/jobs threads (0: one per core); they hold
                         # more memory together (docs/decisions.md, "Pipeline lanes")
+    train_processes: int = 0    # one-thread processes that train a stage together (0: one per core; with
+                                # --jobs above 1, each lane trains in one process)
 
     def __post_init__(self) -> None:
         if not self.models:
@@ -68,6 +71,8 @@ class PipelineConfig:
             raise XvoeError("--train-videos and --pairs must be at least 1")
         if self.jobs < 0:
             raise XvoeError("--jobs must be 0 (one per core) or more")
+        if self.train_processes < 0:
+            raise XvoeError("--train-processes must be 0 (one per core) or more")
 
 
 class Stages:
@@ -110,15 +115,16 @@ def run_pipeline(config: PipelineConfig) -> Path:
     stages.run("generate-test", lambda: generate(
         GenerateConfig("test", pairs=config.pairs, size=size, seed=config.seed + 1), test_data,
         workers=config.workers, overwrite=True, progress=config.progress))
+    cores = len(os.sched_getaffinity(0))
+    processes = config.train_processes or cores
     if any(model in TRAINED for model in config.models):     # PhyDNet and the random agent need no perception
-        stages.run("perception", lambda: train_perception(
-            train_data, run_dir, recipe_name=config.recipe, progress=config.progress,
-            resume=checkpoint_path(run_dir, "perception").exists(), seed=config.seed))
+        stages.run("perception", lambda: on_cores(
+            train_perception, processes, chosen, data=train_data, run_dir=run_dir, recipe_name=config.recipe,
+            progress=config.progress, resume=checkpoint_path(run_dir, "perception").exists(), seed=config.seed))
         stages.run("encode-train", lambda: encode_split(run_dir, train_data, latents, overwrite=True,
                                                         progress=config.progress))
     (run_dir / "scores").mkdir(exist_ok=True)
     heavy = sorted((m for m in config.models if m != "random"), key=MODELS.index)     # the longest first
-    cores = len(os.sched_getaffinity(0))
     lanes = min(config.jobs or cores, len(heavy))
     if lanes > 1:       # one model's training per lane, the cores shared out: two 1-thread runs beat one 2-thread run
         threads = max(1, cores // lanes)
@@ -127,7 +133,7 @@ def run_pipeline(config: PipelineConfig) -> Path:
             for done in [pool.submit(_lane, config, recipe(config.recipe), model, threads) for model in heavy]:
                 done.result()
     for model in config.models:
-        _model_stages(config, model, stages, config.progress)
+        _model_stages(config, model, stages, config.progress, processes=processes)
     scores = [run_dir / "scores" / f"{model}.csv" for model in config.models]
     models = ",".join(config.models)    # a rerun with more models redoes what covers them all
 
@@ -144,8 +150,10 @@ def run_files(run_dir: Path) -> tuple[Path, Path, Path]:
     return run_dir / "data" / "train.h5", run_dir / "data" / "test.h5", run_dir / "latents-train.h5"
 
 
-def _model_stages(config: PipelineConfig, model: str, stages: Stages, bars: bool, score: bool = True) -> None:
-    """Train (with the proposal stage for xpl) and score one model, skipping what is done."""
+def _model_stages(config: PipelineConfig, model: str, stages: Stages, bars: bool, score: bool = True,
+                  processes: int = 1) -> None:
+    """Train (with the proposal stage for xpl) and score one model, skipping what is done; the
+    XPL and PLATO stages in `processes` one-thread processes when above 1."""
     run_dir = Path(config.out)
     train_data, test_data, latents = run_files(run_dir)
     phases = recipe(config.recipe).phases_of(model)
@@ -153,8 +161,9 @@ def _model_stages(config: PipelineConfig, model: str, stages: Stages, bars: bool
         stage, residual = TRAINED[model]
 
         def train(phase: dict) -> object:
-            return train_xpl(latents, run_dir, stage=stage, recipe_name=config.recipe, residual=residual,
-                             progress=bars, resume=checkpoint_path(run_dir, model).exists(), **phase)
+            return on_cores(train_xpl, processes, recipe(config.recipe), latents=latents, run_dir=run_dir,
+                            stage=stage, recipe_name=config.recipe, residual=residual, progress=bars,
+                            resume=checkpoint_path(run_dir, model).exists(), **phase)
         _train_phases(stages, model, train, phases, config.seed)
         if model == "xpl":
             stages.run("train-proposal", lambda: train_proposal(
