@@ -178,3 +178,37 @@ def test_bad_input_in_training_processes_reads_as_it_does_in_one(tmp_path):
             on_cores(train_xpl, processes, latents=None, run_dir=str(tmp_path / "run"))
     with pytest.raises(ValueError, match="at least 1"):
         on_cores(train_xpl, 0)
+
+
+ON_CORES = """
+import sys
+from xvoe.training.launch import on_cores
+from xvoe.training.perception import train_perception
+if __name__ == "__main__":
+    on_cores(train_perception, 2, data=sys.argv[1], run_dir=sys.argv[2], steps=100_000, model_overrides={tiny!r},
+             progress=False, batch_size=8, log_every=2, warmup_steps=2)
+"""
+
+
+def test_an_interrupt_of_the_launching_process_stops_its_training_processes_after_one_step(tiny_file, tmp_path):
+    """A Jupyter interrupt reaches the launching process alone: both training processes stop
+    after the same step, rank 0 checkpoints it, and the launcher says so in one line."""
+    import signal
+    import time
+
+    script = tmp_path / "on_cores.py"
+    script.write_text(textwrap.dedent(ON_CORES.format(tiny=TINY)))
+    run = tmp_path / "run"
+    launcher = subprocess.Popen([sys.executable, str(script), str(tiny_file), str(run)], stderr=subprocess.PIPE,
+                                text=True)
+    deadline = time.monotonic() + 120
+    while not (run / "perception.csv").exists() and launcher.poll() is None and time.monotonic() < deadline:
+        time.sleep(0.2)
+    launcher.send_signal(signal.SIGINT)
+    _, err = launcher.communicate(timeout=120)
+    assert launcher.returncode != 0
+    said = err.strip().splitlines()[-1]
+    assert "KeyboardInterrupt: stopped at step" in said, err
+    state = load_checkpoint(run / "perception.pt")
+    assert said.split("stopped at step ")[1].startswith(f"{state['step']},") and state["world"] == 2
+    assert 0 < state["step"] < 100_000

@@ -7,7 +7,9 @@ keep a second thread busy (docs/decisions.md, "Training stages on every core").
 from __future__ import annotations
 
 import os
+import signal
 import socket
+import threading
 from collections.abc import Callable
 from typing import Any
 
@@ -35,20 +37,57 @@ def on_cores(train: Callable[..., Any], processes: int, recipe: Recipe | None = 
     if processes == 1:
         train(**kwargs)
         return
+    context = mp.start_processes(_process, args=(processes, free_port(), train, recipe, kwargs), nprocs=processes,
+                                 join=False, start_method="spawn")
     try:
-        mp.start_processes(_process, args=(processes, free_port(), train, recipe, kwargs), nprocs=processes,
-                           join=True, start_method="spawn")
+        with ForwardedStops(context.processes):
+            while not context.join():
+                pass
     except mp.ProcessRaisedException as error:
-        # bad input found in a process reads as it would in one process, without the traceback
-        said = f"{XvoeError.__module__}.{XvoeError.__qualname__}: "
-        text = str(error)
+        raise _as_in_one_process(str(error)) from None
+
+
+class ForwardedStops:
+    """Ctrl-C or SIGTERM here (a Jupyter interrupt reaches this process alone) goes to every
+    process once, as if each had got it: the first stops them after the step they agreed on, the
+    second at once. The processes lead process groups of their own (`_process`), so a terminal's
+    Ctrl-C reaches them only this way."""
+
+    def __init__(self, processes: list) -> None:
+        self.processes = processes
+        self.previous: dict[int, Any] = {}
+
+    def __enter__(self) -> ForwardedStops:
+        if threading.current_thread() is threading.main_thread():
+            self.previous = {number: signal.signal(number, self.forward) for number in (signal.SIGINT, signal.SIGTERM)}
+        return self
+
+    def forward(self, number: int, frame: Any) -> None:
+        for process in self.processes:
+            if process.is_alive():
+                os.kill(process.pid, signal.SIGINT)
+
+    def __exit__(self, *exc: Any) -> None:
+        for number, handler in self.previous.items():
+            signal.signal(number, handler)
+
+
+def _as_in_one_process(text: str) -> BaseException:
+    """A process's stop or bad-input error as one process raises it, without the traceback."""
+    for kind, said in ((XvoeError, "xvoe.errors.XvoeError"), (KeyboardInterrupt, f"{__name__}.Stopped")):
         if said in text:
-            raise XvoeError(text.rsplit(said, 1)[1].strip()) from None
-        raise
+            return kind(text.rsplit(said, 1)[1].lstrip(":").strip())
+    return RuntimeError(text)
+
+
+class Stopped(Exception):
+    """A training process stopped on request (torch's process wrapper takes a KeyboardInterrupt
+    for its parent's doing and exits as if the work were done)."""
 
 
 def _process(rank: int, world: int, port: int, train: Callable[..., Any], recipe: Recipe | None,
              kwargs: dict) -> None:
+    os.setpgid(0, 0)        # out of the terminal's group: Ctrl-C comes once, through ForwardedStops
     os.environ.update(MASTER_ADDR="127.0.0.1", MASTER_PORT=str(port), RANK=str(rank), LOCAL_RANK=str(rank),
                       WORLD_SIZE=str(world), LOCAL_WORLD_SIZE=str(world), OMP_NUM_THREADS="1")
     torch.set_num_threads(1)
@@ -56,6 +95,8 @@ def _process(rank: int, world: int, port: int, train: Callable[..., Any], recipe
         RECIPES[recipe.name] = recipe
     try:
         train(**kwargs)
+    except KeyboardInterrupt as stop:
+        raise Stopped(str(stop)) from None
     finally:
         if dist.is_initialized():
             dist.destroy_process_group()
