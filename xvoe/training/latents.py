@@ -145,15 +145,18 @@ def encode_split(model_ref: str | os.PathLike, data: str | os.PathLike, out: str
         count, frames, size = file["rgbd"].shape[:3]
         slots = int(file["states"].shape[2])
         present_column = list(file["states"].attrs["state_columns"]).index("present")
-        parts: dict[str, list[np.ndarray]] = {}
+        # filled in place: batches' small outputs kept among their large temporaries fragment the
+        # heap, which then grows by about a batch's temporaries per batch (docs/results.md, "Memory")
+        arrays: dict[str, np.ndarray] = {}
         for start in tqdm(range(0, count, videos_per_batch), desc="encode", disable=not progress,
                           unit_scale=videos_per_batch, unit="video"):
             stop = min(count, start + videos_per_batch)
             rgbd, ids = file["rgbd"][start:stop], file["ids"][start:stop]
             encoded = encode_frames(model, rgbd.reshape(-1, size, size, 4), ids.reshape(-1, size, size), slots)
             for name, value in encoded.items():
-                parts.setdefault(name, []).append(value.reshape(stop - start, frames, *value.shape[1:]))
-        arrays = {name: np.concatenate(values) for name, values in parts.items()}
+                if name not in arrays:
+                    arrays[name] = np.empty((count, frames, *value.shape[1:]), value.dtype)
+                arrays[name][start:stop] = value.reshape(stop - start, frames, *value.shape[1:])
         present = file["states"][..., present_column] > 0.5
         threshold = visible_threshold(size)
         config = {"recipe": recipe_of(state["config"]), "perception": state["config"]["perception"],
