@@ -195,7 +195,8 @@ def add_train_parser(verbs) -> None:
         parser.add_argument("--out", required=True, help="the run directory")
         if stage not in AFTER_XPL:
             parser.add_argument("--recipe", default="cpu",
-                                help="the recipe whose sizes and settings start the run: cpu (default) or paper")
+                                help="the recipe whose sizes and settings start the run: cpu (default), cpu-walls "
+                                     "(a candidate) or paper")
         parser.add_argument("--steps", type=_positive, help="training steps (default: the recipe's)")
         parser.add_argument("--minutes", type=_positive_float, help="stop after this many minutes of training")
         parser.add_argument("--batch-size", type=_positive,
@@ -350,7 +351,7 @@ def build_parser() -> argparse.ArgumentParser:
                           help="models trained side by side, the cores shared out (0: one per core; default 1: "
                                "one at a time); more lanes hold more memory")
     pipeline.add_argument("--train-processes", type=int, default=0,
-                          help="one-thread processes that train the perception, XPL and PLATO stages together "
+                          help="one-thread processes that train the XPL and PLATO stages together "
                                "(default 0: one per core)")
     pipeline.add_argument("--quiet", action="store_true", help="no progress bars")
     pipeline.set_defaults(run=cmd_pipeline)

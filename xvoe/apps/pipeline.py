@@ -58,8 +58,8 @@ class PipelineConfig:
     progress: bool = True
     jobs: int = 1       # models trained side by side, each with cores/jobs threads (0: one per core); they hold
                         # more memory together (docs/decisions.md, "Pipeline lanes")
-    train_processes: int = 0    # one-thread processes that train a stage together (0: one per core; with
-                                # --jobs above 1, each lane trains in one process)
+    train_processes: int = 0    # one-thread processes that train the XPL and PLATO stages together (0: one per
+                                # core; with --jobs above 1, each lane trains in one process)
 
     def __post_init__(self) -> None:
         if not self.models:
@@ -118,9 +118,11 @@ def run_pipeline(config: PipelineConfig) -> Path:
     cores = len(os.sched_getaffinity(0))
     processes = config.train_processes or cores
     if any(model in TRAINED for model in config.models):     # PhyDNet and the random agent need no perception
-        stages.run("perception", lambda: on_cores(
-            train_perception, processes, chosen, data=train_data, run_dir=run_dir, recipe_name=config.recipe,
-            progress=config.progress, resume=checkpoint_path(run_dir, "perception").exists(), seed=config.seed))
+        # one process with every core's thread: its convolutions use them (docs/decisions.md, "Training
+        # stages on every core")
+        stages.run("perception", lambda: train_perception(
+            train_data, run_dir, recipe_name=config.recipe, progress=config.progress,
+            resume=checkpoint_path(run_dir, "perception").exists(), seed=config.seed))
         stages.run("encode-train", lambda: encode_split(run_dir, train_data, latents, overwrite=True,
                                                         progress=config.progress))
     (run_dir / "scores").mkdir(exist_ok=True)
