@@ -22,6 +22,7 @@ cannot be met by making the step faster, only by a step with fewer operations.
 
     python benchmarks/steps.py --recipe paper --decoder-channels 32
     python benchmarks/steps.py --recipe cpu --stages score
+    python benchmarks/steps.py --recipe cpu --stages xpl,xpl-compiled --videos 32   # torch.compile's gain
 
 The allocator setting (xvoe/allocator.py) is per process: compare it by running this twice,
 once with XVOE_MALLOC=system; the faults column shows the difference without timing noise.
@@ -91,8 +92,10 @@ def perception_step(config, frames: int, rng: np.random.Generator):
     return training_step(model, optimiser, batch)
 
 
-def xpl_step(config, videos: int, rng: np.random.Generator):
+def xpl_step(config, videos: int, rng: np.random.Generator, compiled: bool = False):
     model = XPL(config).train()
+    if compiled:        # torch.compile (inductor); the warm-up steps pay for the compilation
+        model.compile(dynamic=False)
     optimiser = torch.optim.Adam(model.parameters(), lr=1e-4)
     dim, shape = config.dynamics.latent_dim, (videos, FRAMES, SLOTS)
     walls = torch.zeros(videos, SLOTS, dtype=torch.bool)
@@ -191,17 +194,19 @@ def main() -> None:
           f"{'kernel':>7} {'GMAC/item':>10} {'GMAC/cpu-s':>10} {'goal needs':>11}  items/step")
     builders = {"perception": lambda rng: (perception_step(perception, args.frames, rng), args.frames),
                 "xpl": lambda rng: (xpl_step(chosen.xpl, args.videos, rng), args.videos),
+                "xpl-compiled": lambda rng: (xpl_step(chosen.xpl, args.videos, rng, compiled=True), args.videos),
                 "score": lambda rng: (score_step(perception, chosen.xpl, args.score_videos, rng), args.score_videos)}
     for stage in args.stages.split(","):
         step, items = builders[stage](np.random.default_rng(args.seed))
         found = measure(step, args.warmup, args.repeats)
         gmacs = counted_gmacs(step) / items
         ms = 1000 * found["wall"] / items
-        needs = gmacs / (REFERENCE_MS[stage] / 2 / 1000) / args.threads     # per core, for half the reference's time
-        print(f"{stage:<11} {ms:9.1f} {1000 * found['spread'] / items:6.1f} {ms / REFERENCE_MS[stage]:6.2f}x "
+        base = stage.split("-")[0]
+        needs = gmacs / (REFERENCE_MS[base] / 2 / 1000) / args.threads     # per core, for half the reference's time
+        print(f"{stage:<11} {ms:9.1f} {1000 * found['spread'] / items:6.1f} {ms / REFERENCE_MS[base]:6.2f}x "
               f"{1000 * found['cpu'] / items:12.1f} {found['faults']:12.0f} {found['kernel']:7.1%} "
               f"{gmacs:10.2f} {gmacs / (found['cpu'] / items):10.1f} {needs:7.1f} ({needs / peak:.1f}x peak)  "
-              f"{items} {UNIT[stage]}s", flush=True)
+              f"{items} {UNIT[base]}s", flush=True)
     print(f"peak resident memory {resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2**20:.2f} GiB")
 
 
