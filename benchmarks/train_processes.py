@@ -46,12 +46,12 @@ def main() -> None:
     common = dict(recipe_name=args.recipe, steps=args.steps, log_every=10, progress=False, overwrite=True)
     ways = {"threads": 1, "processes": cores}
     results = {}
+    torch.set_num_threads(cores)
+    os.environ["OMP_NUM_THREADS"] = str(cores)     # the one-process way: every core's thread
     with tempfile.TemporaryDirectory() as tmp:
         latents = Path(tmp) / "latents.h5"
         for way, processes in ways.items():
             run = Path(tmp) / way
-            torch.set_num_threads(cores)
-            os.environ["OMP_NUM_THREADS"] = str(cores)     # the one-process way: every core's thread
             on_cores(train_perception, processes, data=args.data, run_dir=run, **common)
             if not latents.exists():        # both ways' XPL read the first way's latents
                 encode_split(run, args.data, latents, overwrite=True, progress=False)

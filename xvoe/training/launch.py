@@ -9,7 +9,6 @@ from __future__ import annotations
 import os
 import signal
 import socket
-import threading
 from collections.abc import Callable
 from typing import Any
 
@@ -18,6 +17,7 @@ import torch.distributed as dist
 import torch.multiprocessing as mp
 
 from ..errors import XvoeError
+from .loop import StopRequests
 from .recipes import RECIPES, Recipe
 
 
@@ -47,34 +47,26 @@ def on_cores(train: Callable[..., Any], processes: int, recipe: Recipe | None = 
         raise _as_in_one_process(str(error)) from None
 
 
-class ForwardedStops:
+class ForwardedStops(StopRequests):
     """Ctrl-C or SIGTERM here (a Jupyter interrupt reaches this process alone) goes to every
     process once, as if each had got it: the first stops them after the step they agreed on, the
     second at once. The processes lead process groups of their own (`_process`), so a terminal's
     Ctrl-C reaches them only this way."""
 
     def __init__(self, processes: list) -> None:
+        super().__init__()
         self.processes = processes
-        self.previous: dict[int, Any] = {}
 
-    def __enter__(self) -> ForwardedStops:
-        if threading.current_thread() is threading.main_thread():
-            self.previous = {number: signal.signal(number, self.forward) for number in (signal.SIGINT, signal.SIGTERM)}
-        return self
-
-    def forward(self, number: int, frame: Any) -> None:
+    def ask(self, number: int, frame: Any) -> None:
         for process in self.processes:
             if process.is_alive():
                 os.kill(process.pid, signal.SIGINT)
 
-    def __exit__(self, *exc: Any) -> None:
-        for number, handler in self.previous.items():
-            signal.signal(number, handler)
-
 
 def _as_in_one_process(text: str) -> BaseException:
     """A process's stop or bad-input error as one process raises it, without the traceback."""
-    for kind, said in ((XvoeError, "xvoe.errors.XvoeError"), (KeyboardInterrupt, f"{__name__}.Stopped")):
+    for raised, kind in ((XvoeError, XvoeError), (Stopped, KeyboardInterrupt)):
+        said = f"{raised.__module__}.{raised.__qualname__}"
         if said in text:
             return kind(text.rsplit(said, 1)[1].lstrip(":").strip())
     return RuntimeError(text)
