@@ -23,6 +23,7 @@ cannot be met by making the step faster, only by a step with fewer operations.
     python benchmarks/steps.py --recipe paper --decoder-channels 32
     python benchmarks/steps.py --recipe cpu --stages score
     python benchmarks/steps.py --recipe cpu --stages xpl,xpl-compiled --videos 32   # torch.compile's gain
+    python benchmarks/steps.py --recipe cpu --stages xpl,xpl-bf16 --videos 32       # bfloat16 autocast's
 
 The allocator setting (xvoe/allocator.py) is per process: compare it by running this twice,
 once with XVOE_MALLOC=system; the faults column shows the difference without timing noise.
@@ -72,10 +73,12 @@ def random_frames(rng: np.random.Generator, count: int, size: int) -> tuple[np.n
     return rgbd, ids
 
 
-def training_step(model, optimiser, batch):
-    """One optimiser step on a fixed batch, as the training loop takes it."""
+def training_step(model, optimiser, batch, bf16: bool = False):
+    """One optimiser step on a fixed batch, as the training loop takes it; `bf16`: the forward
+    under CPU autocast to bfloat16 (the weights and Adam stay float32)."""
     def step() -> None:
-        loss = model(batch)["loss"]
+        with torch.autocast("cpu", dtype=torch.bfloat16, enabled=bf16):
+            loss = model(batch)["loss"]
         optimiser.zero_grad(set_to_none=True)
         loss.backward()
         optimiser.step()
@@ -92,7 +95,7 @@ def perception_step(config, frames: int, rng: np.random.Generator):
     return training_step(model, optimiser, batch)
 
 
-def xpl_step(config, videos: int, rng: np.random.Generator, compiled: bool = False):
+def xpl_step(config, videos: int, rng: np.random.Generator, compiled: bool = False, bf16: bool = False):
     model = XPL(config).train()
     if compiled:        # torch.compile (inductor); the warm-up steps pay for the compilation
         model.compile(dynamic=False)
@@ -106,7 +109,7 @@ def xpl_step(config, videos: int, rng: np.random.Generator, compiled: bool = Fal
                         hidden=torch.from_numpy(rng.integers(0, SLOTS, videos)),
                         refill=torch.from_numpy(rng.random(shape) < 0.2), walls=walls)
 
-    return training_step(model, optimiser, batch)
+    return training_step(model, optimiser, batch, bf16)
 
 
 def score_step(perception, xpl_config, videos: int, rng: np.random.Generator):
@@ -195,6 +198,7 @@ def main() -> None:
     builders = {"perception": lambda rng: (perception_step(perception, args.frames, rng), args.frames),
                 "xpl": lambda rng: (xpl_step(chosen.xpl, args.videos, rng), args.videos),
                 "xpl-compiled": lambda rng: (xpl_step(chosen.xpl, args.videos, rng, compiled=True), args.videos),
+                "xpl-bf16": lambda rng: (xpl_step(chosen.xpl, args.videos, rng, bf16=True), args.videos),
                 "score": lambda rng: (score_step(perception, chosen.xpl, args.score_videos, rng), args.score_videos)}
     for stage in args.stages.split(","):
         step, items = builders[stage](np.random.default_rng(args.seed))
