@@ -2,6 +2,7 @@
 
     python benchmarks/scorecard.py --model xpl --data val.h5 [--particles 64] [--seeds 0,1]
                                    [--pairs 100] [--json card.json] [--against shipped.json]
+                                   [--nll-set FIELD=VALUE ...]
 
 Scores the split with both surprise definitions (`xvoe score --surprise both`), then reads:
 comparative accuracy per setting under the MSE score, its excess, the NLL and the NLL excess;
@@ -72,12 +73,15 @@ def main() -> None:
                         help="the NLL's seeds; the first scores, the second measures repeatability")
     parser.add_argument("--pairs", type=int, default=100, help="videos for hidden_iou and mae_iou")
     parser.add_argument("--threads", type=int, default=2)
+    parser.add_argument("--nll-set", action="append", default=[], metavar="FIELD=VALUE",
+                        help="change a field of the NLL's settings (inference.InferenceConfig), as xvoe score's")
     parser.add_argument("--json", help="write the card here too")
     parser.add_argument("--against", help="another model's card (--json) on the same split: mark the lines on which "
                                           "this one is worse beyond its interval")
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
     seeds = [int(s) for s in args.seeds.split(",")]
+    nll_settings = xvoe.nll_settings(args.nll_set)
     model = xvoe.load_model(args.model)
     work = Path(tempfile.mkdtemp(prefix="scorecard-"))
 
@@ -86,7 +90,7 @@ def main() -> None:
     mse_seconds = time.perf_counter() - start
     start = time.perf_counter()
     runs = [xvoe.score(model, args.data, work / f"nll-{seed}.csv", surprise="both", particles=args.particles,
-                       seed=seed, progress=False) for seed in seeds]
+                       seed=seed, nll_settings=nll_settings, progress=False) for seed in seeds]
     nll_seconds = (time.perf_counter() - start) / len(seeds)
     scores = xvoe.read_scores(runs[0])
     count = len(scores["index"])
@@ -167,7 +171,8 @@ def main() -> None:
         print(f"against {args.against}: worse beyond its interval on {len(worse)} line(s)"
               + (f": {'; '.join(worse)}" if worse else ""))
     if args.json:
-        Path(args.json).write_text(json.dumps({"model": args.model, "data": str(args.data), "card": card}, indent=1))
+        Path(args.json).write_text(json.dumps({"model": args.model, "data": str(args.data), "nll_settings": nll_settings,
+                                               "card": card}, indent=1))
 
 
 if __name__ == "__main__":

@@ -2,14 +2,41 @@
 object), and the NLL less that of a reference drawing only what was seen."""
 from __future__ import annotations
 
+from typing import Any
+
 import numpy as np
 from torch import Tensor
 
 from xvoe.errors import XvoeError
 from xvoe.evaluation.score import Scorer
+from xvoe.models.config import field_type, parse_value
 
 from .model import InferenceConfig, pixel_log_normaliser
 from .surprise import nll_surprise
+
+
+def nll_config(particles: int = 64, settings: dict[str, Any] | None = None) -> InferenceConfig:
+    """The NLL's settings: InferenceConfig's defaults with `particles` and the fields in
+    `settings` changed; a name it has no field of is an error that lists its fields."""
+    settings = dict(settings or {})
+    for name in settings:
+        if "." in name:
+            raise XvoeError(f"InferenceConfig has no nested configs: {name!r}")
+        field_type(InferenceConfig, name)
+    if "particles" in settings and settings["particles"] != particles:
+        raise XvoeError("give the particles once: as particles, or in the NLL settings")
+    return InferenceConfig(**{"particles": particles, **settings})
+
+
+def nll_settings(assignments: list[str]) -> dict[str, Any]:
+    """`--nll-set FIELD=VALUE` lines as typed InferenceConfig fields."""
+    settings = {}
+    for text in assignments:
+        name, equals, value = text.partition("=")
+        if not equals or not name:
+            raise XvoeError(f"--nll-set takes FIELD=VALUE, not {text!r}")
+        settings[name] = parse_value(field_type(InferenceConfig, name), value)
+    return settings
 
 
 def reference_nll(s_rec: np.ndarray, pixels: int, sigma: float) -> np.ndarray:
@@ -39,8 +66,8 @@ class NLLColumns:
 
     names = ("nll", "ess", "p_hidden", "nll_excess")
 
-    def __init__(self, particles: int = 64, seed: int = 0):
-        self.config, self.seed = InferenceConfig(particles=particles), seed
+    def __init__(self, particles: int = 64, seed: int = 0, settings: dict[str, Any] | None = None):
+        self.config, self.seed = nll_config(particles, settings), seed
 
     def check(self, scorer: Scorer) -> None:
         if scorer.xpl is None or not scorer.xpl.config.use_reasoning:

@@ -107,6 +107,12 @@ def case_lines(files, tmp: Path) -> list[tuple[list[str], str]]:
         (["score", "--model", "random", "--data", train, "--out", str(tmp / "s.csv")], "test split"),
         (["score", "--model", "random", "--data", test, "--out", str(tmp / "taken.png").replace(".png", ".csv")
           .replace("taken", "fresh"), "--aggregate", "mean"], "invalid choice"),
+        (["score", "--model", "xpl", "--data", test, "--out", str(tmp / "n.csv"), "--surprise", "nll",
+          "--nll-set", "nonsense=1"], "no field 'nonsense'"),
+        (["score", "--model", "xpl", "--data", test, "--out", str(tmp / "n.csv"), "--surprise", "nll",
+          "--nll-set", "pixel_sigma=wide"], "a number"),
+        (["score", "--model", "xpl", "--data", test, "--out", str(tmp / "n.csv"), "--surprise", "nll",
+          "--nll-set", "particles=8"], "give the particles once"),
         (["metrics", str(tmp / "nowhere.csv"), "--out", str(tmp / "r")], "no such file"),
         (["train", "perception", "--data", test, "--out", str(tmp / "run"), "--quiet"], "training on impossible"),
         (["train", "phydnet", "--data", test, "--out", str(tmp / "run"), "--quiet"], "training on impossible"),
@@ -134,7 +140,7 @@ def test_every_bad_input_gets_one_line_exit_2_and_changes_nothing(files, tmp_pat
         assert "Traceback" not in err
         assert snapshot(tmp_path) == before, args
         tried += 1
-    assert tried == 5 * len(MALFORMED) + 22
+    assert tried == 5 * len(MALFORMED) + 25
 
 
 def test_a_stale_latent_cache_of_another_split_is_refused(files, tmp_path, capsys):

@@ -12,6 +12,7 @@ import xvoe
 from inference.explain import nll_explanation
 from inference.importance import importance
 from inference.model import HiddenObjectModel, InferenceConfig, Proposal
+from inference.score import reference_nll
 from inference.surprise import BRANCH_SAMPLES, AdamSteps, defensive, hidden_posterior, nll_surprise, refine_out_of_sight
 from inference.xpl_scene import XPLScene
 from xvoe.apps.cli import main
@@ -19,6 +20,7 @@ from xvoe.apps.figures import plot_explanation
 from xvoe.apps.zoo import available_models
 from xvoe.benchmark import store
 from xvoe.benchmark.generate import GenerateConfig, generate
+from xvoe.evaluation.metrics import read_scores
 from xvoe.evaluation.score import encode_videos, load_model
 from xvoe.models.dynamics import DynamicsConfig
 from xvoe.models.perception import ComponentVAE, PerceptionConfig
@@ -179,6 +181,22 @@ def test_nll_scores_are_the_same_bytes_from_the_same_seed(tmp_path):
     first, second = (xvoe.score(scorer, str(data), str(tmp_path / name), surprise="both", particles=8,
                                  progress=False).read_bytes() for name in ("a.csv", "b.csv"))
     assert first == second
+
+
+def test_the_nll_settings_reach_every_video_and_its_excess(tmp_path):
+    """`nll_settings` changes the NLL's own settings: another pixel sigma moves every video's
+    NLL, and the excess is taken under the same sigma."""
+    scorer = load_model("xpl")
+    data = generate(GenerateConfig("test", pairs=1, size=scorer.image_size, seed=5), tmp_path / "t.h5",
+                    workers=1, progress=False)
+    default, wide = (read_scores(xvoe.score(scorer, str(data), str(tmp_path / name), surprise="both", particles=8,
+                                            nll_settings=settings, progress=False))
+                     for name, settings in (("a.csv", None), ("b.csv", {"pixel_sigma": 1.0})))
+    assert (wide["nll"] != default["nll"]).all()
+    curves = np.load(tmp_path / "b.curves.npz")
+    reference = reference_nll(curves["s_rec"], 4 * scorer.image_size ** 2, 1.0)
+    np.testing.assert_allclose(wide["nll_excess"], wide["nll"] - reference, rtol=1e-9, atol=1e-6)
+    assert xvoe.nll_settings(["pixel_sigma=1", "smc_pilot=8"]) == {"pixel_sigma": 1.0, "smc_pilot": 8}
 
 
 def test_the_scene_steps_the_dynamics_once_per_frame_and_matches_a_full_run():

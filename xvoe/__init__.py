@@ -42,6 +42,7 @@ _HOMES = {
     "xvoe.evaluation.metrics": ("read_scores", "metric_rows", "comparative", "holistic", "relative",
                                 "disagreements", "onset", "onset_pairs"),
     "xvoe.apps.verbs": ("score", "explain"),
+    "inference.score": ("nll_settings",),
     "xvoe.apps.report": ("report",),
     "xvoe.apps.zoo": ("available_models", "ship"),
     "xvoe.apps.pipeline": ("PipelineConfig", "run_pipeline"),

@@ -80,7 +80,7 @@ def cmd_score(args: argparse.Namespace) -> None:
     if args.model is None or args.data is None:
         raise XvoeError("--model and --data are required (unless --merge joins the parts of a sharded run)")
     print(xvoe.score(args.model, args.data, args.out, surprise=args.surprise, particles=args.particles,
-                     seed=args.seed, how=args.aggregate, shard=args.shard, videos_per_batch=args.batch,
+                     seed=args.seed, nll_settings=xvoe.nll_settings(args.nll_set), how=args.aggregate, shard=args.shard, videos_per_batch=args.batch,
                      workers=args.workers, overwrite=args.overwrite, progress=not args.quiet))
 
 
@@ -287,6 +287,9 @@ def build_parser() -> argparse.ArgumentParser:
                             "p_hidden, nll_excess); both: the MSE score with the NLL columns beside it")
     score.add_argument("--particles", type=_positive, default=64, help="particles per video (nll)")
     score.add_argument("--seed", type=int, default=0, help="seed of the NLL's random draws (default 0)")
+    score.add_argument("--nll-set", action="append", default=[], metavar="FIELD=VALUE",
+                       help="change a field of the NLL's settings (inference.InferenceConfig; repeatable), "
+                            "e.g. pixel_sigma=1.0")
     score.add_argument("--aggregate", choices=("sum", "max"), default="sum", help="over frames (default sum)")
     score.add_argument("--batch", type=_positive, default=16, help="videos per batch")
     score.add_argument("--workers", type=_positive, default=1,

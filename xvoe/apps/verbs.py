@@ -11,6 +11,7 @@ import tempfile
 from concurrent.futures import ProcessPoolExecutor
 from multiprocessing import get_context
 from pathlib import Path
+from typing import Any
 
 import torch
 
@@ -27,8 +28,8 @@ SURPRISES = ("mse", "nll", "both")
 
 
 def score(model: str | Scorer, data: str | Path, out: str | Path, *, surprise: str = "mse", particles: int = 64,
-          seed: int = 0, how: str = "sum", videos_per_batch: int = 16, shard: tuple[int, int] = (0, 1),
-          workers: int = 1, overwrite: bool = False, progress: bool = True) -> Path:
+          seed: int = 0, nll_settings: dict[str, Any] | None = None, how: str = "sum", videos_per_batch: int = 16,
+          shard: tuple[int, int] = (0, 1), workers: int = 1, overwrite: bool = False, progress: bool = True) -> Path:
     """Score every video of a test split into a CSV (and the per-frame curves beside it).
 
     surprise: "mse", the paper's score; "nll", -log p(video) under the Pyro model (the score
@@ -37,6 +38,8 @@ def score(model: str | Scorer, data: str | Path, out: str | Path, *, surprise: s
     `merge_scores` to join (xvoe score --shard / --merge). model: a name (`xpl`, `random`, ...), a run
     directory, a checkpoint, or a loaded `Scorer`. seed: the NLL's random draws (each video's
     from a generator of its own), so that a score file can be reproduced and its spread measured.
+    nll_settings: fields of inference.InferenceConfig to change for the NLL (its pixel sigma,
+    exposure penalty, pilot...), e.g. {"pixel_sigma": 1.0}, to see how each moves the verdicts.
     workers: processes that each score a shard with the cores shared out, then merged: the
     bytes of one run with as many threads as each worker has. On 2 cores the NLL's small
     tensors keep two processes busier than two threads (docs/decisions.md, "Scoring in worker
@@ -45,12 +48,13 @@ def score(model: str | Scorer, data: str | Path, out: str | Path, *, surprise: s
         raise XvoeError(f"--surprise must be mse, nll or both, not {surprise!r}")
     if workers < 1:
         raise XvoeError(f"--workers must be at least 1, not {workers}")
+    extra = NLLColumns(particles, seed, nll_settings) if surprise != "mse" else None   # bad settings fail here
     if workers > 1:
         if shard != (0, 1):
             raise XvoeError("--workers shards the split itself; leave out --shard")
         return _score_in_workers(model, data, out, workers, overwrite, progress, surprise=surprise,
-                                 particles=particles, seed=seed, how=how, videos_per_batch=videos_per_batch)
-    extra = NLLColumns(particles, seed) if surprise != "mse" else None
+                                 particles=particles, seed=seed, nll_settings=nll_settings, how=how,
+                                 videos_per_batch=videos_per_batch)
     return score_split(model, str(data), str(out), how=how, videos_per_batch=videos_per_batch, extra=extra,
                        score_column="nll" if surprise == "nll" else "score", shard=shard, overwrite=overwrite,
                        progress=progress)
