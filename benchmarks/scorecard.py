@@ -171,8 +171,8 @@ def main() -> None:
         print(f"against {args.against}: worse beyond its interval on {len(worse)} line(s)"
               + (f": {'; '.join(worse)}" if worse else ""))
     if args.json:
-        Path(args.json).write_text(json.dumps({"model": args.model, "data": str(args.data), "nll_settings": nll_settings,
-                                               "card": card}, indent=1))
+        found = {"model": args.model, "data": str(args.data), "nll_settings": nll_settings, "card": card}
+        Path(args.json).write_text(json.dumps(found, indent=1))
 
 
 if __name__ == "__main__":

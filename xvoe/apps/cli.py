@@ -80,8 +80,9 @@ def cmd_score(args: argparse.Namespace) -> None:
     if args.model is None or args.data is None:
         raise XvoeError("--model and --data are required (unless --merge joins the parts of a sharded run)")
     print(xvoe.score(args.model, args.data, args.out, surprise=args.surprise, particles=args.particles,
-                     seed=args.seed, nll_settings=xvoe.nll_settings(args.nll_set), how=args.aggregate, shard=args.shard, videos_per_batch=args.batch,
-                     workers=args.workers, overwrite=args.overwrite, progress=not args.quiet))
+                     seed=args.seed, nll_settings=xvoe.nll_settings(args.nll_set), how=args.aggregate,
+                     shard=args.shard, videos_per_batch=args.batch, workers=args.workers, overwrite=args.overwrite,
+                     progress=not args.quiet))
 
 
 def cmd_explain(args: argparse.Namespace) -> None:
