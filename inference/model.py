@@ -93,6 +93,11 @@ class InferenceConfig:
     # are skipped (most videos show every object)
     smc_pilot: int | tuple[int, ...] = 16
     smc_pilot_margin: float = 30.0
+    # no pilot where the guide's existence probability is above this (1.0: pilots everywhere):
+    # a small pilot can miss a hidden object that XPL's existence head is sure of, and the
+    # video's NLL then swings by hundreds of nats between seeds (docs/decisions.md, "The
+    # existence head gates the SMC pilot")
+    smc_pilot_skip_exists: float = 0.5
     smc_first: int = 0     # particles of the SMC's first frame, resampled down to `particles` (0: as many)
     # proposal_widening for the SMC (None: the same); several: an equal-weight mixture of the
     # proposals with each. The SMC reweights every frame, so a pull towards Transformer 2's

@@ -538,7 +538,8 @@ def smc_evidence(scene, frames: Tensor, config: InferenceConfig, proposal: Propo
                            float(particles), float(particles), 0, 0, 0, particles, None, None)
     model = HiddenTrajectory(steps, config, proposal)
     run = None
-    for size in pilot_sizes(config):
+    sure = proposal is not None and float(proposal.p_exists) > config.smc_pilot_skip_exists
+    for size in () if sure else pilot_sizes(config):
         pilot = run_smc(model, size, threshold=config.resample_threshold, generator=generator,
                         moves=config.smc_moves, max_levels=config.smc_max_levels,
                         first=config.smc_first * size // particles)

@@ -221,6 +221,18 @@ def test_the_pilot_skips_the_full_run_only_where_the_object_cannot_matter():
     assert smc_evidence(linear_scene(), frames, staged, None, torch.Generator().manual_seed(0)).particles == 64
 
 
+def test_no_pilot_where_the_existence_head_is_sure_of_an_object():
+    blank = BACKGROUND.expand(T, -1) + 0.01   # a pilot would dismiss the object branch here
+    far = LinearGaussianScene(T, M_0 + 20.0, 0.1, A, H, BACKGROUND)
+    doubtful, sure = (Proposal(torch.tensor(p), (M_0 + 20.0).expand(T, -1), torch.full((T, D), 0.6))
+                      for p in (0.3, 0.9))
+    gated = config(particles=64, smc_pilot=8)
+    assert smc_evidence(far, blank, gated, doubtful, torch.Generator().manual_seed(0)).particles == 8
+    assert smc_evidence(far, blank, gated, sure, torch.Generator().manual_seed(0)).particles == 64
+    always = config(particles=64, smc_pilot=8, smc_pilot_skip_exists=1.0)
+    assert smc_evidence(far, blank, always, sure, torch.Generator().manual_seed(0)).particles == 8
+
+
 def test_pilots_must_come_smallest_first():
     with pytest.raises(ValueError, match="smallest first"):
         smc_evidence(linear_scene(), simulated_frames(), config(particles=64, smc_pilot=(16, 4)), None,
