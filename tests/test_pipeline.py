@@ -35,7 +35,7 @@ def test_tiny_pipeline_runs_end_to_end_and_skips_done_stages(tmp_path, tiny_cpu_
     run = tmp_path / "run"
     text = report.read_text()
     # the XPL and PLATO stages trained in two processes, each phase of PLATO too; the perception in one
-    assert all(load_checkpoint(run / f"{stage}.pt")["world"] == 2 for stage in ("xpl", "plato"))
+    assert all(load_checkpoint(run / f"{stage}.pt")["world"] == 2 for stage in ("xpl", "proposal", "plato"))
     assert load_checkpoint(run / "perception.pt")["world"] == 1
     assert "Holistic" in text and "| collision |" in text and "continuity S3" in text
     for model in ("xpl", "plato", "random"):

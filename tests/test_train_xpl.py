@@ -254,10 +254,12 @@ def test_transformer2_never_sees_the_slot_it_rebuilds_not_even_through_transform
                                                   target=target))["mae"], loss)
 
 
-def test_the_proposal_stage_refuses_torchrun(tmp_path, monkeypatch):
+def test_the_trajectory_stage_refuses_torchrun(tmp_path, monkeypatch):
+    from xvoe.training.trajectory import train_trajectory
+
     monkeypatch.setenv("WORLD_SIZE", "2")
     with pytest.raises(XvoeError, match="without torchrun"):
-        train_proposal(tmp_path)
+        train_trajectory(tmp_path)
 
 
 def test_weighing_by_picture_needs_a_cache_that_names_its_perception(cache, tmp_path, monkeypatch):

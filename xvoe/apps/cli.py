@@ -355,7 +355,7 @@ def build_parser() -> argparse.ArgumentParser:
                           help="models trained side by side, the cores shared out (0: one per core; default 1: "
                                "one at a time); more lanes hold more memory")
     pipeline.add_argument("--train-processes", type=int, default=0,
-                          help="one-thread processes that train the XPL and PLATO stages together "
+                          help="one-thread processes that train the XPL, proposal and PLATO stages together "
                                "(default 0: one per core)")
     pipeline.add_argument("--quiet", action="store_true", help="no progress bars")
     pipeline.set_defaults(run=cmd_pipeline)

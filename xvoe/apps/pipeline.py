@@ -58,8 +58,8 @@ class PipelineConfig:
     progress: bool = True
     jobs: int = 1       # models trained side by side, each with cores/jobs threads (0: one per core); they hold
                         # more memory together (docs/decisions.md, "Pipeline lanes")
-    train_processes: int = 0    # one-thread processes that train the XPL and PLATO stages together (0: one per
-                                # core; with --jobs above 1, each lane trains in one process)
+    train_processes: int = 0    # one-thread processes that train the XPL, proposal and PLATO stages together (0:
+                                # one per core; with --jobs above 1, each lane trains in one process)
 
     def __post_init__(self) -> None:
         if not self.models:
@@ -155,7 +155,7 @@ def run_files(run_dir: Path) -> tuple[Path, Path, Path]:
 def _model_stages(config: PipelineConfig, model: str, stages: Stages, bars: bool, score: bool = True,
                   processes: int = 1) -> None:
     """Train (with the proposal stage for xpl) and score one model, skipping what is done; the
-    XPL and PLATO stages in `processes` one-thread processes when above 1."""
+    XPL, proposal and PLATO stages in `processes` one-thread processes when above 1."""
     run_dir = Path(config.out)
     train_data, test_data, latents = run_files(run_dir)
     phases = recipe(config.recipe).phases_of(model)
@@ -168,9 +168,9 @@ def _model_stages(config: PipelineConfig, model: str, stages: Stages, bars: bool
                             resume=checkpoint_path(run_dir, model).exists(), **phase)
         _train_phases(stages, model, train, phases, config.seed)
         if model == "xpl":
-            stages.run("train-proposal", lambda: train_proposal(
-                run_dir, latents, progress=bars, resume=checkpoint_path(run_dir, "proposal").exists(),
-                seed=config.seed))
+            stages.run("train-proposal", lambda: on_cores(
+                train_proposal, processes, recipe(config.recipe), run_dir=run_dir, latents=latents, progress=bars,
+                resume=checkpoint_path(run_dir, "proposal").exists(), seed=config.seed))
     if model == "phydnet":
         def train(phase: dict) -> object:
             return train_phydnet(train_data, run_dir, recipe_name=config.recipe, progress=bars,

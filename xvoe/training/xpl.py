@@ -31,7 +31,7 @@ from ..models.xpl import XPL, XPLConfig, permute_slots
 from .checkpoints import load_checkpoint, resolve_run
 from .data import focus_on, owned_shards
 from .latents import encode_split, open_latents, picture_weights
-from .loop import Dist, Job, checkpoint_path, fit, seed_everything, set_threads, setup_distributed
+from .loop import Job, checkpoint_path, fit, seed_everything, set_threads, setup_distributed
 from .perception import load_perception
 from .recipes import PROPOSAL_FIELDS, TrainConfig, recipe, recipe_of
 
@@ -454,9 +454,11 @@ def train_proposal(run_dir: str | os.PathLike, latents: str | os.PathLike | None
     frame of the training videos (the simulator's trajectories, encoded), into
     RUN_DIR/proposal.pt. In the joint stage they get one step in each of the XPL's few steps
     and a hidden object is a rare draw; the explanation and the NLL's proposal need more.
-    `model_overrides` may change how Transformer 2 is used (PROPOSAL_FIELDS), not its network."""
+    `model_overrides` may change how Transformer 2 is used (PROPOSAL_FIELDS), not its network.
+    Also under torchrun (or `launch.on_cores`), as the XPL stage."""
     run_dir = Path(run_dir)
-    xpl_path, xpl, xpl_state = run_xpl(run_dir, "proposal", "the xpl stage", proposal=False)
+    place = setup_distributed()
+    xpl_path, xpl, xpl_state = run_xpl(run_dir, "proposal", "the xpl stage", processes=True, proposal=False)
     ckpt = checkpoint_path(run_dir, "proposal")
     recipe_name = recipe_of(xpl_state["config"])
     if resume and ckpt.exists():
@@ -466,25 +468,24 @@ def train_proposal(run_dir: str | os.PathLike, latents: str | os.PathLike | None
     else:
         config = recipe(recipe_name).proposal_train
     xpl.config = override_resumed(xpl.config, model_overrides, PROPOSAL_FIELDS, "proposal run")
-    config = override(override(config, **train_overrides), data_shards=config.data_shards or 1)
-    set_threads(config, 1)
+    config = override(override(config, **train_overrides), data_shards=config.data_shards or place.world)
+    set_threads(config, int(os.environ.get("LOCAL_WORLD_SIZE", "1")))
     seed_everything(config.seed)
     latents = latents or xpl_state["meta"]["latents"]
-    batches = ProposalBatches(str(latents), batch_size=config.batch_size, shards=config.data_shards,
-                              max_videos=config.max_videos, seed=config.seed, focus_group=config.focus_group,
-                              focus_share=config.focus_share)
+    batches = ProposalBatches(str(latents), batch_size=config.batch_size, shards=config.data_shards, rank=place.rank,
+                              world=place.world, max_videos=config.max_videos, seed=config.seed,
+                              focus_group=config.focus_group, focus_share=config.focus_share)
     meta = {"latents": str(Path(latents).resolve()), "xpl": str(xpl_path.resolve()),
             "xpl_fingerprint": fingerprint(xpl_state["model"])}
-    place = Dist(device=torch.device("cuda" if torch.cuda.is_available() else "cpu"))
     networks = ProposalNetworks(xpl.to(place.device), batches.empty)
     job = Job("proposal", networks, batches.batch, {"recipe": recipe_name, "xpl": to_dict(xpl.config)}, meta=meta)
     return fit(job, config, run_dir, place=place, resume=resume, overwrite=overwrite, progress=progress)
 
 
-def run_xpl(run_dir: Path, stage: str, needs: str, **loading: bool) -> tuple[Path, XPL, dict]:
-    """RUN_DIR/xpl.pt, loaded (`load_xpl` with `loading`), for a stage that trains on top of it in
-    one process (a few minutes); an error naming what to train first (`needs`) if it is missing."""
-    if int(os.environ.get("WORLD_SIZE", "1")) > 1:
+def run_xpl(run_dir: Path, stage: str, needs: str, processes: bool = False, **loading: bool) -> tuple[Path, XPL, dict]:
+    """RUN_DIR/xpl.pt, loaded (`load_xpl` with `loading`), for a stage that trains on top of it
+    (in one process unless `processes`); an error naming what to train first (`needs`) if it is missing."""
+    if not processes and int(os.environ.get("WORLD_SIZE", "1")) > 1:
         raise XvoeError(f"the {stage} stage runs in one process (a few minutes): launch it without torchrun")
     xpl_path = checkpoint_path(run_dir, "xpl")
     if not xpl_path.is_file():
