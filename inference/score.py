@@ -20,8 +20,6 @@ def nll_config(particles: int = 64, settings: dict[str, Any] | None = None) -> I
     `settings` changed; a name it has no field of is an error that lists its fields."""
     settings = dict(settings or {})
     for name in settings:
-        if "." in name:
-            raise XvoeError(f"InferenceConfig has no nested configs: {name!r}")
         field_type(InferenceConfig, name)
     if "particles" in settings and settings["particles"] != particles:
         raise XvoeError("give the particles once: as particles, or in the NLL settings")
