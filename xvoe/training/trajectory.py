@@ -112,8 +112,10 @@ def train_trajectory(run_dir: str | os.PathLike, latents: str | os.PathLike | No
                      **train_overrides: Any) -> Path:
     """What `xvoe train trajectory` does: train RUN_DIR/trajectory.pt, the NLL's learned
     proposal of whole trajectories, for the frozen RUN_DIR/xpl.pt (with its proposal.pt)."""
+    if int(os.environ.get("WORLD_SIZE", "1")) > 1:
+        raise XvoeError("the trajectory stage runs in one process (a few minutes): launch it without torchrun")
     run_dir = Path(run_dir)
-    xpl_path, xpl, xpl_state = run_xpl(run_dir, "trajectory", "the xpl stage (and the proposal stage)")
+    xpl_path, xpl, xpl_state = run_xpl(run_dir, "the xpl stage (and the proposal stage)")
     if not xpl.config.use_reasoning:
         raise XvoeError(f"{xpl_path} has no Transformer 2 (a PLATO model?): the trajectory proposal needs one")
     ckpt = checkpoint_path(run_dir, "trajectory")

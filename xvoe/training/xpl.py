@@ -458,7 +458,7 @@ def train_proposal(run_dir: str | os.PathLike, latents: str | os.PathLike | None
     Also under torchrun (or `launch.on_cores`), as the XPL stage."""
     run_dir = Path(run_dir)
     place = setup_distributed()
-    xpl_path, xpl, xpl_state = run_xpl(run_dir, "proposal", "the xpl stage", processes=True, proposal=False)
+    xpl_path, xpl, xpl_state = run_xpl(run_dir, "the xpl stage", proposal=False)
     ckpt = checkpoint_path(run_dir, "proposal")
     recipe_name = recipe_of(xpl_state["config"])
     if resume and ckpt.exists():
@@ -482,11 +482,9 @@ def train_proposal(run_dir: str | os.PathLike, latents: str | os.PathLike | None
     return fit(job, config, run_dir, place=place, resume=resume, overwrite=overwrite, progress=progress)
 
 
-def run_xpl(run_dir: Path, stage: str, needs: str, processes: bool = False, **loading: bool) -> tuple[Path, XPL, dict]:
-    """RUN_DIR/xpl.pt, loaded (`load_xpl` with `loading`), for a stage that trains on top of it
-    (in one process unless `processes`); an error naming what to train first (`needs`) if it is missing."""
-    if not processes and int(os.environ.get("WORLD_SIZE", "1")) > 1:
-        raise XvoeError(f"the {stage} stage runs in one process (a few minutes): launch it without torchrun")
+def run_xpl(run_dir: Path, needs: str, **loading: bool) -> tuple[Path, XPL, dict]:
+    """RUN_DIR/xpl.pt, loaded (`load_xpl` with `loading`), for a stage that trains on top of it;
+    an error naming what to train first (`needs`) if it is missing."""
     xpl_path = checkpoint_path(run_dir, "xpl")
     if not xpl_path.is_file():
         raise XvoeError(f"no xpl.pt in {run_dir}: train {needs} first")
