@@ -9,7 +9,7 @@ from torch import Tensor
 
 from xvoe.errors import XvoeError
 from xvoe.evaluation.score import Scorer
-from xvoe.models.config import field_type, parse_value
+from xvoe.models.config import field_type, parse_value, split_assignment
 
 from .model import InferenceConfig, pixel_log_normaliser
 from .surprise import nll_surprise
@@ -30,9 +30,7 @@ def nll_settings(assignments: list[str]) -> dict[str, Any]:
     """`--nll-set FIELD=VALUE` lines as typed InferenceConfig fields."""
     settings = {}
     for text in assignments:
-        name, equals, value = text.partition("=")
-        if not equals or not name:
-            raise XvoeError(f"--nll-set takes FIELD=VALUE, not {text!r}")
+        name, value = split_assignment(text, "--nll-set")
         settings[name] = parse_value(field_type(InferenceConfig, name), value)
     return settings
 

@@ -88,6 +88,14 @@ def field_type(cls: type, name: str) -> Any:
     return field_type(nested, rest)
 
 
+def split_assignment(text: str, flag: str) -> tuple[str, str]:
+    """A command line's FIELD=VALUE as (FIELD, VALUE); `flag` names the option in the error."""
+    name, equals, value = text.partition("=")
+    if not equals or not name:
+        raise XvoeError(f"{flag} takes FIELD=VALUE, not {text!r}")
+    return name, value
+
+
 def parse_value(kind: Any, text: str) -> Any:
     """A command-line string as a value of a config field's type (`none` for an optional one;
     a tuple as comma-separated items)."""

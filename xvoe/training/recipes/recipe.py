@@ -10,7 +10,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field, fields
 
 from ...errors import XvoeError
-from ...models.config import field_type, parse_value
+from ...models.config import field_type, parse_value, split_assignment
 from ...models.perception import PerceptionConfig
 from ...models.phydnet import PhyDNetConfig
 from ...models.trajectory import TrajectoryConfig
@@ -102,9 +102,7 @@ def stage_settings(stage: str, assignments: list[str]) -> tuple[dict, dict]:
     train, model = {}, {}
     owners = {"train": TrainConfig, "model": MODEL_CONFIGS.get(stage)}
     for text in assignments:
-        name, equals, value = text.partition("=")
-        if not equals or not name:
-            raise XvoeError(f"--set takes FIELD=VALUE, not {text!r}")
+        name, value = split_assignment(text, "--set")
         where, _, rest = name.partition(".")
         if where in owners and rest:
             chosen = where
