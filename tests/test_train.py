@@ -158,6 +158,28 @@ def test_an_interrupt_in_one_process_under_torchrun_stops_both_after_the_same_st
     assert state["step"] == 3 and state["world"] == 2
 
 
+def test_a_request_that_lands_during_the_exchange_stops_the_next_step(monkeypatch):
+    """Ctrl-C often arrives while a process waits in the stop exchange for the others; the request
+    must survive the exchange's answer (no process had asked yet) and stop every process one step
+    later, or the run trains on after the user asked it to stop."""
+    import signal
+
+    from xvoe.training import loop
+
+    stops = loop.StopRequests(enabled=False)
+    place = loop.Dist(rank=0, world=2)
+
+    def exchange(flags, op):            # the other process had no request; ours lands meanwhile
+        stops.ask(signal.SIGINT, None)
+
+    monkeypatch.setattr(loop.dist, "all_reduce", exchange)
+    assert not stops.agreed(place, out_of_time=False) and not stops.asked
+    monkeypatch.setattr(loop.dist, "all_reduce", lambda flags, op: None)
+    assert stops.agreed(place, out_of_time=False) and stops.asked
+    with pytest.raises(KeyboardInterrupt):          # a second request stops at once
+        stops.ask(signal.SIGINT, None)
+
+
 def test_cut_objects_do_not_depend_on_the_process_count(tiny_file):
     """The cuts are drawn shard by shard: two processes' halves are the one process's batch."""
     common = dict(image_size=16, latent_dim=4, batch_size=8, shards=2, seed=3, cut_share=0.5)
@@ -205,7 +227,10 @@ def test_an_interrupt_of_the_launching_process_stops_its_training_processes_afte
     while not (run / "perception.csv").exists() and launcher.poll() is None and time.monotonic() < deadline:
         time.sleep(0.2)
     launcher.send_signal(signal.SIGINT)
-    _, err = launcher.communicate(timeout=120)
+    try:
+        _, err = launcher.communicate(timeout=120)
+    finally:
+        launcher.kill()         # on a time-out, its processes get the kernel's SIGINT and stop too
     assert launcher.returncode != 0
     said = err.strip().splitlines()[-1]
     assert "KeyboardInterrupt: stopped at step" in said, err

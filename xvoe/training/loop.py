@@ -264,7 +264,8 @@ class StopRequests:
 
     def __init__(self, enabled: bool = True):
         self.enabled = enabled and threading.current_thread() is threading.main_thread()
-        self.asked = False
+        self.requested = False      # a request this process got (the handler sets it)
+        self.asked = False          # a request every process has agreed on
         self.previous: dict[int, Any] = {}
 
     def __enter__(self) -> StopRequests:
@@ -275,16 +276,19 @@ class StopRequests:
     def agreed(self, place: Dist, out_of_time: bool) -> bool:
         """Whether every process stops before the next step; `asked` then says whether a request
         (in any process) made it stop."""
+        requested = self.requested
         if place.world > 1:
-            flags = torch.tensor([float(self.asked), float(out_of_time)], device=place.device)
+            # a request that lands while the exchange waits is kept for the next step, never lost
+            flags = torch.tensor([float(requested), float(out_of_time)], device=place.device)
             dist.all_reduce(flags, op=dist.ReduceOp.MAX)
-            self.asked, out_of_time = bool(flags[0]), bool(flags[1])
-        return self.asked or out_of_time
+            requested, out_of_time = bool(flags[0]), bool(flags[1])
+        self.asked = requested
+        return requested or out_of_time
 
     def ask(self, number: int, frame: Any) -> None:
-        if self.asked:
+        if self.requested:
             raise KeyboardInterrupt
-        self.asked = True
+        self.requested = True
 
     def __exit__(self, *exc: Any) -> None:
         for number, handler in self.previous.items():
