@@ -191,6 +191,24 @@ def test_the_proposal_stage_trains_transformer2_alone_and_overlays_xpl(cache, tm
         load_xpl(tmp_path)
 
 
+def test_transformer2_can_be_left_to_the_proposal_stage(cache, tmp_path):
+    """joint_proposal off: the joint stage trains Transformer 1 and the dynamics alone (Transformer 2
+    and the existence head keep their first weights, however long it runs), such an xpl.pt is not
+    scored without its proposal.pt, and the proposal stage trains them from there."""
+    frozen = ("transformer2.", "existence.")
+    short, long = (load_xpl(train_xpl(cache, tmp_path / run, progress=False, model_overrides={"joint_proposal": False},
+                                      **{**TINY, "steps": steps}), proposal=False)[0].state_dict()
+                   for run, steps in (("short", 10), ("long", 30)))
+    for name, value in short.items():
+        assert torch.equal(value, long[name]) == name.startswith(frozen), name
+    assert "mae" not in losses(tmp_path / "long", "xpl")[0]
+    with pytest.raises(XvoeError, match="leaves Transformer 2 to the proposal stage.*xvoe train proposal"):
+        load_xpl(tmp_path / "long")
+    train_proposal(tmp_path / "long", progress=False, **{**TINY, "steps": 10})
+    tuned = load_xpl(tmp_path / "long")[0].state_dict()
+    assert all(torch.equal(value, tuned[name]) != name.startswith(frozen) for name, value in long.items())
+
+
 def test_the_proposal_stage_resumes_exactly(cache, tmp_path):
     for run in ("a", "b"):
         train_xpl(cache, tmp_path / run, progress=False, **{**TINY, "steps": 10})

@@ -61,6 +61,10 @@ class XPLConfig:
     # latent, which draws a wall where a hidden cube stands (docs/decisions.md, "Transformer 1
     # blind to the walls")
     refill_ignores_walls: bool = False
+    # Transformer 2 and the existence head train in the joint stage too; off, in the proposal
+    # stage alone, and the joint step costs a third less, since nothing else in it reads them
+    # (docs/decisions.md, "Not kept: Transformer 2 out of the joint stage")
+    joint_proposal: bool = True
 
 
 class XPL(nn.Module):
@@ -183,7 +187,7 @@ class XPL(nn.Module):
             out["dynamics"] = (error * moving).sum() / moving.sum().clamp_min(1)
         else:
             out["dynamics"] = error.mean()
-        if self.config.use_reasoning:
+        if self.config.use_reasoning and self.config.joint_proposal:
             refined = torch.where(refill.unsqueeze(-1), z, refined)    # what Transformer 2 sees at test
             slot = hidden if hidden is not None else torch.randint(z.shape[2], (z.shape[0],), device=z.device)
             out.update(self.proposal_losses(refined.detach(), visible, slot))

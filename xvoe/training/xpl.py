@@ -217,7 +217,12 @@ def train_xpl(latents: str | os.PathLike | None, run_dir: str | os.PathLike, *, 
                             world=place.world, max_videos=config.max_videos, seed=config.seed, walls=needs_walls,
                             wall_refill=model_config.wall_refill, outside=model_config.outside_refill,
                             focus_group=config.focus_group, focus_share=config.focus_share)
-    job = Job(name, XPL(model_config), batches.batch, {"recipe": recipe_name, "xpl": to_dict(model_config)},
+    model = XPL(model_config)
+    if model_config.use_reasoning and not model_config.joint_proposal:
+        # trained by the proposal stage; frozen here, so that DistributedDataParallel expects no gradient
+        for part in (model.transformer2, model.existence):
+            part.requires_grad_(False)
+    job = Job(name, model, batches.batch, {"recipe": recipe_name, "xpl": to_dict(model_config)},
               meta={"latents": str(Path(latents).resolve())})
     return fit(job, config, run_dir, place=place, resume=resume, overwrite=overwrite, progress=progress)
 
@@ -512,5 +517,8 @@ def load_xpl(model: str | os.PathLike, stage: str = "xpl", device: str | torch.d
         xpl.load_state_dict(extra["model"], strict=False)
         xpl.config = from_dict(XPLConfig, extra["config"]["xpl"])     # how its Transformer 2 is used, too
         state["proposal"] = str(tuned)
+    elif proposal and state["stage"] == "xpl" and not xpl.config.joint_proposal:
+        raise XvoeError(f"{path} leaves Transformer 2 to the proposal stage, and no proposal.pt is beside it: "
+                        f"train it first (xvoe train proposal --out {path.parent})")
     state["path"] = str(path)
     return xpl.to(device).eval(), state
