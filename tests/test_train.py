@@ -180,6 +180,25 @@ def test_a_request_that_lands_during_the_exchange_stops_the_next_step(monkeypatc
         stops.ask(signal.SIGINT, None)
 
 
+def test_a_request_during_the_last_step_still_stops_the_caller(tiny_file, tmp_path, monkeypatch):
+    """Ctrl-C in a stage's last step: the stage is whole, but what called it (the pipeline's next
+    stage) must not start as if nothing had been asked."""
+    import os
+    import signal
+
+    draw = ShardedFrames.batch
+
+    def interrupted(self, step):
+        if step == 2:
+            os.kill(os.getpid(), signal.SIGINT)
+        return draw(self, step)
+
+    monkeypatch.setattr(ShardedFrames, "batch", interrupted)
+    with pytest.raises(KeyboardInterrupt, match="stopped at step 3"):
+        run(tiny_file, tmp_path, 3)
+    assert load_checkpoint(tmp_path / "perception.pt")["step"] == 3
+
+
 def test_cut_objects_do_not_depend_on_the_process_count(tiny_file):
     """The cuts are drawn shard by shard: two processes' halves are the one process's batch."""
     common = dict(image_size=16, latent_dim=4, batch_size=8, shards=2, seed=3, cut_share=0.5)

@@ -244,6 +244,7 @@ def fit(job: Job, config: TrainConfig, run_dir: str | os.PathLike, *, place: Dis
             if place.main and time.monotonic() - last_save >= 60 * config.checkpoint_minutes:
                 checkpoint(step)
                 last_save = time.monotonic()
+        stop.agreed(place, out_of_time=False)       # a request during the last step stops what follows too
     bar.close()
     if meter.count:
         table = log_row(table, step, meter.means())
