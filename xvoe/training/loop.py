@@ -31,7 +31,7 @@ from torch import nn
 from tqdm.auto import tqdm
 
 from ..errors import XvoeError
-from ..models.config import to_dict
+from ..models.config import override, to_dict
 from ..outputs import claim_directory
 from .checkpoints import CHECKPOINT_FORMAT, load_checkpoint, save_checkpoint
 from .recipes import TrainConfig
@@ -115,6 +115,15 @@ def seed_everything(seed: int) -> None:
     random.seed(seed)
     np.random.seed(seed)
     torch.manual_seed(seed)
+
+
+def start_process(config: TrainConfig, place: Dist) -> TrainConfig:
+    """A stage's config in this process, as one process or any number of them read it: one data
+    shard per process unless set, this process's share of the cores taken, every RNG seeded."""
+    config = override(config, data_shards=config.data_shards or place.world)
+    set_threads(config, int(os.environ.get("LOCAL_WORLD_SIZE", "1")))
+    seed_everything(config.seed)
+    return config
 
 
 class CsvLog:

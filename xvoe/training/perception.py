@@ -12,7 +12,7 @@ from ..models.config import from_dict, override, override_resumed, to_dict
 from ..models.perception import ComponentVAE, PerceptionConfig
 from .checkpoints import load_checkpoint, resolve_run
 from .data import ShardedFrames
-from .loop import Job, checkpoint_path, fit, seed_everything, set_threads, setup_distributed
+from .loop import Job, checkpoint_path, fit, setup_distributed, start_process
 from .recipes import TrainConfig, recipe, recipe_of
 
 
@@ -57,9 +57,7 @@ def train_perception(data: str | os.PathLike | None, run_dir: str | os.PathLike,
         model_config = override_resumed(model_config, model_overrides, what="perception run")
     else:
         model_config = override(model_config, **(model_overrides or {}))
-    config = override(config, data_shards=config.data_shards or place.world)
-    set_threads(config, int(os.environ.get("LOCAL_WORLD_SIZE", "1")))
-    seed_everything(config.seed)
+    config = start_process(config, place)
     model = ComponentVAE(model_config)
     frames = ShardedFrames(str(data), image_size=model_config.image_size, latent_dim=model_config.latent_dim,
                            batch_size=config.batch_size, shards=config.data_shards, rank=place.rank,

@@ -21,7 +21,7 @@ from ..models.config import from_dict, override, override_resumed, to_dict
 from ..models.phydnet import PhyDNet, PhyDNetConfig, PhyDNetObjective, widen_lstm_kernel
 from .checkpoints import load_checkpoint, resolve_run, save_checkpoint
 from .data import check_size, focus_on, owned_shards
-from .loop import Job, checkpoint_path, fit, seed_everything, set_threads, setup_distributed
+from .loop import Job, checkpoint_path, fit, setup_distributed, start_process
 from .recipes import TrainConfig, recipe, recipe_of
 
 STAGE = "phydnet"
@@ -81,9 +81,7 @@ def train_phydnet(data: str | os.PathLike | None, run_dir: str | os.PathLike, *,
     else:
         model_config = override(model_config, **(model_overrides or {}))
     config = override(config, **train_overrides)
-    config = override(config, data_shards=config.data_shards or place.world)
-    set_threads(config, int(os.environ.get("LOCAL_WORLD_SIZE", "1")))
-    seed_everything(config.seed)
+    config = start_process(config, place)
     batches = VideoBatches(data, image_size=model_config.image_size, batch_size=config.batch_size,
                            shards=config.data_shards, rank=place.rank, world=place.world,
                            max_videos=config.max_videos, seed=config.seed, focus_group=config.focus_group,

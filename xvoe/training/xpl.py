@@ -31,7 +31,7 @@ from ..models.xpl import XPL, XPLConfig, permute_slots
 from .checkpoints import load_checkpoint, resolve_run
 from .data import focus_on, owned_shards
 from .latents import encode_split, open_latents, picture_weights
-from .loop import Job, checkpoint_path, fit, seed_everything, set_threads, setup_distributed
+from .loop import Job, checkpoint_path, fit, setup_distributed, start_process
 from .perception import load_perception
 from .recipes import PROPOSAL_FIELDS, TrainConfig, recipe, recipe_of
 
@@ -209,9 +209,7 @@ def train_xpl(latents: str | os.PathLike | None, run_dir: str | os.PathLike, *, 
             model_config = replace(model_config, latent_weights=cache_picture_weights(latents))
         config = chosen.training(stage)
     config = override(config, **train_overrides)
-    config = override(config, data_shards=config.data_shards or place.world)
-    set_threads(config, int(os.environ.get("LOCAL_WORLD_SIZE", "1")))
-    seed_everything(config.seed)
+    config = start_process(config, place)
     needs_walls = model_config.inert_walls or model_config.wall_refill > 0 or model_config.refill_ignores_walls
     batches = LatentBatches(str(latents), batch_size=config.batch_size, shards=config.data_shards, rank=place.rank,
                             world=place.world, max_videos=config.max_videos, seed=config.seed, walls=needs_walls,
@@ -473,9 +471,7 @@ def train_proposal(run_dir: str | os.PathLike, latents: str | os.PathLike | None
     else:
         config = recipe(recipe_name).proposal_train
     xpl.config = override_resumed(xpl.config, model_overrides, PROPOSAL_FIELDS, "proposal run")
-    config = override(override(config, **train_overrides), data_shards=config.data_shards or place.world)
-    set_threads(config, int(os.environ.get("LOCAL_WORLD_SIZE", "1")))
-    seed_everything(config.seed)
+    config = start_process(override(config, **train_overrides), place)
     latents = latents or xpl_state["meta"]["latents"]
     batches = ProposalBatches(str(latents), batch_size=config.batch_size, shards=config.data_shards, rank=place.rank,
                               world=place.world, max_videos=config.max_videos, seed=config.seed,
