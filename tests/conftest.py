@@ -20,6 +20,23 @@ def randomise_dynamics_head(dynamics) -> None:
             torch.nn.init.normal_(layer.weight, std=0.3)
 
 
+def interrupt_during(monkeypatch, batches: type, step: int):
+    """Ctrl-C in the middle of a training step: SIGINT to this process while `batches` draws
+    step `step`. Returns the batch method it wraps, to put back for a resumed run."""
+    import os
+    import signal
+
+    draw = batches.batch
+
+    def interrupted(self, at):
+        if at == step:
+            os.kill(os.getpid(), signal.SIGINT)
+        return draw(self, at)
+
+    monkeypatch.setattr(batches, "batch", interrupted)
+    return draw
+
+
 @pytest.fixture
 def double_precision():
     """Run a test in float64 and leave the default dtype as it was."""

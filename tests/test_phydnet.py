@@ -5,6 +5,7 @@ from dataclasses import replace
 import numpy as np
 import pytest
 import torch
+from conftest import interrupt_during
 
 from xvoe.apps.cli import main
 from xvoe.apps.figures import plot_predictions, predicted_frames
@@ -241,19 +242,11 @@ def test_a_widened_lstm_kernel_predicts_the_same_and_trains_on(splits, tmp_path,
 def test_an_interrupt_stops_after_its_step_and_the_run_resumes_exactly(splits, tmp_path, tiny_recipe, monkeypatch):
     """Ctrl-C (SIGINT) during step 2 lets that step finish: the checkpoint holds step 3, the handler
     in place before is back, and the resumed run ends where an uninterrupted one does."""
-    import os
     import signal
 
-
     straight = torch.load(train_phydnet(splits[0], tmp_path / "a", progress=False), weights_only=False)
-    before, draw = signal.getsignal(signal.SIGINT), VideoBatches.batch
-
-    def interrupted(self, step):
-        if step == 2:
-            os.kill(os.getpid(), signal.SIGINT)
-        return draw(self, step)
-
-    monkeypatch.setattr(VideoBatches, "batch", interrupted)
+    before = signal.getsignal(signal.SIGINT)
+    draw = interrupt_during(monkeypatch, VideoBatches, 2)
     with pytest.raises(KeyboardInterrupt, match="stopped at step 3"):
         train_phydnet(splits[0], tmp_path / "b", progress=False)
     assert signal.getsignal(signal.SIGINT) is before

@@ -6,6 +6,7 @@ import textwrap
 
 import pytest
 import torch
+from conftest import interrupt_during
 
 from xvoe.apps.cli import main
 from xvoe.benchmark.generate import GenerateConfig, generate
@@ -183,17 +184,7 @@ def test_a_request_that_lands_during_the_exchange_stops_the_next_step(monkeypatc
 def test_a_request_during_the_last_step_still_stops_the_caller(tiny_file, tmp_path, monkeypatch):
     """Ctrl-C in a stage's last step: the stage is whole, but what called it (the pipeline's next
     stage) must not start as if nothing had been asked."""
-    import os
-    import signal
-
-    draw = ShardedFrames.batch
-
-    def interrupted(self, step):
-        if step == 2:
-            os.kill(os.getpid(), signal.SIGINT)
-        return draw(self, step)
-
-    monkeypatch.setattr(ShardedFrames, "batch", interrupted)
+    interrupt_during(monkeypatch, ShardedFrames, 2)
     with pytest.raises(KeyboardInterrupt, match="stopped at step 3"):
         run(tiny_file, tmp_path, 3)
     assert load_checkpoint(tmp_path / "perception.pt")["step"] == 3
