@@ -7,6 +7,7 @@ import textwrap
 import pytest
 import torch
 from conftest import interrupt_during
+from torch import nn
 
 from xvoe.apps.cli import main
 from xvoe.benchmark.generate import GenerateConfig, generate
@@ -15,7 +16,7 @@ from xvoe.models.config import from_dict, override
 from xvoe.models.perception import ComponentVAE, PerceptionConfig
 from xvoe.training.checkpoints import load_checkpoint
 from xvoe.training.data import ShardedFrames
-from xvoe.training.loop import learning_rate, seed_everything
+from xvoe.training.loop import Job, fit, learning_rate, seed_everything
 from xvoe.training.perception import load_perception, train_perception
 from xvoe.training.recipes import TrainConfig, recipe
 
@@ -86,6 +87,46 @@ def test_learning_rate_warms_up_then_halves():
     assert learning_rate(config, 0) == pytest.approx(0.1)
     assert learning_rate(config, 9) == pytest.approx(1.0)
     assert learning_rate(config, 110) == pytest.approx(0.5)
+
+
+class Regression(nn.Module):
+    """A toy stage: a line fitted to seeded random points; batches() records the weights it sees."""
+
+    def __init__(self):
+        super().__init__()
+        seed_everything(0)
+        self.line = nn.Linear(3, 1)
+        self.seen = []
+
+    def batches(self, step):
+        self.seen.append(self.line.weight.detach().clone())      # the weights after `step` steps
+        return torch.randn(4, 3, generator=torch.Generator().manual_seed(step))
+
+    def forward(self, points):
+        return {"loss": ((self.line(points) - points.sum(1, keepdim=True)) ** 2).mean()}
+
+
+def fit_regression(out, steps, resume=False, decay=0.6):
+    model = Regression()
+    config = TrainConfig(steps=steps, lr=0.1, warmup_steps=1, log_every=1, threads=1, average_decay=decay)
+    state = load_checkpoint(fit(Job("toy", model, model.batches, {}), config, out, resume=resume, progress=False))
+    return model, state
+
+
+def test_the_checkpoint_holds_the_moving_average_of_the_weights(tmp_path):
+    model, state = fit_regression(tmp_path / "straight", 5)
+    trained = [*model.seen[1:], state["trained"]["line.weight"]]          # after steps 1..5
+    weights = torch.tensor([0.6 ** (5 - s) for s in range(1, 6)])
+    expected = sum(w * x for w, x in zip(weights / weights.sum(), trained))
+    torch.testing.assert_close(state["model"]["line.weight"], expected)
+    assert not torch.allclose(state["model"]["line.weight"], state["trained"]["line.weight"])
+    # a run stopped and resumed averages as the straight one: training goes on from the trained weights
+    fit_regression(tmp_path / "stopped", 2)
+    _, resumed = fit_regression(tmp_path / "stopped", 5, resume=True)
+    assert_same_tensors(state["model"], resumed["model"])
+    assert_same_tensors(state["trained"], resumed["trained"])
+    with pytest.raises(XvoeError, match="average_decay must lie in"):
+        fit_regression(tmp_path / "bad", 1, decay=1.0)
 
 
 def test_data_at_another_resolution_is_refused(tiny_file, tmp_path, capsys):

@@ -3,7 +3,7 @@
 A stage hands over a `Job`: its model, a function from step to the local batch, and its
 config as JSON. The loop owns the rest: the optimiser and learning-rate schedule, the
 progress bar, a CSV of losses beside the checkpoint, atomic checkpoints (config, step,
-model, optimiser and RNG states) every few minutes, exact resumption, and running under
+model (or its moving average), optimiser and RNG states) every few minutes, exact resumption, and running under
 `torchrun --nproc_per_node N` with DistributedDataParallel (gloo on CPU, nccl on GPU).
 
 Batches are drawn from generators seeded by (seed, step, shard), so a resumed run repeats
@@ -126,6 +126,34 @@ def start_process(config: TrainConfig, place: Dist) -> TrainConfig:
     return config
 
 
+class WeightAverage:
+    """An exponential moving average of a model's weights, corrected for its start as Adam's
+    moments are: after t steps it weighs step s by decay**(t - s), normalised, so that a short
+    run's average is not pulled toward the first weights. The trained weights' noise at the
+    last steps (the batch drawn, the learning rate still high) averages out."""
+
+    def __init__(self, model: nn.Module, decay: float):
+        if not 0.0 < decay < 1.0:
+            raise XvoeError(f"average_decay must lie in (0, 1) or be 0 (off), not {decay}")
+        self.decay = decay
+        self.sources = model.state_dict()        # views of the parameters, updated in place by the optimiser
+        self.state = {name: value.detach().clone() for name, value in self.sources.items()}
+        self.floats = [name for name, value in self.state.items() if value.is_floating_point()]
+
+    def update(self, step: int) -> None:
+        """Take in the weights after `step` steps (1 for the first)."""
+        rate = (1.0 - self.decay) / (1.0 - self.decay ** step)
+        torch._foreach_lerp_([self.state[name] for name in self.floats],
+                             [self.sources[name].detach() for name in self.floats], rate)
+        for name, value in self.state.items():
+            if not value.is_floating_point():
+                value.copy_(self.sources[name])
+
+    def load(self, state: dict[str, torch.Tensor]) -> None:
+        for name, value in state.items():
+            self.state[name].copy_(value)
+
+
 class CsvLog:
     """Loss rows beside the checkpoint, one every `every` steps and one where a session ends.
 
@@ -187,9 +215,12 @@ def fit(job: Job, config: TrainConfig, run_dir: str | os.PathLike, *, place: Dis
     model = job.model.to(place.device)
     optimiser = torch.optim.Adam(model.parameters(), lr=config.lr)
     start, elapsed, meter = 0, 0.0, _Meter()
+    average = WeightAverage(model, config.average_decay) if config.average_decay else None
     if resume and ckpt.exists():
         state = load_checkpoint(ckpt)
-        model.load_state_dict(state["model"])
+        model.load_state_dict(state.get("trained", state["model"]))
+        if average:
+            average.load(state["model"])
         start, elapsed = state["step"], state.get("elapsed", 0.0)
         if "optimizer" in state:
             optimiser.load_state_dict(state["optimizer"])
@@ -218,9 +249,12 @@ def fit(job: Job, config: TrainConfig, run_dir: str | os.PathLike, *, place: Dis
 
     def checkpoint(step: int) -> None:
         if place.main:
+            # "model" is what every loader reads: the average when there is one
+            weights = {"model": average.state, "trained": model.state_dict()} if average else \
+                {"model": model.state_dict()}
             save_checkpoint(ckpt, {"format": CHECKPOINT_FORMAT, "stage": job.stage, "config": job.config,
                                    "train": to_dict(config), "step": step, "elapsed": elapsed,
-                                   "model": model.state_dict(), "optimizer": optimiser.state_dict(),
+                                   **weights, "optimizer": optimiser.state_dict(),
                                    "rng": rng_state(), "meta": job.meta, "world": place.world,
                                    "meter": {"sums": meter.sums, "count": meter.count}})
 
@@ -245,6 +279,8 @@ def fit(job: Job, config: TrainConfig, run_dir: str | os.PathLike, *, place: Dis
                 nn.utils.clip_grad_norm_(model.parameters(), config.grad_clip)
             optimiser.step()
             step += 1
+            if average:
+                average.update(step)
             elapsed = time.monotonic() - began
             meter.add({name: value.detach() for name, value in terms.items() if value.dim() == 0})
             if step % config.log_every == 0:

@@ -27,6 +27,9 @@ class TrainConfig:
     warmup_steps: int = 200         # linear warm-up of the learning rate
     decay_steps: int = 5000         # the learning rate halves every decay_steps after warm-up
     grad_clip: float = 0.0          # clip the gradient norm to this (0 = no clipping)
+    # the checkpoint's weights are a moving average of the trained ones, each step's weighed this
+    # much less than the next one's (0 = the last step's weights); training resumes from the trained ones
+    average_decay: float = 0.0
     seed: int = 0
     checkpoint_minutes: float = 3.0  # a checkpoint is written at least this often
     log_every: int = 10             # steps between rows of the loss CSV
