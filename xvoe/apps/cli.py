@@ -197,7 +197,7 @@ def add_train_parser(verbs) -> None:
         if stage not in AFTER_XPL:
             parser.add_argument("--recipe", default="cpu",
                                 help="the recipe whose sizes and settings start the run: cpu (default), cpu-walls "
-                                     "(a candidate) or paper")
+                                     "or cpu-short (candidates) or paper")
         parser.add_argument("--steps", type=_positive, help="training steps (default: the recipe's)")
         parser.add_argument("--minutes", type=_positive_float, help="stop after this many minutes of training")
         parser.add_argument("--batch-size", type=_positive,
@@ -344,7 +344,7 @@ def build_parser() -> argparse.ArgumentParser:
     pipeline.add_argument("--out", required=True, help="the run directory")
     pipeline.add_argument("--recipe", default="cpu",
                           help="every stage and setting of the models: cpu (default, the shipped models'), "
-                               "cpu-walls (a candidate) or paper")
+                               "cpu-walls or cpu-short (candidates) or paper")
     pipeline.add_argument("--train-videos", type=_positive, help="training videos (default: the recipe's, 10000)")
     pipeline.add_argument("--pairs", type=_positive, default=200, help="test pairs per setting (default 200)")
     pipeline.add_argument("--models", default="xpl,random",

@@ -7,10 +7,10 @@ that the shipped checkpoints' configs are their recipe's.
 from __future__ import annotations
 
 from ...errors import XvoeError
-from . import cpu, cpu_walls, paper
+from . import cpu, cpu_short, cpu_walls, paper
 from .recipe import MODEL_CONFIGS, PROPOSAL_FIELDS, Recipe, TrainConfig, stage_settings
 
-RECIPES: dict[str, Recipe] = {r.name: r for r in (cpu.RECIPE, cpu_walls.RECIPE, paper.RECIPE)}
+RECIPES: dict[str, Recipe] = {r.name: r for r in (cpu.RECIPE, cpu_walls.RECIPE, cpu_short.RECIPE, paper.RECIPE)}
 DEFAULT = "cpu"
 # checkpoints written before recipes named their preset; `cpu-broadcast` is today's `cpu`
 RENAMED = {"cpu-broadcast": "cpu"}
