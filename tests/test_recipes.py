@@ -63,7 +63,7 @@ def test_phases_continue_a_stage_and_the_last_is_what_a_run_holds():
 
 
 def test_an_unknown_recipe_is_a_one_line_error():
-    with pytest.raises(XvoeError, match="unknown recipe 'gpu'; choose one of cpu, cpu-walls, paper"):
+    with pytest.raises(XvoeError, match="unknown recipe 'gpu'; choose one of cpu, cpu-walls, cpu-short, paper"):
         recipe("gpu")
 
 
