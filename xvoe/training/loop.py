@@ -2,9 +2,9 @@
 
 A stage hands over a `Job`: its model, a function from step to the local batch, and its
 config as JSON. The loop owns the rest: the optimiser and learning-rate schedule, the
-progress bar, a CSV of losses beside the checkpoint, atomic checkpoints (config, step,
-model (or its moving average), optimiser and RNG states) every few minutes, exact resumption, and running under
-`torchrun --nproc_per_node N` with DistributedDataParallel (gloo on CPU, nccl on GPU).
+progress bar, a CSV of losses beside the checkpoint, atomic checkpoints (config, step, model
+or its moving average, optimiser and RNG states) every few minutes, exact resumption, and
+running under `torchrun --nproc_per_node N` with DistributedDataParallel (gloo on CPU, nccl on GPU).
 
 Batches are drawn from generators seeded by (seed, step, shard), so a resumed run repeats
 no batch and skips none, and N processes compute the gradient of the same global batch as
@@ -144,7 +144,7 @@ class WeightAverage:
         """Take in the weights after `step` steps (1 for the first)."""
         rate = (1.0 - self.decay) / (1.0 - self.decay ** step)
         torch._foreach_lerp_([self.state[name] for name in self.floats],
-                             [self.sources[name].detach() for name in self.floats], rate)
+                             [self.sources[name] for name in self.floats], rate)
         for name, value in self.state.items():
             if not value.is_floating_point():
                 value.copy_(self.sources[name])
