@@ -136,18 +136,18 @@ class WeightAverage:
         if not 0.0 < decay < 1.0:
             raise XvoeError(f"average_decay must lie in (0, 1) or be 0 (off), not {decay}")
         self.decay = decay
-        self.sources = model.state_dict()        # views of the parameters, updated in place by the optimiser
-        self.state = {name: value.detach().clone() for name, value in self.sources.items()}
-        self.floats = [name for name, value in self.state.items() if value.is_floating_point()]
+        sources = model.state_dict()        # views of the parameters, updated in place by the optimiser
+        self.state = {name: value.detach().clone() for name, value in sources.items()}
+        pairs = [(self.state[name], sources[name]) for name in self.state]
+        self.averaged = [average for average, _ in pairs if average.is_floating_point()]
+        self.trained = [source for average, source in pairs if average.is_floating_point()]
+        self.copied = [(average, source) for average, source in pairs if not average.is_floating_point()]  # counters
 
     def update(self, step: int) -> None:
         """Take in the weights after `step` steps (1 for the first)."""
-        rate = (1.0 - self.decay) / (1.0 - self.decay ** step)
-        torch._foreach_lerp_([self.state[name] for name in self.floats],
-                             [self.sources[name] for name in self.floats], rate)
-        for name, value in self.state.items():
-            if not value.is_floating_point():
-                value.copy_(self.sources[name])
+        torch._foreach_lerp_(self.averaged, self.trained, (1.0 - self.decay) / (1.0 - self.decay ** step))
+        for average, source in self.copied:
+            average.copy_(source)
 
     def load(self, state: dict[str, torch.Tensor]) -> None:
         for name, value in state.items():
