@@ -241,6 +241,60 @@ def test_cut_objects_do_not_depend_on_the_process_count(tiny_file):
     assert not torch.equal(whole.object_inputs, whole.objects)        # some were cut
 
 
+@pytest.fixture(scope="module")
+def falling_file(tmp_path_factory):
+    """A training split with permanence videos (cubes drop from above the picture) in both halves."""
+    path = tmp_path_factory.mktemp("falling") / "train16.h5"
+    return generate(GenerateConfig("train", videos=24, size=16, seed=3), path, workers=1, progress=False)
+
+
+def test_airborne_frames_are_those_whose_pictures_show_an_object_above_the_floor(falling_file):
+    """Read from the saved states, checked against the rendered masks of the balls and cubes: only
+    falling cubes leave the floor, so no other scenario has such a frame."""
+    import h5py
+    import numpy as np
+
+    from xvoe.training.data import airborne
+
+    with h5py.File(falling_file) as file:
+        lifted = airborne(file, 0, len(file["rgbd"]))
+        groups, ids, kind = file["group"].asstr()[:], file["ids"][:], file["kind"][:]
+        kinds = list(file.attrs["kind_names"])
+    floor_row = 16 * (1 - 12 / 64)                      # the floor's top, in pixels from the top
+    assert lifted[groups == "permanence"].any()
+    assert not lifted[groups != "permanence"].any()
+    for video, frame in np.argwhere(lifted):
+        movable = np.flatnonzero(np.isin(kind[video], [kinds.index("ball"), kinds.index("cube")])) + 1
+        rows = [np.nonzero(ids[video, frame] == slot)[0] for slot in movable]
+        assert any(len(r) and r.max() < floor_row - 1 for r in rows)
+
+
+def test_the_airborne_share_of_a_perception_batch(falling_file, tmp_path):
+    """That share of each shard's frames shows an object off the floor, drawn shard by shard so that
+    two processes' halves are the one process's batch; a share outside [0, 1] or a stage without
+    frames is refused."""
+    import h5py
+
+    from xvoe.training.data import airborne
+
+    common = dict(image_size=16, latent_dim=4, batch_size=8, shards=2, seed=3, airborne_share=0.5)
+    frames = ShardedFrames(str(falling_file), **common)
+    with h5py.File(falling_file) as file:
+        lifted = airborne(file, 0, len(file["rgbd"]))
+    video, frame = frames.picks(5)
+    shards = [list(zip(video[:4], frame[:4])), list(zip(video[4:], frame[4:]))]
+    assert [[bool(lifted[v, f]) for v, f in shard[2:]] for shard in shards] == [[True, True]] * 2
+    assert all(v < 12 for v, _ in shards[0]) and all(v >= 12 for v, _ in shards[1])
+    whole = frames.batch(5)
+    halves = [ShardedFrames(str(falling_file), rank=r, world=2, **common).batch(5) for r in (0, 1)]
+    assert torch.equal(torch.cat([h.frames for h in halves]), whole.frames)
+    with pytest.raises(XvoeError, match="airborne_share must lie in"):
+        ShardedFrames(str(falling_file), **(common | {"airborne_share": 1.5}))
+    job = Job("xpl", nn.Linear(1, 1), lambda step: None, {})
+    with pytest.raises(XvoeError, match="the xpl stage has none"):
+        fit(job, TrainConfig(steps=1, airborne_share=0.5), tmp_path, progress=False)
+
+
 def test_bad_input_in_training_processes_reads_as_it_does_in_one(tmp_path):
     """A stage started by `on_cores` in two processes stops with the stage's own message."""
     from xvoe.training.launch import on_cores

@@ -17,6 +17,7 @@ import torch
 from torch import Tensor
 
 from ..benchmark import store
+from ..benchmark.world import FLOOR, WORLD
 from ..errors import XvoeError
 from ..models.perception import BLANK, PerceptionBatch, normalise
 
@@ -202,6 +203,41 @@ def focus_on(path: str, owned: Ownership, group: str, share: float) -> Focus:
     return Focus(rows, count)
 
 
+def airborne_frames_of(path: str, owned: Ownership, share: float) -> Focus:
+    """TrainConfig.airborne_share for the perception stage: per owned shard, the (file row, frame)
+    pairs in which a ball or cube is off the floor, and how many of each shard's frames per batch
+    come from them. Such frames are a few percent of a split (falling cubes), too few for the
+    encoder and decoder to learn to draw an object there."""
+    if not 0.0 <= share <= 1.0:
+        raise XvoeError(f"airborne_share must lie in [0, 1], not {share}")
+    count = round(owned.per_shard * share)
+    if share and not count:
+        raise XvoeError(f"airborne_share {share} of the {owned.per_shard} frames each shard gives a batch "
+                        f"rounds to none")
+    if not count:
+        return Focus([], 0)
+    with store.open_dataset(path) as file:
+        found = np.argwhere(airborne(file, owned.start, owned.stop)) + [owned.start, 0]
+    rows = [found[(found[:, 0] >= start) & (found[:, 0] < stop)] for start, stop in owned.bounds]
+    for (start, stop), pairs in zip(owned.bounds, rows):
+        if not len(pairs):
+            raise XvoeError(f"{path} has no frame with a ball or cube off the floor in rows {start} to {stop - 1}")
+    return Focus(rows, count)
+
+
+def airborne(file: h5py.File, start: int, stop: int) -> np.ndarray:
+    """(videos, T) bool: frames of rows [start, stop) in which a visible ball or cube's lowest
+    point is at least its own half-size above the floor (states are in pixels, y downwards)."""
+    columns = list(file["states"].attrs["state_columns"])
+    states = file["states"][start:stop]
+    y, size = states[..., columns.index("y")], states[..., columns.index("size")]
+    kinds = list(file.attrs["kind_names"])
+    movable = np.isin(file["kind"][start:stop], [kinds.index("ball"), kinds.index("cube")])[:, None, :]
+    floor_row = frame_size(file) * (1.0 - FLOOR / WORLD)
+    lifted = (states[..., columns.index("visible")] > 0) & movable & (y + 2 * size <= floor_row)
+    return lifted.any(axis=2)
+
+
 def focus_videos(file: h5py.File, group: str, start: int, stop: int) -> np.ndarray:
     """Rows in [start, stop) of a training split's `group` videos that have a wall; `group` may
     name several, comma-separated (permanence,continuity), to hold more than one kind of hidden
@@ -225,7 +261,8 @@ class ShardedFrames:
     """
 
     def __init__(self, path: str, *, image_size: int, latent_dim: int, batch_size: int, shards: int,
-                 rank: int = 0, world: int = 1, max_videos: int = 0, seed: int = 0, cut_share: float = 0.0):
+                 rank: int = 0, world: int = 1, max_videos: int = 0, seed: int = 0, cut_share: float = 0.0,
+                 airborne_share: float = 0.0):
         with store.open_dataset(path, split="train") as file:
             check_size(file, image_size)
             videos = file["rgbd"].shape[0]
@@ -236,23 +273,36 @@ class ShardedFrames:
         self.data = load_slice(path, owned.start, owned.stop)
         self.latent_dim, self.seed, self.cut_share = latent_dim, seed, cut_share
         self.frames = self.data.rgbd.shape[1]
+        self.airborne = airborne_frames_of(path, owned, airborne_share)
 
     def batch(self, step: int) -> PerceptionBatch:
         """The local part of the global batch of `step`; the same whoever asks, whenever."""
-        picks, noises = [], []
-        for shard, (start, stop) in zip(self.shards, self.bounds):
-            rng = np.random.default_rng([self.seed, step, shard])
-            video = rng.integers(start, stop, self.per_shard) - self.data.start
-            frame = rng.integers(0, self.frames, self.per_shard)
-            picks.append((video, frame))
-            noises.append(rng.standard_normal((self.per_shard, self.slots + 1, self.latent_dim), dtype=np.float32))
-        video = np.concatenate([p[0] for p in picks])
-        frame = np.concatenate([p[1] for p in picks])
+        video, frame, noise = self._draw(step)
+        video -= self.data.start
         blank_noise = np.random.default_rng([self.seed, step, BLANK_SEED]).standard_normal(
             (1, self.latent_dim), dtype=np.float32)
         cuts = partial(self.cuts, step) if self.cut_share else None
         return perception_batch(self.data.rgbd[video, frame], self.data.ids[video, frame], self.slots,
-                                np.concatenate(noises), blank_noise, cuts)
+                                noise, blank_noise, cuts)
+
+    def picks(self, step: int) -> tuple[np.ndarray, np.ndarray]:
+        """The file rows and frames of the local part of `step`'s batch, in batch order."""
+        return self._draw(step)[:2]
+
+    def _draw(self, step: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """File rows, frames and reparameterisation noise of `step`, shard by shard."""
+        videos, frames, noises = [], [], []
+        for index, (shard, (start, stop)) in enumerate(zip(self.shards, self.bounds)):
+            rng = np.random.default_rng([self.seed, step, shard])
+            uniform = self.per_shard - self.airborne.count
+            videos.append(rng.integers(start, stop, uniform))
+            frames.append(rng.integers(0, self.frames, uniform))
+            if self.airborne.count:
+                lifted = rng.choice(self.airborne.rows[index], self.airborne.count)
+                videos[-1], frames[-1] = (np.concatenate([videos[-1], lifted[:, 0]]),
+                                          np.concatenate([frames[-1], lifted[:, 1]]))
+            noises.append(rng.standard_normal((self.per_shard, self.slots + 1, self.latent_dim), dtype=np.float32))
+        return np.concatenate(videos), np.concatenate(frames), np.concatenate(noises)
 
     def cuts(self, step: int, object_frame: Tensor) -> np.ndarray:
         """The cut plan of a step's objects, drawn shard by shard (the objects come in frame order,

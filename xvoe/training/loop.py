@@ -208,6 +208,8 @@ def fit(job: Job, config: TrainConfig, run_dir: str | os.PathLike, *, place: Dis
     shipped checkpoint (weights only), the weights and step do, with a fresh optimiser.
     """
     place = place or Dist()
+    if config.airborne_share and job.stage != "perception":
+        raise XvoeError(f"airborne_share picks the perception stage's frames; the {job.stage} stage has none")
     run_dir = claim_directory(run_dir)
     ckpt, log = checkpoint_path(run_dir, job.stage), log_path(run_dir, job.stage)
     if ckpt.exists() and not (resume or overwrite):

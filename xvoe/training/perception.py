@@ -62,7 +62,7 @@ def train_perception(data: str | os.PathLike | None, run_dir: str | os.PathLike,
     frames = ShardedFrames(str(data), image_size=model_config.image_size, latent_dim=model_config.latent_dim,
                            batch_size=config.batch_size, shards=config.data_shards, rank=place.rank,
                            world=place.world, max_videos=config.max_videos, seed=config.seed,
-                           cut_share=model_config.cut_share)
+                           cut_share=model_config.cut_share, airborne_share=config.airborne_share)
     job = Job("perception", model, frames.batch, {"recipe": recipe_name, "perception": to_dict(model_config)},
               items=lambda batch: batch.images, meta={"data": str(Path(data).resolve())})
     return fit(job, config, run_dir, place=place, resume=resume, overwrite=overwrite, progress=progress)

@@ -44,6 +44,9 @@ class TrainConfig:
     # was encoded from)
     focus_group: str = ""
     focus_share: float = 0.0
+    # the perception stage alone: this share of each batch's frames shows a ball or cube off the
+    # floor (0 = frames drawn uniformly)
+    airborne_share: float = 0.0
 
 
 @dataclass(frozen=True)
