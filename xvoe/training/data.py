@@ -203,11 +203,18 @@ def focus_on(path: str, owned: Ownership, group: str, share: float) -> Focus:
     return Focus(rows, count)
 
 
-def airborne_frames_of(path: str, owned: Ownership, share: float) -> Focus:
-    """TrainConfig.airborne_share for the perception stage: per owned shard, the (file row, frame)
-    pairs in which a ball or cube is off the floor, and how many of each shard's frames per batch
-    come from them. Such frames are a few percent of a split (falling cubes), too few for the
-    encoder and decoder to learn to draw an object there."""
+@dataclass
+class AirborneFrames:
+    """TrainConfig.airborne_share for the perception stage. Frames with a ball or cube off the
+    floor are a few percent of a split (falling cubes), too few for the encoder and decoder to
+    learn to draw an object there."""
+
+    pairs: list[np.ndarray]  # per owned shard: (n, 2) file rows and frames with an object off the floor
+    count: int               # how many of the shard's frames per batch come from them
+
+
+def airborne_frames_of(path: str, owned: Ownership, share: float) -> AirborneFrames:
+    """The AirborneFrames of `share` for the shards a process owns of the training split at `path`."""
     if not 0.0 <= share <= 1.0:
         raise XvoeError(f"airborne_share must lie in [0, 1], not {share}")
     count = round(owned.per_shard * share)
@@ -215,14 +222,14 @@ def airborne_frames_of(path: str, owned: Ownership, share: float) -> Focus:
         raise XvoeError(f"airborne_share {share} of the {owned.per_shard} frames each shard gives a batch "
                         f"rounds to none")
     if not count:
-        return Focus([], 0)
+        return AirborneFrames([], 0)
     with store.open_dataset(path) as file:
         found = np.argwhere(airborne(file, owned.start, owned.stop)) + [owned.start, 0]
     rows = [found[(found[:, 0] >= start) & (found[:, 0] < stop)] for start, stop in owned.bounds]
     for (start, stop), pairs in zip(owned.bounds, rows):
         if not len(pairs):
             raise XvoeError(f"{path} has no frame with a ball or cube off the floor in rows {start} to {stop - 1}")
-    return Focus(rows, count)
+    return AirborneFrames(rows, count)
 
 
 def airborne(file: h5py.File, start: int, stop: int) -> np.ndarray:
@@ -298,7 +305,7 @@ class ShardedFrames:
             videos.append(rng.integers(start, stop, uniform))
             frames.append(rng.integers(0, self.frames, uniform))
             if self.airborne.count:
-                lifted = rng.choice(self.airborne.rows[index], self.airborne.count)
+                lifted = rng.choice(self.airborne.pairs[index], self.airborne.count)
                 videos[-1], frames[-1] = (np.concatenate([videos[-1], lifted[:, 0]]),
                                           np.concatenate([frames[-1], lifted[:, 1]]))
             noises.append(rng.standard_normal((self.per_shard, self.slots + 1, self.latent_dim), dtype=np.float32))
