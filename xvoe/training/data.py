@@ -182,25 +182,38 @@ class Focus:
         return np.concatenate([rows, rng.choice(self.rows[index], self.count)]) if self.count else rows
 
 
+def share_count(field: str, share: float, per_shard: int, items: str) -> int:
+    """How many of the `per_shard` items each shard gives a batch the TrainConfig share `field`
+    takes; a share outside [0, 1], or one that rounds to none, is refused."""
+    if not 0.0 <= share <= 1.0:
+        raise XvoeError(f"{field} must lie in [0, 1], not {share}")
+    count = round(per_shard * share)
+    if share and not count:
+        raise XvoeError(f"{field} {share} of the {per_shard} {items} each shard gives a batch rounds to none")
+    return count
+
+
+def split_by_shard(path: str, owned: Ownership, found: np.ndarray, rows: np.ndarray, what: str) -> list[np.ndarray]:
+    """`found` (one entry per file row of `rows`) split among the owned shards; every shard must
+    hold some, `what` naming them in the error."""
+    parts = [found[(rows >= start) & (rows < stop)] for start, stop in owned.bounds]
+    for (start, stop), part in zip(owned.bounds, parts):
+        if not len(part):
+            raise XvoeError(f"{path} has no {what} in rows {start} to {stop - 1}")
+    return parts
+
+
 def focus_on(path: str, owned: Ownership, group: str, share: float) -> Focus:
     """The Focus of TrainConfig.focus_group / focus_share for the shards a process owns of the
     training split at `path`."""
-    if not 0.0 <= share <= 1.0:
-        raise XvoeError(f"focus_share must lie in [0, 1], not {share}")
-    if share and not group:
+    if 0.0 <= share <= 1.0 and share and not group:
         raise XvoeError("focus_share needs a focus_group (e.g. permanence)")
-    count = round(owned.per_shard * share)
-    if share and not count:
-        raise XvoeError(f"focus_share {share} of the {owned.per_shard} videos each shard gives a batch rounds to none")
+    count = share_count("focus_share", share, owned.per_shard, "videos")
     if not count:
         return Focus([], 0)
     with store.open_dataset(path) as file:
         found = focus_videos(file, group, owned.start, owned.stop)
-    rows = [found[(found >= start) & (found < stop)] for start, stop in owned.bounds]
-    for (start, stop), videos in zip(owned.bounds, rows):
-        if not len(videos):
-            raise XvoeError(f"{path} has no {group} videos with a wall in rows {start} to {stop - 1}")
-    return Focus(rows, count)
+    return Focus(split_by_shard(path, owned, found, found, f"{group} videos with a wall"), count)
 
 
 @dataclass
@@ -215,21 +228,13 @@ class AirborneFrames:
 
 def airborne_frames_of(path: str, owned: Ownership, share: float) -> AirborneFrames:
     """The AirborneFrames of `share` for the shards a process owns of the training split at `path`."""
-    if not 0.0 <= share <= 1.0:
-        raise XvoeError(f"airborne_share must lie in [0, 1], not {share}")
-    count = round(owned.per_shard * share)
-    if share and not count:
-        raise XvoeError(f"airborne_share {share} of the {owned.per_shard} frames each shard gives a batch "
-                        f"rounds to none")
+    count = share_count("airborne_share", share, owned.per_shard, "frames")
     if not count:
         return AirborneFrames([], 0)
     with store.open_dataset(path) as file:
         found = np.argwhere(airborne(file, owned.start, owned.stop)) + [owned.start, 0]
-    rows = [found[(found[:, 0] >= start) & (found[:, 0] < stop)] for start, stop in owned.bounds]
-    for (start, stop), pairs in zip(owned.bounds, rows):
-        if not len(pairs):
-            raise XvoeError(f"{path} has no frame with a ball or cube off the floor in rows {start} to {stop - 1}")
-    return AirborneFrames(rows, count)
+    return AirborneFrames(split_by_shard(path, owned, found, found[:, 0], "frame with a ball or cube off the floor"),
+                          count)
 
 
 def airborne(file: h5py.File, start: int, stop: int) -> np.ndarray:
