@@ -14,7 +14,15 @@ import torch
 from torch import Tensor, nn
 
 from .dynamics import DynamicsConfig, InteractionLSTM, mlp
-from .reasoning import ReasoningConfig, ReasoningTransformer, gaussian_nll, hide_slot, never_seen, occlusion_keep
+from .reasoning import (
+    ReasoningConfig,
+    ReasoningTransformer,
+    gaussian_nll,
+    hide_slot,
+    interpolate_seen,
+    never_seen,
+    occlusion_keep,
+)
 
 
 @dataclass(frozen=True)
@@ -65,6 +73,11 @@ class XPLConfig:
     # stage alone, and the joint step costs a third less, since nothing else in it reads them
     # (docs/decisions.md, "Not kept: Transformer 2 out of the joint stage")
     joint_proposal: bool = True
+    # each hidden token of Transformer 1 reads the straight line between its slot's nearest seen
+    # latents, not the [M] token alone: from [M] alone its fill of a cube at rest between two seen
+    # frames missed by about the cube's width (docs/decisions.md, "Transformer 1 reads the line
+    # between seen latents")
+    fill_from_neighbours: bool = False
 
 
 class XPL(nn.Module):
@@ -98,7 +111,12 @@ class XPL(nn.Module):
         bool, the wall slots, are needed if Transformer 1 ignores them."""
         if not self.config.use_reasoning:
             return z
-        return self.transformer1(z, occlusion_keep(visible), self.unread_walls(visible, walls))[0]
+        return self.fill(z, occlusion_keep(visible), self.unread_walls(visible, walls))
+
+    def fill(self, z: Tensor, keep: Tensor, unread: Tensor | None) -> Tensor:
+        """Transformer 1's latents (B, T, K, D): z where kept, filled elsewhere."""
+        guess = interpolate_seen(z, keep) if self.config.fill_from_neighbours else None
+        return self.transformer1(z, keep, unread, guess)[0]
 
     def unread_walls(self, visible: Tensor, walls: Tensor | None) -> Tensor | None:
         """Transformer 1's unread entries (B, T, K): the walls' if the config says so, else None."""
@@ -170,7 +188,7 @@ class XPL(nn.Module):
         out = {}
         if self.config.use_reasoning:
             keep, unread = occlusion_keep(visible), self.unread_walls(visible, walls)
-            refined = self.transformer1(z, keep & ~refill, unread)[0]
+            refined = self.fill(z, keep & ~refill, unread)
             rebuilt = refill | (outside & ~keep)
             if unread is not None:                 # what Transformer 1 does not read, it does not rebuild
                 rebuilt = rebuilt & ~unread
