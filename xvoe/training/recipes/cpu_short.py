@@ -19,10 +19,7 @@ RECIPE = replace(
     # frames otherwise, and falling cubes were encoded as nothing (docs/decisions.md, "Frames of
     # objects in the air")
     perception_train=replace(WALLS.perception_train, steps=4_000, decay_steps=3_333, airborne_share=0.25),
-    # Transformer 1's hidden tokens read the line between each slot's seen latents: from the [M] token
-    # alone it filled a cube at rest about its own width off (docs/decisions.md, "Transformer 1 reads
-    # the line between seen latents")
-    xpl=replace(WALLS.xpl, joint_proposal=False, fill_from_neighbours=True),
+    xpl=replace(WALLS.xpl, joint_proposal=False),
     xpl_train=replace(WALLS.xpl_train, steps=9_000, decay_steps=6_000, average_decay=0.999),
     # half of each proposal batch from blocking videos with a wall: there a hidden cube's place shows
     # in the ball's path; most hidden objects elsewhere leave no trace to learn from
