@@ -55,7 +55,7 @@ def test_interpolate_seen_draws_the_line_between_the_nearest_kept_entries():
     guess = interpolate_seen(z, keep)
     assert guess[0, :, 0, 0].tolist() == [0, 10, 20, 30, 30, 30]     # the line, then held after the last
     assert guess[0, :, 1, 1].tolist() == [21, 21, 21, 21, 21, 21]     # held either side of the one kept
-    assert torch.equal(guess[0, :, 2], z[0, :, 2])                    # kept nowhere: left as it is
+    assert torch.equal(guess[0, :, 2], torch.zeros(6, 2))             # kept nowhere: nothing of its values
     assert torch.equal(guess[keep], z[keep])
 
 
@@ -88,6 +88,12 @@ def test_fill_from_neighbours_reads_no_hidden_value_and_learns_to_hold_an_object
             errors[reads_line] = (((model.refine(z, visible) - z) ** 2).sum(-1)[~visible]).mean().item()
             scrambled = torch.where(visible.unsqueeze(-1), z, torch.randn_like(z) * 50)
             torch.testing.assert_close(model.refine(scrambled, visible), model.refine(z, visible))
+            # in training a refill span can hide a slot in every frame it is seen: still nothing leaks
+            everywhere = visible.clone()
+            everywhere[:, :, 0] = False
+            refined = model.transformer1(scrambled, everywhere, None, interpolate_seen(scrambled, everywhere))[0]
+            again = model.transformer1(z, everywhere, None, interpolate_seen(z, everywhere))[0]
+            torch.testing.assert_close(refined, again)
     assert errors[True] < 0.1 * D < errors[False]     # a latent's own variance is D
 
 

@@ -79,23 +79,24 @@ def occlusion_keep(visible: Tensor) -> Tensor:
 
 def interpolate_seen(z: Tensor, keep: Tensor) -> Tensor:
     """Each hidden entry of z (B, T, K, D) as the straight line between its slot's nearest kept
-    entries before and after it, or the one kept entry on its side if the other has none
-    (entries of slots kept nowhere are left as they are): what a hidden token of Transformer 1
-    can start from (docs/decisions.md, "Transformer 1 reads the line between seen latents")."""
+    entries before and after it, or the one kept entry on its side if the other has none; zero
+    where its slot is kept nowhere (its own value must not leak into the guess): what a hidden
+    token of Transformer 1 can start from (docs/decisions.md, "Transformer 1 reads the line
+    between seen latents")."""
     batch, frames, slots, dim = z.shape
     t = torch.arange(frames, device=z.device).view(1, frames, 1).expand(batch, frames, slots)
     before = torch.where(keep, t, torch.full_like(t, -1)).cummax(dim=1).values
     after = torch.where(keep, t, torch.full_like(t, frames)).flip(1).cummin(dim=1).values.flip(1)
+    has_before, has_after = before >= 0, after < frames
+    start, end = torch.where(has_before, before, after), torch.where(has_after, after, before)
 
     def at(index: Tensor) -> Tensor:
         return torch.gather(z, 1, index.clamp(0, frames - 1).unsqueeze(-1).expand_as(z))
 
-    has_before, has_after = (before >= 0).unsqueeze(-1), (after < frames).unsqueeze(-1)
-    share = ((t - before) / (after - before).clamp_min(1)).unsqueeze(-1).to(z.dtype)
-    line = torch.lerp(at(before), at(after), share)
-    guess = torch.where(has_before & has_after, line,
-                        torch.where(has_before, at(before), torch.where(has_after, at(after), z)))
-    return torch.where(keep.unsqueeze(-1), z, guess)
+    share = ((t - start) / (end - start).clamp_min(1)).unsqueeze(-1).to(z.dtype)
+    line = torch.lerp(at(start), at(end), share)       # one-sided: start == end, the kept entry itself
+    line = torch.where((has_before | has_after).unsqueeze(-1), line, torch.zeros_like(z))
+    return torch.where(keep.unsqueeze(-1), z, line)
 
 
 def never_seen(visible: Tensor) -> Tensor:
