@@ -6,6 +6,7 @@ from dataclasses import replace
 
 import pytest
 
+from xvoe.apps.pipeline import stage_processes
 from xvoe.benchmark.generate import GenerateConfig
 from xvoe.errors import XvoeError
 from xvoe.training.checkpoints import WEIGHTS, load_checkpoint
@@ -70,3 +71,19 @@ def test_an_unknown_recipe_is_a_one_line_error():
 def test_older_checkpoints_name_a_preset_and_the_renamed_one_is_found():
     assert recipe_of({"preset": "cpu-broadcast"}) == "cpu"
     assert recipe_of({"recipe": "paper"}) == "paper"
+
+
+@pytest.mark.parametrize("name", ["cpu", "cpu-walls", "cpu-short"])
+def test_the_cpu_recipes_fix_every_stages_data_shards(name):
+    """Left at 0, a stage's shards are the processes of its first launch, one per core in the
+    pipeline: the same command would draw other batches, and make another model, on another machine."""
+    made = recipe(name)
+    stages = ("perception", "xpl", "proposal", "plato", "phydnet")
+    trainings = [made.training(stage) for stage in stages] + [train for _, train in made.phases]
+    assert all(train.data_shards > 0 for train in trainings)
+
+
+@pytest.mark.parametrize(("wanted", "shards", "processes"), [(1, 2, 1), (2, 2, 2), (8, 2, 2), (3, 4, 2),
+                                                              (4, 4, 4), (3, 0, 3), (5, 1, 1)])
+def test_a_stage_trains_in_as_many_processes_as_split_its_shards(wanted, shards, processes):
+    assert stage_processes(wanted, TrainConfig(batch_size=8, data_shards=shards)) == processes

@@ -152,8 +152,9 @@ def test_two_processes_under_torchrun_match_one_process(tiny_file, tmp_path):
     script.write_text(textwrap.dedent(SCRIPT.format(tiny=TINY)))
     one, two = tmp_path / "one", tmp_path / "two"
     subprocess.run([sys.executable, str(script), str(tiny_file), str(one)], check=True, timeout=120)
-    subprocess.run([sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc_per_node", "2",
-                    str(script), str(tiny_file), str(two)], check=True, timeout=180, capture_output=True)
+    done = subprocess.run([sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc_per_node", "2",
+                           str(script), str(tiny_file), str(two)], timeout=180, capture_output=True, text=True)
+    assert done.returncode == 0, done.stderr[-3000:]      # what torchrun said, should it fail
     single, double = load_checkpoint(one / "perception.pt"), load_checkpoint(two / "perception.pt")
     assert double["world"] == 2 and single["world"] == 1 and double["step"] == 4
     for name, weight in single["model"].items():
@@ -313,7 +314,7 @@ from xvoe.training.launch import on_cores
 from xvoe.training.perception import train_perception
 if __name__ == "__main__":
     on_cores(train_perception, 2, data=sys.argv[1], run_dir=sys.argv[2], steps=100_000, model_overrides={tiny!r},
-             progress=False, batch_size=8, log_every=2, warmup_steps=2)
+             progress=False, batch_size=8, log_every=2, warmup_steps=2, data_shards=2)
 """
 
 

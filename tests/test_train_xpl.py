@@ -129,6 +129,8 @@ def test_batches_do_not_depend_on_the_process_count(cache):
     halves = [LatentBatches(str(cache), batch_size=8, shards=2, rank=r, world=2, seed=3).batch(7) for r in (0, 1)]
     assert torch.equal(one.mean, torch.cat([h.mean for h in halves]))
     assert torch.equal(one.order, torch.cat([h.order for h in halves]))
+    with pytest.raises(XvoeError, match="multiple of the 4 processes: train in 1, 2 processes, or change"):
+        LatentBatches(str(cache), batch_size=8, shards=2, rank=0, world=4, seed=3)
 
 
 def test_errors(cache, tmp_path):
@@ -166,9 +168,9 @@ def test_the_proposal_stage_trains_transformer2_alone_and_overlays_xpl(cache, tm
         train_proposal(tmp_path, cache, progress=False)
     train_xpl(cache, tmp_path, progress=False, **{**TINY, "steps": 20})
     joint, _ = load_xpl(tmp_path)
-    path = train_proposal(tmp_path, progress=False, **{**TINY, "steps": 60})      # the cache from xpl.pt's meta
-    rows = losses(tmp_path, "proposal")
-    assert float(rows[-1]["mae"]) < float(rows[0]["mae"])
+    path = train_proposal(tmp_path, progress=False, **{**TINY, "steps": 150})      # the cache from xpl.pt's meta
+    mae = [float(row["mae"]) for row in losses(tmp_path, "proposal")]
+    assert np.mean(mae[-5:]) < np.mean(mae[:5]) - 0.5      # a row's batch noise is about 0.5
     state = torch.load(path, weights_only=False)
     assert state["model"] and all(name.startswith(("transformer2.", "existence.")) for name in state["model"])
     tuned, loaded = load_xpl(tmp_path)

@@ -356,7 +356,8 @@ def build_parser() -> argparse.ArgumentParser:
                                "one at a time); more lanes hold more memory")
     pipeline.add_argument("--train-processes", type=int, default=0,
                           help="one-thread processes that train the XPL, proposal and PLATO stages together "
-                               "(default 0: one per core)")
+                               "(default 0: one per core), at most as many as a stage has data shards and a "
+                               "divisor of them, so that the batches are the same on any machine")
     pipeline.add_argument("--quiet", action="store_true", help="no progress bars")
     pipeline.set_defaults(run=cmd_pipeline)
 

@@ -59,7 +59,8 @@ class PipelineConfig:
     jobs: int = 1       # models trained side by side, each with cores/jobs threads (0: one per core); they hold
                         # more memory together (docs/decisions.md, "Pipeline lanes")
     train_processes: int = 0    # one-thread processes that train the XPL, proposal and PLATO stages together (0:
-                                # one per core; with --jobs above 1, each lane trains in one process)
+                                # one per core; with --jobs above 1, each lane trains in one process); fewer
+                                # where a stage's data shards do not split among them (`stage_processes`)
 
     def __post_init__(self) -> None:
         if not self.models:
@@ -155,21 +156,23 @@ def run_files(run_dir: Path) -> tuple[Path, Path, Path]:
 def _model_stages(config: PipelineConfig, model: str, stages: Stages, bars: bool, score: bool = True,
                   processes: int = 1) -> None:
     """Train (with the proposal stage for xpl) and score one model, skipping what is done; the
-    XPL, proposal and PLATO stages in `processes` one-thread processes when above 1."""
+    XPL, proposal and PLATO stages in up to `processes` one-thread processes (`stage_processes`)."""
     run_dir = Path(config.out)
     train_data, test_data, latents = run_files(run_dir)
-    phases = recipe(config.recipe).phases_of(model)
+    chosen = recipe(config.recipe)
+    phases = chosen.phases_of(model)
     if model in TRAINED:
         stage, residual = TRAINED[model]
 
         def train(phase: dict) -> object:
-            return on_cores(train_xpl, processes, recipe(config.recipe), latents=latents, run_dir=run_dir,
-                            stage=stage, recipe_name=config.recipe, residual=residual, progress=bars,
+            return on_cores(train_xpl, stage_processes(processes, chosen.training(model)), chosen, latents=latents,
+                            run_dir=run_dir, stage=stage, recipe_name=config.recipe, residual=residual, progress=bars,
                             resume=checkpoint_path(run_dir, model).exists(), **phase)
         _train_phases(stages, model, train, phases, config.seed)
         if model == "xpl":
             stages.run("train-proposal", lambda: on_cores(
-                train_proposal, processes, recipe(config.recipe), run_dir=run_dir, latents=latents, progress=bars,
+                train_proposal, stage_processes(processes, chosen.proposal_train), chosen, run_dir=run_dir,
+                latents=latents, progress=bars,
                 resume=checkpoint_path(run_dir, "proposal").exists(), seed=config.seed))
     if model == "phydnet":
         def train(phase: dict) -> object:
@@ -181,6 +184,16 @@ def _model_stages(config: PipelineConfig, model: str, stages: Stages, bars: bool
     reference = "random" if model == "random" else str(checkpoint_path(run_dir, model))
     stages.run(f"score-{model}", lambda: score_split(
         reference, str(test_data), str(run_dir / "scores" / f"{model}.csv"), overwrite=True, progress=bars))
+
+
+def stage_processes(wanted: int, training: TrainConfig) -> int:
+    """The most processes, up to `wanted`, among which a stage's data shards split evenly (any
+    number when the stage leaves its shards to the first launch): a recipe that fixes its shards
+    then draws the same batches on every machine."""
+    shards = training.data_shards
+    if not shards:
+        return wanted
+    return max(count for count in range(1, min(wanted, shards) + 1) if shards % count == 0)
 
 
 def _train_phases(stages: Stages, model: str, train: Callable[[dict], object], phases: tuple[TrainConfig, ...],

@@ -155,7 +155,10 @@ def owned_shards(path: str, videos: int, *, batch_size: int, shards: int, rank: 
                  max_videos: int = 0) -> Ownership:
     """Cut `videos` into `shards` slices and give process `rank` of `world` its contiguous run."""
     if shards % world:
-        raise XvoeError(f"data_shards {shards} is not a multiple of the {world} processes")
+        fits = ", ".join(str(count) for count in range(1, shards + 1) if shards % count == 0)
+        raise XvoeError(f"data_shards {shards} is not a multiple of the {world} processes: train in "
+                        f"{'one process' if shards == 1 else fits + ' processes'}, or change the batches "
+                        f"with --set data_shards=N")
     if batch_size % shards:
         raise XvoeError(f"batch_size {batch_size} is not a multiple of data_shards {shards}")
     videos = min(videos, max_videos) if max_videos else videos

@@ -13,15 +13,21 @@ from ...models.phydnet import PhyDNetConfig
 from ...models.xpl import XPLConfig
 from .recipe import Recipe, TrainConfig
 
-PLATO = TrainConfig(steps=60_000, batch_size=32, warmup_steps=100, decay_steps=15_000)
-PHYDNET = TrainConfig(steps=7_500, batch_size=8, lr=2e-3, warmup_steps=100, decay_steps=2_500)
+# The stages the pipeline trains in one process per core draw their batches from two fixed data
+# shards, the others from one: a stage's batches, and so its model, are then the same on one core,
+# two or four (docs/decisions.md, "Batches that do not depend on the cores").
+SHARDS = 2
+PLATO = TrainConfig(steps=60_000, batch_size=32, warmup_steps=100, decay_steps=15_000, data_shards=SHARDS)
+PHYDNET = TrainConfig(steps=7_500, batch_size=8, lr=2e-3, warmup_steps=100, decay_steps=2_500, data_shards=1)
 
 RECIPE = Recipe(
     name="cpu",
     train_videos=10_000,
     perception=PerceptionConfig(),
+    perception_train=TrainConfig(data_shards=1),
     xpl=XPLConfig(inert_walls=True, stop_input_gradient=True, outside_refill=True),
-    xpl_train=TrainConfig(steps=12_000, batch_size=32, warmup_steps=100, decay_steps=8_000),
+    xpl_train=TrainConfig(steps=12_000, batch_size=32, warmup_steps=100, decay_steps=8_000, data_shards=SHARDS),
+    proposal_train=TrainConfig(steps=4_000, batch_size=32, warmup_steps=100, decay_steps=1_500, data_shards=SHARDS),
     # the NLL's learned trajectory proposal (docs/decisions.md, "The trajectory proposal: mixed
     # with the fused ones, off by default")
     trajectory_train=TrainConfig(steps=4_000, batch_size=32, lr=1e-3, warmup_steps=100, decay_steps=1_500),
