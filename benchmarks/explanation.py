@@ -15,7 +15,8 @@ Also the paper's Fig. 5b: the spread of the first ten principal components of th
 targets with the residual (z(t+1) - z(t)) and without it (z(t+1)).
 (d) fill_iou: permanence S1 expected videos, Transformer 1's fills of the cubes a wall hides
     after they were seen, against their true silhouettes (and the centre's offset, also at the
-    frame before the wall is lifted: what the MSE score's dynamics term pays at the reveal).
+    frame before the wall is lifted: what the MSE score's dynamics term pays at the reveal), and the
+    IoU by frames before each cube is seen again.
 Also why hidden_iou falls short (the decoded centre's offset, area and empty frames) and its
 ceiling: the IoU of a wholly visible cube's own latent, decoded (blocking S1).
 Last line: hidden_iou=0.NN mae_iou=0.NN fill_iou=0.NN dyn_mse=...
@@ -105,12 +106,14 @@ def hidden_fills(scorer, file, videos: list[int], names: list[str], columns: lis
     """Transformer 1's fills of the cubes a wall hides after they were seen (permanence S1,
     expected member: they fall behind it, land, and are shown again), against their true
     silhouettes in the hidden frames: the mean IoU, the decoded centre's offset (pixels,
-    median), the offset at the last hidden frame alone, and the share of fills that draw more
-    than three times the cube's area (a fill that took on the wall's shape). The MSE score's dynamics term
+    median), the offset at the last hidden frame alone, the IoU by frames before the cube is
+    seen again, and the share of fills that draw more than three times the cube's area (a fill
+    that took on the wall's shape). The MSE score's dynamics term
     compares the frame after it with the prediction from that fill: a fill that is off costs the
     possible member at the reveal, and the impossible one, whose cube never shows again, does not
     pay it."""
     scores, offsets, before_reveal, oversized, worst = [], [], [], [], (0, -1)
+    by_distance: dict[int, list[float]] = {}    # frames before the cube is seen again: IoUs
     for index in videos:
         kinds = [names[k] for k in file["kind"][index]]
         states = file["states"][index]
@@ -128,6 +131,9 @@ def hidden_fills(scorer, file, videos: list[int], names: list[str], columns: lis
             truth = silhouette(states[frames, k], columns, "cube", masks.shape[-1])
             scores += [iou(m, g) for m, g in zip(masks, truth)]
             for t, mask, true in zip(frames, masks, truth):
+                again = np.flatnonzero(seen[t + 1:])
+                if len(again):
+                    by_distance.setdefault(int(again[0]) + 1, []).append(iou(mask, true))
                 if true.any():
                     oversized.append(mask.sum() > 3 * true.sum())
                     worst = max(worst, (mask.sum() / true.sum(), index))
@@ -142,7 +148,8 @@ def hidden_fills(scorer, file, videos: list[int], names: list[str], columns: lis
 
     return {"iou": float(np.mean(scores)) if scores else float("nan"), "centre_px": median(offsets),
             "before_reveal_px": median(before_reveal), "oversized_share": float(np.mean(oversized)),
-            "frames": len(scores), "largest": int(worst[1])}
+            "frames": len(scores), "largest": int(worst[1]),
+            "before_reveal_iou": {d: (float(np.mean(v)), len(v)) for d, v in sorted(by_distance.items())}}
 
 
 @torch.no_grad()
@@ -294,6 +301,8 @@ def main() -> None:
           f"{fills['frames']} frames): IoU {fills['iou']:.2f}, centre {fills['centre_px']:.2f} px off (median), "
           f"{fills['before_reveal_px']:.2f} px at the frame before the reveal, "
           f"{100 * fills['oversized_share']:.1f}% of them drawing over 3x the cube's area")
+    print("  IoU by frames before the cube is seen again (the fall is the farthest): " + ", ".join(
+        f"{d}: {value:.2f} ({count})" for d, (value, count) in fills["before_reveal_iou"].items()))
     print(f"hidden_iou={hidden['iou']:.2f} mae_iou={mae:.2f} fill_iou={fills['iou']:.2f} dyn_mse={dyn:.4f}")
 
 
