@@ -273,7 +273,7 @@ def test_airborne_frames_are_those_whose_pictures_show_an_object_above_the_floor
 def test_the_airborne_share_of_a_perception_batch(falling_file, tmp_path):
     """That share of each shard's frames shows an object off the floor, drawn shard by shard so that
     two processes' halves are the one process's batch; a share outside [0, 1] or a stage without
-    frames is refused."""
+    frames is refused, as a batch focus on a group is in the perception stage."""
     import h5py
 
     from xvoe.training.data import airborne
@@ -294,6 +294,9 @@ def test_the_airborne_share_of_a_perception_batch(falling_file, tmp_path):
     job = Job("xpl", nn.Linear(1, 1), lambda step: None, {})
     with pytest.raises(XvoeError, match="the xpl stage has none"):
         fit(job, TrainConfig(steps=1, airborne_share=0.5), tmp_path, progress=False)
+    job = Job("perception", nn.Linear(1, 1), lambda step: None, {})
+    with pytest.raises(XvoeError, match="the perception stage draws single frames"):
+        fit(job, TrainConfig(steps=1, focus_group="permanence", focus_share=0.5), tmp_path, progress=False)
 
 
 def test_bad_input_in_training_processes_reads_as_it_does_in_one(tmp_path):

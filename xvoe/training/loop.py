@@ -199,6 +199,10 @@ class _Meter:
         return means
 
 
+# the stages whose batches are not videos drawn by group, and what they draw instead
+UNFOCUSED = {"perception": "single frames", "trajectory": "its videos uniformly"}
+
+
 def fit(job: Job, config: TrainConfig, run_dir: str | os.PathLike, *, place: Dist | None = None,
         resume: bool = False, overwrite: bool = False, progress: bool = True) -> Path:
     """Train `job.model` for config.steps steps (or config.max_minutes), checkpointing as it goes.
@@ -210,6 +214,9 @@ def fit(job: Job, config: TrainConfig, run_dir: str | os.PathLike, *, place: Dis
     place = place or Dist()
     if config.airborne_share and job.stage != "perception":
         raise XvoeError(f"airborne_share picks the perception stage's frames; the {job.stage} stage has none")
+    if (config.focus_group or config.focus_share) and job.stage in UNFOCUSED:
+        raise XvoeError(f"focus_group and focus_share pick videos of a group; the {job.stage} stage draws "
+                        f"{UNFOCUSED[job.stage]}")
     run_dir = claim_directory(run_dir)
     ckpt, log = checkpoint_path(run_dir, job.stage), log_path(run_dir, job.stage)
     if ckpt.exists() and not (resume or overwrite):
