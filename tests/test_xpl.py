@@ -57,6 +57,9 @@ def test_interpolate_seen_draws_the_line_between_the_nearest_kept_entries():
     assert guess[0, :, 1, 1].tolist() == [21, 21, 21, 21, 21, 21]     # held either side of the one kept
     assert torch.equal(guess[0, :, 2], torch.zeros(6, 2))             # kept nowhere: nothing of its values
     assert torch.equal(guess[keep], z[keep])
+    between = interpolate_seen(z, keep, between_only=True)
+    assert between[0, :, 0, 0].tolist() == [0, 10, 20, 30, 0, 0]     # nothing after the last kept entry
+    assert torch.equal(between[0, :, 1], torch.stack([z[0, 2, 1] if t == 2 else torch.zeros(2) for t in range(6)]))
 
 
 def test_fill_from_neighbours_reads_no_hidden_value_and_learns_to_hold_an_object_at_rest():

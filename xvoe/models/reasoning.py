@@ -77,12 +77,12 @@ def occlusion_keep(visible: Tensor) -> Tensor:
     return visible | ~seen_somewhere
 
 
-def interpolate_seen(z: Tensor, keep: Tensor) -> Tensor:
+def interpolate_seen(z: Tensor, keep: Tensor, between_only: bool = False) -> Tensor:
     """Each hidden entry of z (B, T, K, D) as the straight line between its slot's nearest kept
-    entries before and after it, or the one kept entry on its side if the other has none; zero
-    where its slot is kept nowhere (its own value must not leak into the guess): what a hidden
-    token of Transformer 1 can start from (docs/decisions.md, "Transformer 1 reads the line
-    between seen latents")."""
+    entries before and after it, or the one kept entry on its side if the other has none (zero
+    there with `between_only`); zero where its slot is kept nowhere (its own value must not leak
+    into the guess): what a hidden token of Transformer 1 can start from (docs/decisions.md,
+    "Transformer 1 reads the line between seen latents")."""
     batch, frames, slots, dim = z.shape
     t = torch.arange(frames, device=z.device).view(1, frames, 1).expand(batch, frames, slots)
     before = torch.where(keep, t, torch.full_like(t, -1)).cummax(dim=1).values
@@ -95,7 +95,8 @@ def interpolate_seen(z: Tensor, keep: Tensor) -> Tensor:
 
     share = ((t - start) / (end - start).clamp_min(1)).unsqueeze(-1).to(z.dtype)
     line = torch.lerp(at(start), at(end), share)       # one-sided: start == end, the kept entry itself
-    line = torch.where((has_before | has_after).unsqueeze(-1), line, torch.zeros_like(z))
+    known = has_before & has_after if between_only else has_before | has_after
+    line = torch.where(known.unsqueeze(-1), line, torch.zeros_like(z))
     return torch.where(keep.unsqueeze(-1), z, line)
 
 

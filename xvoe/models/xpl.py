@@ -78,6 +78,9 @@ class XPLConfig:
     # frames missed by about the cube's width (docs/decisions.md, "Transformer 1 reads the line
     # between seen latents")
     fill_from_neighbours: bool = False
+    # that line only between two seen latents: before a slot's first seen frame or after its last
+    # (an object still outside the picture, or gone) the held latent would draw it where it is not
+    line_between_only: bool = False
 
 
 class XPL(nn.Module):
@@ -115,7 +118,8 @@ class XPL(nn.Module):
 
     def fill(self, z: Tensor, keep: Tensor, unread: Tensor | None) -> Tensor:
         """Transformer 1's latents (B, T, K, D): z where kept, filled elsewhere."""
-        guess = interpolate_seen(z, keep) if self.config.fill_from_neighbours else None
+        guess = (interpolate_seen(z, keep, self.config.line_between_only) if self.config.fill_from_neighbours
+                 else None)
         return self.transformer1(z, keep, unread, guess)[0]
 
     def unread_walls(self, visible: Tensor, walls: Tensor | None) -> Tensor | None:
