@@ -32,6 +32,7 @@ from ..evaluation.explain import explain
 from ..evaluation.score import load_model, score_split
 from ..models.config import to_dict
 from ..outputs import claim_directory
+from ..training.data import process_counts
 from ..training.latents import encode_split
 from ..training.launch import on_cores
 from ..training.loop import checkpoint_path
@@ -193,7 +194,7 @@ def stage_processes(wanted: int, training: TrainConfig) -> int:
     shards = training.data_shards
     if not shards:
         return wanted
-    return max(count for count in range(1, min(wanted, shards) + 1) if shards % count == 0)
+    return max(count for count in process_counts(shards) if count <= wanted)
 
 
 def _train_phases(stages: Stages, model: str, train: Callable[[dict], object], phases: tuple[TrainConfig, ...],

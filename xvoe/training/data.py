@@ -151,11 +151,16 @@ class Ownership:
         return self.bounds[-1][1]
 
 
+def process_counts(shards: int) -> list[int]:
+    """The numbers of processes among which `shards` data shards split evenly."""
+    return [count for count in range(1, shards + 1) if shards % count == 0]
+
+
 def owned_shards(path: str, videos: int, *, batch_size: int, shards: int, rank: int, world: int,
                  max_videos: int = 0) -> Ownership:
     """Cut `videos` into `shards` slices and give process `rank` of `world` its contiguous run."""
     if shards % world:
-        fits = ", ".join(str(count) for count in range(1, shards + 1) if shards % count == 0)
+        fits = ", ".join(map(str, process_counts(shards)))
         raise XvoeError(f"data_shards {shards} is not a multiple of the {world} processes: train in "
                         f"{'one process' if shards == 1 else fits + ' processes'}, or change the batches "
                         f"with --set data_shards=N")
