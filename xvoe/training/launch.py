@@ -8,7 +8,6 @@ from __future__ import annotations
 
 import os
 import signal
-import socket
 from collections.abc import Callable
 from typing import Any
 
@@ -21,10 +20,11 @@ from .loop import StopRequests
 from .recipes import RECIPES, Recipe
 
 
-def free_port() -> int:
-    with socket.socket() as probe:
-        probe.bind(("127.0.0.1", 0))
-        return probe.getsockname()[1]
+def rendezvous_store() -> dist.TCPStore:
+    """The processes' meeting point, on a port the OS chose and held from before they start
+    until they end: a port found free and let go could be taken by another run in between
+    (torchrun's own agent does the same; the processes join as clients)."""
+    return dist.TCPStore("127.0.0.1", 0, is_master=True, wait_for_workers=False)
 
 
 def on_cores(train: Callable[..., Any], processes: int, recipe: Recipe | None = None, **kwargs: Any) -> None:
@@ -37,7 +37,8 @@ def on_cores(train: Callable[..., Any], processes: int, recipe: Recipe | None = 
     if processes == 1:
         train(**kwargs)
         return
-    context = mp.start_processes(_process, args=(processes, free_port(), train, recipe, kwargs), nprocs=processes,
+    store = rendezvous_store()
+    context = mp.start_processes(_process, args=(processes, store.port, train, recipe, kwargs), nprocs=processes,
                                  join=False, start_method="spawn")
     try:
         with ForwardedStops(context.processes):
@@ -81,7 +82,8 @@ def _process(rank: int, world: int, port: int, train: Callable[..., Any], recipe
              kwargs: dict) -> None:
     os.setpgid(0, 0)        # out of the terminal's group: Ctrl-C comes once, through ForwardedStops
     os.environ.update(MASTER_ADDR="127.0.0.1", MASTER_PORT=str(port), RANK=str(rank), LOCAL_RANK=str(rank),
-                      WORLD_SIZE=str(world), LOCAL_WORLD_SIZE=str(world), OMP_NUM_THREADS="1")
+                      WORLD_SIZE=str(world), LOCAL_WORLD_SIZE=str(world), OMP_NUM_THREADS="1",
+                      TORCHELASTIC_USE_AGENT_STORE="True")     # the store is the parent's: join it, do not host it
     torch.set_num_threads(1)
     if recipe is not None:
         RECIPES[recipe.name] = recipe
