@@ -311,7 +311,6 @@ def test_bad_input_in_training_processes_reads_as_it_does_in_one(tmp_path):
         on_cores(train_xpl, 0)
 
 
-
 def test_training_processes_meet_on_a_port_held_from_before_they_start():
     """A port found free and let go could be taken by another run before the processes bind
     it (two pipelines, or a test beside a training job): the launcher's store holds it."""
@@ -322,6 +321,7 @@ def test_training_processes_meet_on_a_port_held_from_before_they_start():
     store = rendezvous_store()
     with socket.socket() as other, pytest.raises(OSError):
         other.bind(("127.0.0.1", store.port))
+
 
 ON_CORES = """
 import sys
