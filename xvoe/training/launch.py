@@ -37,7 +37,7 @@ def on_cores(train: Callable[..., Any], processes: int, recipe: Recipe | None = 
     if processes == 1:
         train(**kwargs)
         return
-    store = rendezvous_store()
+    store = rendezvous_store()     # kept in a name until the processes are joined: freed, it lets its port go
     context = mp.start_processes(_process, args=(processes, store.port, train, recipe, kwargs), nprocs=processes,
                                  join=False, start_method="spawn")
     try:
