@@ -3,7 +3,8 @@ repeatability between seeds, and its accuracy against the MSE score on the same 
 
     python benchmarks/nll.py --model NAME_OR_RUN --data test.h5 [--particles 64] [--pairs N] [--threads 2]
                              [--method smc|importance] [--seeds 0,1] [--smc-moves N] [--smc-pilot N]
-                             [--motion-sigma S] [--pixel-sigma S] [--exposure-penalty P] [--refine-steps N]
+                             [--motion-sigma S] [--pixel-sigma S] [--exposure-penalty P] [--presence-penalty P]
+                             [--refine-steps N]
                              [--proposal-widening F]
                              [--independent-guide] [--trajectory-proposal] [--trajectory-scale-floor F]
 
@@ -149,6 +150,9 @@ def main() -> None:
     parser.add_argument("--exposure-penalty", type=float, default=InferenceConfig.exposure_penalty,
                         help="nats per pixel the hidden object shows in front of everything else "
                              f"(default {InferenceConfig.exposure_penalty})")
+    parser.add_argument("--presence-penalty", type=float, default=InferenceConfig.presence_penalty,
+                        help="nats per pixel the hidden object draws short of an object's area "
+                             f"(default {InferenceConfig.presence_penalty})")
     parser.add_argument("--refine-steps", type=int, default=InferenceConfig.refine_steps,
                         help="gradient steps that move the proposal's mean out of sight "
                              f"(default {InferenceConfig.refine_steps})")
@@ -183,7 +187,8 @@ def run(args: argparse.Namespace) -> None:
     if scorer.xpl is None or not scorer.xpl.config.use_reasoning:
         raise XvoeError(f"the NLL surprise needs an XPL model with reasoning; {scorer.name} has none")
     config = InferenceConfig(particles=args.particles, motion_sigma=args.motion_sigma, pixel_sigma=args.pixel_sigma,
-                             exposure_penalty=args.exposure_penalty, refine_steps=args.refine_steps,
+                             exposure_penalty=args.exposure_penalty, presence_penalty=args.presence_penalty,
+                             refine_steps=args.refine_steps,
                              refine_rate=args.refine_rate, proposal_widening=args.proposal_widening,
                              guide_follows_dynamics=not args.independent_guide, method=args.method,
                              smc_moves=args.smc_moves, smc_pilot=tuple(int(v) for v in args.smc_pilot.split(",")),

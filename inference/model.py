@@ -25,13 +25,21 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import Protocol
+from typing import NamedTuple, Protocol
 
 import pyro
 import pyro.distributions as dist
 import torch
 from pyro import poutine
 from torch import Tensor, nn
+
+
+class Drawing(NamedTuple):
+    """What a scene draws with a hidden object on trajectories (M, T, D)."""
+
+    frames: Tensor      # (M, T, ...) the expected frames
+    exposure: Tensor    # (M, T) pixels the hidden object shows in front of everything else
+    area: Tensor        # (M, T) pixels it draws in front of the background, before any wall hides it
 
 
 class Scene(Protocol):
@@ -48,9 +56,9 @@ class Scene(Protocol):
     def empty(self) -> Tensor:
         """Expected frames (T, ...) without a hidden object."""
 
-    def draw(self, trajectory: Tensor) -> tuple[Tensor, Tensor]:
-        """Expected frames (M, T, ...) with a hidden object on each trajectory (M, T, D), and
-        the pixels (M, T) where it would be in plain view (its exposure)."""
+    def draw(self, trajectory: Tensor) -> Drawing:
+        """Expected frames (M, T, ...) with a hidden object on each trajectory (M, T, D), the
+        pixels where it would be in plain view (its exposure) and the pixels it draws at all."""
 
 
 @dataclass(frozen=True)
@@ -66,6 +74,12 @@ class InferenceConfig:
     # open; without it a never-seen object is drawn in plain view to patch what the seen slots
     # reconstruct badly (docs/decisions.md, "NLL exposure penalty")
     exposure_penalty: float = 12.0
+    # nats per pixel the hidden object draws short of `object_area` (a share of the frame's pixels)
+    # in front of the background, before any wall hides it: a latent that draws nothing is no
+    # object, yet the dynamics let it push the seen ones, and it explained impossible events in
+    # plain view at the price of no exposure (docs/decisions.md, "NLL presence penalty")
+    presence_penalty: float = 12.0
+    object_area: float = 0.008
     # standard deviation of the seen objects' latents around the dynamics: the dynamics' own RMS
     # one-step error per latent (docs/decisions.md, "NLL motion sigma")
     motion_sigma: float = 0.2
@@ -113,6 +127,14 @@ class InferenceConfig:
     # trained on real objects' steps it is narrower than the model's own transition, and a
     # proposal narrower than the target lets a few draws take all the weight (0: as learned)
     trajectory_scale_floor: float = 1.0
+
+
+def drawing_cost(config: InferenceConfig, drawing: Drawing, frame_pixels: int) -> Tensor:
+    """Nats (M, T) float64 the hidden object's drawing costs besides its pixels' likelihood: each
+    pixel it shows in plain view, where the encoder saw nothing, and each pixel it falls short
+    of an object's area: the object must be there, hidden behind a wall, not a shadow of one."""
+    shortfall = (config.object_area * frame_pixels - drawing.area.to(torch.float64)).clamp_min(0.0)
+    return config.exposure_penalty * drawing.exposure.to(torch.float64) + config.presence_penalty * shortfall
 
 
 def pixel_log_normaliser(pixels: int, sigma: float) -> float:
@@ -168,7 +190,7 @@ class HiddenObjectModel(nn.Module):
 
     def pixel_log_likelihood(self, trajectory: Tensor, alive: Tensor, frames: Tensor) -> Tensor:
         """log N(frames | rendered frames, pixel_sigma^2) of each particle (N,), less the
-        exposure penalty of its hidden object, summed in float64. Every particle without a
+        cost of its hidden object's drawing (`drawing_cost`), summed in float64. Every particle without a
         hidden object shows the same frames, so they are rendered and scored once; a
         (N, T, 4, H, W) density of 64 particles cost a third of the scoring time."""
         sigma = self.config.pixel_sigma
@@ -182,8 +204,9 @@ class HiddenObjectModel(nn.Module):
         if not alive.all():
             result[~alive] = log_density(self.scene.empty())
         if alive.any():
-            expected, exposure = self.scene.draw(trajectory[alive])
-            result[alive] = log_density(expected) - self.config.exposure_penalty * exposure.sum(-1, dtype=torch.float64)
+            drawing = self.scene.draw(trajectory[alive])
+            cost = drawing_cost(self.config, drawing, frames.shape[-2] * frames.shape[-1])
+            result[alive] = log_density(drawing.frames) - cost.sum(-1)
         return result
 
     def _transition(self, history: Tensor, alive: Tensor) -> Tensor:
@@ -256,6 +279,8 @@ class LinearGaussianScene(nn.Module):
     def render(self, trajectory: Tensor) -> Tensor:
         return self.background + trajectory @ self.H.T              # (M, T, obs)
 
-    def draw(self, trajectory: Tensor) -> tuple[Tensor, Tensor]:
-        """The frames and no exposure: nothing hides this scene's object."""
-        return self.render(trajectory), trajectory.new_zeros(trajectory.shape[:2])
+    def draw(self, trajectory: Tensor) -> Drawing:
+        """The frames, no exposure and no shortfall: this scene's object is seen through a
+        linear camera, nothing hides it and it need not draw itself."""
+        steps = trajectory.shape[:2]
+        return Drawing(self.render(trajectory), trajectory.new_zeros(steps), trajectory.new_full(steps, math.inf))

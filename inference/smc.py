@@ -23,7 +23,7 @@ from typing import Any, Protocol
 import torch
 from torch import Tensor
 
-from .model import InferenceConfig, LinearGaussianScene, Proposal, fuse, pixel_log_normaliser
+from .model import InferenceConfig, LinearGaussianScene, Proposal, drawing_cost, fuse, pixel_log_normaliser
 
 
 class SequentialModel(Protocol):
@@ -428,9 +428,9 @@ class XPLSteps:
 
     def frame_log_likelihood(self, t: int, z: Tensor) -> Tensor:
         chosen = torch.full((len(z),), t, dtype=torch.long)
-        expected, exposure = self.scene.draw_frames(z, chosen)
-        pixels = pixel_frame_log_density(expected, self.observed[t], self.config.pixel_sigma)
-        return pixels - self.config.exposure_penalty * exposure.to(torch.float64)
+        drawing = self.scene.draw_frames(z, chosen)
+        pixels = pixel_frame_log_density(drawing.frames, self.observed[t], self.config.pixel_sigma)
+        return pixels - drawing_cost(self.config, drawing, self.observed[t, 0].numel())
 
     def advance(self, t: int, z: Tensor, carried: Any) -> tuple[Tensor, Any, Tensor]:
         scene = self.scene.refined[t].expand(len(z), *self.scene.refined.shape[1:]).clone()

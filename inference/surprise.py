@@ -16,7 +16,7 @@ from xvoe.models.reasoning import never_seen
 from xvoe.models.xpl import XPL
 
 from .importance import Estimate, importance
-from .model import HiddenObjectModel, InferenceConfig, Proposal
+from .model import HiddenObjectModel, InferenceConfig, Proposal, drawing_cost
 from .smc import Hypotheses, SMCEstimate, smc_evidence, top_hypotheses
 from .xpl_scene import XPLScene
 
@@ -124,11 +124,13 @@ def refine_out_of_sight(scene: XPLScene, loc: Tensor, frames: Tensor, config: In
     every = torch.arange(len(loc))
 
     def extra_cost(latents: Tensor, chosen: Tensor) -> Tensor:
-        """Nats (F,) the hidden object's pictures and its exposure add in the frames `chosen`."""
-        expected, exposure = scene.draw_frames(latents, chosen)
-        extra = (expected - frames[chosen]).square() - without[chosen]
+        """Nats (F,) the hidden object's pictures and its drawing (`drawing_cost`) add in the
+        frames `chosen`. The drawing's shortfall counts too: without it, fading to a blank was the
+        steepest way out of sight, and a cube behind the wall came out of the steps a ghost."""
+        drawing = scene.draw_frames(latents, chosen)
+        extra = (drawing.frames - frames[chosen]).square() - without[chosen]
         pixels = extra.clamp_min(0.0).sum(dim=(1, 2, 3)) / (2 * config.pixel_sigma ** 2)
-        return pixels + config.exposure_penalty * exposure
+        return pixels + drawing_cost(config, drawing, frames.shape[-2] * frames.shape[-1])
 
     chosen = every[extra_cost(loc, every) > config.refine_tolerance]
     if len(chosen) == 0:

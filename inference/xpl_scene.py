@@ -20,6 +20,8 @@ from xvoe.models.perception import ComponentVAE
 from xvoe.models.slots import push_behind, scene_layers
 from xvoe.models.xpl import XPL
 
+from .model import Drawing
+
 
 class XPLScene(nn.Module):
     def __init__(self, vae: ComponentVAE, xpl: XPL, refined: Tensor, background: Tensor, visible: Tensor,
@@ -96,25 +98,35 @@ class XPLScene(nn.Module):
 
     def render(self, trajectory: Tensor) -> Tensor:
         """Expected frames (M, T, 4, H, W) with a hidden object on each trajectory (M, T, D)."""
-        return self.draw(trajectory)[0]
+        return self.draw(trajectory).frames
 
-    def draw(self, trajectory: Tensor) -> tuple[Tensor, Tensor]:
+    def draw(self, trajectory: Tensor) -> Drawing:
         """Expected frames (M, T, 4, H, W) with a hidden object on each trajectory (M, T, D),
-        and its exposure (M, T): how many pixels it holds in front of everything else, where
-        the encoder would have seen it. Only the hidden latents are decoded, and added to the
-        softmax the fixed layers left (`_partial_composite`)."""
+        its exposure (M, T): how many pixels it holds in front of everything else, where the
+        encoder would have seen it, and its area (M, T). Only the hidden latents are decoded,
+        and added to the softmax the fixed layers left (`_partial_composite`)."""
         pictures = self.vae.decode(trajectory.reshape(-1, self.dim)).reshape(len(trajectory), self.frames,
                                                                              *self.layers.shape[-3:])
-        return self._composite_hidden(push_behind(pictures, self.walls))
+        return Drawing(*self._composite_hidden(push_behind(pictures, self.walls)), self.area(pictures))
 
     def render_frames(self, latents: Tensor, frames: Tensor) -> Tensor:
         """Expected frames (F, 4, H, W) at the frame indices `frames` (F,), with the hidden
         object's latents there (F, D)."""
-        return self.draw_frames(latents, frames)[0]
+        return self.draw_frames(latents, frames).frames
 
-    def draw_frames(self, latents: Tensor, frames: Tensor) -> tuple[Tensor, Tensor]:
-        """`render_frames` and the hidden object's exposure (F,) in each of those frames."""
-        return self._composite_hidden(push_behind(self.vae.decode(latents), self.walls[frames]), frames)
+    def draw_frames(self, latents: Tensor, frames: Tensor) -> Drawing:
+        """`render_frames`, and the hidden object's exposure and area (F,) in each of those frames."""
+        pictures = self.vae.decode(latents)
+        return Drawing(*self._composite_hidden(push_behind(pictures, self.walls[frames]), frames),
+                       self.area(pictures, frames))
+
+    def area(self, pictures: Tensor, frames: Tensor | slice = slice(None)) -> Tensor:
+        """Pixels (B, T) that pictures (B, T, 4, H, W) of the hidden slot draw in front of the
+        background, before the walls push them back: the compositor's share of each pixel
+        between the picture and the background alone. An object has its size here wherever it
+        is in the picture; a latent that decodes to the blank has almost none."""
+        own = self.vae.composite_logits(pictures)
+        return torch.sigmoid(own - self.vae.composite_logits(self.background[frames])).sum(dim=(-3, -2, -1))
 
     def _composite(self, layers: Tensor) -> Tensor:
         """Frames (B, T, 4, H, W) of slot pictures (B, T, K, 4, H, W) over the background."""

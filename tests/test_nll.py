@@ -11,7 +11,7 @@ from pyro.util import check_model_guide_match
 import xvoe
 from inference.explain import nll_explanation
 from inference.importance import importance
-from inference.model import HiddenObjectModel, InferenceConfig, Proposal
+from inference.model import Drawing, HiddenObjectModel, InferenceConfig, Proposal, drawing_cost
 from inference.score import reference_nll
 from inference.surprise import BRANCH_SAMPLES, AdamSteps, defensive, hidden_posterior, nll_surprise, refine_out_of_sight
 from inference.xpl_scene import XPLScene
@@ -245,7 +245,7 @@ def test_the_pixel_likelihood_is_the_gaussian_density_of_every_particles_frames(
     """Particles without a hidden object are scored once; each must still get the density of
     its own full render."""
     scene, frames = tiny_scene()
-    model = HiddenObjectModel(scene, InferenceConfig(pixel_sigma=0.3, exposure_penalty=0.0))
+    model = HiddenObjectModel(scene, InferenceConfig(pixel_sigma=0.3, exposure_penalty=0.0, presence_penalty=0.0))
     trajectory, alive = torch.randn(5, T, D), torch.tensor([True, False, True, False, False])
     with torch.no_grad():
         found = model.pixel_log_likelihood(trajectory, alive, frames)
@@ -315,10 +315,48 @@ def test_the_exposure_penalty_costs_its_nats_per_exposed_pixel():
             trajectory, alive, frames)
         penalised = HiddenObjectModel(scene, InferenceConfig(exposure_penalty=2.0)).pixel_log_likelihood(
             trajectory, alive, frames)
-        _, exposure = scene.draw(trajectory)
+        exposure = scene.draw(trajectory).exposure
     assert (exposure > 0).all()
     expected = plain - 2.0 * exposure.double().sum(-1) * alive
     torch.testing.assert_close(penalised, expected, atol=1e-6, rtol=1e-9)
+
+
+def test_the_area_counts_what_a_hidden_object_draws_in_front_of_the_background_walls_or_not():
+    """An object's area is its size wherever it stands, behind the wall or in the open; a
+    picture of the blank (what a latent far from every object decodes to) has none."""
+    scene, _ = hand_made_scene()
+    pictures = torch.full((1, T, 4, 16, 16), 1.5)
+    pictures[..., 3, 2:5, 10:13] = 0.0      # in the open
+    pictures[..., 3, 8:11, 2:5] = 0.0       # behind the wall
+    with torch.no_grad():
+        area = scene.area(pictures)
+        blank = scene.area(torch.full_like(pictures, 1.5))
+        chosen = torch.tensor([1, 3])
+        one_by_one = scene.area(pictures[0, chosen], chosen)
+    torch.testing.assert_close(area, torch.full((1, T), 18.0), atol=1e-3, rtol=0)
+    torch.testing.assert_close(blank, torch.zeros(1, T), atol=1e-3, rtol=0)
+    torch.testing.assert_close(one_by_one, area[0, chosen])
+
+
+def test_the_presence_penalty_costs_its_nats_per_pixel_short_of_an_objects_area():
+    """A hidden object drawing 18 pixels where an object draws 25.6 (a tenth of 16x16) pays
+    for the 7.6 it lacks; one drawing 30 pays nothing; exposure is charged on top."""
+    config = InferenceConfig(exposure_penalty=3.0, presence_penalty=2.0, object_area=0.1)
+    drawing = Drawing(torch.zeros(2, 1), exposure=torch.tensor([[0.0], [1.0]]), area=torch.tensor([[18.0], [30.0]]))
+    cost = drawing_cost(config, drawing, frame_pixels=256)
+    assert cost.dtype == torch.float64
+    torch.testing.assert_close(cost, torch.tensor([[2.0 * 7.6], [3.0]], dtype=torch.float64))
+    scene, frames = tiny_scene()
+    trajectory, alive = torch.randn(5, T, D), torch.tensor([True, False, True, False, True])
+    with torch.no_grad():
+        plain = HiddenObjectModel(scene, InferenceConfig(presence_penalty=0.0)).pixel_log_likelihood(
+            trajectory, alive, frames)
+        penalised = HiddenObjectModel(scene, InferenceConfig(presence_penalty=2.0, object_area=0.5)
+                                      ).pixel_log_likelihood(trajectory, alive, frames)
+        area = scene.draw(trajectory).area.double()
+    shortfall = (0.5 * 256 - area).clamp_min(0.0).sum(-1)
+    assert (shortfall > 0).all()
+    torch.testing.assert_close(penalised, plain - 2.0 * shortfall * alive, atol=1e-6, rtol=1e-9)
 
 
 def blob_decoder(z: torch.Tensor) -> torch.Tensor:
@@ -341,11 +379,39 @@ def test_moving_the_proposal_out_of_sight_hides_it_behind_the_wall():
     config = InferenceConfig(pixel_sigma=100.0, refine_steps=30, refine_rate=0.1, refine_tolerance=0.0,
                              exposure_penalty=1.0)
     with torch.no_grad():
-        before = scene.draw(loc[None])[1][0]
+        before = scene.draw(loc[None]).exposure[0]
         moved = refine_out_of_sight(scene, loc, frames, config)
-        after = scene.draw(moved[None])[1][0]
+        after = scene.draw(moved[None]).exposure[0]
     assert (before > 5.0).all()
     assert (after < 0.2 * before).all() and (moved[:, 0] < loc[:, 0]).all()
+
+
+def fading_blob_decoder(z: torch.Tensor) -> torch.Tensor:
+    """`blob_decoder` whose latent 2 fades the object into the blank: at 0 it is whole, at 2
+    it draws almost nothing (as the learned decoder's latents far from every object)."""
+    pictures = blob_decoder(z)
+    strength = torch.sigmoid(4.0 - 4.0 * z[:, 2, None, None])
+    shape = pictures[:, 0] * strength
+    return torch.stack([shape, shape, shape, 1.5 * (1 - shape)], dim=1)
+
+
+def test_moving_the_proposal_out_of_sight_keeps_it_an_object():
+    """Fading is also a way out of plain view; with the shortfall of an object's area in the
+    steps' cost the object astride the wall's edge keeps its size, and without it fades."""
+    scene, frames = hand_made_scene()
+    scene.vae.decode = fading_blob_decoder
+    loc = torch.zeros(T, D)
+    loc[:, 0] = 0.3
+    common = dict(pixel_sigma=100.0, refine_steps=60, refine_rate=0.1, refine_tolerance=0.0, exposure_penalty=1.0,
+                  object_area=0.06)
+    with torch.no_grad():
+        whole = scene.draw(loc[None]).area[0]
+        kept = scene.draw(refine_out_of_sight(scene, loc, frames, InferenceConfig(**common))[None])
+        faded = refine_out_of_sight(scene, loc, frames, InferenceConfig(**common, presence_penalty=0.0))
+        faded = scene.draw(faded[None])
+    assert (whole > 0.06 * 256).all()
+    assert (kept.area[0] > 0.9 * 0.06 * 256).all() and (kept.exposure[0] < 1.0).all()
+    assert (faded.area[0] < 0.5 * whole).all()
 
 
 def test_render_frames_is_the_render_at_those_frames():

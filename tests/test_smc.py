@@ -275,7 +275,7 @@ def tiny_xpl_scene():
 
 
 def test_the_frame_by_frame_factors_add_up_to_the_pyro_models_joint_density():
-    """For one trajectory, the SMC's transitions, pixel (with the exposure penalty) and
+    """For one trajectory, the SMC's transitions, pixel (with the exposure and presence penalties) and
     seen-motion terms summed over the frames equal the log-density of the Pyro model
     (`HiddenObjectModel.model`) with the object, and its branch without one the model's density
     without one: both estimators target the same model."""
@@ -283,7 +283,8 @@ def test_the_frame_by_frame_factors_add_up_to_the_pyro_models_joint_density():
 
     scene, frames = tiny_xpl_scene()
     randomise_dynamics_head(scene.xpl.dynamics)
-    settings = InferenceConfig(pixel_sigma=0.3, motion_sigma=0.2, transition_sigma=0.1, exposure_penalty=1.5)
+    settings = InferenceConfig(pixel_sigma=0.3, motion_sigma=0.2, transition_sigma=0.1, exposure_penalty=1.5,
+                               presence_penalty=1.5, object_area=0.9)
     model = HiddenObjectModel(scene, settings)
     steps = XPLSteps(scene, frames, settings)
     trajectory = torch.randn(1, scene.frames, scene.dim)
