@@ -23,7 +23,7 @@ from xvoe.models.phydnet import (
     kernels_with_moments,
 )
 from xvoe.training.phydnet import VideoBatches, load_phydnet, train_phydnet, widen_run
-from xvoe.training.recipes import RECIPES, TrainConfig
+from xvoe.training.recipes import DEFAULT_RECIPE, RECIPES, TrainConfig
 
 TINY = PhyDNetConfig(image_size=16, encoder_channels=(8, 8, 8), phycell_kernel=5, lstm_channels=(8,))
 TRAIN = {"steps": 4, "batch_size": 2, "warmup_steps": 1, "log_every": 1, "threads": 1}
@@ -193,8 +193,9 @@ def splits(tmp_path_factory):
 
 @pytest.fixture
 def tiny_recipe(monkeypatch):
-    monkeypatch.setitem(RECIPES, "cpu", replace(RECIPES["cpu"], phydnet=TINY, phydnet_train=TrainConfig(**TRAIN),
-                                                phases=()))
+    base = RECIPES[DEFAULT_RECIPE]
+    tiny = replace(base, phydnet=TINY, phydnet_train=TrainConfig(**TRAIN), phases=())
+    monkeypatch.setitem(RECIPES, DEFAULT_RECIPE, tiny)
 
 
 def test_stage_trains_resumes_exactly_and_loads(splits, tmp_path, tiny_recipe):
@@ -208,7 +209,7 @@ def test_stage_trains_resumes_exactly_and_loads(splits, tmp_path, tiny_recipe):
     rows = [list(csv.DictReader(open(run / "phydnet.csv"))) for run in (tmp_path / "a", tmp_path / "b")]
     assert [r["loss"] for r in rows[0]] == [r["loss"] for r in rows[1]] and "moment" in rows[0][0]
     net, state = load_phydnet(tmp_path / "a")
-    assert net.config == TINY and not net.training and state["config"]["recipe"] == "cpu"
+    assert net.config == TINY and not net.training and state["config"]["recipe"] == DEFAULT_RECIPE
     one, two = VideoBatches(str(splits[0]), image_size=16, batch_size=4, shards=2, seed=1), [
         VideoBatches(str(splits[0]), image_size=16, batch_size=4, shards=2, rank=r, world=2, seed=1) for r in (0, 1)]
     assert torch.equal(one.batch(3), torch.cat([part.batch(3) for part in two]))
@@ -345,9 +346,10 @@ def test_the_name_resolves_and_scores_a_tiny_test_set(splits, tmp_path, tiny_rec
 
 
 def test_pipeline_trains_and_scores_phydnet_without_perception(tmp_path, monkeypatch):
-    tiny = replace(RECIPES["cpu"], phydnet=replace(TINY, image_size=RECIPES["cpu"].perception.image_size),
+    base = RECIPES[DEFAULT_RECIPE]
+    tiny = replace(base, phydnet=replace(TINY, image_size=base.perception.image_size),
                    phydnet_train=TrainConfig(**TRAIN), phases=())
-    monkeypatch.setitem(RECIPES, "cpu", tiny)
+    monkeypatch.setitem(RECIPES, DEFAULT_RECIPE, tiny)
     config = PipelineConfig(str(tmp_path / "run"), train_videos=4, pairs=1, models=("phydnet", "random"), workers=1,
                             progress=False)
     report = run_pipeline(config).read_text()

@@ -10,12 +10,12 @@ from xvoe.apps.pipeline import PipelineConfig, compare_models, run_pipeline
 from xvoe.benchmark import store
 from xvoe.errors import XvoeError
 from xvoe.training.checkpoints import load_checkpoint
-from xvoe.training.recipes import RECIPES, TrainConfig
+from xvoe.training.recipes import DEFAULT_RECIPE, RECIPES, TrainConfig
 
 
 @pytest.fixture
 def tiny_cpu_recipe(monkeypatch):
-    cpu = RECIPES["cpu"]
+    cpu = RECIPES[DEFAULT_RECIPE]
     few = TrainConfig(steps=6, batch_size=8, warmup_steps=1, log_every=2)
     tiny = replace(cpu, perception=replace(cpu.perception, latent_dim=8, cnn_channels=(8, 8), cnn_hidden=16,
                                            decoder_channels=8),
@@ -25,7 +25,7 @@ def tiny_cpu_recipe(monkeypatch):
                    xpl_train=replace(few, batch_size=4), proposal_train=replace(few, batch_size=4),
                    plato_train=replace(few, batch_size=4),
                    phases=(("plato", replace(few, batch_size=4, steps=9, focus_group="continuity", focus_share=0.5)),))
-    monkeypatch.setitem(RECIPES, "cpu", tiny)
+    monkeypatch.setitem(RECIPES, DEFAULT_RECIPE, tiny)
 
 
 def test_tiny_pipeline_runs_end_to_end_and_skips_done_stages(tmp_path, tiny_cpu_recipe):

@@ -30,7 +30,7 @@ _HOMES = {
     "xvoe.benchmark.scenes": ("SCENARIOS", "TEST_SETTINGS"),
     "xvoe.benchmark.store": ("open_dataset",),
     "xvoe.benchmark.videos": ("describe", "find_pair", "true_objects"),
-    "xvoe.training.recipes": ("RECIPES", "recipe", "stage_settings"),
+    "xvoe.training.recipes": ("DEFAULT_RECIPE", "RECIPES", "recipe", "stage_settings"),
     "xvoe.training.provenance": ("recipe_differences",),
     "xvoe.training.perception": ("train_perception",),
     "xvoe.training.latents": ("encode_split",),

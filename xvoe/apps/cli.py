@@ -36,6 +36,12 @@ def _shard(text: str) -> tuple[int, int]:
     return index, count
 
 
+def _recipe_names() -> str:
+    """The recipes for a --help line, the default (the shipped models') named first."""
+    others = [name for name in xvoe.RECIPES if name != xvoe.DEFAULT_RECIPE]
+    return f"{xvoe.DEFAULT_RECIPE} (default, the shipped models'), " + ", ".join(others)
+
+
 def _positive(text: str) -> int:
     try:
         value = int(text)
@@ -195,9 +201,8 @@ def add_train_parser(verbs) -> None:
             parser.add_argument("--data", help="the training split file (HDF5)")
         parser.add_argument("--out", required=True, help="the run directory")
         if stage not in AFTER_XPL:
-            parser.add_argument("--recipe", default="cpu",
-                                help="the recipe whose sizes and settings start the run: cpu (default), cpu-walls "
-                                     "or cpu-short (candidates) or paper")
+            parser.add_argument("--recipe", default=xvoe.DEFAULT_RECIPE,
+                                help=f"the recipe whose sizes and settings start the run: {_recipe_names()}")
         parser.add_argument("--steps", type=_positive, help="training steps (default: the recipe's)")
         parser.add_argument("--minutes", type=_positive_float, help="stop after this many minutes of training")
         parser.add_argument("--batch-size", type=_positive,
@@ -342,9 +347,8 @@ def build_parser() -> argparse.ArgumentParser:
                                             "compute the metrics and write RUN_DIR/report.md. A rerun skips "
                                             "the stages already done and resumes an interrupted one.")
     pipeline.add_argument("--out", required=True, help="the run directory")
-    pipeline.add_argument("--recipe", default="cpu",
-                          help="every stage and setting of the models: cpu (default, the shipped models'), "
-                               "cpu-walls or cpu-short (candidates) or paper")
+    pipeline.add_argument("--recipe", default=xvoe.DEFAULT_RECIPE,
+                          help=f"every stage and setting of the models: {_recipe_names()}")
     pipeline.add_argument("--train-videos", type=_positive, help="training videos (default: the recipe's, 10000)")
     pipeline.add_argument("--pairs", type=_positive, default=200, help="test pairs per setting (default 200)")
     pipeline.add_argument("--models", default="xpl,random",

@@ -38,7 +38,7 @@ from ..training.launch import on_cores
 from ..training.loop import checkpoint_path
 from ..training.perception import train_perception
 from ..training.phydnet import train_phydnet
-from ..training.recipes import DEFAULT, RECIPES, Recipe, TrainConfig, recipe
+from ..training.recipes import DEFAULT_RECIPE, RECIPES, Recipe, TrainConfig, recipe
 from ..training.xpl import train_proposal, train_xpl
 from .figures import plot_explanation
 from .report import report
@@ -50,7 +50,7 @@ TRAINED = {"xpl": ("xpl", True), "plato": ("plato", True), "xpl-noresidual": ("x
 @dataclass(frozen=True)
 class PipelineConfig:
     out: str
-    recipe: str = DEFAULT
+    recipe: str = DEFAULT_RECIPE
     train_videos: int | None = None     # None: the recipe's
     pairs: int = 200
     models: tuple[str, ...] = ("xpl", "random")

@@ -13,7 +13,7 @@ from ..models.perception import ComponentVAE, PerceptionConfig
 from .checkpoints import load_checkpoint, resolve_run
 from .data import ShardedFrames
 from .loop import Job, checkpoint_path, fit, setup_distributed, start_process
-from .recipes import TrainConfig, recipe, recipe_of
+from .recipes import DEFAULT_RECIPE, TrainConfig, recipe, recipe_of
 
 
 def load_perception(model: str | os.PathLike, device: str | torch.device = "cpu"):
@@ -41,7 +41,7 @@ def perception_configs(recipe_name: str, run_dir: Path, resume: bool, **train_ov
     return recipe_name, model_config, override(train_config, **train_overrides)
 
 
-def train_perception(data: str | os.PathLike | None, run_dir: str | os.PathLike, *, recipe_name: str = "cpu",
+def train_perception(data: str | os.PathLike | None, run_dir: str | os.PathLike, *, recipe_name: str = DEFAULT_RECIPE,
                      resume: bool = False, overwrite: bool = False, progress: bool = True,
                      model_overrides: dict | None = None, **train_overrides: Any) -> Path:
     """What `xvoe train perception` does; also works under torchrun. A resumed run may leave

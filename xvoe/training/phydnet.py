@@ -22,7 +22,7 @@ from ..models.phydnet import PhyDNet, PhyDNetConfig, PhyDNetObjective, widen_lst
 from .checkpoints import load_checkpoint, resolve_run, save_checkpoint
 from .data import check_size, focus_on, owned_shards
 from .loop import Job, checkpoint_path, fit, setup_distributed, start_process
-from .recipes import TrainConfig, recipe, recipe_of
+from .recipes import DEFAULT_RECIPE, TrainConfig, recipe, recipe_of
 
 STAGE = "phydnet"
 LOSS_FIELDS = ("change_weight", "moment_weight")   # PhyDNetConfig fields a resumed run may change
@@ -69,7 +69,7 @@ def phydnet_configs(recipe_name: str, run_dir: Path, resume: bool, data: str | o
     return recipe_name, chosen.phydnet, chosen.phydnet_train, str(data)
 
 
-def train_phydnet(data: str | os.PathLike | None, run_dir: str | os.PathLike, *, recipe_name: str = "cpu",
+def train_phydnet(data: str | os.PathLike | None, run_dir: str | os.PathLike, *, recipe_name: str = DEFAULT_RECIPE,
                   resume: bool = False, overwrite: bool = False, progress: bool = True,
                   model_overrides: dict | None = None, **train_overrides: Any) -> Path:
     """What `xvoe train phydnet` does (also under torchrun); returns RUN_DIR/phydnet.pt."""

@@ -50,8 +50,11 @@ def recipe_differences(state: dict) -> list[str]:
     for key, cls in (("perception", PerceptionConfig), ("phydnet", PhyDNetConfig), ("xpl", XPLConfig)):
         if key in config:
             stored[key] = to_dict(from_dict(cls, config[key]))
-    return _differences(stored, model, "") + _differences(to_dict(from_dict(TrainConfig, state["train"])), train,
-                                                         "train.")
+    lines = _differences(stored, model, "") + _differences(to_dict(from_dict(TrainConfig, state["train"])), train,
+                                                          "train.")
+    if "step" in state and state["step"] != train["steps"]:     # a run stopped, or still going, inside its last phase
+        lines.append(f"step: {state['step']} != {train['steps']} (the run has not finished)")
+    return lines
 
 
 def _differences(found: dict, wanted: dict, prefix: str) -> list[str]:

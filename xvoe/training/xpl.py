@@ -33,7 +33,7 @@ from .data import focus_on, owned_shards
 from .latents import encode_split, open_latents, picture_weights
 from .loop import Job, checkpoint_path, fit, setup_distributed, start_process
 from .perception import load_perception
-from .recipes import PROPOSAL_FIELDS, TrainConfig, recipe, recipe_of
+from .recipes import DEFAULT_RECIPE, PROPOSAL_FIELDS, TrainConfig, recipe, recipe_of
 
 STAGES = ("xpl", "plato")
 PROPOSAL_OBJECT_SHARE = 0.5   # the proposal stage rebuilds a seen object this often (else any slot); as
@@ -177,7 +177,7 @@ def stage_config(base: XPLConfig, stage: str, residual: bool, stop_gradient: boo
 
 
 def train_xpl(latents: str | os.PathLike | None, run_dir: str | os.PathLike, *, stage: str = "xpl",
-              recipe_name: str = "cpu", residual: bool = True, stop_gradient: bool = True,
+              recipe_name: str = DEFAULT_RECIPE, residual: bool = True, stop_gradient: bool = True,
               resume: bool = False, overwrite: bool = False, progress: bool = True, model_overrides: dict | None = None,
               **train_overrides: Any) -> Path:
     """What `xvoe train xpl|plato` does (also under torchrun). The checkpoint is RUN_DIR/STAGE.pt,

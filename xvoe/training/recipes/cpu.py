@@ -1,5 +1,5 @@
-"""The default recipe, at the CPU scale: what `xvoe pipeline` runs and what the shipped models
-come from (docs/decisions.md, "The default recipe").
+"""The CPU-scale recipe that `cpu-walls` and the default `cpu-short` build on, and the
+baselines' recipes they keep (docs/decisions.md, "The default recipe").
 
 32x32 RGBD frames, a small CNN encoder and a light decoder with the whole latent broadcast;
 walls inert in the dynamics, Transformer 1 trained by the refill loss alone, its fills of

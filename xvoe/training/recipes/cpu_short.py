@@ -1,11 +1,11 @@
-"""A candidate for the default recipe: `cpu-walls` inside the pipeline's 30 minutes on 2 cores.
+"""The default recipe: `cpu-walls` inside the pipeline's 30 minutes on 2 cores.
 
 Transformer 2 is left to the proposal stage (the joint step costs a third less), the
 perception and XPL stages are shorter, and the XPL and proposal stages keep a moving average
 of their weights, so that a shorter run does not end on a noisy last step; a quarter of the
 perception's frames show an object in the air, and the proposal stage draws half its batches
-from blocking videos. Measured from nothing over training seeds before it replaces anything
-(docs/results.md, "A recipe inside 30 minutes").
+from blocking videos. The shipped models come from its seed 0 (docs/decisions.md, "The default
+recipe"; docs/models.md).
 """
 from dataclasses import replace
 

@@ -1,9 +1,8 @@
-"""A candidate for the default recipe: `cpu` with Transformer 1 blind to the walls.
+"""`cpu` with Transformer 1 blind to the walls: the step between `cpu` and the default `cpu-short`.
 
 Some perception draws give walls latents close to a cube's, and Transformer 1 then fills a
 hidden cube with the wall; reading no wall keeps its fills on objects (docs/decisions.md,
-"Transformer 1 blind to the walls"). Measured here from nothing over training seeds before
-it replaces `cpu` (docs/results.md, "The walls recipe from nothing").
+"Transformer 1 blind to the walls"; docs/results.md, "The walls recipe from nothing").
 """
 from dataclasses import replace
 
