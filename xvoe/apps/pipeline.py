@@ -43,7 +43,11 @@ from ..training.xpl import train_proposal, train_xpl
 from .figures import plot_explanation
 from .report import report
 
-MODELS = ("xpl", "xpl-noresidual", "plato", "phydnet", "random")      # longest to train and score first
+MODELS = ("xpl", "xpl-noresidual", "plato", "phydnet", "random")
+# lanes (--jobs) take the longest training first, so that the last lane does not start it late: in
+# the CPU recipes PhyDNet takes about five hours in a one-thread lane, PLATO two and a quarter
+# (docs/decisions.md, "Pipeline lanes")
+LANE_ORDER = ("phydnet", "plato", "xpl-noresidual", "xpl")
 TRAINED = {"xpl": ("xpl", True), "plato": ("plato", True), "xpl-noresidual": ("xpl", False)}
 
 
@@ -128,7 +132,7 @@ def run_pipeline(config: PipelineConfig) -> Path:
         stages.run("encode-train", lambda: encode_split(run_dir, train_data, latents, overwrite=True,
                                                         progress=config.progress))
     (run_dir / "scores").mkdir(exist_ok=True)
-    heavy = sorted((m for m in config.models if m != "random"), key=MODELS.index)     # the longest first
+    heavy = sorted((m for m in config.models if m != "random"), key=LANE_ORDER.index)
     lanes = min(config.jobs or cores, len(heavy))
     if lanes > 1:       # one model's training per lane, the cores shared out: two 1-thread runs beat one 2-thread run
         threads = max(1, cores // lanes)
