@@ -5,7 +5,8 @@ Generative story: the latents of the objects that are seen are given (they live 
 latent trajectory starts from the latent prior and follows the scene's dynamics with
 Gaussian transitions (sites `z_0` ... `z_{T-1}`); every frame is rendered from all latents
 and observed under a Gaussian pixel likelihood (site `frames`), less a penalty for every pixel
-the hidden object shows in front of everything else: the encoder reported no object there.
+the hidden object shows in front of everything else (the encoder reported no object there) and
+for every pixel it draws short of an object's area (a latent that draws nothing is no object).
 
 The guide proposes `exists` from its own amortised probability and the trajectory from a
 per-frame Gaussian (in XPL: Transformer 2's mean and scale), by default fused with the
@@ -189,9 +190,9 @@ class HiddenObjectModel(nn.Module):
         return exists
 
     def pixel_log_likelihood(self, trajectory: Tensor, alive: Tensor, frames: Tensor) -> Tensor:
-        """log N(frames | rendered frames, pixel_sigma^2) of each particle (N,), less the
-        cost of its hidden object's drawing (`drawing_cost`), summed in float64. Every particle without a
-        hidden object shows the same frames, so they are rendered and scored once; a
+        """log N(frames | rendered frames, pixel_sigma^2) of each particle (N,), less the cost
+        of its hidden object's drawing (`drawing_cost`), summed in float64. Every particle
+        without a hidden object shows the same frames, so they are rendered and scored once; a
         (N, T, 4, H, W) density of 64 particles cost a third of the scoring time."""
         sigma = self.config.pixel_sigma
         constant = pixel_log_normaliser(frames.numel(), sigma)
