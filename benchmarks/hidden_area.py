@@ -6,8 +6,9 @@ The area of a picture is what it draws in front of the background, before any wa
 (`inference.xpl_scene.XPLScene.area`). Printed, as percentiles over frames: the seen objects'
 areas in the frames the encoder saw them; Transformer 2's mean for the hidden slot (the
 proposal's centre, before the NLL moves it out of sight against this very penalty) on videos
-with a never-seen object and on the others; and the presence threshold of the default `InferenceConfig` in pixels.
-A threshold that falls between the real objects and the blank slots charges only the blanks.
+with a never-seen object and on the others; and the presence threshold of the default
+`InferenceConfig` in pixels. A threshold that falls between the real objects and the blank
+slots charges only the blanks.
 """
 from __future__ import annotations
 

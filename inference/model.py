@@ -130,10 +130,12 @@ class InferenceConfig:
     trajectory_scale_floor: float = 1.0
 
 
-def drawing_cost(config: InferenceConfig, drawing: Drawing, frame_pixels: int) -> Tensor:
+def drawing_cost(config: InferenceConfig, drawing: Drawing) -> Tensor:
     """Nats (M, T) float64 the hidden object's drawing costs besides its pixels' likelihood: each
     pixel it shows in plain view, where the encoder saw nothing, and each pixel it falls short
-    of an object's area: the object must be there, hidden behind a wall, not a shadow of one."""
+    of an object's area (a share of the drawn frames' H x W): the object must be there, hidden
+    behind a wall, not a shadow of one."""
+    frame_pixels = drawing.frames.shape[-2] * drawing.frames.shape[-1]
     shortfall = (config.object_area * frame_pixels - drawing.area.to(torch.float64)).clamp_min(0.0)
     return config.exposure_penalty * drawing.exposure.to(torch.float64) + config.presence_penalty * shortfall
 
@@ -206,8 +208,7 @@ class HiddenObjectModel(nn.Module):
             result[~alive] = log_density(self.scene.empty())
         if alive.any():
             drawing = self.scene.draw(trajectory[alive])
-            cost = drawing_cost(self.config, drawing, frames.shape[-2] * frames.shape[-1])
-            result[alive] = log_density(drawing.frames) - cost.sum(-1)
+            result[alive] = log_density(drawing.frames) - drawing_cost(self.config, drawing).sum(-1)
         return result
 
     def _transition(self, history: Tensor, alive: Tensor) -> Tensor:

@@ -430,7 +430,7 @@ class XPLSteps:
         chosen = torch.full((len(z),), t, dtype=torch.long)
         drawing = self.scene.draw_frames(z, chosen)
         pixels = pixel_frame_log_density(drawing.frames, self.observed[t], self.config.pixel_sigma)
-        return pixels - drawing_cost(self.config, drawing, self.observed[t, 0].numel())
+        return pixels - drawing_cost(self.config, drawing)
 
     def advance(self, t: int, z: Tensor, carried: Any) -> tuple[Tensor, Any, Tensor]:
         scene = self.scene.refined[t].expand(len(z), *self.scene.refined.shape[1:]).clone()

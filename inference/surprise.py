@@ -130,7 +130,7 @@ def refine_out_of_sight(scene: XPLScene, loc: Tensor, frames: Tensor, config: In
         drawing = scene.draw_frames(latents, chosen)
         extra = (drawing.frames - frames[chosen]).square() - without[chosen]
         pixels = extra.clamp_min(0.0).sum(dim=(1, 2, 3)) / (2 * config.pixel_sigma ** 2)
-        return pixels + drawing_cost(config, drawing, frames.shape[-2] * frames.shape[-1])
+        return pixels + drawing_cost(config, drawing)
 
     chosen = every[extra_cost(loc, every) > config.refine_tolerance]
     if len(chosen) == 0:

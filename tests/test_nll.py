@@ -342,8 +342,9 @@ def test_the_presence_penalty_costs_its_nats_per_pixel_short_of_an_objects_area(
     """A hidden object drawing 18 pixels where an object draws 25.6 (a tenth of 16x16) pays
     for the 7.6 it lacks; one drawing 30 pays nothing; exposure is charged on top."""
     config = InferenceConfig(exposure_penalty=3.0, presence_penalty=2.0, object_area=0.1)
-    drawing = Drawing(torch.zeros(2, 1), exposure=torch.tensor([[0.0], [1.0]]), area=torch.tensor([[18.0], [30.0]]))
-    cost = drawing_cost(config, drawing, frame_pixels=256)
+    frames = torch.zeros(2, 1, 4, 16, 16)
+    drawing = Drawing(frames, exposure=torch.tensor([[0.0], [1.0]]), area=torch.tensor([[18.0], [30.0]]))
+    cost = drawing_cost(config, drawing)
     assert cost.dtype == torch.float64
     torch.testing.assert_close(cost, torch.tensor([[2.0 * 7.6], [3.0]], dtype=torch.float64))
     scene, frames = tiny_scene()
