@@ -1,5 +1,6 @@
 """PhyDNet: moment constraint, shapes, causality, learning, the training stage and scoring."""
 import csv
+import shutil
 from dataclasses import replace
 
 import numpy as np
@@ -22,7 +23,8 @@ from xvoe.models.phydnet import (
     kernel_moments,
     kernels_with_moments,
 )
-from xvoe.training.phydnet import VideoBatches, load_phydnet, train_phydnet, widen_run
+from xvoe.training.loop import Dist
+from xvoe.training.phydnet import VideoBatches, load_phydnet, train_phydnet, widen_checkpoint
 from xvoe.training.recipes import DEFAULT_RECIPE, RECIPES, TrainConfig
 
 TINY = PhyDNetConfig(image_size=16, encoder_channels=(8, 8, 8), phycell_kernel=5, lstm_channels=(8,))
@@ -219,25 +221,31 @@ def test_stage_trains_resumes_exactly_and_loads(splits, tmp_path, tiny_recipe):
         train_phydnet(splits[0], tmp_path / "d", progress=False, model_overrides={"image_size": 32})
 
 
-def test_a_widened_lstm_kernel_predicts_the_same_and_trains_on(splits, tmp_path, tiny_recipe):
-    """The 3x3 gates padded with zeros to 7x7 give the same predictions; the widened run resumes
-    from the source's step with a fresh optimiser, and its outer taps learn."""
+def test_a_phase_that_widens_the_lstm_kernel_predicts_the_same_and_trains_on(splits, tmp_path, tiny_recipe):
+    """A phase's lstm_kernel pads the trained 3x3 gates with zeros to 7x7: the same predictions,
+    the run's step kept and Adam afresh; the resumed phase's outer taps learn, and a rerun of the
+    phase (an interrupted one resumed) does not widen again."""
     source = train_phydnet(splits[0], tmp_path / "a", progress=False, model_overrides={"lstm_channels": (8, 8)})
-    widened = widen_run(source, tmp_path / "b", lstm_kernel=7)
-    (net, _), (wide, state) = load_phydnet(source), load_phydnet(widened)
-    assert wide.config == replace(net.config, lstm_kernel=7) and state["step"] == 4 and "optimizer" not in state
-    frames = videos(2, 6)
+    (net, _), frames = load_phydnet(source), videos(2, 6)
+    copy = tmp_path / "b" / "phydnet.pt"
+    copy.parent.mkdir()
+    shutil.copy(source, copy)
+    assert widen_checkpoint(copy, 7, Dist()) == replace(net.config, lstm_kernel=7)
+    wide, state = load_phydnet(copy)
+    assert state["step"] == 4 and state["optimizer"]["state"] == {} and "rng" in state
     with torch.no_grad():
         torch.testing.assert_close(wide(frames), net(frames), rtol=0, atol=1e-6)
-    with pytest.warns(UserWarning, match="Adam starts afresh at step 4"):
-        trained = torch.load(train_phydnet(None, tmp_path / "b", progress=False, resume=True, steps=6),
-                             weights_only=False)
+    trained = torch.load(train_phydnet(None, tmp_path / "a", progress=False, resume=True, steps=6, lstm_kernel=7),
+                         weights_only=False)
     gates = trained["model"]["net.lstm.1.gates.weight"]
     assert trained["step"] == 6 and gates.shape[-2:] == (7, 7) and gates[..., 0, :].abs().sum() > 0
+    again = torch.load(train_phydnet(None, tmp_path / "a", progress=False, resume=True, steps=7, lstm_kernel=7),
+                       weights_only=False)
+    assert again["step"] == 7 and again["model"]["net.lstm.1.gates.weight"].shape[-2:] == (7, 7)
     with pytest.raises(XvoeError, match="larger odd size, not 7 -> 5"):
-        widen_run(widened, tmp_path / "c", lstm_kernel=5)
-    with pytest.raises(XvoeError, match="exists"):
-        widen_run(source, tmp_path / "b", lstm_kernel=9)
+        train_phydnet(None, tmp_path / "a", progress=False, resume=True, steps=8, lstm_kernel=5)
+    with pytest.raises(XvoeError, match="a fresh run takes its kernel"):
+        train_phydnet(splits[0], tmp_path / "c", progress=False, lstm_kernel=5)
 
 
 def test_an_interrupt_stops_after_its_step_and_the_run_resumes_exactly(splits, tmp_path, tiny_recipe, monkeypatch):

@@ -69,6 +69,20 @@ def test_phases_continue_a_stage_and_the_last_is_what_a_run_holds():
     assert made.final_training("xpl") == made.xpl_train
 
 
+def test_a_phydnet_widened_by_a_phase_is_what_its_recipe_makes():
+    """The recipe's PhyDNet starts with 3x3 gates and a phase widens them: a finished run holds 5x5."""
+    made = recipe(DEFAULT_RECIPE)
+    assert made.phydnet.lstm_kernel == 3 and made.final_phydnet().lstm_kernel == 5
+    state = load_checkpoint(WEIGHTS / "phydnet.pt")
+    widened = {**state, "config": {"recipe": DEFAULT_RECIPE, "phydnet": state["config"]["phydnet"]},
+               "train": {**state["train"], **{k: v for k, v in vars(made.final_training("phydnet")).items()
+                                              if k not in ("seed", "data_shards", "threads")}},
+               "step": made.final_training("phydnet").steps}
+    assert recipe_differences(widened) == []
+    narrow = {**widened, "config": {**widened["config"], "phydnet": {**state["config"]["phydnet"], "lstm_kernel": 3}}}
+    assert recipe_differences(narrow) == ["phydnet.lstm_kernel: 3 != 5"]
+
+
 def test_an_unknown_recipe_is_a_one_line_error():
     with pytest.raises(XvoeError, match="unknown recipe 'gpu'; choose one of cpu, cpu-walls, cpu-short, paper"):
         recipe("gpu")

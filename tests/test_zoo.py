@@ -6,6 +6,7 @@ import xvoe.apps.zoo as zoo
 import xvoe.training.checkpoints as checkpoints
 from xvoe.errors import XvoeError
 from xvoe.evaluation.score import load_model
+from xvoe.training.recipes import recipe
 
 
 def test_the_default_model_is_shipped_within_budget():
@@ -69,5 +70,28 @@ def test_unshipped_names_and_runs_give_one_line_errors(tmp_path, monkeypatch):
     monkeypatch.setattr(checkpoints, "WEIGHTS", tmp_path)
     with pytest.raises(XvoeError, match="not shipped"):
         load_model("plato")
-    with pytest.raises(XvoeError, match="no perception.pt and xpl.pt"):
+    with pytest.raises(XvoeError, match="holds no checkpoint to ship"):
         zoo.ship(tmp_path)
+    (tmp_path / "xpl.pt").write_bytes((zoo.WEIGHTS / "xpl.pt").read_bytes())
+    with pytest.raises(XvoeError, match="holds no perception.pt, whose latents its xpl read"):
+        zoo.ship(tmp_path, tmp_path / "weights")
+
+
+def test_a_phydnet_ships_on_its_own(tmp_path):
+    """PhyDNet reads pixels: a run of it alone replaces phydnet.pt and leaves the rest."""
+    weights, run = tmp_path / "weights", tmp_path / "run"
+    weights.mkdir()
+    run.mkdir()
+    for stage in ("perception", "xpl"):
+        (weights / f"{stage}.pt").write_bytes((zoo.WEIGHTS / f"{stage}.pt").read_bytes())
+    state = torch.load(zoo.WEIGHTS / "phydnet.pt", weights_only=False)
+    state["config"] = {"recipe": "cpu", "phydnet": {**state["config"]["phydnet"]}}
+    made = recipe("cpu")
+    state["train"] = {**state["train"], "steps": made.final_training("phydnet").steps, "lr": 4.5e-4,
+                      "max_minutes": 0.0}
+    state["step"], state["meta"] = made.final_training("phydnet").steps, {"data": "/somewhere/train.h5"}
+    torch.save(state, run / "phydnet.pt")
+    before = {p.name: p.read_bytes() for p in weights.iterdir()}
+    assert [p.name for p in zoo.ship(run, weights)] == ["phydnet.pt"]
+    assert {p.name: p.read_bytes() for p in weights.iterdir() if p.name != "phydnet.pt"} == before
+    assert torch.load(weights / "phydnet.pt", weights_only=False)["meta"] == {"shipped_from": "run"}

@@ -22,6 +22,10 @@ BUDGET_BYTES = 25 * 2**20      # all shipped checkpoints together
 KEPT = ("format", "stage", "step", "config", "model", "train", "meta")
 
 
+# the shipped models that read the shared perception's latents
+READS_PERCEPTION = ("xpl", "plato", "xpl-noresidual", "proposal")
+
+
 def available_models() -> list[str]:
     return [name for name in SHIPPED if shipped_path(name)]
 
@@ -34,15 +38,19 @@ def ship(run_dir: str | os.PathLike, out: str | os.PathLike | None = None) -> li
     if not run_dir.is_dir():
         raise XvoeError(f"{run_dir}: no such run directory")
     stages = [s for s in ("perception", *SHIPPED, "proposal") if (run_dir / f"{s}.pt").is_file()]
-    if "perception" not in stages or "xpl" not in stages:
-        raise XvoeError(f"{run_dir} holds no perception.pt and xpl.pt to ship")
+    if not stages:
+        raise XvoeError(f"{run_dir} holds no checkpoint to ship (perception.pt with xpl.pt, or phydnet.pt)")
+    if "perception" not in stages and (readers := [s for s in stages if s in READS_PERCEPTION]):
+        raise XvoeError(f"{run_dir} holds no perception.pt, whose latents its {', '.join(readers)} read; "
+                        "nothing was written")
     claim_directory(out or WEIGHTS, make=False)
     states = {stage: load_checkpoint(run_dir / f"{stage}.pt") for stage in stages}
     for stage, state in states.items():
         if differences := recipe_differences(state):
             raise XvoeError(f"{run_dir / stage}.pt is not what its recipe makes ({'; '.join(differences[:3])}); "
                             "ship runs of `xvoe pipeline --recipe NAME` as written; nothing was written")
-    _check_shared_perception(states["perception"], Path(out or WEIGHTS), set(stages))
+    if "perception" in states:      # PhyDNet reads pixels: it ships on its own
+        _check_shared_perception(states["perception"], Path(out or WEIGHTS), set(stages))
     slim = {stage: _slim(state, run_dir.name) for stage, state in states.items()}
     kept = sum(p.stat().st_size for p in Path(out or WEIGHTS).glob("*.pt") if p.stem not in slim)
     total = kept + sum(len(data) for data in slim.values())
@@ -55,10 +63,6 @@ def ship(run_dir: str | os.PathLike, out: str | os.PathLike | None = None) -> li
         for temporary, data in zip(temporaries, slim.values()):
             temporary.write_bytes(data)
     return targets
-
-
-# the shipped models that read the shared perception's latents
-READS_PERCEPTION = ("xpl", "plato", "xpl-noresidual", "proposal")
 
 
 def _check_shared_perception(perception: dict, out: Path, shipping: set[str]) -> None:

@@ -214,6 +214,8 @@ def fit(job: Job, config: TrainConfig, run_dir: str | os.PathLike, *, place: Dis
     place = place or Dist()
     if config.airborne_share and job.stage != "perception":
         raise XvoeError(f"airborne_share picks the perception stage's frames; the {job.stage} stage has none")
+    if config.lstm_kernel and job.stage != "phydnet":
+        raise XvoeError(f"lstm_kernel widens PhyDNet's ConvLSTM gates; the {job.stage} stage has none")
     if (config.focus_group or config.focus_share) and job.stage in UNFOCUSED:
         raise XvoeError(f"focus_group and focus_share pick videos of a group; the {job.stage} stage draws "
                         f"{UNFOCUSED[job.stage]}")

@@ -8,6 +8,7 @@ same batches as one uninterrupted process.
 from __future__ import annotations
 
 import os
+from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
@@ -21,7 +22,7 @@ from ..models.config import from_dict, override, override_resumed, to_dict
 from ..models.phydnet import PhyDNet, PhyDNetConfig, PhyDNetObjective, widen_lstm_kernel
 from .checkpoints import load_checkpoint, resolve_run, save_checkpoint
 from .data import check_size, focus_on, owned_shards
-from .loop import Job, checkpoint_path, fit, setup_distributed, start_process
+from .loop import Dist, Job, checkpoint_path, fit, setup_distributed, start_process
 from .recipes import DEFAULT_RECIPE, TrainConfig, recipe, recipe_of
 
 STAGE = "phydnet"
@@ -81,6 +82,11 @@ def train_phydnet(data: str | os.PathLike | None, run_dir: str | os.PathLike, *,
     else:
         model_config = override(model_config, **(model_overrides or {}))
     config = override(config, **train_overrides)
+    if config.lstm_kernel not in (0, model_config.lstm_kernel):
+        if not (resume and checkpoint_path(run_dir, STAGE).exists()):
+            raise XvoeError("lstm_kernel widens the gates of a trained PhyDNet in a later phase; a fresh run "
+                            "takes its kernel from the model config (--set model.lstm_kernel=K)")
+        model_config = widen_checkpoint(checkpoint_path(run_dir, STAGE), config.lstm_kernel, place)
     config = start_process(config, place)
     batches = VideoBatches(data, image_size=model_config.image_size, batch_size=config.batch_size,
                            shards=config.data_shards, rank=place.rank, world=place.world,
@@ -91,21 +97,27 @@ def train_phydnet(data: str | os.PathLike | None, run_dir: str | os.PathLike, *,
     return fit(job, config, run_dir, place=place, resume=resume, overwrite=overwrite, progress=progress)
 
 
-def widen_run(source: str | os.PathLike, run_dir: str | os.PathLike, lstm_kernel: int) -> Path:
-    """Start RUN_DIR/phydnet.pt from a trained PhyDNet with its ConvLSTM kernel widened
-    (`widen_lstm_kernel`: the same predictions to begin with). The checkpoint keeps the source's
-    step, training config and data but no optimiser state, so `train_phydnet(None, run_dir,
-    resume=True)` trains it on with Adam afresh, as from a shipped model."""
-    net, state = load_phydnet(source)
-    target = checkpoint_path(run_dir, STAGE)
-    if target.exists():
-        raise XvoeError(f"{target} exists; widen into a new run directory")
-    wider = widen_lstm_kernel(net, lstm_kernel)
-    Path(run_dir).mkdir(parents=True, exist_ok=True)
-    kept = {key: state[key] for key in ("format", "stage", "train", "step", "meta") if key in state}
-    save_checkpoint(target, {**kept, "config": {**state["config"], "phydnet": to_dict(wider.config)},
-                             "model": PhyDNetObjective(wider).state_dict()})
-    return target
+def widen_checkpoint(path: Path, kernel: int, place: Dist) -> PhyDNetConfig:
+    """Rewrite a PhyDNet run's checkpoint with its ConvLSTM gates widened to `kernel`
+    (`widen_lstm_kernel`: the same predictions to begin with) and Adam afresh, its step, RNG
+    states and loss log kept, so that the resumed phase trains the wider gates; returns the
+    widened network's config."""
+    if place.main:
+        state = load_checkpoint(path)
+        widened = {}
+        for key in ("model", "trained"):
+            if key in state:
+                objective = PhyDNetObjective(PhyDNet(from_dict(PhyDNetConfig, state["config"]["phydnet"])))
+                objective.load_state_dict(state[key])
+                widened[key] = PhyDNetObjective(widen_lstm_kernel(objective.net, kernel)).state_dict()
+        config = replace(from_dict(PhyDNetConfig, state["config"]["phydnet"]), lstm_kernel=kernel)
+        if "optimizer" in state:     # an un-stepped Adam over the same parameters, in the same order
+            fresh = PhyDNetObjective(PhyDNet(config))
+            widened["optimizer"] = torch.optim.Adam(fresh.parameters()).state_dict()
+        save_checkpoint(path, {**state, **widened, "config": {**state["config"], "phydnet": to_dict(config)}})
+    if place.world > 1:
+        torch.distributed.barrier()
+    return from_dict(PhyDNetConfig, load_checkpoint(path)["config"]["phydnet"])
 
 
 def load_phydnet(model: str | os.PathLike, device: str | torch.device = "cpu") -> tuple[PhyDNet, dict]:

@@ -29,7 +29,7 @@ def expected_configs(state: dict) -> tuple[dict, dict]:
     if stage == "perception":
         model = {"perception": to_dict(chosen.perception)}
     elif stage == "phydnet":
-        model = {"phydnet": to_dict(chosen.phydnet)}
+        model = {"phydnet": to_dict(chosen.final_phydnet())}
     else:
         stored = from_dict(XPLConfig, config["xpl"])
         kind, residual = XPL_STAGES[stage]

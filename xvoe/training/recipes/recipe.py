@@ -7,7 +7,7 @@ this one.
 """
 from __future__ import annotations
 
-from dataclasses import dataclass, field, fields
+from dataclasses import dataclass, field, fields, replace
 
 from ...errors import XvoeError
 from ...models.config import field_type, parse_value, split_assignment
@@ -47,6 +47,9 @@ class TrainConfig:
     # the perception stage alone: this share of each batch's frames shows a ball or cube off the
     # floor (0 = frames drawn uniformly)
     airborne_share: float = 0.0
+    # the PhyDNet stage alone: at the start of this phase its ConvLSTM gates widen to this size,
+    # the trained taps in the centre (0 = as they are)
+    lstm_kernel: int = 0
 
 
 @dataclass(frozen=True)
@@ -89,6 +92,11 @@ class Recipe:
                 "xpl-noresidual": self.xpl_train, "proposal": self.proposal_train,
                 "trajectory": self.trajectory_train,
                 "phydnet": self.phydnet_train}[stage]
+
+    def final_phydnet(self) -> PhyDNetConfig:
+        """The PhyDNet a finished run holds: the recipe's, its gates as wide as a phase widened them."""
+        kernels = [train.lstm_kernel for train in (self.phydnet_train, *self.phases_of("phydnet")) if train.lstm_kernel]
+        return replace(self.phydnet, lstm_kernel=kernels[-1]) if kernels else self.phydnet
 
     def final_training(self, stage: str) -> TrainConfig:
         """The training config a finished run of the stage holds: its last phase's."""
