@@ -95,3 +95,9 @@ def test_a_phydnet_ships_on_its_own(tmp_path):
     assert [p.name for p in zoo.ship(run, weights)] == ["phydnet.pt"]
     assert {p.name: p.read_bytes() for p in weights.iterdir() if p.name != "phydnet.pt"} == before
     assert torch.load(weights / "phydnet.pt", weights_only=False)["meta"] == {"shipped_from": "run"}
+
+
+@pytest.mark.parametrize("path", sorted(zoo.WEIGHTS.glob("*.pt")), ids=lambda p: p.stem)
+def test_no_shipped_checkpoint_holds_a_path_of_the_machine_it_was_trained_on(path):
+    meta = torch.load(path, weights_only=False)["meta"]
+    assert not [value for value in meta.values() if isinstance(value, str) and value.startswith("/")]
