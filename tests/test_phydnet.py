@@ -230,15 +230,17 @@ def test_a_phase_that_widens_the_lstm_kernel_predicts_the_same_and_trains_on(spl
     copy = tmp_path / "b" / "phydnet.pt"
     copy.parent.mkdir()
     shutil.copy(source, copy)
-    assert widen_checkpoint(copy, 7, Dist()) == replace(net.config, lstm_kernel=7)
+    widen_checkpoint(copy, 7, Dist())
     wide, state = load_phydnet(copy)
-    assert state["step"] == 4 and state["optimizer"]["state"] == {} and "rng" in state
+    assert wide.config == replace(net.config, lstm_kernel=7) and state["step"] == 4
+    assert state["optimizer"]["state"] == {} and "rng" in state
     with torch.no_grad():
         torch.testing.assert_close(wide(frames), net(frames), rtol=0, atol=1e-6)
-    trained = torch.load(train_phydnet(None, tmp_path / "a", progress=False, resume=True, steps=6, lstm_kernel=7),
-                         weights_only=False)
+    trained = torch.load(train_phydnet(None, tmp_path / "a", progress=False, resume=True, steps=6, lstm_kernel=7,
+                                       model_overrides={"change_weight": 3.0}), weights_only=False)
     gates = trained["model"]["net.lstm.1.gates.weight"]
     assert trained["step"] == 6 and gates.shape[-2:] == (7, 7) and gates[..., 0, :].abs().sum() > 0
+    assert trained["config"]["phydnet"]["change_weight"] == 3.0      # a loss field changed in the same phase
     again = torch.load(train_phydnet(None, tmp_path / "a", progress=False, resume=True, steps=7, lstm_kernel=7),
                        weights_only=False)
     assert again["step"] == 7 and again["model"]["net.lstm.1.gates.weight"].shape[-2:] == (7, 7)

@@ -86,7 +86,8 @@ def train_phydnet(data: str | os.PathLike | None, run_dir: str | os.PathLike, *,
         if not (resume and checkpoint_path(run_dir, STAGE).exists()):
             raise XvoeError("lstm_kernel widens the gates of a trained PhyDNet in a later phase; a fresh run "
                             "takes its kernel from the model config (--set model.lstm_kernel=K)")
-        model_config = widen_checkpoint(checkpoint_path(run_dir, STAGE), config.lstm_kernel, place)
+        widen_checkpoint(checkpoint_path(run_dir, STAGE), config.lstm_kernel, place)
+        model_config = replace(model_config, lstm_kernel=config.lstm_kernel)   # a loss field's override kept
     config = start_process(config, place)
     batches = VideoBatches(data, image_size=model_config.image_size, batch_size=config.batch_size,
                            shards=config.data_shards, rank=place.rank, world=place.world,
@@ -97,11 +98,10 @@ def train_phydnet(data: str | os.PathLike | None, run_dir: str | os.PathLike, *,
     return fit(job, config, run_dir, place=place, resume=resume, overwrite=overwrite, progress=progress)
 
 
-def widen_checkpoint(path: Path, kernel: int, place: Dist) -> PhyDNetConfig:
+def widen_checkpoint(path: Path, kernel: int, place: Dist) -> None:
     """Rewrite a PhyDNet run's checkpoint with its ConvLSTM gates widened to `kernel`
     (`widen_lstm_kernel`: the same predictions to begin with) and Adam afresh, its step, RNG
-    states and loss log kept, so that the resumed phase trains the wider gates; returns the
-    widened network's config."""
+    states and loss log kept, so that the resumed phase trains the wider gates."""
     if place.main:
         state = load_checkpoint(path)
         widened = {}
@@ -117,7 +117,6 @@ def widen_checkpoint(path: Path, kernel: int, place: Dist) -> PhyDNetConfig:
         save_checkpoint(path, {**state, **widened, "config": {**state["config"], "phydnet": to_dict(config)}})
     if place.world > 1:
         torch.distributed.barrier()
-    return from_dict(PhyDNetConfig, load_checkpoint(path)["config"]["phydnet"])
 
 
 def load_phydnet(model: str | os.PathLike, device: str | torch.device = "cpu") -> tuple[PhyDNet, dict]:
