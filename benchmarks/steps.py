@@ -5,6 +5,8 @@ models (untrained weights cost the same as trained ones):
   perception  one training step of the Component VAE (forward, backward, Adam), per frame
   xpl         one training step of XPL (Transformers 1 and 2, the dynamics, Adam), per video
   score       one MSE scoring pass (encode every frame, Transformers 1 and 2, decode, composite), per video
+  phydnet     one training step of the PhyDNet baseline with the recipe's first ConvLSTM kernel, per
+              video (phydnet-widened: with the kernel its widening phase gives it); no reference
 Each stage runs `--warmup` steps, then `--repeats` timed ones; it prints the median wall time
 per item and the median CPU time (all threads: on a loaded machine it moves less than the wall
 time), the minor page faults and the kernel share (system / (user + system) CPU time) per
@@ -24,6 +26,7 @@ cannot be met by making the step faster, only by a step with fewer operations.
     python benchmarks/steps.py --recipe cpu --stages score
     python benchmarks/steps.py --recipe cpu --stages xpl,xpl-compiled --videos 32   # torch.compile's gain
     python benchmarks/steps.py --recipe cpu --stages xpl,xpl-bf16 --videos 32       # bfloat16 autocast's
+    python benchmarks/steps.py --recipe cpu-short --stages phydnet,phydnet-widened --threads 1
 
 The allocator setting (xvoe/allocator.py) is per process: compare it by running this twice,
 once with XVOE_MALLOC=system; the faults column shows the difference without timing noise.
@@ -42,6 +45,7 @@ from torch.utils.flop_counter import FlopCounterMode
 
 from xvoe.evaluation.surprise import mse_surprise
 from xvoe.models.perception import ComponentVAE, normalise
+from xvoe.models.phydnet import PhyDNet, PhyDNetObjective
 from xvoe.models.xpl import XPL
 from xvoe.training.data import perception_batch, visible_threshold
 from xvoe.training.latents import encode_frames
@@ -49,7 +53,7 @@ from xvoe.training.recipes import recipe
 from xvoe.training.xpl import LatentBatch
 
 REFERENCE_MS = {"perception": 383.0, "xpl": 539.0, "score": 881.0}   # TensorFlow, 2 threads, this machine
-UNIT = {"perception": "frame", "xpl": "video", "score": "video"}
+UNIT = {"perception": "frame", "xpl": "video", "score": "video", "phydnet": "video"}
 SLOTS, FRAMES = 8, 15
 
 
@@ -110,6 +114,15 @@ def xpl_step(config, videos: int, rng: np.random.Generator, compiled: bool = Fal
                         refill=torch.from_numpy(rng.random(shape) < 0.2), walls=walls)
 
     return training_step(model, optimiser, batch, bf16)
+
+
+def phydnet_step(config, videos: int, rng: np.random.Generator):
+    """What the PhyDNet stage's loop does per batch of uint8 videos (B, T, H, W, 4)."""
+    model = PhyDNetObjective(PhyDNet(config)).train()
+    optimiser = torch.optim.Adam(model.parameters(), lr=1e-4)
+    size = config.image_size
+    batch = torch.from_numpy(rng.integers(0, 256, (videos, FRAMES, size, size, 4), dtype=np.uint8))
+    return training_step(model, optimiser, batch)
 
 
 def score_step(perception, xpl_config, videos: int, rng: np.random.Generator):
@@ -177,6 +190,7 @@ def main() -> None:
     parser.add_argument("--frames", type=int, default=4, help="frames per perception step")
     parser.add_argument("--videos", type=int, default=8, help="videos per XPL step")
     parser.add_argument("--score-videos", type=int, default=2, help="videos per scoring pass")
+    parser.add_argument("--phydnet-videos", type=int, default=8, help="videos per PhyDNet step (the recipes' 8)")
     parser.add_argument("--threads", type=int, default=2)
     parser.add_argument("--warmup", type=int, default=2)
     parser.add_argument("--repeats", type=int, default=5)
@@ -193,23 +207,30 @@ def main() -> None:
           f"{args.threads} threads, allocator tuned: {allocator_tuned()}, torch {torch.__version__}")
     peak = matmul_peak()
     print(f"peak: a 2048x2048 matrix product runs at {peak:.1f} GMAC per CPU second")
-    print(f"{'stage':<11} {'ms/item':>9} {'+-':>6} {'vs ref':>7} {'cpu ms/item':>12} {'faults/step':>12} "
+    print(f"{'stage':<15} {'ms/item':>9} {'+-':>6} {'vs ref':>7} {'cpu ms/item':>12} {'faults/step':>12} "
           f"{'kernel':>7} {'GMAC/item':>10} {'GMAC/cpu-s':>10} {'goal needs':>11}  items/step")
     builders = {"perception": lambda rng: (perception_step(perception, args.frames, rng), args.frames),
                 "xpl": lambda rng: (xpl_step(chosen.xpl, args.videos, rng), args.videos),
                 "xpl-compiled": lambda rng: (xpl_step(chosen.xpl, args.videos, rng, compiled=True), args.videos),
                 "xpl-bf16": lambda rng: (xpl_step(chosen.xpl, args.videos, rng, bf16=True), args.videos),
-                "score": lambda rng: (score_step(perception, chosen.xpl, args.score_videos, rng), args.score_videos)}
+                "score": lambda rng: (score_step(perception, chosen.xpl, args.score_videos, rng), args.score_videos),
+                "phydnet": lambda rng: (phydnet_step(chosen.phydnet, args.phydnet_videos, rng), args.phydnet_videos),
+                "phydnet-widened": lambda rng: (phydnet_step(chosen.final_phydnet(), args.phydnet_videos, rng),
+                                                args.phydnet_videos)}
     for stage in args.stages.split(","):
         step, items = builders[stage](np.random.default_rng(args.seed))
         found = measure(step, args.warmup, args.repeats)
         gmacs = counted_gmacs(step) / items
         ms = 1000 * found["wall"] / items
         base = stage.split("-")[0]
-        needs = gmacs / (REFERENCE_MS[base] / 2 / 1000) / args.threads     # per core, for half the reference's time
-        print(f"{stage:<11} {ms:9.1f} {1000 * found['spread'] / items:6.1f} {ms / REFERENCE_MS[base]:6.2f}x "
+        if base in REFERENCE_MS:
+            needs = gmacs / (REFERENCE_MS[base] / 2 / 1000) / args.threads  # per core, for half the reference's time
+            versus, goal = f"{ms / REFERENCE_MS[base]:6.2f}x", f"{needs:7.1f} ({needs / peak:.1f}x peak)"
+        else:
+            versus, goal = f"{'-':>7}", f"{'-':>7}"
+        print(f"{stage:<15} {ms:9.1f} {1000 * found['spread'] / items:6.1f} {versus} "
               f"{1000 * found['cpu'] / items:12.1f} {found['faults']:12.0f} {found['kernel']:7.1%} "
-              f"{gmacs:10.2f} {gmacs / (found['cpu'] / items):10.1f} {needs:7.1f} ({needs / peak:.1f}x peak)  "
+              f"{gmacs:10.2f} {gmacs / (found['cpu'] / items):10.1f} {goal}  "
               f"{items} {UNIT[base]}s", flush=True)
     print(f"peak resident memory {resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2**20:.2f} GiB")
 
