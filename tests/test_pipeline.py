@@ -6,7 +6,8 @@ import pytest
 import xvoe
 from inference.model import InferenceConfig
 from inference.score import reference_nll
-from xvoe.apps.pipeline import PipelineConfig, compare_models, run_pipeline
+from xvoe.apps import pipeline
+from xvoe.apps.pipeline import PipelineConfig, Stages, compare_models, run_pipeline
 from xvoe.benchmark import store
 from xvoe.errors import XvoeError
 from xvoe.training.checkpoints import load_checkpoint
@@ -143,3 +144,20 @@ def test_models_trained_side_by_side_match_one_after_another(tmp_path, tiny_cpu_
         assert (runs[1] / "scores" / f"{model}.csv").read_bytes() == (runs[2] / "scores" / f"{model}.csv").read_bytes()
     with pytest.raises(XvoeError, match="--jobs"):
         PipelineConfig("x", jobs=-1)
+
+
+def test_an_interrupted_stage_reports_its_whole_time_when_resumed(tmp_path, monkeypatch):
+    """5 s before Ctrl-C and 7 s after the rerun: the stage's marker says 12 s, not 7."""
+    clock = iter([100.0, 105.0, 200.0, 207.0])
+    monkeypatch.setattr(pipeline.time, "monotonic", lambda: next(clock))
+    stages = Stages(tmp_path, progress=False)
+
+    def interrupted() -> None:
+        raise KeyboardInterrupt
+
+    with pytest.raises(KeyboardInterrupt):
+        stages.run("train-x", interrupted)
+    assert not stages.done("train-x")
+    stages.run("train-x", lambda: None)
+    assert (tmp_path / ".done" / "train-x").read_text() == "12.0 s\n"
+    assert not (tmp_path / ".partial" / "train-x").exists()

@@ -100,9 +100,18 @@ class Stages:
             return
         if self.progress:
             print(f"[pipeline] {name}", flush=True)
+        # an interrupted stage's time so far, so that the resumed one reports its whole time
+        partial = self.run_dir / ".partial" / name
+        before = float(partial.read_text()) if partial.exists() else 0.0
         start = time.monotonic()
-        work()
-        self.timings[name] = time.monotonic() - start
+        try:
+            work()
+        except BaseException:
+            partial.parent.mkdir(exist_ok=True)
+            partial.write_text(f"{before + time.monotonic() - start:.1f}")
+            raise
+        self.timings[name] = before + time.monotonic() - start
+        partial.unlink(missing_ok=True)
         (self.marks / name).write_text(f"{self.timings[name]:.1f} s\n" + (f"{key}\n" if key else ""))
 
 
