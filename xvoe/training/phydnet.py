@@ -77,16 +77,18 @@ def train_phydnet(data: str | os.PathLike | None, run_dir: str | os.PathLike, *,
     place = setup_distributed()
     run_dir = Path(run_dir)
     recipe_name, model_config, config, data = phydnet_configs(recipe_name, run_dir, resume, data)
-    if resume and checkpoint_path(run_dir, STAGE).exists():
+    ckpt = checkpoint_path(run_dir, STAGE)
+    resuming = resume and ckpt.exists()
+    if resuming:
         model_config = override_resumed(model_config, model_overrides, LOSS_FIELDS, "PhyDNet")
     else:
         model_config = override(model_config, **(model_overrides or {}))
     config = override(config, **train_overrides)
     if config.lstm_kernel not in (0, model_config.lstm_kernel):
-        if not (resume and checkpoint_path(run_dir, STAGE).exists()):
+        if not resuming:
             raise XvoeError("lstm_kernel widens the gates of a trained PhyDNet in a later phase; a fresh run "
                             "takes its kernel from the model config (--set model.lstm_kernel=K)")
-        widen_checkpoint(checkpoint_path(run_dir, STAGE), config.lstm_kernel, place)
+        widen_checkpoint(ckpt, config.lstm_kernel, place)
         model_config = replace(model_config, lstm_kernel=config.lstm_kernel)   # a loss field's override kept
     config = start_process(config, place)
     batches = VideoBatches(data, image_size=model_config.image_size, batch_size=config.batch_size,
@@ -104,17 +106,18 @@ def widen_checkpoint(path: Path, kernel: int, place: Dist) -> None:
     states and loss log kept, so that the resumed phase trains the wider gates."""
     if place.main:
         state = load_checkpoint(path)
+        narrow = from_dict(PhyDNetConfig, state["config"]["phydnet"])
         widened = {}
-        for key in ("model", "trained"):
+        for key in ("model", "trained"):        # "trained" beside "model" when the run averages its weights
             if key in state:
-                objective = PhyDNetObjective(PhyDNet(from_dict(PhyDNetConfig, state["config"]["phydnet"])))
+                objective = PhyDNetObjective(PhyDNet(narrow))
                 objective.load_state_dict(state[key])
-                widened[key] = PhyDNetObjective(widen_lstm_kernel(objective.net, kernel)).state_dict()
-        config = replace(from_dict(PhyDNetConfig, state["config"]["phydnet"]), lstm_kernel=kernel)
+                wider = PhyDNetObjective(widen_lstm_kernel(objective.net, kernel))
+                widened[key] = wider.state_dict()
         if "optimizer" in state:     # an un-stepped Adam over the same parameters, in the same order
-            fresh = PhyDNetObjective(PhyDNet(config))
-            widened["optimizer"] = torch.optim.Adam(fresh.parameters()).state_dict()
-        save_checkpoint(path, {**state, **widened, "config": {**state["config"], "phydnet": to_dict(config)}})
+            widened["optimizer"] = torch.optim.Adam(wider.parameters()).state_dict()
+        config = {**state["config"], "phydnet": to_dict(wider.net.config)}
+        save_checkpoint(path, {**state, **widened, "config": config})
     if place.world > 1:
         torch.distributed.barrier()
 
