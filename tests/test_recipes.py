@@ -10,7 +10,7 @@ from xvoe.apps.pipeline import stage_processes
 from xvoe.benchmark.generate import GenerateConfig
 from xvoe.errors import XvoeError
 from xvoe.training.checkpoints import WEIGHTS, load_checkpoint
-from xvoe.training.provenance import recipe_differences
+from xvoe.training.provenance import RUN_FIELDS, recipe_differences
 from xvoe.training.recipes import DEFAULT_RECIPE, RECIPES, TrainConfig, recipe, recipe_of
 
 FROM_THE_RECIPE = ("perception", "xpl", "proposal", "plato", "xpl-noresidual")
@@ -76,7 +76,7 @@ def test_a_phydnet_widened_by_a_phase_is_what_its_recipe_makes():
     state = load_checkpoint(WEIGHTS / "phydnet.pt")
     widened = {**state, "config": {"recipe": DEFAULT_RECIPE, "phydnet": state["config"]["phydnet"]},
                "train": {**state["train"], **{k: v for k, v in vars(made.final_training("phydnet")).items()
-                                              if k not in ("seed", "data_shards", "threads")}},
+                                              if k not in RUN_FIELDS}},
                "step": made.final_training("phydnet").steps}
     assert recipe_differences(widened) == []
     narrow = {**widened, "config": {**widened["config"], "phydnet": {**state["config"]["phydnet"], "lstm_kernel": 3}}}

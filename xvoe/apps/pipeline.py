@@ -44,8 +44,7 @@ from .figures import plot_explanation
 from .report import report
 
 MODELS = ("xpl", "xpl-noresidual", "plato", "phydnet", "random")
-# lanes (--jobs) take the longest training first, so that the last lane does not start it late: in
-# the CPU recipes PhyDNet takes about five hours in a one-thread lane, PLATO two and a quarter
+# lanes (--jobs) take the longest training first, so that the last lane does not start it late
 # (docs/decisions.md, "Pipeline lanes")
 LANE_ORDER = ("phydnet", "plato", "xpl-noresidual", "xpl")
 TRAINED = {"xpl": ("xpl", True), "plato": ("plato", True), "xpl-noresidual": ("xpl", False)}
