@@ -84,7 +84,8 @@ def test_a_phydnet_widened_by_a_phase_is_what_its_recipe_makes():
 
 
 def test_an_unknown_recipe_is_a_one_line_error():
-    with pytest.raises(XvoeError, match="unknown recipe 'gpu'; choose one of cpu, cpu-walls, cpu-short, paper"):
+    known = "cpu, cpu-walls, cpu-short, cpu-line, paper"
+    with pytest.raises(XvoeError, match=f"unknown recipe 'gpu'; choose one of {known}"):
         recipe("gpu")
 
 

@@ -7,10 +7,11 @@ that the shipped checkpoints' configs are their recipe's.
 from __future__ import annotations
 
 from ...errors import XvoeError
-from . import cpu, cpu_short, cpu_walls, paper
+from . import cpu, cpu_line, cpu_short, cpu_walls, paper
 from .recipe import MODEL_CONFIGS, PROPOSAL_FIELDS, Recipe, TrainConfig, stage_settings
 
-RECIPES: dict[str, Recipe] = {r.name: r for r in (cpu.RECIPE, cpu_walls.RECIPE, cpu_short.RECIPE, paper.RECIPE)}
+RECIPES: dict[str, Recipe] = {r.name: r for r in (cpu.RECIPE, cpu_walls.RECIPE, cpu_short.RECIPE, cpu_line.RECIPE,
+                                                  paper.RECIPE)}
 # what `xvoe pipeline` runs and the shipped models come from (docs/decisions.md, "The default recipe")
 DEFAULT_RECIPE = "cpu-short"
 # checkpoints written before recipes named their preset; `cpu-broadcast` is today's `cpu`
