@@ -13,10 +13,7 @@ from xvoe.training.checkpoints import WEIGHTS, load_checkpoint
 from xvoe.training.provenance import RUN_FIELDS, recipe_differences
 from xvoe.training.recipes import DEFAULT_RECIPE, RECIPES, TrainConfig, recipe, recipe_of
 
-FROM_THE_RECIPE = ("perception", "xpl", "proposal", "plato", "xpl-noresidual")
-# made by hand-run steps before recipes were code (docs/results.md, "The shipped models and
-# their recipes"); strict: once one is retrained by its recipe and shipped, move it up
-NOT_YET = ("phydnet",)
+FROM_THE_RECIPE = ("perception", "xpl", "proposal", "plato", "xpl-noresidual", "phydnet")
 
 
 @pytest.mark.parametrize("name", FROM_THE_RECIPE)
@@ -26,14 +23,8 @@ def test_a_shipped_checkpoint_holds_its_recipes_configs(name):
     assert recipe_differences(state) == []
 
 
-@pytest.mark.parametrize("name", NOT_YET)
-@pytest.mark.xfail(strict=True, reason="shipped before its recipe was written; retrain with xvoe pipeline")
-def test_the_older_shipped_checkpoints_are_not_yet_their_recipes(name):
-    assert recipe_differences(load_checkpoint(WEIGHTS / f"{name}.pt")) == []
-
-
 def test_every_shipped_checkpoint_is_listed():
-    assert sorted(p.stem for p in WEIGHTS.glob("*.pt")) == sorted(FROM_THE_RECIPE + NOT_YET)
+    assert sorted(p.stem for p in WEIGHTS.glob("*.pt")) == sorted(FROM_THE_RECIPE)
 
 
 def test_a_changed_setting_is_a_difference():

@@ -55,5 +55,7 @@ RECIPE = Recipe(
         ("phydnet", replace(LATER, steps=20_500, lr=9e-4, focus_group="permanence", focus_share=0.5)),
         ("phydnet", replace(LATER, steps=22_000, lr=4.5e-4, focus_group="permanence,continuity",
                             focus_share=0.75)),
+        ("phydnet", replace(LATER, steps=25_000, lr=4.5e-4, focus_group="blocking,permanence", focus_share=0.5)),
+        ("phydnet", replace(LATER, steps=28_000, lr=4.5e-4, focus_group="permanence", focus_share=0.5)),
     ),
 )
