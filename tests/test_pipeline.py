@@ -47,8 +47,19 @@ def test_tiny_pipeline_runs_end_to_end_and_skips_done_stages(tmp_path, tiny_cpu_
     plato = load_checkpoint(run / "plato.pt")        # the recipe's later phase, resumed from the first
     assert "train-plato-2" in text and plato["step"] == 9 and plato["train"]["focus_group"] == "continuity"
     stamp = (run / "xpl.pt").stat().st_mtime_ns
+    scored = (run / "scores" / "xpl.csv").stat().st_mtime_ns
     run_pipeline(config)                     # everything done: nothing is redone
     assert (run / "xpl.pt").stat().st_mtime_ns == stamp
+    assert (run / "scores" / "xpl.csv").stat().st_mtime_ns == scored
+    # a phase added to the recipe since: PLATO trains on and is scored again, the report redone; XPL is not
+    plato_scored, metrics = ((run / name).stat().st_mtime_ns for name in ("scores/plato.csv", "report/metrics.csv"))
+    tiny = RECIPES[DEFAULT_RECIPE]
+    RECIPES[DEFAULT_RECIPE] = replace(tiny, phases=(*tiny.phases, ("plato", replace(tiny.phases[0][1], steps=11))))
+    run_pipeline(config)
+    assert load_checkpoint(run / "plato.pt")["step"] == 11
+    assert (run / "scores" / "plato.csv").stat().st_mtime_ns != plato_scored
+    assert (run / "report" / "metrics.csv").stat().st_mtime_ns != metrics
+    assert (run / "scores" / "xpl.csv").stat().st_mtime_ns == scored
     # fewer models: the report is redone for them, the trained models are not
     run_pipeline(replace(config, models=("xpl", "random")))
     assert (run / "xpl.pt").stat().st_mtime_ns == stamp

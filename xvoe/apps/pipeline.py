@@ -151,7 +151,9 @@ def run_pipeline(config: PipelineConfig) -> Path:
     for model in config.models:
         _model_stages(config, model, stages, config.progress, processes=processes)
     scores = [run_dir / "scores" / f"{model}.csv" for model in config.models]
-    models = ",".join(config.models)    # a rerun with more models redoes what covers them all
+    # a rerun with more models, or with a model trained further, redoes what covers them all
+    steps = (scored_steps(chosen, model) for model in config.models)
+    models = ",".join(config.models) + "; " + "; ".join(filter(None, steps))
 
     def metrics() -> None:
         report(scores, run_dir / "report", seed=config.seed, overwrite=True)
@@ -196,7 +198,17 @@ def _model_stages(config: PipelineConfig, model: str, stages: Stages, bars: bool
         return
     reference = "random" if model == "random" else str(checkpoint_path(run_dir, model))
     stages.run(f"score-{model}", lambda: score_split(
-        reference, str(test_data), str(run_dir / "scores" / f"{model}.csv"), overwrite=True, progress=bars))
+        reference, str(test_data), str(run_dir / "scores" / f"{model}.csv"), overwrite=True, progress=bars),
+        key=scored_steps(chosen, model))
+
+
+def scored_steps(chosen: Recipe, model: str) -> str:
+    """The steps of every stage a model's scores rest on ("xpl 9000, proposal 4000, perception
+    4000"): a recipe that trains a stage further, in a later phase added since, is scored again."""
+    if model == "random":
+        return ""
+    stages = [model] + (["proposal"] if model == "xpl" else []) + (["perception"] if model in TRAINED else [])
+    return ", ".join(f"{stage} {chosen.final_training(stage).steps}" for stage in stages)
 
 
 def stage_processes(wanted: int, training: TrainConfig) -> int:
