@@ -17,8 +17,10 @@ targets with the residual (z(t+1) - z(t)) and without it (z(t+1)).
     after they were seen, against their true silhouettes (and the centre's offset, also at the
     frame before the wall is lifted: what the MSE score's dynamics term pays at the reveal), and the
     IoU by frames before each cube is seen again.
-Also why hidden_iou falls short (the decoded centre's offset, area and empty frames) and its
-ceiling: the IoU of a wholly visible cube's own latent, decoded (blocking S1).
+Also the share of those videos in which the MSE score with `--explanation better` keeps the
+proposal (it explains the video better than nothing hidden: what `xvoe explain` then draws),
+why hidden_iou falls short (the decoded centre's offset, area and empty frames) and its ceiling:
+the IoU of a wholly visible cube's own latent, decoded (blocking S1).
 Last line: hidden_iou=0.NN mae_iou=0.NN fill_iou=0.NN dyn_mse=...
 """
 from __future__ import annotations
@@ -35,7 +37,7 @@ from xvoe.benchmark import store
 from xvoe.benchmark.videos import silhouette
 from xvoe.evaluation.explain import decoded_mask, iou
 from xvoe.evaluation.score import encode_videos, load_model
-from xvoe.evaluation.surprise import dynamics_composites, explained_latents
+from xvoe.evaluation.surprise import dynamics_composites, explained_latents, mse_surprise
 from xvoe.models.reasoning import hide_slot
 from xvoe.models.slots import composite, decode_slots, scene_layers
 
@@ -58,7 +60,7 @@ def hidden_explanations(scorer, file, videos: list[int], names: list[str], colum
     one (median), the share of frames that draw nothing; and Transformer 1's fill of the ball in
     the frames the wall hides it (`ball_fill_px`: its x less the true x, > 0 beyond it, median)."""
     x = columns.index("x")
-    scores, offsets, away, areas, empty, ball_fill = [], [], [], [], [], []
+    scores, offsets, away, areas, empty, ball_fill, kept = [], [], [], [], [], [], []
     for index in videos:
         kinds = [names[k] for k in file["kind"][index]]
         states = file["states"][index]
@@ -69,6 +71,8 @@ def hidden_explanations(scorer, file, videos: list[int], names: list[str], colum
         video = encode(scorer, file, index)
         refined = scorer.xpl.refine(video["mean"], video["visible"], video["occluder"])
         explained, _, slot = scorer.xpl.explain(refined, video["visible"])
+        kept.append(bool(mse_surprise(scorer.vae, scorer.xpl, video["frames"], video["mean"], video["visible"],
+                                      video["background"], video["occluder"], "better").explained_slot[0] >= 0))
         if slot[0] < 0:
             scores.append(0.0)
             continue
@@ -98,7 +102,8 @@ def hidden_explanations(scorer, file, videos: list[int], names: list[str], colum
 
     return {"iou": float(np.mean(scores)), "per_video": scores, "centre_px": median(offsets),
             "away_px": median(away), "area_ratio": median(areas), "empty_share": float(np.mean(empty)),
-            "ball_fill_px": median(ball_fill)}
+            "ball_fill_px": median(ball_fill), "kept_share": float(np.mean(kept)),
+            "shown_iou": float(np.mean(np.where(kept, scores, 0.0)))}
 
 
 @torch.no_grad()
@@ -297,6 +302,9 @@ def main() -> None:
           f"of the true one, {100 * hidden['empty_share']:.0f}% of frames empty; the perception's own IoU of a "
           f"wholly visible cube {ceiling:.2f}; Transformer 1's fill of the ball behind the wall "
           f"{hidden['ball_fill_px']:+.2f} px beyond the true ball (median)")
+    print(f"the MSE score with --explanation better keeps the proposal (it explains the video better than nothing "
+          f"hidden) in {100 * hidden['kept_share']:.0f}% of these videos; the IoU of the explanation it draws "
+          f"(0 where it draws nothing hidden) {hidden['shown_iou']:.2f}")
     print(f"Transformer 1's fills of the cubes hidden after they were seen (permanence S1, expected; "
           f"{fills['frames']} frames): IoU {fills['iou']:.2f}, centre {fills['centre_px']:.2f} px off (median), "
           f"{fills['before_reveal_px']:.2f} px at the frame before the reveal, "

@@ -2,7 +2,7 @@
 
     python benchmarks/scorecard.py --model xpl --data val.h5 [--particles 64] [--seeds 0,1]
                                    [--pairs 100] [--json card.json] [--against shipped.json]
-                                   [--nll-set FIELD=VALUE ...]
+                                   [--nll-set FIELD=VALUE ...] [--explanation proposal]
 
 Scores the split with both surprise definitions (`xvoe score --surprise both`), then reads:
 comparative accuracy per setting under the MSE score, its excess, the NLL and the NLL excess;
@@ -75,6 +75,8 @@ def main() -> None:
     parser.add_argument("--threads", type=int, default=2)
     parser.add_argument("--nll-set", action="append", default=[], metavar="FIELD=VALUE",
                         help="change a field of the NLL's settings (inference.InferenceConfig), as xvoe score's")
+    parser.add_argument("--explanation", default="proposal", choices=("proposal", "better"),
+                        help="the MSE score's explanation (xvoe score --explanation)")
     parser.add_argument("--json", help="write the card here too")
     parser.add_argument("--against", help="another model's card (--json) on the same split: mark the lines on which "
                                           "this one is worse beyond its interval")
@@ -86,11 +88,12 @@ def main() -> None:
     work = Path(tempfile.mkdtemp(prefix="scorecard-"))
 
     start = time.perf_counter()
-    mse_csv = xvoe.score(model, args.data, work / "mse.csv", progress=False)
+    mse_csv = xvoe.score(model, args.data, work / "mse.csv", explanation=args.explanation, progress=False)
     mse_seconds = time.perf_counter() - start
     start = time.perf_counter()
     runs = [xvoe.score(model, args.data, work / f"nll-{seed}.csv", surprise="both", particles=args.particles,
-                       seed=seed, nll_settings=nll_settings, progress=False) for seed in seeds]
+                       seed=seed, nll_settings=nll_settings, explanation=args.explanation, progress=False)
+            for seed in seeds]
     nll_seconds = (time.perf_counter() - start) / len(seeds)
     scores = xvoe.read_scores(runs[0])
     count = len(scores["index"])

@@ -1,7 +1,7 @@
 """A recipe over training seeds: the README's results table, from one command.
 
     python benchmarks/seeds.py --runs runs/s0,runs/s1,runs/s2 --data report.h5 --out seeds/ [--shipped xpl]
-                               [--surprise mse] [--hidden-pairs 100]
+                               [--surprise mse] [--explanation proposal] [--hidden-pairs 100]
 
 Scores the report split with each run's model (and the shipped one, beside them), then prints
 one markdown table: comparative accuracy per setting as the mean over the runs with its range
@@ -28,11 +28,11 @@ ORDER = [("collision", "S1"), ("collision", "S2"), ("collision", "S3"), ("blocki
          ("continuity", "S2"), ("continuity", "S3")]
 
 
-def scored(model: str, data: str, out: Path, surprise: str) -> dict:
+def scored(model: str, data: str, out: Path, surprise: str, explanation: str) -> dict:
     """The model's scores of the split (read back if --out already holds them)."""
-    path = out / f"{Path(model).name or model}.csv"
+    path = out / f"{Path(model).name or model}{'' if explanation == 'proposal' else '-' + explanation}.csv"
     if not path.exists():
-        xvoe.score(model, data, path, surprise=surprise, progress=False)
+        xvoe.score(model, data, path, surprise=surprise, explanation=explanation, progress=False)
     return xvoe.read_scores(path)
 
 
@@ -44,6 +44,8 @@ def main() -> None:
     parser.add_argument("--shipped", default="xpl", help="the shipped model to show beside ('' for none)")
     parser.add_argument("--surprise", default="mse", choices=("mse", "both"))
     parser.add_argument("--hidden-pairs", type=int, default=100, help="blocking S2 videos for hidden_iou (0: none)")
+    parser.add_argument("--explanation", default="proposal", choices=("proposal", "better"),
+                        help="the MSE score's explanation (xvoe score --explanation)")
     parser.add_argument("--threads", type=int, default=2)
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
@@ -54,7 +56,7 @@ def main() -> None:
     column = "score"
     rows = {}
     for model in models:
-        found = xvoe.metric_rows(scored(model, args.data, out, args.surprise), model, (column,))
+        found = xvoe.metric_rows(scored(model, args.data, out, args.surprise, args.explanation), model, (column,))
         rows[model] = {(r["metric"], r["scenario"], r["setting"]): 100 * r["value"] for r in found}
     names = [Path(r).name for r in runs]
     print(f"Comparative accuracy (%) on {args.data}, {len(runs)} training seeds: mean [lowest, highest]\n")

@@ -113,6 +113,10 @@ def case_lines(files, tmp: Path) -> list[tuple[list[str], str]]:
           "--nll-set", "pixel_sigma=wide"], "a number"),
         (["score", "--model", "xpl", "--data", test, "--out", str(tmp / "n.csv"), "--surprise", "nll",
           "--nll-set", "particles=8"], "give the particles once"),
+        (["score", "--model", "random", "--data", test, "--out", str(tmp / "e.csv"), "--explanation", "better"],
+         "has none"),
+        (["score", "--model", "xpl", "--data", test, "--out", str(tmp / "e.csv"), "--explanation", "best"],
+         "invalid choice"),
         (["metrics", str(tmp / "nowhere.csv"), "--out", str(tmp / "r")], "no such file"),
         (["train", "perception", "--data", test, "--out", str(tmp / "run"), "--quiet"], "training on impossible"),
         (["train", "phydnet", "--data", test, "--out", str(tmp / "run"), "--quiet"], "training on impossible"),
@@ -140,7 +144,7 @@ def test_every_bad_input_gets_one_line_exit_2_and_changes_nothing(files, tmp_pat
         assert "Traceback" not in err
         assert snapshot(tmp_path) == before, args
         tried += 1
-    assert tried == 5 * len(MALFORMED) + 25
+    assert tried == 5 * len(MALFORMED) + 27
 
 
 def test_a_stale_latent_cache_of_another_split_is_refused(files, tmp_path, capsys):

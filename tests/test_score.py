@@ -6,7 +6,7 @@ import xvoe
 from inference.score import reference_nll
 from xvoe.errors import XvoeError
 from xvoe.evaluation.score import SCORE_COLUMNS
-from xvoe.evaluation.surprise import aggregate, latent_surprise, mse_surprise
+from xvoe.evaluation.surprise import Surprise, aggregate, better_explanation, latent_surprise, mse_surprise
 from xvoe.models.dynamics import DynamicsConfig
 from xvoe.models.perception import ComponentVAE, PerceptionConfig
 from xvoe.models.reasoning import ReasoningConfig
@@ -82,12 +82,52 @@ def test_the_occluder_is_left_out_of_the_dynamics_term(models):
     assert torch.all(surprise.s_img.sum(1) > 0)     # but the picture no longer matches
 
 
+def test_an_explanation_that_draws_the_hidden_object_is_kept_and_one_where_nothing_is_hidden_is_not(models,
+                                                                                                   monkeypatch):
+    vae, xpl = models
+    mean, visible, background, occluder = scene(moving=False)
+    visible[:, :, 3] = False                       # slot 3 is seen in no frame of either video
+    occluder[:] = False                            # and no wall hides it: whatever it draws shows
+    drawn = visible.any(1)
+    drawn[0, 3] = True                             # but video 0's frames draw it: something is hidden there
+    with torch.no_grad():
+        pictures = vae.decode(background.flatten(0, 1)).reshape(B, T, 4, 16, 16)
+        frames = composite(vae, pictures, scene_layers(vae, mean, drawn, visible, occluder)[0], drawn)
+    # Transformer 2 stands in as an oracle: it proposes the true latents in slot 3 of both videos
+    monkeypatch.setattr(xpl, "explain", lambda refined, seen: (torch.where(
+        torch.arange(K).view(1, 1, K, 1) == 3, mean, refined), None, torch.tensor([3, 3])))
+    surprise = mse_surprise(vae, xpl, frames, mean, visible, background, occluder, explanation="better")
+    assert surprise.explained_slot.tolist() == [3, -1]
+    torch.testing.assert_close(surprise.s_img, torch.zeros(B, T), atol=1e-5, rtol=0)   # each explained exactly
+    # the paper's score keeps the proposal in both: video 1 pays for an object that is not there
+    paper = mse_surprise(vae, xpl, frames, mean, visible, background, occluder)
+    assert paper.explained_slot.tolist() == [3, 3] and paper.s_img[1].sum() > 1.0
+    with pytest.raises(ValueError, match="proposal, better"):
+        mse_surprise(vae, xpl, frames, mean, visible, background, occluder, explanation="best")
+    empty = latent_surprise(vae, xpl, frames, xpl.refine(mean, visible, occluder), visible.any(1), visible,
+                            background, occluder)
+    proposed = latent_surprise(vae, xpl, frames, mean, visible.any(1) | (torch.arange(K) == 3), visible,
+                               background, occluder)
+    # the explanation not chosen would have cost pixels: video 0's hidden object, video 1's object in front of nothing
+    assert empty[0][0].sum() > 1.0 and proposed[0][1].sum() > 1.0
+
+
 def test_transformer2_explains_a_never_seen_slot(models):
     vae, xpl = models
     mean, visible, background, occluder = scene(moving=False)
     visible[0, :, 3] = False
     surprise = mse_surprise(vae, xpl, rendered(vae, mean, visible, background), mean, visible, background, occluder)
     assert surprise.explained_slot.tolist() == [3, -1]
+
+
+def test_the_better_explanation_is_chosen_per_video_and_the_first_on_a_tie():
+    ones = torch.ones(3, 2)
+    first = Surprise(ones * torch.tensor([[1.0], [2.0], [3.0]]), ones, ones * 7, torch.tensor([-1, -1, -1]))
+    second = Surprise(ones * 2, ones * torch.tensor([[0.0], [1.0], [0.0]]), ones * 9, torch.tensor([4, 5, 6]))
+    chosen = better_explanation(first, second)
+    # sums: first 4, 6, 8; second 4, 6, 4: a tie in videos 0 and 1 keeps the first
+    assert chosen.explained_slot.tolist() == [-1, -1, 6]
+    assert chosen.s_rec[:, 0].tolist() == [7.0, 7.0, 9.0] and chosen.s_img[:, 0].tolist() == [1.0, 2.0, 2.0]
 
 
 def test_aggregate():

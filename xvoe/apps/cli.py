@@ -87,8 +87,8 @@ def cmd_score(args: argparse.Namespace) -> None:
         raise XvoeError("--model and --data are required (unless --merge joins the parts of a sharded run)")
     print(xvoe.score(args.model, args.data, args.out, surprise=args.surprise, particles=args.particles,
                      seed=args.seed, nll_settings=xvoe.nll_settings(args.nll_set), how=args.aggregate,
-                     shard=args.shard, videos_per_batch=args.batch, workers=args.workers, overwrite=args.overwrite,
-                     progress=not args.quiet))
+                     shard=args.shard, videos_per_batch=args.batch, workers=args.workers,
+                     explanation=args.explanation, overwrite=args.overwrite, progress=not args.quiet))
 
 
 def cmd_explain(args: argparse.Namespace) -> None:
@@ -96,7 +96,7 @@ def cmd_explain(args: argparse.Namespace) -> None:
         raise XvoeError(f"--out must end in .png, not {Path(args.out).suffix or 'nothing'}")
     claim_file(args.out, args.overwrite)
     explanation = xvoe.explain(args.model, args.data, args.index, surprise=args.surprise, particles=args.particles,
-                               seed=args.seed)
+                               seed=args.seed, explanation=args.explanation)
     print(xvoe.save_figure(xvoe.plot_explanation(explanation), args.out))
 
 
@@ -297,6 +297,9 @@ def build_parser() -> argparse.ArgumentParser:
                        help="change a field of the NLL's settings (inference.InferenceConfig; repeatable), "
                             "e.g. pixel_sigma=1.0")
     score.add_argument("--aggregate", choices=("sum", "max"), default="sum", help="over frames (default sum)")
+    score.add_argument("--explanation", choices=("proposal", "better"), default="proposal",
+                       help="the MSE score's explanation: proposal, Transformer 2's wherever a slot is never seen "
+                            "(the paper's, default); better, the better of it and nothing hidden, video by video")
     score.add_argument("--batch", type=_positive, default=16, help="videos per batch")
     score.add_argument("--workers", type=_positive, default=1,
                        help="processes scoring a shard each, the cores shared out, merged into --out (default 1; "
@@ -322,6 +325,9 @@ def build_parser() -> argparse.ArgumentParser:
                          help="mse: Transformer 2's proposal (default); nll: the Pyro model's posterior, the "
                               "weighted hidden object, its top hypotheses, p(hidden object) and the ESS")
     explain.add_argument("--particles", type=_positive, default=64, help="particles (nll)")
+    explain.add_argument("--explanation", choices=("proposal", "better"), default="proposal",
+                         help="mse: draw Transformer 2's proposal always (default), or only where it explains the "
+                              "video better than nothing hidden (better), as xvoe score --explanation")
     explain.add_argument("--seed", type=int, default=0, help="seed of the particles (nll)")
     explain.add_argument("--overwrite", action="store_true", help="replace --out if it exists")
     explain.set_defaults(run=cmd_explain)

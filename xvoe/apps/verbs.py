@@ -9,6 +9,7 @@ from __future__ import annotations
 import os
 import tempfile
 from concurrent.futures import ProcessPoolExecutor
+from dataclasses import replace
 from multiprocessing import get_context
 from pathlib import Path
 from typing import Any
@@ -22,6 +23,7 @@ from ..errors import XvoeError
 from ..evaluation.explain import Explanation, explain_drawn
 from ..evaluation.explain import explain as explain_mse
 from ..evaluation.score import Scorer, load_model, merge_scores, score_split
+from ..evaluation.surprise import EXPLANATIONS
 from ..outputs import claim_file
 
 SURPRISES = ("mse", "nll", "both")
@@ -29,7 +31,8 @@ SURPRISES = ("mse", "nll", "both")
 
 def score(model: str | Scorer, data: str | Path, out: str | Path, *, surprise: str = "mse", particles: int = 64,
           seed: int = 0, nll_settings: dict[str, Any] | None = None, how: str = "sum", videos_per_batch: int = 16,
-          shard: tuple[int, int] = (0, 1), workers: int = 1, overwrite: bool = False, progress: bool = True) -> Path:
+          shard: tuple[int, int] = (0, 1), workers: int = 1, explanation: str = "proposal", overwrite: bool = False,
+          progress: bool = True) -> Path:
     """Score every video of a test split into a CSV (and the per-frame curves beside it).
 
     surprise: "mse", the paper's score; "nll", -log p(video) under the Pyro model (the score
@@ -43,19 +46,27 @@ def score(model: str | Scorer, data: str | Path, out: str | Path, *, surprise: s
     workers: processes that each score a shard with the cores shared out, then merged: the
     bytes of one run with as many threads as each worker has. On 2 cores the NLL's small
     tensors keep two processes busier than two threads (docs/decisions.md, "Scoring in worker
-    processes")."""
+    processes"). explanation: the MSE score's, "proposal" (Transformer 2's wherever a slot is
+    never seen, the paper's) or "better" (the better of it and nothing hidden, video by video:
+    xvoe.evaluation.surprise)."""
     if surprise not in SURPRISES:
         raise XvoeError(f"--surprise must be mse, nll or both, not {surprise!r}")
     if workers < 1:
         raise XvoeError(f"--workers must be at least 1, not {workers}")
+    if explanation not in EXPLANATIONS:
+        raise XvoeError(f"--explanation must be {' or '.join(EXPLANATIONS)}, not {explanation!r}")
     extra = NLLColumns(particles, seed, nll_settings) if surprise != "mse" else None   # bad settings fail here
     if workers > 1:
         if shard != (0, 1):
             raise XvoeError("--workers shards the split itself; leave out --shard")
         return _score_in_workers(model, data, out, workers, overwrite, progress, surprise=surprise,
                                  particles=particles, seed=seed, nll_settings=nll_settings, how=how,
-                                 videos_per_batch=videos_per_batch)
-    return score_split(model, str(data), str(out), how=how, videos_per_batch=videos_per_batch, extra=extra,
+                                 videos_per_batch=videos_per_batch, explanation=explanation)
+    scorer = load_model(model) if isinstance(model, str) else model
+    if explanation != "proposal" and scorer.xpl is None:
+        raise XvoeError(f"--explanation chooses among XPL's explanations; the model {scorer.name} has none")
+    scorer = replace(scorer, explanation=explanation)
+    return score_split(scorer, str(data), str(out), how=how, videos_per_batch=videos_per_batch, extra=extra,
                        score_column="nll" if surprise == "nll" else "score", shard=shard, overwrite=overwrite,
                        progress=progress)
 
@@ -83,11 +94,15 @@ def _worker_threads(threads: int) -> None:
 
 
 def explain(model: str | Scorer, data: str | Path, index: int, *, surprise: str = "mse", particles: int = 64,
-            seed: int = 0) -> Explanation:
+            seed: int = 0, explanation: str = "proposal") -> Explanation:
     """What the model believes is behind the wall in video `index`: Transformer 2's proposal
-    (surprise "mse") or the Pyro model's posterior (surprise "nll", from `particles`
-    importance samples drawn from `seed`)."""
+    (surprise "mse"; with explanation "better", only where it explains the video better than
+    nothing hidden) or the Pyro model's posterior (surprise "nll", from `particles` importance
+    samples drawn from `seed`)."""
+    if explanation not in EXPLANATIONS:
+        raise XvoeError(f"--explanation must be {' or '.join(EXPLANATIONS)}, not {explanation!r}")
     scorer = load_model(model) if isinstance(model, str) else model
+    scorer = replace(scorer, explanation=explanation) if scorer.custom is None else scorer
     if scorer.is_random:
         raise XvoeError("the random agent explains nothing; give a trained model")
     if scorer.phydnet is not None:

@@ -2,7 +2,8 @@
 
 For each frame: the observed frame; the decoded scene with the occluder's slot left out
 (Transformer 1's filled-in objects and Transformer 2's explanation, seen through the wall);
-and the explanation object alone (the never-visible slot Transformer 2 proposed).
+and the explanation object alone (the never-visible slot Transformer 2 proposed, where the MSE
+score keeps it: see `Scorer.explanation`).
 
 The NLL's explanation, the Pyro model's posterior, is inference.explain.
 """
@@ -20,7 +21,7 @@ from ..models.perception import to_uint8
 from ..models.slots import composite, decode_slots
 from ..training.data import check_size
 from .score import Scorer, encode_videos, read_videos
-from .surprise import explained_latents
+from .surprise import explained_latents, mse_surprise
 
 
 @dataclass
@@ -84,7 +85,11 @@ def _pictures(vae, refined: torch.Tensor, occupied: torch.Tensor, video: dict,
 @torch.no_grad()
 def explain(scorer: Scorer, data: str, index: int) -> Explanation:
     video, rgbd, title = _read_video(scorer, data, index)
-    refined, slot, occupied = explained_latents(scorer.xpl, video["mean"], video["visible"], video["occluder"])
+    kept = None     # the explanation the MSE score rests on: with "better", nothing hidden where that fits better
+    if scorer.explanation != "proposal":
+        kept = mse_surprise(scorer.vae, scorer.xpl, video["frames"], video["mean"], video["visible"],
+                            video["background"], video["occluder"], scorer.explanation).explained_slot >= 0
+    refined, slot, occupied = explained_latents(scorer.xpl, video["mean"], video["visible"], video["occluder"], kept)
     behind, alone = _pictures(scorer.vae, refined, occupied, video, int(slot[0]))
     return Explanation(rgbd, behind, alone, int(slot[0]), title)
 

@@ -106,6 +106,9 @@ class Scorer:
     xpl: XPL | None
     phydnet: PhyDNet | None = None
     custom: SurpriseModel | None = None
+    # the MSE score's explanation (xvoe.evaluation.surprise): "proposal", Transformer 2's wherever a
+    # slot is never seen (the paper's), or "better", the better of it and nothing hidden
+    explanation: str = "proposal"
 
     @property
     def is_random(self) -> bool:
@@ -365,5 +368,5 @@ def encode(scorer: Scorer, videos: Videos) -> dict[str, Tensor]:
 def _xpl_curves(scorer: Scorer, batch: dict[str, Tensor]) -> tuple[Tensor, Tensor, Tensor]:
     """s_img, s_dyn and s_rec (B, T) of encoded videos (`encode_videos`) under XPL or PLATO."""
     surprise = mse_surprise(scorer.vae, scorer.xpl, batch["frames"], batch["mean"], batch["visible"],
-                            batch["background"], batch["occluder"])
+                            batch["background"], batch["occluder"], scorer.explanation)
     return surprise.s_img, surprise.s_dyn, surprise.s_rec

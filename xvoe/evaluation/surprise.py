@@ -12,7 +12,11 @@ moves the score. excess(t) = s_img(t) - s_rec(t) + s_dyn(t) keeps the pixels the
 explanation get wrong, and the dynamics term. Same decodes, one more composite.
 
 Refined latents: Transformer 1 fills the frames in which a seen object is occluded and
-Transformer 2 proposes the object seen in no frame. Decoding is the cost, so only occupied
+Transformer 2 proposes the object seen in no frame. The paper scores every video under that
+proposal; `explanation="better"` treats it as one explanation of two and scores a video under
+whichever leaves the smaller sum over frames, the proposal or the slot left empty, so that an
+object proposed where nothing is hidden costs nothing (docs/decisions.md, "The better of two
+explanations"). Decoding is the cost, so only occupied
 slots are decoded (seen at some frame, or the explained one), the decodes are shared by the
 two terms, and videos are scored in batches with no Python loop over frames.
 """
@@ -27,6 +31,8 @@ from ..models.perception import ComponentVAE
 from ..models.slots import behind_walls, composite, decode_slots, scene_layers
 from ..models.xpl import XPL
 from .metrics import excess
+
+EXPLANATIONS = ("proposal", "better")
 
 
 @dataclass
@@ -45,42 +51,88 @@ class Surprise:
         return excess(self.s_img, self.s_dyn, self.s_rec)
 
 
-def explained_latents(xpl: XPL, mean: Tensor, visible: Tensor, occluder: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+def explained_latents(xpl: XPL, mean: Tensor, visible: Tensor, occluder: Tensor,
+                      kept: Tensor | None = None) -> tuple[Tensor, Tensor, Tensor]:
     """Transformer 1's refined latents with Transformer 2's explanation filled in, the slot it
     filled (B,) (-1 if none, or without reasoning), and the occupied slots (B, K): seen at some
-    frame, or explained."""
+    frame, or explained. `kept` (B,) bool: the videos whose proposal is kept (default: all)."""
     refined = xpl.refine(mean, visible, occluder)
     slot = torch.full(mean.shape[:1], -1, dtype=torch.long, device=mean.device)
     if xpl.config.use_reasoning:
-        refined, _, slot = xpl.explain(refined, visible)
+        explained, _, slot = xpl.explain(refined, visible)
+        if kept is not None:
+            explained = torch.where(kept[:, None, None, None], explained, refined)
+            slot = torch.where(kept, slot, -1)
+        refined = explained
+    return refined, slot, occupied_slots(visible, slot)
+
+
+def occupied_slots(visible: Tensor, slot: Tensor) -> Tensor:
+    """The slots (B, K) seen at some frame, and the explained one (-1: none)."""
     occupied = visible.any(dim=1)
     occupied[torch.arange(len(slot))[slot >= 0], slot[slot >= 0]] = True
-    return refined, slot, occupied
+    return occupied
 
 
 @torch.no_grad()
 def mse_surprise(vae: ComponentVAE, xpl: XPL, frames: Tensor, mean: Tensor, visible: Tensor,
-                 background: Tensor, occluder: Tensor) -> Surprise:
+                 background: Tensor, occluder: Tensor, explanation: str = "proposal") -> Surprise:
     """frames: (B, T, 4, H, W) in [-1, 1]; mean: (B, T, K, D) posterior means; visible:
     (B, T, K) bool; background: (B, T, D) the background component's means; occluder: (B, K)
-    bool, the wall slots."""
-    refined, slot, occupied = explained_latents(xpl, mean, visible, occluder)
-    return Surprise(*latent_surprise(vae, xpl, frames, refined, occupied, visible, background, occluder), slot)
+    bool, the wall slots. `explanation`: "proposal" (Transformer 2's, the paper's) or "better"
+    (the better of it and no hidden object)."""
+    if explanation not in EXPLANATIONS:
+        raise ValueError(f"explanation must be one of {', '.join(EXPLANATIONS)}, not {explanation!r}")
+    refined = xpl.refine(mean, visible, occluder)
+    slot = torch.full(mean.shape[:1], -1, dtype=torch.long, device=mean.device)
+    explained = xpl.explain(refined, visible) if xpl.config.use_reasoning else (refined, None, slot)
+    occupied = occupied_slots(visible, explained[2])
+    background_pictures = decode_background(vae, background, frames)
+    layers, walls = scene_layers(vae, explained[0], occupied, visible, occluder)
+    proposed = Surprise(*_terms(vae, xpl, frames, background_pictures, explained[0], layers, walls, occupied,
+                                visible, occluder), explained[2])
+    if explanation == "proposal" or not (explained[2] >= 0).any():
+        return proposed
+    # the same scene with the proposed slot empty: the other slots' pictures are the same, so only
+    # the dynamics' prediction is decoded again
+    seen = visible.any(dim=1)
+    empty_layers = torch.where((occupied & ~seen)[:, None, :, None, None, None], vae.blank()[0], layers)
+    empty = Surprise(*_terms(vae, xpl, frames, background_pictures, refined, empty_layers, walls, seen, visible,
+                             occluder), slot)
+    return better_explanation(empty, proposed)
+
+
+def better_explanation(first: Surprise, second: Surprise) -> Surprise:
+    """Per video, the surprise under whichever explanation leaves the smaller sum over frames
+    (the first on a tie)."""
+    second_wins = (second.s_img + second.s_dyn).sum(1) < (first.s_img + first.s_dyn).sum(1)
+    pick = lambda a, b: torch.where(second_wins.view(-1, *[1] * (a.dim() - 1)), b, a)   # noqa: E731
+    return Surprise(pick(first.s_img, second.s_img), pick(first.s_dyn, second.s_dyn),
+                    pick(first.s_rec, second.s_rec), pick(first.explained_slot, second.explained_slot))
 
 
 @torch.no_grad()
 def latent_surprise(vae: ComponentVAE, xpl: XPL, frames: Tensor, refined: Tensor, occupied: Tensor, visible: Tensor,
                     background: Tensor, occluder: Tensor) -> tuple[Tensor, Tensor, Tensor]:
-    """s_img, s_dyn and s_rec (B, T) of given refined latents (B, T, K, D) with occupied slots (B, K):
-    `mse_surprise` once Transformers 1 and 2 have run. Apart so that other latents can be scored
-    the same way (benchmarks/oracle_fills.py: the hidden objects' true latents for the fills)."""
-    batch, frames_count = refined.shape[:2]
-    background_pictures = vae.decode(background.flatten(0, 1)).reshape(batch, frames_count, *frames.shape[2:])
+    """s_img, s_dyn and s_rec (B, T) of given refined latents (B, T, K, D) with occupied slots (B, K),
+    as `mse_surprise` scores each explanation. Apart so that other latents can be scored the same
+    way (benchmarks/oracle_fills.py: the hidden objects' true latents for the fills)."""
+    background_pictures = decode_background(vae, background, frames)
     layers, walls = scene_layers(vae, refined, occupied, visible, occluder)
+    return _terms(vae, xpl, frames, background_pictures, refined, layers, walls, occupied, visible, occluder)
+
+
+def decode_background(vae: ComponentVAE, background: Tensor, frames: Tensor) -> Tensor:
+    """The background component's pictures (B, T, 4, H, W) of its means (B, T, D)."""
+    return vae.decode(background.flatten(0, 1)).reshape(*background.shape[:2], *frames.shape[2:])
+
+
+def _terms(vae: ComponentVAE, xpl: XPL, frames: Tensor, background_pictures: Tensor, refined: Tensor, layers: Tensor,
+           walls: Tensor, occupied: Tensor, visible: Tensor, occluder: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+    """s_img, s_dyn and s_rec (B, T) of refined latents whose `scene_layers` are decoded already."""
     s_img = (frames - composite(vae, background_pictures, layers, occupied)).pow(2).flatten(2).sum(2)
     seen_layers = torch.where(visible[..., None, None, None], layers, vae.blank()[0])
     s_rec = (frames - composite(vae, background_pictures, seen_layers, occupied)).pow(2).flatten(2).sum(2)
-
     seen, expected = dynamics_composites(vae, xpl, refined, layers, walls, occupied, visible, occluder,
                                          background_pictures)
     s_dyn = torch.zeros_like(s_img)
