@@ -83,6 +83,18 @@ def mse_surprise(vae: ComponentVAE, xpl: XPL, frames: Tensor, mean: Tensor, visi
     (the better of it and no hidden object)."""
     if explanation not in EXPLANATIONS:
         raise ValueError(f"explanation must be one of {', '.join(EXPLANATIONS)}, not {explanation!r}")
+    return _explanations(vae, xpl, frames, mean, visible, background, occluder, explanation == "better")[explanation]
+
+
+@torch.no_grad()
+def every_explanation(vae: ComponentVAE, xpl: XPL, frames: Tensor, mean: Tensor, visible: Tensor,
+                      background: Tensor, occluder: Tensor) -> dict[str, Surprise]:
+    """`mse_surprise` under each of EXPLANATIONS, from one set of decodes."""
+    return _explanations(vae, xpl, frames, mean, visible, background, occluder, True)
+
+
+def _explanations(vae: ComponentVAE, xpl: XPL, frames: Tensor, mean: Tensor, visible: Tensor, background: Tensor,
+                  occluder: Tensor, better: bool) -> dict[str, Surprise]:
     refined = xpl.refine(mean, visible, occluder)
     slot = torch.full(mean.shape[:1], -1, dtype=torch.long, device=mean.device)
     explained = xpl.explain(refined, visible) if xpl.config.use_reasoning else (refined, None, slot)
@@ -91,15 +103,17 @@ def mse_surprise(vae: ComponentVAE, xpl: XPL, frames: Tensor, mean: Tensor, visi
     layers, walls = scene_layers(vae, explained[0], occupied, visible, occluder)
     proposed = Surprise(*_terms(vae, xpl, frames, background_pictures, explained[0], layers, walls, occupied,
                                 visible, occluder), explained[2])
-    if explanation == "proposal" or not (explained[2] >= 0).any():
-        return proposed
+    if not better:
+        return {"proposal": proposed}
+    if not (explained[2] >= 0).any():       # nothing proposed: one explanation
+        return {"proposal": proposed, "better": proposed}
     # the same scene with the proposed slot empty: the other slots' pictures are the same, so only
     # the dynamics' prediction is decoded again
     seen = visible.any(dim=1)
     empty_layers = torch.where((occupied & ~seen)[:, None, :, None, None, None], vae.blank()[0], layers)
     empty = Surprise(*_terms(vae, xpl, frames, background_pictures, refined, empty_layers, walls, seen, visible,
                              occluder), slot)
-    return better_explanation(empty, proposed)
+    return {"proposal": proposed, "better": better_explanation(empty, proposed)}
 
 
 def better_explanation(first: Surprise, second: Surprise) -> Surprise:
