@@ -1,7 +1,7 @@
 """The MSE score under each explanation, from one pass over a split: the paper's (Transformer 2's
 proposal wherever a slot is never seen) against the better of it and no hidden object.
 
-    python benchmarks/explanations.py --model RUN_DIR --data val.h5 --out DIR [--threads 2]
+    python benchmarks/explanations.py --model RUN_DIR --data val.h5 --out DIR [--rows FIRST:LAST] [--threads 2]
 
 Prints comparative accuracy per setting and holistic AUC, of the score and of its excess, under
 both (95% intervals over pairs), and the share of videos in which "better" leaves the proposed
@@ -29,14 +29,14 @@ from xvoe.evaluation.surprise import EXPLANATIONS, every_explanation
 COLUMNS = ("score", "s_img", "s_dyn", "s_rec", "excess")
 
 
-def per_video(scorer, data: str, batch: int, progress: bool) -> tuple[dict[str, np.ndarray], np.ndarray]:
-    """Each explanation's sums over frames (videos, COLUMNS), and which videos "better" left empty."""
+def per_video(scorer, data: str, rows: range, batch: int, progress: bool) -> tuple[dict[str, np.ndarray], np.ndarray]:
+    """Each explanation's sums over frames (videos, COLUMNS) of the split's `rows`, and which
+    videos "better" left empty."""
     sums = {name: [] for name in EXPLANATIONS}
     dropped = []
     with store.open_dataset(data, split="test") as file:
-        count = file["rgbd"].shape[0]
-        for start in tqdm(range(0, count, batch), desc="score", unit="batch", disable=not progress):
-            video = encode_videos(scorer, file, start, min(count, start + batch))
+        for start in tqdm(range(rows.start, rows.stop, batch), desc="score", unit="batch", disable=not progress):
+            video = encode_videos(scorer, file, start, min(rows.stop, start + batch))
             scored = every_explanation(scorer.vae, scorer.xpl, video["frames"], video["mean"], video["visible"],
                                        video["background"], video["occluder"])
             for name, surprise in scored.items():
@@ -47,11 +47,20 @@ def per_video(scorer, data: str, batch: int, progress: bool) -> tuple[dict[str, 
     return {name: np.concatenate(parts) for name, parts in sums.items()}, np.concatenate(dropped)
 
 
-def write(path: Path, values: np.ndarray) -> None:
+def write(path: Path, rows: range, values: np.ndarray) -> None:
     with open(path, "w", newline="") as handle:
         writer = csv.writer(handle)
         writer.writerow(("index", *COLUMNS))
-        writer.writerows([i, *map(float, row)] for i, row in enumerate(values))
+        writer.writerows([i, *map(float, row)] for i, row in zip(rows, values))
+
+
+def row_range(text: str, count: int) -> range:
+    """FIRST:LAST of the split's rows (either may be left out), checked."""
+    first, _, last = text.partition(":")
+    rows = range(int(first or 0), int(last or count))
+    if not 0 <= rows.start < rows.stop <= count:
+        raise SystemExit(f"--rows must lie within 0:{count}, not {text}")
+    return rows
 
 
 def main() -> None:
@@ -59,6 +68,8 @@ def main() -> None:
     parser.add_argument("--model", required=True, help="an XPL run directory or a shipped model's name")
     parser.add_argument("--data", required=True, help="a test split at the model's resolution")
     parser.add_argument("--out", required=True, help="a directory for the per-video scores")
+    parser.add_argument("--rows", default=":", help="FIRST:LAST, the split's rows to score (default all; a "
+                                                     "1,000-pair split holds each setting in 2,000 rows in a row)")
     parser.add_argument("--batch", type=int, default=16, help="videos per batch")
     parser.add_argument("--threads", type=int, default=2)
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
@@ -69,10 +80,12 @@ def main() -> None:
         raise SystemExit(f"{args.model} proposes no hidden object: both explanations are the same")
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
-    sums, dropped = per_video(scorer, args.data, args.batch, not args.quiet)
+    with store.open_dataset(args.data, split="test") as file:
+        chosen = row_range(args.rows, file["rgbd"].shape[0])
+    sums, dropped = per_video(scorer, args.data, chosen, args.batch, not args.quiet)
     rows = {}
     for name, values in sums.items():
-        write(out / f"{name}.csv", values)
+        write(out / f"{name}.csv", chosen, values)
         scores = xvoe.read_scores(out / f"{name}.csv", args.data)
         rows[name] = {(r["metric"], r["column"], r["scenario"], r["setting"]): r
                       for r in xvoe.metric_rows(scores, name, ("score", "excess")) if r["metric"] != "relative"}
