@@ -6,7 +6,7 @@ proposal wherever a slot is never seen) against the better of it and no hidden o
 Prints comparative accuracy per setting and holistic AUC, of the score and of its excess, under
 both (95% intervals over pairs), and the share of videos in which "better" leaves the proposed
 slot empty, per setting and member. DIR keeps each one's per-video scores (`proposal.csv`,
-`better.csv`; `xvoe metrics F --data val.h5` reads them). One pass costs about 1.3 times the
+`better.csv`, as `xvoe score` writes them; `xvoe metrics` reads them). One pass costs about 1.3 times the
 paper's score alone: the decodes are shared, the dynamics' prediction is decoded twice.
 Choose on a validation split; report on a fresh one (DESIGN section 8).
 """
@@ -27,6 +27,7 @@ from xvoe.evaluation.score import encode_videos
 from xvoe.evaluation.surprise import EXPLANATIONS, every_explanation
 
 COLUMNS = ("score", "s_img", "s_dyn", "s_rec", "excess")
+LABELS = ("scenario", "setting", "pair", "member", "possible")
 
 
 def per_video(scorer, data: str, rows: range, batch: int, progress: bool) -> tuple[dict[str, np.ndarray], np.ndarray]:
@@ -47,11 +48,18 @@ def per_video(scorer, data: str, rows: range, batch: int, progress: bool) -> tup
     return {name: np.concatenate(parts) for name, parts in sums.items()}, np.concatenate(dropped)
 
 
-def write(path: Path, rows: range, values: np.ndarray) -> None:
+def write(path: Path, data: str, rows: range, model: str, values: np.ndarray) -> None:
+    """The scores as `xvoe score` writes them (labels, then the sums), for the split's `rows`."""
+    with store.open_dataset(data, split="test") as file:
+        labels = [store.strings(file, name)[rows.start:rows.stop] if name in ("scenario", "setting")
+                  else file[name][rows.start:rows.stop] for name in LABELS]
     with open(path, "w", newline="") as handle:
         writer = csv.writer(handle)
-        writer.writerow(("index", *COLUMNS))
-        writer.writerows([i, *map(float, row)] for i, row in zip(rows, values))
+        writer.writerow(("index", "model", *LABELS, *COLUMNS))
+        for i, row in enumerate(values):
+            scenario, setting, pair, member, possible = (label[i] for label in labels)
+            writer.writerow([rows.start + i, model, scenario, setting, int(pair), int(member), bool(possible),
+                             *map(float, row)])
 
 
 def row_range(text: str, count: int) -> range:
@@ -85,8 +93,8 @@ def main() -> None:
     sums, dropped = per_video(scorer, args.data, chosen, args.batch, not args.quiet)
     rows = {}
     for name, values in sums.items():
-        write(out / f"{name}.csv", chosen, values)
-        scores = xvoe.read_scores(out / f"{name}.csv", args.data)
+        write(out / f"{name}.csv", args.data, chosen, f"{scorer.name}-{name}", values)
+        scores = xvoe.read_scores(out / f"{name}.csv")
         rows[name] = {(r["metric"], r["column"], r["scenario"], r["setting"]): r
                       for r in xvoe.metric_rows(scores, name, ("score", "excess")) if r["metric"] != "relative"}
     print(f"{args.model} on {args.data}: comparative and holistic (x100, 95% interval)")
@@ -95,7 +103,7 @@ def main() -> None:
         cells = "".join(f"{100 * rows[n][key]['value']:>8.1f} [{100 * rows[n][key]['low']:5.1f}, "
                         f"{100 * rows[n][key]['high']:5.1f}]" for n in EXPLANATIONS)
         print(f"{key[0]:<12}{key[1]:<8}{key[2]:<12}{key[3]:<8}{cells}")
-    scores = xvoe.read_scores(out / "proposal.csv", args.data)
+    scores = xvoe.read_scores(out / "proposal.csv")
     print("videos in which 'better' leaves the proposed slot empty (%), member 0 / member 1:")
     for scenario, setting in sorted(set(zip(scores["scenario"], scores["setting"]))):
         chosen = (scores["scenario"] == scenario) & (scores["setting"] == setting)
