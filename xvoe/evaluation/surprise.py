@@ -16,9 +16,9 @@ Transformer 2 proposes the object seen in no frame. The paper scores every video
 proposal; `explanation="better"` treats it as one explanation of two and scores a video under
 whichever leaves the smaller sum over frames, the proposal or the slot left empty, so that an
 object proposed where nothing is hidden costs nothing (docs/decisions.md, "The better of two
-explanations"). Decoding is the cost, so only occupied
-slots are decoded (seen at some frame, or the explained one), the decodes are shared by the
-two terms, and videos are scored in batches with no Python loop over frames.
+explanations"). Decoding is the cost, so only occupied slots are decoded (seen at some frame, or
+the explained one), the decodes are shared by the two terms, and videos are scored in batches
+with no Python loop over frames.
 """
 from __future__ import annotations
 
@@ -96,23 +96,23 @@ def every_explanation(vae: ComponentVAE, xpl: XPL, frames: Tensor, mean: Tensor,
 def _explanations(vae: ComponentVAE, xpl: XPL, frames: Tensor, mean: Tensor, visible: Tensor, background: Tensor,
                   occluder: Tensor, better: bool) -> dict[str, Surprise]:
     refined = xpl.refine(mean, visible, occluder)
-    slot = torch.full(mean.shape[:1], -1, dtype=torch.long, device=mean.device)
-    explained = xpl.explain(refined, visible) if xpl.config.use_reasoning else (refined, None, slot)
-    occupied = occupied_slots(visible, explained[2])
+    none = torch.full(mean.shape[:1], -1, dtype=torch.long, device=mean.device)
+    proposal, _, slot = xpl.explain(refined, visible) if xpl.config.use_reasoning else (refined, None, none)
+    occupied = occupied_slots(visible, slot)
     background_pictures = decode_background(vae, background, frames)
-    layers, walls = scene_layers(vae, explained[0], occupied, visible, occluder)
-    proposed = Surprise(*_terms(vae, xpl, frames, background_pictures, explained[0], layers, walls, occupied,
-                                visible, occluder), explained[2])
+    layers, walls = scene_layers(vae, proposal, occupied, visible, occluder)
+    proposed = Surprise(*_terms(vae, xpl, frames, background_pictures, proposal, layers, walls, occupied, visible,
+                                occluder), slot)
     if not better:
         return {"proposal": proposed}
-    if not (explained[2] >= 0).any():       # nothing proposed: one explanation
+    if not (slot >= 0).any():       # nothing proposed: one explanation
         return {"proposal": proposed, "better": proposed}
     # the same scene with the proposed slot empty: the other slots' pictures are the same, so only
     # the dynamics' prediction is decoded again
     seen = visible.any(dim=1)
     empty_layers = torch.where((occupied & ~seen)[:, None, :, None, None, None], vae.blank()[0], layers)
     empty = Surprise(*_terms(vae, xpl, frames, background_pictures, refined, empty_layers, walls, seen, visible,
-                             occluder), slot)
+                             occluder), none)
     return {"proposal": proposed, "better": better_explanation(empty, proposed)}
 
 
@@ -120,7 +120,10 @@ def better_explanation(first: Surprise, second: Surprise) -> Surprise:
     """Per video, the surprise under whichever explanation leaves the smaller sum over frames
     (the first on a tie)."""
     second_wins = (second.s_img + second.s_dyn).sum(1) < (first.s_img + first.s_dyn).sum(1)
-    pick = lambda a, b: torch.where(second_wins.view(-1, *[1] * (a.dim() - 1)), b, a)   # noqa: E731
+
+    def pick(a: Tensor, b: Tensor) -> Tensor:
+        return torch.where(second_wins.view(-1, *[1] * (a.dim() - 1)), b, a)
+
     return Surprise(pick(first.s_img, second.s_img), pick(first.s_dyn, second.s_dyn),
                     pick(first.s_rec, second.s_rec), pick(first.explained_slot, second.explained_slot))
 
