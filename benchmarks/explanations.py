@@ -48,11 +48,15 @@ def per_video(scorer, data: str, rows: range, batch: int, progress: bool) -> tup
     return {name: np.concatenate(parts) for name, parts in sums.items()}, np.concatenate(dropped)
 
 
-def write(path: Path, data: str, rows: range, model: str, values: np.ndarray) -> None:
-    """The scores as `xvoe score` writes them (labels, then the sums), for the split's `rows`."""
+def read_labels(data: str, rows: range) -> list[np.ndarray]:
+    """The LABELS of the split's `rows`, read once for every explanation's file."""
     with store.open_dataset(data, split="test") as file:
-        labels = [store.strings(file, name)[rows.start:rows.stop] if name in ("scenario", "setting")
-                  else file[name][rows.start:rows.stop] for name in LABELS]
+        return [store.strings(file, name)[rows.start:rows.stop] if name in ("scenario", "setting")
+                else file[name][rows.start:rows.stop] for name in LABELS]
+
+
+def write(path: Path, labels: list[np.ndarray], rows: range, model: str, values: np.ndarray) -> None:
+    """The scores as `xvoe score` writes them (labels, then the sums), for the split's `rows`."""
     with open(path, "w", newline="") as handle:
         writer = csv.writer(handle)
         writer.writerow(("index", "model", *LABELS, *COLUMNS))
@@ -91,10 +95,11 @@ def main() -> None:
     with store.open_dataset(args.data, split="test") as file:
         chosen = row_range(args.rows, file["rgbd"].shape[0])
     sums, dropped = per_video(scorer, args.data, chosen, args.batch, not args.quiet)
+    labels = read_labels(args.data, chosen)
     rows = {}
     for name, values in sums.items():
-        write(out / f"{name}.csv", args.data, chosen, f"{scorer.name}-{name}", values)
-        scores = xvoe.read_scores(out / f"{name}.csv")
+        write(out / f"{name}.csv", labels, chosen, f"{scorer.name}-{name}", values)
+        scores = xvoe.read_scores(out / f"{name}.csv")      # the labels as columns; the same for both
         rows[name] = {(r["metric"], r["column"], r["scenario"], r["setting"]): r
                       for r in xvoe.metric_rows(scores, name, ("score", "excess")) if r["metric"] != "relative"}
     print(f"{args.model} on {args.data}: comparative and holistic (x100, 95% interval)")
@@ -103,7 +108,6 @@ def main() -> None:
         cells = "".join(f"{100 * rows[n][key]['value']:>8.1f} [{100 * rows[n][key]['low']:5.1f}, "
                         f"{100 * rows[n][key]['high']:5.1f}]" for n in EXPLANATIONS)
         print(f"{key[0]:<12}{key[1]:<8}{key[2]:<12}{key[3]:<8}{cells}")
-    scores = xvoe.read_scores(out / "proposal.csv")
     print("videos in which 'better' leaves the proposed slot empty (%), member 0 / member 1:")
     for scenario, setting in sorted(set(zip(scores["scenario"], scores["setting"]))):
         chosen = (scores["scenario"] == scenario) & (scores["setting"] == setting)

@@ -31,6 +31,7 @@ from nll import ground_truth
 
 import xvoe
 from xvoe.benchmark import store
+from xvoe.evaluation.surprise import EXPLANATIONS
 
 SCENARIOS = ("collision", "blocking", "permanence", "continuity")
 
@@ -75,7 +76,7 @@ def main() -> None:
     parser.add_argument("--threads", type=int, default=2)
     parser.add_argument("--nll-set", action="append", default=[], metavar="FIELD=VALUE",
                         help="change a field of the NLL's settings (inference.InferenceConfig), as xvoe score's")
-    parser.add_argument("--explanation", default="proposal", choices=("proposal", "better"),
+    parser.add_argument("--explanation", default="proposal", choices=EXPLANATIONS,
                         help="the MSE score's explanation (xvoe score --explanation)")
     parser.add_argument("--json", help="write the card here too")
     parser.add_argument("--against", help="another model's card (--json) on the same split: mark the lines on which "

@@ -22,6 +22,7 @@ from explanation import hidden_explanations, pick
 
 import xvoe
 from xvoe.benchmark import store
+from xvoe.evaluation.surprise import EXPLANATIONS
 
 ORDER = [("collision", "S1"), ("collision", "S2"), ("collision", "S3"), ("blocking", "S1"), ("blocking", "S2"),
          ("blocking", "S3"), ("permanence", "S1"), ("permanence", "S2"), ("continuity", "S1"),
@@ -44,7 +45,7 @@ def main() -> None:
     parser.add_argument("--shipped", default="xpl", help="the shipped model to show beside ('' for none)")
     parser.add_argument("--surprise", default="mse", choices=("mse", "both"))
     parser.add_argument("--hidden-pairs", type=int, default=100, help="blocking S2 videos for hidden_iou (0: none)")
-    parser.add_argument("--explanation", default="proposal", choices=("proposal", "better"),
+    parser.add_argument("--explanation", default="proposal", choices=EXPLANATIONS,
                         help="the MSE score's explanation (xvoe score --explanation)")
     parser.add_argument("--threads", type=int, default=2)
     args = parser.parse_args()

@@ -53,8 +53,7 @@ def score(model: str | Scorer, data: str | Path, out: str | Path, *, surprise: s
         raise XvoeError(f"--surprise must be mse, nll or both, not {surprise!r}")
     if workers < 1:
         raise XvoeError(f"--workers must be at least 1, not {workers}")
-    if explanation not in EXPLANATIONS:
-        raise XvoeError(f"--explanation must be {' or '.join(EXPLANATIONS)}, not {explanation!r}")
+    check_explanation(explanation)
     extra = NLLColumns(particles, seed, nll_settings) if surprise != "mse" else None   # bad settings fail here
     if workers > 1:
         if shard != (0, 1):
@@ -69,6 +68,12 @@ def score(model: str | Scorer, data: str | Path, out: str | Path, *, surprise: s
     return score_split(scorer, str(data), str(out), how=how, videos_per_batch=videos_per_batch, extra=extra,
                        score_column="nll" if surprise == "nll" else "score", shard=shard, overwrite=overwrite,
                        progress=progress)
+
+
+def check_explanation(explanation: str) -> None:
+    """A one-line refusal of an MSE explanation that is not one of EXPLANATIONS."""
+    if explanation not in EXPLANATIONS:
+        raise XvoeError(f"--explanation must be {' or '.join(EXPLANATIONS)}, not {explanation!r}")
 
 
 def _score_in_workers(model: str | Scorer, data: str | Path, out: str | Path, workers: int, overwrite: bool,
@@ -99,8 +104,7 @@ def explain(model: str | Scorer, data: str | Path, index: int, *, surprise: str 
     (surprise "mse"; with explanation "better", only where it explains the video better than
     nothing hidden) or the Pyro model's posterior (surprise "nll", from `particles` importance
     samples drawn from `seed`)."""
-    if explanation not in EXPLANATIONS:
-        raise XvoeError(f"--explanation must be {' or '.join(EXPLANATIONS)}, not {explanation!r}")
+    check_explanation(explanation)
     scorer = load_model(model) if isinstance(model, str) else model
     scorer = replace(scorer, explanation=explanation) if scorer.custom is None else scorer
     if scorer.is_random:
