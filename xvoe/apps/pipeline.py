@@ -44,6 +44,7 @@ from .figures import plot_explanation
 from .report import report
 
 MODELS = ("xpl", "xpl-noresidual", "plato", "phydnet", "random")
+DEFAULT_MODELS = ("xpl", "random")
 # lanes (--jobs) take the longest training first, so that the last lane does not start it late
 # (docs/decisions.md, "Pipeline lanes")
 LANE_ORDER = ("phydnet", "plato", "xpl-noresidual", "xpl")
@@ -56,7 +57,7 @@ class PipelineConfig:
     recipe: str = DEFAULT_RECIPE
     train_videos: int | None = None     # None: the recipe's
     pairs: int = 200
-    models: tuple[str, ...] = ("xpl", "random")
+    models: tuple[str, ...] = DEFAULT_MODELS
     seed: int = 0
     workers: int = 2
     progress: bool = True
