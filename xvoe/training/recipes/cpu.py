@@ -14,8 +14,8 @@ from ...models.xpl import XPLConfig
 from .recipe import Recipe, TrainConfig
 
 # The stages the pipeline trains in one process per core draw their batches from two fixed data
-# shards, the others from one: a stage's batches, and so its model, are then the same on one core,
-# two or four (docs/decisions.md, "Batches that do not depend on the cores").
+# shards, the others from one: a stage's batches are then the same on one core, two or four (its
+# weights only up to float order: docs/decisions.md, "Batches that do not depend on the cores").
 SHARDS = 2
 PLATO = TrainConfig(steps=60_000, batch_size=32, warmup_steps=100, decay_steps=15_000, data_shards=SHARDS)
 PHYDNET = TrainConfig(steps=9_000, batch_size=8, lr=2e-3, warmup_steps=100, decay_steps=2_500, data_shards=1)
