@@ -98,6 +98,7 @@ def main() -> None:
     args = parser.parse_args()
     models = tuple(args.models.split(","))
     run_dir = Path(args.out)
+    finished_before = set(stage_seconds(run_dir))
     start = time.monotonic()
     report = run_pipeline(PipelineConfig(args.out, args.recipe, args.train_videos, args.pairs, models,
                                          seed=args.seed, progress=False))
@@ -110,9 +111,13 @@ def main() -> None:
     budget = time_goal(models)
     print(line("pipeline minutes, every stage", minutes, f"<= {budget:g}" if budget else "no goal for these models",
                None if budget is None else minutes <= budget))
-    # a resumed run's earlier stages ran in other processes: their memory is not measured here
-    memory = peak_memory_gib()
-    print(line("peak memory this run (GiB)", memory, "<= 4", memory <= 4))
+    # stages finished by an earlier run ran in other processes: their memory is not measured here
+    ran = [name for name in stages if name not in finished_before]
+    if ran:
+        memory = peak_memory_gib()
+        print(line(f"peak memory of this run's {len(ran)} stage(s) (GiB)", memory, "<= 4", memory <= 4))
+    else:
+        print("peak memory: not measured (every stage finished in an earlier run)")
 
     fresh = Path(args.fresh) if args.fresh else run_dir / "data" / f"fresh-{args.fresh_seed}.h5"
     if not fresh.exists():
