@@ -23,11 +23,12 @@ from tqdm.auto import tqdm
 import xvoe
 from xvoe.benchmark import store
 from xvoe.evaluation.metrics import excess
-from xvoe.evaluation.score import encode_videos
+from xvoe.evaluation.score import EXCESS_COLUMNS, SCORE_COLUMNS, encode_videos
 from xvoe.evaluation.surprise import EXPLANATIONS, every_explanation
 
-COLUMNS = ("score", "s_img", "s_dyn", "s_rec", "excess")
-LABELS = ("scenario", "setting", "pair", "member", "possible")
+HEADER = SCORE_COLUMNS + EXCESS_COLUMNS
+LABELS = HEADER[2:HEADER.index("score")]       # scenario .. possible
+COLUMNS = HEADER[HEADER.index("score"):]       # score, s_img, s_dyn, s_rec, excess
 
 
 def per_video(scorer, data: str, rows: range, batch: int, progress: bool) -> tuple[dict[str, np.ndarray], np.ndarray]:
@@ -48,18 +49,18 @@ def per_video(scorer, data: str, rows: range, batch: int, progress: bool) -> tup
     return {name: np.concatenate(parts) for name, parts in sums.items()}, np.concatenate(dropped)
 
 
-def read_labels(data: str, rows: range) -> list[np.ndarray]:
-    """The LABELS of the split's `rows`, read once for every explanation's file."""
+def chosen_rows(data: str, text: str) -> tuple[range, list[np.ndarray]]:
+    """The split's rows FIRST:LAST (`row_range`) and their LABELS, read once for every explanation's file."""
     with store.open_dataset(data, split="test") as file:
-        return [store.strings(file, name)[rows.start:rows.stop] if name in ("scenario", "setting")
-                else file[name][rows.start:rows.stop] for name in LABELS]
+        rows = row_range(text, file["rgbd"].shape[0])
+        return rows, [values[rows.start:rows.stop] for values in store.labels(file, LABELS).values()]
 
 
 def write(path: Path, labels: list[np.ndarray], rows: range, model: str, values: np.ndarray) -> None:
     """The scores as `xvoe score` writes them (labels, then the sums), for the split's `rows`."""
     with open(path, "w", newline="") as handle:
         writer = csv.writer(handle)
-        writer.writerow(("index", "model", *LABELS, *COLUMNS))
+        writer.writerow(HEADER)
         for i, row in enumerate(values):
             scenario, setting, pair, member, possible = (label[i] for label in labels)
             writer.writerow([rows.start + i, model, scenario, setting, int(pair), int(member), bool(possible),
@@ -92,10 +93,8 @@ def main() -> None:
         raise SystemExit(f"{args.model} proposes no hidden object: both explanations are the same")
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
-    with store.open_dataset(args.data, split="test") as file:
-        chosen = row_range(args.rows, file["rgbd"].shape[0])
+    chosen, labels = chosen_rows(args.data, args.rows)
     sums, dropped = per_video(scorer, args.data, chosen, args.batch, not args.quiet)
-    labels = read_labels(args.data, chosen)
     rows = {}
     for name, values in sums.items():
         write(out / f"{name}.csv", labels, chosen, f"{scorer.name}-{name}", values)

@@ -21,7 +21,7 @@ import time
 from pathlib import Path
 
 import xvoe
-from xvoe.apps.pipeline import DEFAULT_MODELS, MODELS, PipelineConfig, run_pipeline
+from xvoe.apps.pipeline import DEFAULT_MODELS, MODELS, PipelineConfig, run_pipeline, stage_times
 from xvoe.benchmark.generate import GenerateConfig, generate
 from xvoe.evaluation.metrics import Estimate, comparative, read_scores
 from xvoe.evaluation.surprise import EXPLANATIONS
@@ -36,12 +36,6 @@ def peak_memory_gib() -> float:
     own = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
     children = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss
     return max(own, children) / 2**20
-
-
-def stage_seconds(run_dir: Path) -> dict[str, float]:
-    """Each finished stage's time, as the pipeline recorded it ("983.1 s")."""
-    done = run_dir / ".done"
-    return {mark.name: float(mark.read_text().split()[0]) for mark in sorted(done.iterdir())} if done.exists() else {}
 
 
 def line(name: str, value: float, target: str, met: bool | None, interval: Estimate | None = None) -> str:
@@ -98,12 +92,12 @@ def main() -> None:
     args = parser.parse_args()
     models = tuple(args.models.split(","))
     run_dir = Path(args.out)
-    finished_before = set(stage_seconds(run_dir))
+    finished_before = set(stage_times(run_dir))
     start = time.monotonic()
     report = run_pipeline(PipelineConfig(args.out, args.recipe, args.train_videos, args.pairs, models,
                                          seed=args.seed, progress=False))
     wall = time.monotonic() - start
-    stages = stage_seconds(run_dir)
+    stages = stage_times(run_dir)
     minutes = sum(stages.values()) / 60
     print(f"pipeline: {wall / 60:.1f} min wall this run, report {report}")
     for name, seconds in stages.items():

@@ -159,7 +159,7 @@ def test_models_trained_side_by_side_match_one_after_another(tmp_path, tiny_cpu_
 
 def test_an_interrupted_stage_reports_its_whole_time_when_resumed(tmp_path, monkeypatch):
     """5 s before Ctrl-C and 7 s after the rerun: the stage's marker says 12 s, not 7."""
-    clock = iter([100.0, 105.0, 200.0, 207.0])
+    clock = iter([100.0, 105.0, 200.0, 207.0, 300.0, 300.0])
     monkeypatch.setattr(pipeline.time, "monotonic", lambda: next(clock))
     stages = Stages(tmp_path, progress=False)
 
@@ -172,3 +172,5 @@ def test_an_interrupted_stage_reports_its_whole_time_when_resumed(tmp_path, monk
     stages.run("train-x", lambda: None)
     assert (tmp_path / ".done" / "train-x").read_text() == "12.0 s\n"
     assert not (tmp_path / ".partial" / "train-x").exists()
+    stages.run("report", lambda: None, key="xpl, random")        # a marker that holds a key too
+    assert pipeline.stage_times(tmp_path) == {"report": 0.0, "train-x": 12.0}

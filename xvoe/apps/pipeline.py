@@ -164,6 +164,12 @@ def run_pipeline(config: PipelineConfig) -> Path:
     return write_report(run_dir, config)
 
 
+def stage_times(run_dir: Path) -> dict[str, float]:
+    """Each finished stage's seconds, as its marker holds them (a resumed stage's whole time)."""
+    marks = run_dir / ".done"
+    return {mark.name: float(mark.read_text().split()[0]) for mark in sorted(marks.iterdir())} if marks.exists() else {}
+
+
 def run_files(run_dir: Path) -> tuple[Path, Path, Path]:
     """Where a run keeps its training split, its test split and the training split's latent cache."""
     return run_dir / "data" / "train.h5", run_dir / "data" / "test.h5", run_dir / "latents-train.h5"
@@ -333,9 +339,8 @@ def write_report(run_dir: Path, config: PipelineConfig) -> Path:
     lines += ["", *compare_models(total), ""]
     for figure in sorted((run_dir / "report").glob("*.png")):
         lines += [f"![{figure.stem}](report/{figure.name})", ""]
-    timings = sorted((run_dir / ".done").iterdir())
     lines += ["## Stage times", "", "| stage | time |", "|---|---|"]
-    lines += [f"| {mark.name} | {mark.read_text().splitlines()[0]} |" for mark in timings]
+    lines += [f"| {name} | {seconds:.1f} s |" for name, seconds in stage_times(run_dir).items()]
     out = run_dir / "report.md"
     out.write_text("\n".join(lines) + "\n")
     return out

@@ -204,6 +204,11 @@ def strings(file: h5py.File, name: str) -> np.ndarray:
     return file[name].asstr()[:]
 
 
+def labels(file: h5py.File, names: tuple[str, ...]) -> dict[str, np.ndarray]:
+    """The named label columns of every video, string ones as str (`strings`)."""
+    return {name: strings(file, name) if LABEL_KINDS[name] == "O" else file[name][:] for name in names}
+
+
 def copy_videos(source: h5py.File, writer: Writer) -> None:
     """Append every video of `source` to `writer`, moving the compressed chunks as they are."""
     states, kind, color = source["states"][:], source["kind"][:], source["color"][:]

@@ -102,8 +102,7 @@ def _join_labels(path: Path, columns: dict[str, np.ndarray], data: str | Path) -
     index = columns["index"]
     with store.open_dataset(data, split="test") as file:
         count = file["rgbd"].shape[0]
-        labels = {name: (store.strings(file, name) if name in ("scenario", "setting") else file[name][:])
-                  for name in REQUIRED[1:]}
+        labels = store.labels(file, REQUIRED[1:])
     if np.any(index != np.round(index)) or np.any(index < 0) or np.any(index >= count):
         raise XvoeError(f"{data} does not hold the videos these scores were made from: {path} names videos "
                         f"{int(index.min())}..{int(index.max())}, the split holds 0..{count - 1}")

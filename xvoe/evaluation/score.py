@@ -253,8 +253,7 @@ def score_split(model: str | Scorer, data: str, out: str, *, how: str = "sum", v
         curves_path = claim_file(out.with_suffix(".curves.npz"), overwrite, what="the curves beside --out")
         count, frames_count, size = file["rgbd"].shape[:3]
         first, last = shard_rows(count, videos_per_batch, shard)
-        labels = {name: (store.strings(file, name) if name in ("scenario", "setting") else file[name][:])
-                  for name in ("scenario", "setting", "pair", "member", "possible")}
+        labels = store.labels(file, ("scenario", "setting", "pair", "member", "possible"))
         curves = np.zeros((3, count, frames_count))     # s_img, s_dyn, s_rec
         values = [] if extra is not None else None
         for start in tqdm(range(first, last, videos_per_batch), desc=f"score {scorer.name}", unit="batch",
