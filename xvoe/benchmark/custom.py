@@ -9,7 +9,7 @@
 
 The file is a test split of one pair (member 0 the expected video, member 1 the edited,
 impossible one), in the schema every other part of xvoe reads: `xvoe score`, `xvoe explain`,
-`xvoe show` and `xvoe.viz.plot_surprise_curves` take it as they take a generated test set.
+`xvoe show` and `xvoe.plot_surprise_curves` take it as they take a generated test set.
 
 Places are in world units: the camera sees x in [0, 64] (left to right) and y in [0, 64]
 (up); the floor's top is at y = 12 and balls and cubes have radius (half side) 4, so an
