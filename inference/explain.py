@@ -2,7 +2,7 @@
 with the posterior probability that it exists and the effective sample size of the weights."""
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 import torch
@@ -37,18 +37,20 @@ class NLLExplanation(Explanation):
                 *self.hypotheses]
 
 
-def explain_nll(scorer: Scorer, data: str, index: int, particles: int = 64, seed: int = 0,
+def explain_nll(scorer: Scorer, data: str, index: int, particles: int | None = None, seed: int = 0,
                 hypotheses: int = 3) -> NLLExplanation:
     """What `xvoe explain --surprise nll` draws: the Pyro model's explanation posterior."""
     if not scorer.is_random and (scorer.xpl is None or not scorer.xpl.config.use_reasoning):
         raise XvoeError(f"the NLL explanation needs an XPL model with reasoning; {scorer.name} has none")
     video, rgbd, title = _read_video(scorer, data, index)
-    return nll_explanation(scorer.vae, scorer.xpl, video, particles, title, rgbd, seed, hypotheses)
+    config = scorer.nll or InferenceConfig()
+    return nll_explanation(scorer.vae, scorer.xpl, video, particles or config.particles, title, rgbd, seed,
+                           hypotheses, config)
 
 
 @torch.no_grad()
 def nll_explanation(vae, xpl, video: dict, particles: int, title: str = "", observed: np.ndarray | None = None,
-                    seed: int = 0, hypotheses: int = 3) -> NLLExplanation:
+                    seed: int = 0, hypotheses: int = 3, config: InferenceConfig | None = None) -> NLLExplanation:
     """The explanation posterior of one encoded video (`encode_videos` of one video): the
     importance-weighted mean of the particles that hold a hidden object, decoded frame by
     frame. The mean, not the best particle: where one particle takes all the weight (a broad
@@ -57,10 +59,12 @@ def nll_explanation(vae, xpl, video: dict, particles: int, title: str = "", obse
     `hypotheses` heaviest distinct trajectories, each decoded alone with its weight, and the
     frames where they disagree most in the title.
 
-    The samples come from `seed`, without touching the global random state."""
+    The samples come from `seed`, without touching the global random state; `config`: the
+    model's NLL settings (default: InferenceConfig's), `particles` replacing its count."""
     one = {name: value[0] for name, value in video.items()}
     found = explain_surprise(vae, xpl, one["frames"], one["mean"], one["visible"], one["background"],
-                             one["occluder"], InferenceConfig(particles=particles), seed=seed, top=hypotheses)
+                             one["occluder"], replace(config or InferenceConfig(), particles=particles), seed=seed,
+                             top=hypotheses)
     result = found.result
     posterior = hidden_posterior(result)
     refined = xpl.refine(video["mean"], video["visible"], video["occluder"])

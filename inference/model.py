@@ -34,6 +34,8 @@ import torch
 from pyro import poutine
 from torch import Tensor, nn
 
+from xvoe.models.nll import InferenceConfig
+
 
 class Drawing(NamedTuple):
     """What a scene draws with a hidden object on trajectories (M, T, D)."""
@@ -62,74 +64,6 @@ class Scene(Protocol):
         pixels where it would be in plain view (its exposure) and the pixels it draws at all."""
 
 
-@dataclass(frozen=True)
-class InferenceConfig:
-    prior_hidden: float = 0.5       # p: prior probability that a hidden object exists
-    # standard deviation of the pixel likelihood: wider than the reconstruction's RMS error, whose
-    # errors come in blobs, so that the pixel terms do not drown the seen objects' motion
-    # (docs/decisions.md, "NLL pixel sigma")
-    pixel_sigma: float = 0.5
-    transition_sigma: float = 0.1   # standard deviation of the hidden object's dynamics
-    # nats per pixel of the hidden object's exposure (what it shows in front of everything else):
-    # the encoder reported no object in its slot, and that silence is evidence against one in the
-    # open; without it a never-seen object is drawn in plain view to patch what the seen slots
-    # reconstruct badly (docs/decisions.md, "NLL exposure penalty")
-    exposure_penalty: float = 12.0
-    # nats per pixel the hidden object draws short of `object_area` (a share of the frame's pixels)
-    # in front of the background, before any wall hides it: a latent that draws nothing is no
-    # object, yet the dynamics let it push the seen ones, and it explained impossible events in
-    # plain view at the price of no exposure (docs/decisions.md, "NLL presence penalty")
-    presence_penalty: float = 12.0
-    object_area: float = 0.008
-    # standard deviation of the seen objects' latents around the dynamics: the dynamics' own RMS
-    # one-step error per latent (docs/decisions.md, "NLL motion sigma")
-    motion_sigma: float = 0.2
-    particles: int = 64
-    refine_steps: int = 5           # gradient steps on the proposal's mean (surprise.refine_out_of_sight)
-    refine_rate: float = 0.1        # their Adam learning rate
-    refine_tolerance: float = 1.0   # nats a frame of the proposal's mean may cost before it is moved
-    guide_follows_dynamics: bool = True   # fuse each frame's proposal with the dynamics' step
-    # Transformer 2's scales are multiplied by this before the fusion: they are each frame's
-    # marginal uncertainty, not fresh evidence about that frame, and too narrow for what a video
-    # leaves open (docs/decisions.md, "NLL proposal widening")
-    proposal_widening: float = 3.0
-    # "smc": sequential Monte Carlo over frames with existence summed out (inference.smc);
-    # "importance": one vectorised importance-sampling pass of the Pyro model and guide
-    method: str = "smc"
-    resample_threshold: float = 0.5   # SMC resamples when the ESS falls below this share of the particles
-    # Metropolis moves per tempering level within a frame (0: no tempering, plain SMC), and the
-    # most levels one frame may take. Tempering (2 moves) cost 1.6x the time on the never-seen-
-    # object videos for the same evidence and a seed-to-seed spread as wide (NOTES-38.md)
-    smc_moves: int = 0
-    smc_max_levels: int = 40
-    # SMC first runs this many particles (0: none), or several pilots in turn (a tuple, smallest
-    # first); where the branch with a hidden object then trails the one without by more than
-    # smc_pilot_margin nats, it changes log p(x) by less than exp(-margin) and the larger runs
-    # are skipped (most videos show every object)
-    smc_pilot: int | tuple[int, ...] = 16
-    smc_pilot_margin: float = 30.0
-    # no pilot where the guide's existence probability is above this (1.0: pilots everywhere):
-    # a small pilot can miss a hidden object that XPL's existence head is sure of, and the
-    # video's NLL then swings by hundreds of nats between seeds (docs/decisions.md, "The
-    # existence head gates the SMC pilot")
-    smc_pilot_skip_exists: float = 0.5
-    smc_first: int = 0     # particles of the SMC's first frame, resampled down to `particles` (0: as many)
-    # proposal_widening for the SMC (None: the same); several: an equal-weight mixture of the
-    # proposals with each. The SMC reweights every frame, so a pull towards Transformer 2's
-    # marginals costs weight variance at each step: the wide component keeps the particles near
-    # the dynamics, the narrow one finds the hypotheses that the marginals point at
-    smc_proposal_widening: float | tuple[float, ...] | None = (3.0, 10.0)
-    # the SMC's proposal mixes in the learned trajectory proposal (trajectory.pt) where the model
-    # has one: one more equal-weight component beside the fused ones, which stay to keep the
-    # estimator safe where it is wrong. Off: measured, it did not raise the ESS and widened the
-    # seed-to-seed spread (docs/decisions.md, "The trajectory proposal: mixed with the fused ones, off by default")
-    trajectory_proposal: bool = False
-    # after the first frame the learned component's scale is at least this times the transition's:
-    # trained on real objects' steps it is narrower than the model's own transition, and a
-    # proposal narrower than the target lets a few draws take all the weight (0: as learned)
-    trajectory_scale_floor: float = 1.0
-
-
 def drawing_cost(config: InferenceConfig, drawing: Drawing) -> Tensor:
     """Nats (M, T) float64 the hidden object's drawing costs besides its pixels' likelihood: each
     pixel it shows in plain view, where the encoder saw nothing, and each pixel it falls short
@@ -146,15 +80,6 @@ def pixel_log_normaliser(pixels: int, sigma: float) -> float:
     return pixels * (math.log(sigma) + 0.5 * math.log(2 * math.pi))
 
 
-class StepProposal(Protocol):
-    """A learned proposal of frame t given the particle's past (`xvoe.models.trajectory`):
-    mean and scale (n, D) from t, the previous draws, the dynamics' mean and Transformer 2's
-    marginal at t (n, D each)."""
-
-    def __call__(self, t: int, previous: Tensor, prediction: Tensor, marginal_loc: Tensor,
-                 marginal_scale: Tensor) -> tuple[Tensor, Tensor]: ...
-
-
 @dataclass
 class Proposal:
     """The guide's parameters for one video."""
@@ -162,8 +87,6 @@ class Proposal:
     p_exists: Tensor                # scalar
     loc: Tensor                     # (T, D)
     scale: Tensor                   # (T, D)
-    # the SMC's learned component of whole trajectories (None: the fused ones alone)
-    trajectory: StepProposal | None = None
 
 
 class HiddenObjectModel(nn.Module):

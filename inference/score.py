@@ -2,6 +2,7 @@
 object), and the NLL less that of a reference drawing only what was seen."""
 from __future__ import annotations
 
+from dataclasses import replace
 from typing import Any
 
 import numpy as np
@@ -15,15 +16,16 @@ from .model import InferenceConfig, pixel_log_normaliser
 from .surprise import nll_surprise
 
 
-def nll_config(particles: int = 64, settings: dict[str, Any] | None = None) -> InferenceConfig:
-    """The NLL's settings: InferenceConfig's defaults with `particles` and the fields in
-    `settings` changed; a name it has no field of is an error that lists its fields."""
+def nll_config(base: InferenceConfig, particles: int | None = None,
+               settings: dict[str, Any] | None = None) -> InferenceConfig:
+    """The NLL's settings: `base` (the model's) with `particles` (None: its own) and the fields
+    in `settings` changed; a name it has no field of is an error that lists its fields."""
     settings = dict(settings or {})
     for name in settings:
         field_type(InferenceConfig, name)
-    if "particles" in settings and settings["particles"] != particles:
+    if "particles" in settings and particles is not None and settings["particles"] != particles:
         raise XvoeError("give the particles once: as particles, or in the NLL settings")
-    return InferenceConfig(**{"particles": particles, **settings})
+    return replace(base, **({"particles": particles} if particles is not None else {}), **settings)
 
 
 def nll_settings(assignments: list[str]) -> dict[str, Any]:
@@ -62,12 +64,15 @@ class NLLColumns:
 
     names = ("nll", "ess", "p_hidden", "nll_excess")
 
-    def __init__(self, particles: int = 64, seed: int = 0, settings: dict[str, Any] | None = None):
-        self.config, self.seed = nll_config(particles, settings), seed
+    def __init__(self, particles: int | None = None, seed: int = 0, settings: dict[str, Any] | None = None):
+        self.particles, self.settings, self.seed = particles, settings, seed
+        self.config = nll_config(InferenceConfig(), particles, settings)     # bad settings fail before any work
 
     def check(self, scorer: Scorer) -> None:
+        """The model's own NLL settings, with this run's changes."""
         if scorer.xpl is None or not scorer.xpl.config.use_reasoning:
             raise XvoeError(f"the NLL surprise needs an XPL model with reasoning; {scorer.name} has none")
+        self.config = nll_config(scorer.nll or InferenceConfig(), self.particles, self.settings)
 
     def batch(self, scorer: Scorer, videos: dict[str, Tensor]) -> np.ndarray:
         return np.array(xpl_nll(scorer, videos, self.config, self.seed), dtype=float).reshape(-1, 3)

@@ -68,7 +68,6 @@ class SMCRun:
     ess: Tensor                   # (R, T) before each frame's resampling decision
     resampled: Tensor             # (R, T) bool
     origin: Tensor                # (R, N) the first-frame particle each final particle descends from
-    levels: Tensor                # (R, T) tempering levels taken within each frame (0: the frame at once)
 
     @property
     def final_ess(self) -> Tensor:
@@ -81,135 +80,38 @@ class SMCRun:
 
 
 def run_smc(model: SequentialModel, particles: int, runs: int = 1, threshold: float = 0.5,
-            generator: torch.Generator | None = None, moves: int = 0, max_levels: int = 40,
-            first: int | None = None) -> SMCRun:
+            generator: torch.Generator | None = None) -> SMCRun:
     """`runs` independent particle filters of `particles` particles each, stepped together.
 
     After frame t, a run whose ESS is under threshold * particles is resampled and its mean
     weight moved into its evidence; the last frame's weights are never resampled (nothing
-    follows to use the copies), so they stay a weighted sample of the posterior.
-
-    moves > 0 (the model needs a `move`): a frame whose weights would leave an ESS under the
-    threshold is taken in tempered levels instead, w^beta with beta from 0 to 1 chosen so that
-    each level keeps the threshold's ESS, each followed by resampling and `moves` Metropolis
-    moves of the frame's draw that leave the level's target invariant: a frame that one
-    particle would win outright is crossed by many (an adaptive SMC sampler within the frame).
-    The levels are chosen from the particles: consistent, but p^ is biased by O(1/N).
-
-    first > particles: the first frame is drawn `first` times per run, its mean weight taken
-    into the evidence, and `particles` of them kept by systematic resampling: more starting
-    points where the first frame decides most (where the object may start out of sight)."""
-    if first is not None and first > particles:
-        return _run_smc_wide_start(model, particles, runs, threshold, generator, moves, max_levels, first)
+    follows to use the copies), so they stay a weighted sample of the posterior."""
     n = runs * particles
     state = model.start(n)
     log_weights = torch.zeros(runs, particles, dtype=torch.float64)
     log_evidence = torch.zeros(runs, dtype=torch.float64)
     origin = torch.arange(particles).expand(runs, particles).clone()
-    ess, resampled, levels = [], [], []
+    ess, resampled = [], []
     base = (torch.arange(runs) * particles)[:, None]
     target = threshold * particles
 
-    def resample(state, due, log_weights, origin, carry):
-        nonlocal log_evidence
-        log_evidence[due] += torch.logsumexp(log_weights[due], dim=1) - math.log(particles)
-        ancestors = torch.arange(particles).expand(runs, particles).clone()
-        ancestors[due] = systematic_resample(torch.softmax(log_weights[due], dim=1), generator)
-        state = model.select(state, (base + ancestors).reshape(-1))
-        log_weights = log_weights.clone()
-        log_weights[due] = 0.0
-        return state, log_weights, origin.gather(1, ancestors), carry.gather(1, ancestors)
-
     for t in range(model.frames):
         state, increment = model.step(t, state, generator)
-        increment = increment.reshape(runs, particles)
-        beta = torch.zeros(runs, dtype=torch.float64)
-        taken = torch.zeros(runs, dtype=torch.long)
-        while moves > 0:
-            short = (effective_sample_size(log_weights + (1 - beta)[:, None] * increment) < target) & (beta < 1)
-            if not short.any() or int(taken.max()) >= max_levels:
-                break
-            delta = tempering_step(log_weights, increment, 1 - beta, target)
-            delta[~short] = 0.0
-            log_weights = log_weights + delta[:, None] * increment
-            beta = beta + delta
-            taken += short.long()
-            state, log_weights, origin, increment = resample(state, short, log_weights, origin, increment)
-            for _ in range(moves):
-                state, moved = model.move(t, state, beta.repeat_interleave(particles), generator, runs)
-                increment = moved.reshape(runs, particles)
-        log_weights = log_weights + (1 - beta)[:, None] * increment
+        log_weights = log_weights + increment.reshape(runs, particles)
         current = effective_sample_size(log_weights)
         ess.append(current)
-        levels.append(taken)
         due = current < target if t < model.frames - 1 else torch.zeros(runs, dtype=torch.bool)
         resampled.append(due)
         if due.any():
-            state, log_weights, origin, _ = resample(state, due, log_weights, origin, increment)
+            log_evidence[due] += torch.logsumexp(log_weights[due], dim=1) - math.log(particles)
+            ancestors = torch.arange(particles).expand(runs, particles).clone()
+            ancestors[due] = systematic_resample(torch.softmax(log_weights[due], dim=1), generator)
+            state = model.select(state, (base + ancestors).reshape(-1))
+            log_weights = log_weights.clone()
+            log_weights[due] = 0.0
+            origin = origin.gather(1, ancestors)
     log_evidence += torch.logsumexp(log_weights, dim=1) - math.log(particles)
-    return SMCRun(log_evidence, log_weights, state, torch.stack(ess, dim=1), torch.stack(resampled, dim=1), origin,
-                  torch.stack(levels, dim=1))
-
-
-def _run_smc_wide_start(model, particles, runs, threshold, generator, moves, max_levels, first) -> SMCRun:
-    """`run_smc` whose first frame has `first` particles per run (see there)."""
-
-    class WideStart:
-        frames = 1
-
-        def start(self, n):
-            return model.start(n)
-
-        def step(self, t, state, generator):
-            return model.step(t, state, generator)
-
-        def select(self, state, index):
-            return model.select(state, index)
-
-        def move(self, t, state, beta, generator, runs):
-            return model.move(t, state, beta, generator, runs)
-
-    opening = run_smc(WideStart(), first, runs, threshold, generator, moves, max_levels)
-    chosen = systematic_resample(torch.softmax(opening.log_weights, dim=1), generator, particles)
-    base = (torch.arange(runs) * first)[:, None]
-    state = model.select(opening.state, (base + chosen).reshape(-1))
-    rest = _Continue(model, state)
-    after = run_smc(rest, particles, runs, threshold, generator, moves, max_levels)
-    return SMCRun(opening.log_evidence + after.log_evidence, after.log_weights, after.state,
-                  torch.cat([opening.ess, after.ess], dim=1),
-                  torch.cat([torch.ones(runs, 1, dtype=torch.bool), after.resampled], dim=1),
-                  chosen.gather(1, after.origin), torch.cat([opening.levels, after.levels], dim=1))
-
-
-class _Continue:
-    """A sequential model from frame 1 on, started from given particles."""
-
-    def __init__(self, model, state):
-        self.model, self.state, self.frames = model, state, model.frames - 1
-
-    def start(self, n):
-        return self.state
-
-    def step(self, t, state, generator):
-        return self.model.step(t + 1, state, generator)
-
-    def select(self, state, index):
-        return self.model.select(state, index)
-
-    def move(self, t, state, beta, generator, runs):
-        return self.model.move(t + 1, state, beta, generator, runs)
-
-
-def tempering_step(log_weights: Tensor, increment: Tensor, room: Tensor, target: float) -> Tensor:
-    """The largest delta (R,) in (0, room] with ESS(log_weights + delta * increment) >= target
-    (bisection; the whole room where it stays above)."""
-    low, high = torch.zeros_like(room), room.clone()
-    whole = effective_sample_size(log_weights + room[:, None] * increment) >= target
-    for _ in range(40):
-        middle = (low + high) / 2
-        above = effective_sample_size(log_weights + middle[:, None] * increment) >= target
-        low, high = torch.where(above, middle, low), torch.where(above, high, middle)
-    return torch.where(whole, room, torch.maximum(low, room * 1e-6))
+    return SMCRun(log_evidence, log_weights, state, torch.stack(ess, dim=1), torch.stack(resampled, dim=1), origin)
 
 
 # --- the hidden object's trajectory as a sequential model ---------------------------------
@@ -219,11 +121,7 @@ class Particles:
     trajectory: Tensor                    # (n, t, D) the frames drawn so far
     loc: Tensor | None = None             # (n, D) the dynamics' mean of the next frame
     carried: Any = None                   # the scene's own state after the last frame (the dynamics' memory)
-    before: Any = None                    # ... and before it (what a move of the last frame starts from)
-    prior: tuple[Tensor, Tensor] | None = None      # the last frame's transition mean and scale (n, D)
-    guide: tuple[Tensor, Tensor] | None = None      # its proposal's mean and scale (n, D)
     increment: Tensor | None = None       # (n,) float64 its log-weight: transition + likelihood - proposal
-    log_q: Tensor | None = None           # (n,) float64 its proposal's log-density
 
 
 class HiddenTrajectory:
@@ -246,8 +144,7 @@ class HiddenTrajectory:
             prior_loc, prior_scale = self.steps.initial(n)
         else:
             prior_loc, prior_scale = state.loc, torch.full_like(state.loc, self.config.transition_sigma)
-        previous = state.trajectory[:, -1] if t > 0 else torch.zeros_like(prior_loc)
-        locs, scales = self.proposal_at(t, prior_loc, prior_scale, previous)
+        locs, scales = self.proposal_at(t, prior_loc, prior_scale)
         chosen = torch.randint(locs.shape[1], (n,), generator=generator)
         rows = torch.arange(n)
         loc, scale = locs[rows, chosen], scales[rows, chosen]
@@ -266,39 +163,13 @@ class HiddenTrajectory:
         if t < self.frames - 1:
             next_loc, carried, extra = self.steps.advance(t, z, before)
             increment = increment + extra
-        return Particles(z[:, None], next_loc, carried, before, prior, guide, increment, log_q)
+        return Particles(z[:, None], next_loc, carried, increment)
 
-    def move(self, t: int, state: Particles, beta: Tensor, generator: torch.Generator | None,
-             runs: int) -> tuple[Particles, Tensor]:
-        """A random-walk Metropolis move of frame t's draws, invariant for q^(1-beta) (p L)^beta,
-        the history untouched. Its steps are the proposal's scale times 1.19 / sqrt(D) (half
-        the optimal scaling for a Gaussian target, which the likelihood narrows): a function of
-        the particle's past alone, so the move is reversible (a step scaled by the population's
-        spread would depend on the particle's own value)."""
-        z = state.trajectory[:, -1]
-        step = state.guide[1].mean(dim=1) * (1.19 / math.sqrt(z.shape[-1]))
-        candidate = z + step * torch.randn(z.shape, generator=generator, dtype=z.dtype)
-        moved = self.evaluate(t, candidate, state.prior, state.guide, state.before)
-        log_ratio = (moved.log_q + beta * moved.increment) - (state.log_q + beta * state.increment)
-        uniform = torch.rand(len(z), generator=generator, dtype=torch.float64)
-        accept = uniform.log() < log_ratio
-        trajectory = state.trajectory.clone()
-        trajectory[accept, -1] = candidate[accept]
-        result = Particles(trajectory,
-                           None if state.loc is None else torch.where(accept[:, None], moved.loc, state.loc),
-                           self.steps.merge(accept, moved.carried, state.carried), state.before, state.prior,
-                           state.guide, torch.where(accept, moved.increment, state.increment),
-                           torch.where(accept, moved.log_q, state.log_q))
-        return result, result.increment
-
-    def proposal_at(self, t: int, prior_loc: Tensor, prior_scale: Tensor,
-                    previous: Tensor) -> tuple[Tensor, Tensor]:
+    def proposal_at(self, t: int, prior_loc: Tensor, prior_scale: Tensor) -> tuple[Tensor, Tensor]:
         """Means and scales (n, C, D) of the proposal's C components for frame t: the
         dynamics' step fused with Transformer 2's marginal widened by each of
-        `smc_proposal_widening`, and the learned trajectory proposal given the particle's
-        previous draw `previous` (n, D) where there is one and `trajectory_proposal` is on (an
-        equal-weight mixture: every component is a function of the particle's past, so the
-        mixture's density is the one each draw came from)."""
+        `smc_proposal_widening` (an equal-weight mixture: every component is a function of the
+        particle's past, so the mixture's density is the one each draw came from)."""
         if self.proposal is None:
             return prior_loc[:, None], prior_scale[:, None]
         loc, scale = self.proposal.loc[t].expand_as(prior_loc), self.proposal.scale[t].expand_as(prior_loc)
@@ -311,13 +182,6 @@ class HiddenTrajectory:
             elif isinstance(widenings, (int, float)):
                 widenings = (widenings,)
             components = [fuse(prior_loc, prior_scale, loc, scale * widening) for widening in widenings]
-        if self.proposal.trajectory is not None and self.config.trajectory_proposal:
-            with torch.no_grad():       # a network's parameters must not make the draws need gradients
-                learned_loc, learned_scale = (part.to(prior_loc.dtype) for part in
-                                              self.proposal.trajectory(t, previous, prior_loc, loc, scale))
-            if t > 0 and self.config.trajectory_scale_floor > 0:
-                learned_scale = torch.maximum(learned_scale, prior_scale * self.config.trajectory_scale_floor)
-            components.append((learned_loc, learned_scale))
         return torch.stack([c[0] for c in components], dim=1), torch.stack([c[1] for c in components], dim=1)
 
     def select(self, state: Particles, index: Tensor) -> Particles:
@@ -325,10 +189,7 @@ class HiddenTrajectory:
             return None if value is None else value[index]
 
         return Particles(state.trajectory[index], pick(state.loc), self.steps.select(state.carried, index),
-                         self.steps.select(state.before, index),
-                         None if state.prior is None else tuple(p[index] for p in state.prior),
-                         None if state.guide is None else tuple(g[index] for g in state.guide),
-                         pick(state.increment), pick(state.log_q))
+                         pick(state.increment))
 
 
 def mixture_log_density(x: Tensor, locs: Tensor, scales: Tensor) -> Tensor:
@@ -360,8 +221,6 @@ class SceneSteps(Protocol):
     def advance(self, t: int, z: Tensor, carried: Any) -> tuple[Tensor, Any, Tensor]: ...
 
     def select(self, carried: Any, index: Tensor) -> Any: ...
-
-    def merge(self, take: Tensor, new: Any, old: Any) -> Any: ...
 
     def empty_log_likelihood(self) -> float: ...
 
@@ -396,9 +255,6 @@ class LinearSteps:
         return z @ self.scene.A.T, None, torch.zeros(len(z), dtype=torch.float64)
 
     def select(self, carried: None, index: Tensor) -> None:
-        return None
-
-    def merge(self, take: Tensor, new: None, old: None) -> None:
         return None
 
     def empty_log_likelihood(self) -> float:
@@ -459,18 +315,6 @@ class XPLSteps:
 
         return type(carried)(*(pick(part) for part in carried))
 
-    def merge(self, take: Tensor, new: Any, old: Any) -> Any:
-        """The dynamics' state of `new` for the particles `take` (n,) bool, of `old` elsewhere."""
-        if new is None:
-            return None
-        slots = self.scene.slots
-
-        def choose(a: Tensor, b: Tensor) -> Tensor:
-            mask = take.repeat_interleave(slots).reshape(-1, *([1] * (a.dim() - 1)))
-            return torch.where(mask, a, b)
-
-        return type(new)(*(choose(a, b) for a, b in zip(new, old)))
-
     def empty_log_likelihood(self) -> float:
         """log p(frames, seen motion | no hidden object): the free slot holds what the encoder
         made of its empty pixels, as in `XPLScene.seen_motion`."""
@@ -501,7 +345,6 @@ class SMCEstimate:
     min_ess: float                # the lowest ESS over frames, before resampling
     lineages: int                 # distinct first-frame ancestors of the final particles
     resamplings: int
-    levels: int                   # tempering levels over all frames
     particles: int
     trajectories: Tensor | None   # (N, T, D) final particles, None where no object can be placed
     log_weights: Tensor | None    # (N,) float64 final log-weights
@@ -535,26 +378,23 @@ def smc_evidence(scene, frames: Tensor, config: InferenceConfig, proposal: Propo
     particles = config.particles
     if not free:
         return SMCEstimate(math.log1p(-config.prior_hidden) + log_empty, -math.inf, log_empty, 0.0,
-                           float(particles), float(particles), 0, 0, 0, particles, None, None)
+                           float(particles), float(particles), 0, 0, particles, None, None)
     model = HiddenTrajectory(steps, config, proposal)
     run = None
     sure = proposal is not None and float(proposal.p_exists) > config.smc_pilot_skip_exists
     for size in () if sure else pilot_sizes(config):
-        pilot = run_smc(model, size, threshold=config.resample_threshold, generator=generator,
-                        moves=config.smc_moves, max_levels=config.smc_max_levels,
-                        first=config.smc_first * size // particles)
+        pilot = run_smc(model, size, threshold=config.resample_threshold, generator=generator)
         gap = ((math.log1p(-config.prior_hidden) + log_empty)
                - (math.log(config.prior_hidden) + float(pilot.log_evidence[0])))
         if gap > config.smc_pilot_margin:
             run, particles = pilot, size
             break
     if run is None:
-        run = run_smc(model, particles, threshold=config.resample_threshold, generator=generator,
-                      moves=config.smc_moves, max_levels=config.smc_max_levels, first=config.smc_first)
+        run = run_smc(model, particles, threshold=config.resample_threshold, generator=generator)
     log_hidden = float(run.log_evidence[0])
     total, p_hidden = mixture(config.prior_hidden, log_hidden, log_empty)
     return SMCEstimate(total, log_hidden, log_empty, p_hidden, float(run.final_ess[0]), float(run.ess[0].min()),
-                       int(run.lineages[0]), int(run.resampled[0].sum()), int(run.levels[0].sum()), particles,
+                       int(run.lineages[0]), int(run.resampled[0].sum()), particles,
                        run.state.trajectory,
                        run.log_weights[0])
 

@@ -76,8 +76,7 @@ def nll_surprise(vae: ComponentVAE, xpl: XPL, frames: Tensor, mean: Tensor, visi
     p_exists = torch.sigmoid(xpl.existence_logit(loc[None], spread[None]))[0] if free else torch.tensor(0.0)
     if free and config.refine_steps:
         loc = refine_out_of_sight(scene, loc, frames, config)
-    # the SMC uses xpl.trajectory only where config.trajectory_proposal says so (HiddenTrajectory.proposal_at)
-    proposal = Proposal(defensive(p_exists, config.particles) if free else p_exists, loc, spread, xpl.trajectory)
+    proposal = Proposal(defensive(p_exists, config.particles) if free else p_exists, loc, spread)
     if method == "smc":
         found = smc_evidence(scene, frames, config, proposal, generator, free)
         return NLLSurprise(found.nll, found.ess, found.p_hidden, hidden if free else -1, found,
@@ -253,5 +252,5 @@ def _importance_hypotheses(result: NLLSurprise, config: InferenceConfig, top: in
     if found is None:
         return None
     trajectories, log_weights = found
-    held = SMCEstimate(0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0, 0, 0, len(trajectories), trajectories, log_weights)
+    held = SMCEstimate(0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0, 0, len(trajectories), trajectories, log_weights)
     return top_hypotheses(held, top)

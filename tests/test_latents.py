@@ -10,10 +10,8 @@ from xvoe.benchmark.generate import GenerateConfig, generate
 from xvoe.errors import XvoeError
 from xvoe.models.perception import normalise
 from xvoe.training.data import masked_inputs, visible_threshold
-from xvoe.training.latents import encode_split, open_latents, picture_weights, read_latents, sha256_of
+from xvoe.training.latents import encode_split, open_latents, read_latents, sha256_of
 from xvoe.training.perception import load_perception, train_perception
-from xvoe.training.recipes import RECIPES
-from xvoe.training.xpl import cache_picture_weights, train_xpl
 
 TINY = dict(image_size=16, broadcast_size=4, latent_dim=4, cnn_channels=(8, 8), cnn_hidden=16, decoder_channels=8)
 
@@ -78,24 +76,3 @@ def test_a_split_file_is_not_a_cache(trained):
         open_latents(data)
 
 
-def test_the_xpl_stage_weighs_latents_by_the_pictures_of_the_caches_perception(trained, tmp_path, monkeypatch):
-    from dataclasses import replace
-
-    import xvoe.training.xpl as stage
-
-    data, run_dir = trained
-    cache = encode_split(run_dir, data, tmp_path / "latents.h5", progress=False)
-    weights = cache_picture_weights(cache)
-    model, _ = load_perception(run_dir)
-    latents = read_latents(cache)
-    sensitivity = picture_weights(model, torch.tensor(latents.mean), torch.tensor(latents.visible))
-    np.testing.assert_allclose(weights, (sensitivity / sensitivity.mean()).numpy(), rtol=1e-4)
-    assert abs(np.mean(weights) - 1) < 1e-5 and min(weights) > 0
-    cpu = RECIPES["cpu"]
-    small = replace(cpu, xpl=replace(cpu.xpl, weigh_by_picture=True,
-                                     reasoning=replace(cpu.xpl.reasoning, width=8, layers=1, heads=2, mlp=8),
-                                     dynamics=replace(cpu.xpl.dynamics, hidden=8, lstm=8, buffer_heads=2)))
-    monkeypatch.setattr(stage, "recipe", lambda name: small)
-    checkpoint = torch.load(train_xpl(cache, tmp_path / "run", steps=1, batch_size=2, progress=False),
-                            weights_only=False)
-    assert tuple(checkpoint["config"]["xpl"]["latent_weights"]) == weights

@@ -23,9 +23,9 @@ from xvoe.models.phydnet import (
     kernel_moments,
     kernels_with_moments,
 )
-from xvoe.training.loop import Dist
+from xvoe.training.loop import Dist, TrainConfig
 from xvoe.training.phydnet import VideoBatches, load_phydnet, train_phydnet, widen_checkpoint
-from xvoe.training.recipes import DEFAULT_RECIPE, RECIPES, TrainConfig
+from xvoe.training.recipes import DEFAULT_RECIPE, RECIPES
 
 TINY = PhyDNetConfig(image_size=16, encoder_channels=(8, 8, 8), phycell_kernel=5, lstm_channels=(8,))
 TRAIN = {"steps": 4, "batch_size": 2, "warmup_steps": 1, "log_every": 1, "threads": 1}
@@ -100,30 +100,6 @@ def test_config_errors():
         PhyDNetConfig(image_size=18, encoder_channels=(8, 8, 8))
     with pytest.raises(XvoeError, match="odd"):
         PhyDNetConfig(phycell_kernel=4)
-    with pytest.raises(XvoeError, match="at least 2"):
-        PhyDNetConfig(lstm_chrono_frames=1)
-
-
-def test_chrono_initialisation_gives_each_channel_a_memory_up_to_the_video_length():
-    """With the gates' weights zeroed, one step of a chrono-initialised cell from c = 1 and no input
-    keeps sigmoid(b_f) of the cell (so the forget gate is the chunk the biases were set on):
-    between 1/2 (u = 1) and (T-1)/T (u = T-1), the input gate opening as much as the forget gate closes."""
-    frames = 15
-    torch.manual_seed(0)
-    cell = PhyDNet(replace(TINY, lstm_channels=(64,), lstm_chrono_frames=frames)).lstm[0]
-    bias = cell.gates.bias.detach().view(4, -1)
-    assert torch.equal(bias[0], -bias[1])
-    with torch.no_grad():
-        cell.gates.weight.zero_()
-        bias[3].zero_()                                     # candidate tanh(0) = 0: nothing written
-    zeros = torch.zeros(1, 64, 4, 4)
-    _, kept = cell(torch.zeros(1, TINY.encoder_channels[-1], 4, 4), (zeros, torch.ones_like(zeros)))
-    kept = kept[0, :, 0, 0]
-    assert kept.min() >= 0.5 and kept.max() <= (frames - 1) / frames
-    assert kept.max() - kept.min() > 0.3                   # spread, not one constant bias
-    torch.manual_seed(0)
-    again = PhyDNet(replace(TINY, lstm_channels=(64,), lstm_chrono_frames=frames)).lstm[0].gates.bias.detach()
-    assert torch.equal(again.view(4, -1)[:2], bias[:2])     # from the seed alone
 
 
 def test_the_prediction_of_a_frame_never_sees_that_frame():

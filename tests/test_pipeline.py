@@ -11,7 +11,8 @@ from xvoe.apps.pipeline import PipelineConfig, Stages, compare_models, run_pipel
 from xvoe.benchmark import store
 from xvoe.errors import XvoeError
 from xvoe.training.checkpoints import load_checkpoint
-from xvoe.training.recipes import DEFAULT_RECIPE, RECIPES, TrainConfig
+from xvoe.training.loop import TrainConfig
+from xvoe.training.recipes import DEFAULT_RECIPE, RECIPES
 
 
 @pytest.fixture
@@ -86,6 +87,11 @@ def test_tiny_pipeline_runs_end_to_end_and_skips_done_stages(tmp_path, tiny_cpu_
                                (curves["s_img"] - curves["s_rec"] + curves["s_dyn"]).sum(1), rtol=1e-5, atol=1e-3)
     assert all(0 <= float(r["s_rec"]) for r in rows) and any(float(r["s_rec"]) > 0 for r in rows)
     assert "excess" in {r.split(",")[2] for r in open(run / "report" / "metrics.csv").read().split()[1:]}
+    # both MSE definitions: the default verdict, the better of the proposal and nothing hidden, is
+    # never above the paper's, which always takes the proposal
+    np.testing.assert_allclose([float(r["paper_score"]) for r in rows],
+                               (curves["paper_s_img"] + curves["paper_s_dyn"]).sum(1), rtol=1e-6)
+    assert all(float(r["score"]) <= float(r["paper_score"]) * (1 + 1e-6) for r in rows)
     # the NLL's excess: less the NLL of a reference drawing only what was seen
 
     with store.open_dataset(run / "data" / "test.h5") as file:

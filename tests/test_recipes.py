@@ -9,11 +9,14 @@ import pytest
 from xvoe.apps.pipeline import stage_processes
 from xvoe.benchmark.generate import GenerateConfig
 from xvoe.errors import XvoeError
+from xvoe.models.config import to_dict
 from xvoe.training.checkpoints import WEIGHTS, load_checkpoint
+from xvoe.training.loop import TrainConfig
 from xvoe.training.provenance import RUN_FIELDS, recipe_differences
-from xvoe.training.recipes import DEFAULT_RECIPE, RECIPES, TrainConfig, recipe, recipe_of
+from xvoe.training.recipes import DEFAULT_RECIPE, RECIPES, recipe, recipe_of
+from xvoe.training.stages import STAGES
 
-FROM_THE_RECIPE = ("perception", "xpl", "proposal", "plato", "xpl-noresidual", "phydnet")
+FROM_THE_RECIPE = tuple(STAGES)
 
 
 @pytest.mark.parametrize("name", FROM_THE_RECIPE)
@@ -32,6 +35,16 @@ def test_a_changed_setting_is_a_difference():
     state["config"] = {**state["config"], "xpl": {**state["config"]["xpl"], "inert_walls": False}}
     state["train"] = {**state["train"], "lr": 0.5}
     assert recipe_differences(state) == ["xpl.inert_walls: False != True", "train.lr: 0.5 != 0.001"]
+
+
+def test_the_nll_settings_are_the_recipes_and_a_changed_one_is_a_difference():
+    """xpl.pt holds the NLL settings its recipe gives it (one shipped before they were stored reads
+    as its recipe's), so that a score file can be made again from the checkpoint it names."""
+    state = load_checkpoint(WEIGHTS / "xpl.pt")
+    stored = {**state, "config": {**state["config"], "nll": {**to_dict(recipe(DEFAULT_RECIPE).nll)}}}
+    assert recipe_differences(stored) == []
+    stored["config"]["nll"]["pixel_sigma"] = 0.25
+    assert recipe_differences(stored) == ["nll.pixel_sigma: 0.25 != 0.5"]
 
 
 def test_an_unfinished_run_is_a_difference():
@@ -75,23 +88,29 @@ def test_a_phydnet_widened_by_a_phase_is_what_its_recipe_makes():
 
 
 def test_an_unknown_recipe_is_a_one_line_error():
-    known = "cpu, cpu-walls, cpu-short, cpu-line, paper"
+    known = "cpu-short, paper"
     with pytest.raises(XvoeError, match=f"unknown recipe 'gpu'; choose one of {known}"):
         recipe("gpu")
 
 
-def test_older_checkpoints_name_a_preset_and_the_renamed_one_is_found():
-    assert recipe_of({"preset": "cpu-broadcast"}) == "cpu"
-    assert recipe_of({"recipe": "paper"}) == "paper"
+def test_each_recipe_is_one_file_that_builds_on_no_other():
+    import ast
+    from pathlib import Path
+
+    import xvoe.training.recipes as recipes
+
+    for module in Path(recipes.__file__).parent.glob("*.py"):
+        if module.stem in ("__init__", "recipe"):
+            continue
+        imported = {node.module for node in ast.walk(ast.parse(module.read_text())) if isinstance(node, ast.ImportFrom)}
+        assert not any(name in RECIPES or name.replace("_", "-") in RECIPES for name in filter(None, imported)), module
 
 
-@pytest.mark.parametrize("name", ["cpu", "cpu-walls", "cpu-short"])
-def test_the_cpu_recipes_fix_every_stages_data_shards(name):
+def test_the_default_recipe_fixes_every_stages_data_shards():
     """Left at 0, a stage's shards are the processes of its first launch, one per core in the
     pipeline: the same command would draw other batches, and make another model, on another machine."""
-    made = recipe(name)
-    stages = ("perception", "xpl", "proposal", "plato", "phydnet")
-    trainings = [made.training(stage) for stage in stages] + [train for _, train in made.phases]
+    made = recipe(DEFAULT_RECIPE)
+    trainings = [made.training(stage) for stage in STAGES] + [train for _, train in made.phases]
     assert all(train.data_shards > 0 for train in trainings)
 
 

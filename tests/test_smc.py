@@ -152,33 +152,7 @@ def test_smc_evidence_matches_the_kalman_filter(particles, proposal):
     assert found.resampled.any()
 
 
-def test_a_wide_first_frame_keeps_the_evidence_unbiased():
-    """256 first-frame draws resampled down to 16 particles: still p^/p = 1 in expectation."""
-    frames, runs = simulated_frames(), 2000
-    model = HiddenTrajectory(LinearSteps(linear_scene(), frames, config()), config(), rough_proposal())
-    found = run_smc(model, 16, runs=runs, generator=torch.Generator().manual_seed(5), first=256)
-    ratio = torch.exp(found.log_evidence - kalman(frames))
-    assert abs(float(ratio.mean()) - 1) < 3 * float(ratio.std()) / math.sqrt(runs)
-    assert found.state.trajectory.shape == (runs * 16, T, D) and found.ess.shape == (runs, T)
-    assert int(found.origin.max()) < 256
-
-
-def test_tempered_smc_matches_the_kalman_filter_up_to_its_adaptive_bias():
-    """Tempering within a frame, with its levels chosen from the particles (each keeps half the
-    ESS), is consistent but not unbiased: O(1/N), measured 4-5% of p at 64 particles on this
-    model (77% at 16). At 64 particles: p^/p within 3 standard errors + 0.08 of 1, log p^ within
-    0.2 nats on average."""
-    frames, runs = simulated_frames(), 1000
-    model = HiddenTrajectory(LinearSteps(linear_scene(), frames, config()), config(), rough_proposal())
-    found = run_smc(model, 64, runs=runs, generator=torch.Generator().manual_seed(2), moves=2)
-    exact = kalman(frames)
-    ratio = torch.exp(found.log_evidence - exact)
-    assert abs(float(ratio.mean()) - 1) < 3 * float(ratio.std()) / math.sqrt(runs) + 0.08
-    assert abs(float(found.log_evidence.mean()) - exact) < 0.2
-    assert int(found.levels.sum()) > 0
-
-
-def test_tempering_and_more_particles_narrow_the_estimate():
+def test_more_particles_narrow_the_estimate():
     frames, runs = simulated_frames(), 500
     model = HiddenTrajectory(LinearSteps(linear_scene(), frames, config()), config(), None)
     spreads = [float(run_smc(model, n, runs=runs, generator=torch.Generator().manual_seed(3)).log_evidence.std())
@@ -188,7 +162,7 @@ def test_tempering_and_more_particles_narrow_the_estimate():
 
 def test_the_mixture_over_existence_matches_the_closed_form():
     frames = simulated_frames(1)
-    found = smc_evidence(linear_scene(), frames, config(particles=4096, smc_pilot=0, smc_moves=0), None,
+    found = smc_evidence(linear_scene(), frames, config(particles=4096, smc_pilot=0), None,
                          torch.Generator().manual_seed(4))
     with_object = kalman(frames)
     without = float(torch.distributions.Normal(BACKGROUND, SIGMA).log_prob(frames).sum())
@@ -256,7 +230,7 @@ def test_top_hypotheses_merge_copies_and_say_where_they_differ():
     trajectories[1:3, 2] = 1.0                   # particles 1 and 2 are copies; they differ from 0 at frame 2
     trajectories[3:, 1:] = -1.0                  # 3 and 4 are copies; they differ from 0 at frames 1 and 2
     log_weights = torch.tensor([0.1, 0.2, 0.2, 0.25, 0.25]).log()
-    estimate = SMCEstimate(0.0, 0.0, 0.0, 1.0, 4.0, 4.0, 3, 0, 0, 5, trajectories, log_weights)
+    estimate = SMCEstimate(0.0, 0.0, 0.0, 1.0, 4.0, 4.0, 3, 0, 5, trajectories, log_weights)
     found = top_hypotheses(estimate, top=2)
     assert found.trajectories.shape == (2, 3, 2)
     torch.testing.assert_close(found.weights, torch.tensor([0.5, 0.4]))
@@ -308,14 +282,14 @@ def test_the_frame_by_frame_factors_add_up_to_the_pyro_models_joint_density():
             assert joint - prior == pytest.approx(expected, rel=1e-5, abs=1e-2)
 
 
-def test_tempered_smc_runs_on_the_xpl_scene_and_resamples_the_dynamics_memory():
+def test_smc_runs_on_the_xpl_scene_and_resamples_the_dynamics_memory():
     scene, frames = tiny_xpl_scene()
     proposal = Proposal(torch.tensor(0.5), torch.zeros(scene.frames, scene.dim), torch.ones(scene.frames, scene.dim))
-    settings = InferenceConfig(particles=16, smc_moves=1, smc_pilot=0)
+    settings = InferenceConfig(particles=16, smc_pilot=0)
     with torch.no_grad():
         found = smc_evidence(scene, frames, settings, proposal, torch.Generator().manual_seed(0))
     assert math.isfinite(found.log_evidence) and 0.0 <= found.p_hidden <= 1.0
-    assert found.levels > 0 and found.trajectories.shape == (16, scene.frames, scene.dim)
+    assert found.resamplings > 0 and found.trajectories.shape == (16, scene.frames, scene.dim)
     pyro.clear_param_store()
 
 

@@ -16,9 +16,9 @@ from xvoe.models.config import from_dict, override
 from xvoe.models.perception import ComponentVAE, PerceptionConfig
 from xvoe.training.checkpoints import load_checkpoint
 from xvoe.training.data import ShardedFrames
-from xvoe.training.loop import Job, fit, learning_rate, seed_everything
+from xvoe.training.loop import Job, TrainConfig, fit, learning_rate, seed_everything
 from xvoe.training.perception import load_perception, train_perception
-from xvoe.training.recipes import DEFAULT_RECIPE, TrainConfig, recipe
+from xvoe.training.recipes import DEFAULT_RECIPE, recipe
 
 TINY = dict(image_size=16, broadcast_size=4, latent_dim=4, cnn_channels=(8, 8), cnn_hidden=16, decoder_channels=8)
 TRAIN = dict(batch_size=4, log_every=2, warmup_steps=2, threads=1)
@@ -234,14 +234,13 @@ def test_a_request_during_the_last_step_still_stops_the_caller(tiny_file, tmp_pa
     assert load_checkpoint(tmp_path / "perception.pt")["step"] == 3
 
 
-def test_cut_objects_do_not_depend_on_the_process_count(tiny_file):
-    """The cuts are drawn shard by shard: two processes' halves are the one process's batch."""
-    common = dict(image_size=16, latent_dim=4, batch_size=8, shards=2, seed=3, cut_share=0.5)
+def test_a_perception_batch_does_not_depend_on_the_process_count(tiny_file):
+    """Frames and noise are drawn shard by shard: two processes' halves are the one process's batch."""
+    common = dict(image_size=16, latent_dim=4, batch_size=8, shards=2, seed=3)
     whole = ShardedFrames(str(tiny_file), **common).batch(5)
     halves = [ShardedFrames(str(tiny_file), rank=r, world=2, **common).batch(5) for r in (0, 1)]
-    assert torch.equal(torch.cat([h.object_inputs for h in halves]), whole.object_inputs)
     assert torch.equal(torch.cat([h.objects for h in halves]), whole.objects)
-    assert not torch.equal(whole.object_inputs, whole.objects)        # some were cut
+    assert torch.equal(torch.cat([h.noise for h in halves]), whole.noise)
 
 
 @pytest.fixture(scope="module")

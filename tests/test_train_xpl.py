@@ -5,14 +5,14 @@ import torch
 
 from xvoe.apps.zoo import KEPT
 from xvoe.benchmark import store
-from xvoe.benchmark.scenes.behind import WALL_HALF_WIDTH
 from xvoe.benchmark.world import WORLD
 from xvoe.errors import XvoeError
 from xvoe.models.dynamics import DynamicsConfig
 from xvoe.models.reasoning import ReasoningConfig
 from xvoe.models.xpl import XPL, XPLConfig
 from xvoe.training.latents import Latents, write_latents
-from xvoe.training.recipes import RECIPES, TrainConfig
+from xvoe.training.loop import TrainConfig
+from xvoe.training.recipes import RECIPES
 from xvoe.training.xpl import (
     LatentBatches,
     ProposalBatch,
@@ -52,17 +52,19 @@ def losses(run_dir, stage):
 
 @pytest.fixture(autouse=True)
 def tiny_recipe(monkeypatch):
-    """Shrink the cpu recipe's networks so that a stage trains in a second."""
+    """Shrink the default recipe's networks so that a stage trains in a second; Transformer 2 in
+    the joint stage, so that one stage trains every part."""
     from dataclasses import replace
 
     import xvoe.training.xpl as stage
 
-    cpu = RECIPES["cpu"]
-    reasoning = replace(cpu.xpl.reasoning, width=16, layers=1, heads=2, mlp=16)
-    dynamics = replace(cpu.xpl.dynamics, hidden=32, lstm=32, buffer_heads=2)
-    # the synthetic cache has no split file, which the fills outside the picture are found in
-    small = replace(cpu, xpl=replace(cpu.xpl, weigh_by_picture=False, outside_refill=False, reasoning=reasoning,
-                                     dynamics=dynamics))
+    default = RECIPES["cpu-short"]
+    reasoning = replace(default.xpl.reasoning, width=16, layers=1, heads=2, mlp=16)
+    dynamics = replace(default.xpl.dynamics, hidden=32, lstm=32, buffer_heads=2)
+    # the synthetic cache has no split file, which the fills outside the picture and the walls are found in
+    small = replace(default, xpl=replace(default.xpl, outside_refill=False, refill_ignores_walls=False,
+                                         joint_proposal=True, reasoning=reasoning, dynamics=dynamics),
+                    proposal_train=replace(default.proposal_train, focus_group="", focus_share=0.0))
     monkeypatch.setattr(stage, "recipe", lambda name: small)
 
 
@@ -100,7 +102,7 @@ def test_a_shipped_checkpoint_trains_further_from_its_step(cache, tmp_path):
 def test_plato_and_the_no_residual_ablation(cache, tmp_path):
     short = {**TINY, "steps": 5}
     plato = train_xpl(cache, tmp_path, stage="plato", progress=False, **short)
-    ablation = train_xpl(cache, tmp_path, residual=False, progress=False, **short)
+    ablation = train_xpl(cache, tmp_path, stage="xpl-noresidual", progress=False, **short)
     assert plato.name == "plato.pt" and ablation.name == "xpl-noresidual.pt"
     model, _ = load_xpl(tmp_path, stage="plato")
     assert not model.config.use_reasoning and not model.config.dynamics.residual
@@ -114,12 +116,12 @@ def test_a_recipe_can_train_plato_longer_than_xpl(cache, tmp_path, monkeypatch):
 
     import xvoe.training.xpl as stage
 
-    base = stage.recipe("cpu")
+    base = stage.recipe("cpu-short")
     xpl_train = TrainConfig(**{**TINY, "steps": 3})
     longer = replace(base, xpl_train=xpl_train, plato_train=replace(xpl_train, steps=7, lr=2e-3))
     monkeypatch.setattr(stage, "recipe", lambda name: longer)
     plato = torch.load(train_xpl(cache, tmp_path, stage="plato", progress=False), weights_only=False)
-    ablation = torch.load(train_xpl(cache, tmp_path, residual=False, progress=False), weights_only=False)
+    ablation = torch.load(train_xpl(cache, tmp_path, stage="xpl-noresidual", progress=False), weights_only=False)
     assert (plato["step"], plato["train"]["lr"]) == (7, 2e-3)
     assert (ablation["step"], ablation["train"]["lr"]) == (3, xpl_train.lr)
 
@@ -180,11 +182,6 @@ def test_the_proposal_stage_trains_transformer2_alone_and_overlays_xpl(cache, tm
         assert same != name.startswith(("transformer2.", "existence.")), name
     untouched, _ = load_xpl(tmp_path, proposal=False)
     assert all(torch.equal(v, joint.state_dict()[k]) for k, v in untouched.state_dict().items())
-    # how Transformer 2 is used may change in the proposal stage, and goes with its checkpoint
-    train_proposal(tmp_path, progress=False, overwrite=True, model_overrides={"proposal_sees_seen": True},
-                   **{**TINY, "steps": 2})
-    assert load_xpl(tmp_path)[0].config.proposal_sees_seen
-    assert not load_xpl(tmp_path, proposal=False)[0].config.proposal_sees_seen
     with pytest.raises(XvoeError, match="keeps its network"):
         train_proposal(tmp_path, progress=False, overwrite=True, model_overrides={"inert_walls": False}, **TINY)
     # an xpl.pt trained again no longer matches: a clear error, not a silent mix
@@ -274,25 +271,6 @@ def test_transformer2_never_sees_the_slot_it_rebuilds_not_even_through_transform
                                                   target=target))["mae"], loss)
 
 
-def test_the_trajectory_stage_refuses_torchrun(tmp_path, monkeypatch):
-    from xvoe.training.trajectory import train_trajectory
-
-    monkeypatch.setenv("WORLD_SIZE", "2")
-    with pytest.raises(XvoeError, match="without torchrun"):
-        train_trajectory(tmp_path)
-
-
-def test_weighing_by_picture_needs_a_cache_that_names_its_perception(cache, tmp_path, monkeypatch):
-    from dataclasses import replace
-
-    import xvoe.training.xpl as stage
-
-    small = stage.recipe("cpu")                     # the tiny recipe of the autouse fixture
-    monkeypatch.setattr(stage, "recipe", lambda name: replace(small, xpl=replace(small.xpl, weigh_by_picture=True)))
-    with pytest.raises(XvoeError, match="does not say which perception module made it"):
-        train_xpl(cache, tmp_path / "run", progress=False, **TINY)
-
-
 def walled_cache(train_file, path):
     """A cache of the training split's visibility (latents all zero) that names the split."""
     with store.open_dataset(train_file) as file:
@@ -304,36 +282,6 @@ def walled_cache(train_file, path):
                       background_mean=zeros, background_std=zeros,
                       attrs={"config": "{}", "source": str(train_file)})
     return write_latents(path, latents)
-
-
-def test_wall_refill_hides_what_one_wall_would_hide(train_file, tmp_path):
-    """Each video's refill spans are one wall's: the hidden entries were seen, are no wall, lie
-    within one wall's width and in frames before the last two, from which the wall is gone; every
-    hidden object is still seen somewhere; and in wall-less collision videos the wall often hides
-    both balls at the event, as the test walls do."""
-    cache = walled_cache(train_file, tmp_path / "latents.h5")
-    batches = LatentBatches(str(cache), batch_size=32, shards=1, seed=2, walls=True, wall_refill=1.0)
-    places, events = object_places(str(cache), 0, len(batches.visible))
-    with store.open_dataset(train_file) as file:
-        groups, has_wall = store.strings(file, "group"), file["has_wall"][:]
-    both, collisions = 0, 0
-    for step in range(6):
-        video, _, _, refill = (t.numpy() for t in batches.draw(step))
-        seen, walls = batches.visible[video].numpy(), batches.walls[video].numpy()
-        assert not (refill & ~seen).any() and not (refill & walls[:, None, :]).any()
-        assert not (refill.any(1) & ~(seen & ~refill).any(1)).any()
-        for b, v in enumerate(video):
-            frames = np.flatnonzero(refill[b].any(1))
-            if len(frames):
-                assert frames.max() < refill.shape[1] - 2
-                x, size = places[v, :, :, 0][refill[b]], places[v, :, :, 2][refill[b]]
-                assert (x + size).max() - (x - size).min() <= 2 * WALL_HALF_WIDTH[1]
-            if groups[v] == "collision" and not has_wall[v] and events[v] >= 0:
-                collisions += 1
-                both += refill[b, events[v]].sum() >= 2
-    assert collisions >= 5 and both / collisions > 0.4
-    again = LatentBatches(str(cache), batch_size=32, shards=1, seed=2, walls=True, wall_refill=1.0)
-    assert torch.equal(again.batch(3).refill, batches.batch(3).refill)
 
 
 def test_a_focus_group_fills_its_share_of_each_latent_batch(train_file, tmp_path):
@@ -367,11 +315,6 @@ def test_a_focus_group_fills_its_share_of_each_latent_batch(train_file, tmp_path
         LatentBatches(str(moved), batch_size=8, shards=1, focus_group="continuity", focus_share=0.5)
 
 
-def test_wall_refill_needs_the_split_the_cache_came_from(cache):
-    with pytest.raises(XvoeError, match="wall_refill needs the split file"):
-        LatentBatches(str(cache), batch_size=8, shards=1, wall_refill=0.5)
-
-
 def test_outside_picture_needs_the_whole_object_beyond_an_edge():
     """An object counts as outside once its farthest corner, however it turns, is past an edge."""
     size = 4.0                    # half side
@@ -387,7 +330,7 @@ def test_batches_mark_the_hidden_entries_outside_the_picture(train_file, tmp_pat
     come into view, and only entries that are hidden and wholly outside the picture."""
     cache = walled_cache(train_file, tmp_path / "latents.h5")
     batches = LatentBatches(str(cache), batch_size=32, shards=1, seed=2, outside=True)
-    places, _ = object_places(str(cache), 0, len(batches.visible))
+    places = object_places(str(cache), 0, len(batches.visible))
     marked = batches.outside.numpy()
     assert marked.any() and not (marked & batches.visible.numpy()).any()
     assert (places[..., 1][marked] - places[..., 2][marked] * np.sqrt(2) >= WORLD).mean() > 0.5   # above

@@ -88,7 +88,7 @@ def cmd_score(args: argparse.Namespace) -> None:
     print(xvoe.score(args.model, args.data, args.out, surprise=args.surprise, particles=args.particles,
                      seed=args.seed, nll_settings=xvoe.nll_settings(args.nll_set), how=args.aggregate,
                      shard=args.shard, videos_per_batch=args.batch, workers=args.workers,
-                     explanation=args.explanation, overwrite=args.overwrite, progress=not args.quiet))
+                     overwrite=args.overwrite, progress=not args.quiet))
 
 
 def cmd_explain(args: argparse.Namespace) -> None:
@@ -143,14 +143,12 @@ def cmd_train(args: argparse.Namespace) -> None:
     claim_directory(args.out, make=False)       # a bad --out is found before any data is read
     train, model = _train_overrides(args, stage)
     common = {"resume": args.resume, "overwrite": args.overwrite, "progress": not args.quiet}
-    if stage not in AFTER_XPL and args.data is None and not args.resume:
+    reads = xvoe.STAGES[stage].reads
+    if reads != "xpl" and args.data is None and not args.resume:
         raise XvoeError("--data is required to start a run (the training split, or for xpl and plato its latent "
                         "cache)")
-    if stage == "proposal":
+    if reads == "xpl":
         print(xvoe.train_proposal(args.out, args.data, model_overrides=model, **common, **train))
-        return
-    if stage == "trajectory":
-        print(xvoe.train_trajectory(args.out, args.data, model_overrides=model, **common, **train))
         return
     common |= {"recipe_name": args.recipe, "model_overrides": model}
     if stage == "perception":
@@ -161,8 +159,8 @@ def cmd_train(args: argparse.Namespace) -> None:
         cache = None
         if args.data:
             cache = xvoe.latent_cache_for(args.data, args.out, args.perception, progress=not args.quiet)
-        print(xvoe.train_xpl(cache, args.out, stage=stage, residual=not getattr(args, "no_residual", False),
-                             stop_gradient=not getattr(args, "no_stop_gradient", False), **common, **train))
+        print(xvoe.train_xpl(cache, args.out, stage=stage, stop_gradient=not args.no_stop_gradient, **common,
+                             **train))
 
 
 def cmd_encode(args: argparse.Namespace) -> None:
@@ -171,36 +169,25 @@ def cmd_encode(args: argparse.Namespace) -> None:
                             progress=not args.quiet))
 
 
-STAGE_HELP = {
-    "perception": "the Component VAE, on a training split's frames",
-    "xpl": "Transformers 1 and 2 and the dynamics, on the latent cache (a split is encoded first)",
-    "plato": "the PLATO baseline: the dynamics alone, on the latent cache",
-    "proposal": "Transformer 2 and the existence head further, on hidden objects (after xpl)",
-    "trajectory": "the NLL's learned proposal of a hidden object's whole trajectory (after xpl and proposal)",
-    "phydnet": "the PhyDNet baseline, on a training split's pixels",
-}
-FOCUS_STAGES = ("phydnet", "xpl", "plato")     # the stages whose batches can focus on one group
-AFTER_XPL = ("proposal", "trajectory")          # the stages that build on the run's xpl.pt
 
 
 def add_train_parser(verbs) -> None:
     train = verbs.add_parser(
         "train", help="train one stage of the XPL model, or a baseline, into a run directory",
         description="xvoe train STAGE: one stage into a run directory (STAGE.pt checkpoint and STAGE.csv "
-                    "losses). Each stage runs unchanged under torchrun --nproc_per_node N (not proposal or "
-                    "trajectory).")
+                    "losses). Each stage runs unchanged under torchrun --nproc_per_node N.")
     stages = train.add_subparsers(dest="stage", required=True, metavar="STAGE", parser_class=_Parser)
-    for stage, help_text in STAGE_HELP.items():
-        parser = stages.add_parser(stage, help=help_text, description=f"Train {help_text}.")
-        if stage in AFTER_XPL:
+    for stage, entry in xvoe.STAGES.items():
+        parser = stages.add_parser(stage, help=entry.help, description=f"Train {entry.help}.")
+        if entry.reads == "xpl":
             parser.add_argument("--data", help="the latent cache (default: the one the run's xpl stage used)")
-        elif stage in ("xpl", "plato"):
+        elif entry.reads == "latents":
             parser.add_argument("--data", help="the latent cache, or a training split to encode into one first")
             parser.add_argument("--perception", help="the perception run that encodes a split (default: --out)")
         else:
             parser.add_argument("--data", help="the training split file (HDF5)")
         parser.add_argument("--out", required=True, help="the run directory")
-        if stage not in AFTER_XPL:
+        if entry.reads != "xpl":
             parser.add_argument("--recipe", default=xvoe.DEFAULT_RECIPE,
                                 help=f"the recipe whose sizes and settings start the run: {_recipe_names()}")
         parser.add_argument("--steps", type=_positive, help="training steps (default: the recipe's)")
@@ -213,14 +200,12 @@ def add_train_parser(verbs) -> None:
         parser.add_argument("--seed", type=int, help="the seed of initialisation and batches (default 0)")
         parser.add_argument("--lr", type=_positive_float,
                             help="peak learning rate (default: the recipe's; it halves every decay_steps)")
-        if stage in FOCUS_STAGES:
+        if stage != "perception":      # the others draw videos, which can come from one group
             parser.add_argument("--focus-group", help="draw --focus-share of each batch from this group's training "
                                                       "videos with a wall (e.g. permanence; several: "
                                                       "permanence,continuity)")
             parser.add_argument("--focus-share", type=float, help="the share of each batch from --focus-group")
-        if stage == "xpl":
-            parser.add_argument("--no-residual", action="store_true",
-                                help="predict the next latent, not its change (the paper's ablation)")
+        if entry.reads == "latents":
             parser.add_argument("--no-stop-gradient", action="store_true",
                                 help="let the dynamics loss reach Transformer 1 through the target too")
         parser.add_argument("--set", action="append", default=[], metavar="FIELD=VALUE",
@@ -282,24 +267,24 @@ def build_parser() -> argparse.ArgumentParser:
     score = verbs.add_parser("score", help="score test videos with a trained model (surprise per video)",
                              description="One CSV row per test video (index, scenario, setting, pair, member, "
                                          "possible, score, s_img, s_dyn) and the per-frame surprise curves in "
-                                         "OUT.curves.npz. The MSE surprise is the paper's (Eq. 2-4).")
+                                         "OUT.curves.npz. The MSE surprise is the paper's (Eq. 2-4): its score "
+                                         "column takes the better of Transformer 2's proposal and nothing hidden, "
+                                         "paper_score always the proposal, as the paper does.")
     score.add_argument("--model",
                        help="a run directory, a stage checkpoint (xpl.pt, plato.pt, xpl-noresidual.pt, "
                             "phydnet.pt) or random")
     score.add_argument("--data", help="a test split file")
     score.add_argument("--out", required=True, help="the scores CSV to write")
     score.add_argument("--surprise", choices=("mse", "nll", "both"), default="mse",
-                       help="mse: the paper's score; nll: -log p(video) under the Pyro model (adds nll, ess, "
+                       help="mse: the MSE score; nll: -log p(video) under the Pyro model (adds nll, ess, "
                             "p_hidden, nll_excess); both: the MSE score with the NLL columns beside it")
-    score.add_argument("--particles", type=_positive, default=64, help="particles per video (nll)")
+    score.add_argument("--particles", type=_positive,
+                       help="particles per video (nll; default: the model's recipe's, 64 for the shipped one)")
     score.add_argument("--seed", type=int, default=0, help="seed of the NLL's random draws (default 0)")
     score.add_argument("--nll-set", action="append", default=[], metavar="FIELD=VALUE",
-                       help="change a field of the NLL's settings (inference.InferenceConfig; repeatable), "
-                            "e.g. pixel_sigma=1.0")
+                       help="change a field of the model's NLL settings (xvoe.models.nll.InferenceConfig; "
+                            "repeatable), e.g. pixel_sigma=1.0")
     score.add_argument("--aggregate", choices=("sum", "max"), default="sum", help="over frames (default sum)")
-    score.add_argument("--explanation", choices=("proposal", "better"), default="proposal",
-                       help="the MSE score's explanation: proposal, Transformer 2's wherever a slot is never seen "
-                            "(the paper's, default); better, the better of it and nothing hidden, video by video")
     score.add_argument("--batch", type=_positive, default=16, help="videos per batch")
     score.add_argument("--workers", type=_positive, default=1,
                        help="processes scoring a shard each, the cores shared out, merged into --out (default 1; "
@@ -322,12 +307,14 @@ def build_parser() -> argparse.ArgumentParser:
     explain.add_argument("--index", type=int, default=0, help="the video")
     explain.add_argument("--out", required=True, help="the PNG to write")
     explain.add_argument("--surprise", choices=("mse", "nll"), default="mse",
-                         help="mse: Transformer 2's proposal (default); nll: the Pyro model's posterior, the "
+                         help="mse: Transformer 2's proposal (default, see --explanation); nll: the Pyro "
+                              "model's posterior, the "
                               "weighted hidden object, its top hypotheses, p(hidden object) and the ESS")
-    explain.add_argument("--particles", type=_positive, default=64, help="particles (nll)")
-    explain.add_argument("--explanation", choices=("proposal", "better"), default="proposal",
-                         help="mse: draw Transformer 2's proposal always (default), or only where it explains the "
-                              "video better than nothing hidden (better), as xvoe score --explanation")
+    explain.add_argument("--particles", type=_positive,
+                         help="particles (nll; default: the model's recipe's, 64 for the shipped one)")
+    explain.add_argument("--explanation", choices=("better", "proposal"), default="better",
+                         help="mse: draw Transformer 2's proposal only where it explains the video better than "
+                              "nothing hidden (better, the default verdict), or always (proposal, the paper's)")
     explain.add_argument("--seed", type=int, default=0, help="seed of the particles (nll)")
     explain.add_argument("--overwrite", action="store_true", help="replace --out if it exists")
     explain.set_defaults(run=cmd_explain)

@@ -35,20 +35,20 @@ from ..outputs import claim_directory
 from ..training.data import process_counts
 from ..training.latents import encode_split
 from ..training.launch import on_cores
-from ..training.loop import checkpoint_path
+from ..training.loop import TrainConfig, checkpoint_path
 from ..training.perception import train_perception
 from ..training.phydnet import train_phydnet
-from ..training.recipes import DEFAULT_RECIPE, RECIPES, Recipe, TrainConfig, recipe
-from ..training.xpl import train_proposal, train_xpl
+from ..training.recipes import DEFAULT_RECIPE, RECIPES, Recipe, recipe
+from ..training.stages import SCORED, STAGES
+from ..training.xpl import TRAINED_ON_LATENTS, train_proposal, train_xpl
 from .figures import plot_explanation
 from .report import report
 
-MODELS = ("xpl", "xpl-noresidual", "plato", "phydnet", "random")
+MODELS = (*SCORED, "random")
 DEFAULT_MODELS = ("xpl", "random")
 # lanes (--jobs) take the longest training first, so that the last lane does not start it late
 # (docs/decisions.md, "Pipeline lanes")
 LANE_ORDER = ("phydnet", "plato", "xpl-noresidual", "xpl")
-TRAINED = {"xpl": ("xpl", True), "plato": ("plato", True), "xpl-noresidual": ("xpl", False)}
 
 
 @dataclass(frozen=True)
@@ -132,7 +132,7 @@ def run_pipeline(config: PipelineConfig) -> Path:
         workers=config.workers, overwrite=True, progress=config.progress))
     cores = len(os.sched_getaffinity(0))
     processes = config.train_processes or cores
-    if any(model in TRAINED for model in config.models):     # PhyDNet and the random agent need no perception
+    if any(model in TRAINED_ON_LATENTS for model in config.models):     # PhyDNet and random need no perception
         # one process with every core's thread: its convolutions use them (docs/decisions.md, "Training
         # stages on every core")
         stages.run("perception", lambda: train_perception(
@@ -183,12 +183,10 @@ def _model_stages(config: PipelineConfig, model: str, stages: Stages, bars: bool
     train_data, test_data, latents = run_files(run_dir)
     chosen = recipe(config.recipe)
     phases = chosen.phases_of(model)
-    if model in TRAINED:
-        stage, residual = TRAINED[model]
-
+    if model in TRAINED_ON_LATENTS:
         def train(phase: dict) -> object:
             return on_cores(train_xpl, stage_processes(processes, chosen.training(model)), chosen, latents=latents,
-                            run_dir=run_dir, stage=stage, recipe_name=config.recipe, residual=residual, progress=bars,
+                            run_dir=run_dir, stage=model, recipe_name=config.recipe, progress=bars,
                             resume=checkpoint_path(run_dir, model).exists(), **phase)
         _train_phases(stages, model, train, phases, config.seed)
         if model == "xpl":
@@ -214,7 +212,8 @@ def scored_steps(chosen: Recipe, model: str) -> str:
     4000"): a recipe that trains a stage further, in a later phase added since, is scored again."""
     if model == "random":
         return ""
-    stages = [model] + (["proposal"] if model == "xpl" else []) + (["perception"] if model in TRAINED else [])
+    stages = [model, *(["proposal"] if model == "xpl" else []),
+              *(["perception"] if STAGES[model].reads_latents else [])]
     return ", ".join(f"{stage} {chosen.final_training(stage).steps}" for stage in stages)
 
 

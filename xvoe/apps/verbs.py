@@ -29,42 +29,39 @@ from ..outputs import claim_file
 SURPRISES = ("mse", "nll", "both")
 
 
-def score(model: str | Scorer, data: str | Path, out: str | Path, *, surprise: str = "mse", particles: int = 64,
-          seed: int = 0, nll_settings: dict[str, Any] | None = None, how: str = "sum", videos_per_batch: int = 16,
-          shard: tuple[int, int] = (0, 1), workers: int = 1, explanation: str = "proposal", overwrite: bool = False,
+def score(model: str | Scorer, data: str | Path, out: str | Path, *, surprise: str = "mse",
+          particles: int | None = None, seed: int = 0, nll_settings: dict[str, Any] | None = None, how: str = "sum",
+          videos_per_batch: int = 16, shard: tuple[int, int] = (0, 1), workers: int = 1, overwrite: bool = False,
           progress: bool = True) -> Path:
     """Score every video of a test split into a CSV (and the per-frame curves beside it).
 
-    surprise: "mse", the paper's score; "nll", -log p(video) under the Pyro model (the score
+    surprise: "mse", the MSE score (the columns score, s_img and s_dyn hold the default verdict,
+    the better of Transformer 2's proposal and nothing hidden; paper_score the paper's, always
+    the proposal); "nll", -log p(video) under the Pyro model (the score
     column is the NLL; the columns nll, ess, p_hidden and nll_excess are added); "both", the
     MSE score with the NLL's columns beside it. shard: (I, N) scores part I of N, for
     `merge_scores` to join (xvoe score --shard / --merge). model: a name (`xpl`, `random`, ...), a run
     directory, a checkpoint, or a loaded `Scorer`. seed: the NLL's random draws (each video's
     from a generator of its own), so that a score file can be reproduced and its spread measured.
-    nll_settings: fields of inference.InferenceConfig to change for the NLL (its pixel sigma,
-    exposure penalty, pilot...), e.g. {"pixel_sigma": 1.0}, to see how each moves the verdicts.
+    particles and nll_settings change the model's own NLL settings (its recipe's,
+    xvoe.models.nll.InferenceConfig: pixel sigma, exposure penalty, pilot...), e.g.
+    {"pixel_sigma": 1.0}, to see how each moves the verdicts.
     workers: processes that each score a shard with the cores shared out, then merged: the
     bytes of one run with as many threads as each worker has. On 2 cores the NLL's small
     tensors keep two processes busier than two threads (docs/decisions.md, "Scoring in worker
-    processes"). explanation: the MSE score's, "proposal" (Transformer 2's wherever a slot is
-    never seen, the paper's) or "better" (the better of it and nothing hidden, video by video:
-    xvoe.evaluation.surprise)."""
+    processes")."""
     if surprise not in SURPRISES:
         raise XvoeError(f"--surprise must be mse, nll or both, not {surprise!r}")
     if workers < 1:
         raise XvoeError(f"--workers must be at least 1, not {workers}")
-    check_explanation(explanation)
     extra = NLLColumns(particles, seed, nll_settings) if surprise != "mse" else None   # bad settings fail here
     if workers > 1:
         if shard != (0, 1):
             raise XvoeError("--workers shards the split itself; leave out --shard")
         return _score_in_workers(model, data, out, workers, overwrite, progress, surprise=surprise,
                                  particles=particles, seed=seed, nll_settings=nll_settings, how=how,
-                                 videos_per_batch=videos_per_batch, explanation=explanation)
+                                 videos_per_batch=videos_per_batch)
     scorer = load_model(model) if isinstance(model, str) else model
-    if explanation != "proposal" and scorer.xpl is None:
-        raise XvoeError(f"--explanation chooses among XPL's explanations; the model {scorer.name} has none")
-    scorer = replace(scorer, explanation=explanation)
     return score_split(scorer, str(data), str(out), how=how, videos_per_batch=videos_per_batch, extra=extra,
                        score_column="nll" if surprise == "nll" else "score", shard=shard, overwrite=overwrite,
                        progress=progress)
@@ -98,12 +95,13 @@ def _worker_threads(threads: int) -> None:
     torch.set_num_threads(threads)
 
 
-def explain(model: str | Scorer, data: str | Path, index: int, *, surprise: str = "mse", particles: int = 64,
-            seed: int = 0, explanation: str = "proposal") -> Explanation:
+def explain(model: str | Scorer, data: str | Path, index: int, *, surprise: str = "mse",
+            particles: int | None = None, seed: int = 0, explanation: str = "better") -> Explanation:
     """What the model believes is behind the wall in video `index`: Transformer 2's proposal
-    (surprise "mse"; with explanation "better", only where it explains the video better than
-    nothing hidden) or the Pyro model's posterior (surprise "nll", from `particles` importance
-    samples drawn from `seed`)."""
+    (surprise "mse"; with explanation "better", the default verdict's, only where it explains the
+    video better than nothing hidden; "proposal", always, as the paper) or the Pyro model's
+    posterior (surprise "nll", from `particles` importance samples drawn from `seed`; None: the
+    model's setting)."""
     check_explanation(explanation)
     scorer = load_model(model) if isinstance(model, str) else model
     scorer = replace(scorer, explanation=explanation) if scorer.custom is None else scorer

@@ -17,13 +17,12 @@ from ..errors import XvoeError
 from ..outputs import atomic_paths, claim_directory
 from ..training.checkpoints import SHIPPED, WEIGHTS, load_checkpoint, shipped_path
 from ..training.provenance import recipe_differences
+from ..training.stages import STAGES
 
 BUDGET_BYTES = 25 * 2**20      # all shipped checkpoints together
 KEPT = ("format", "stage", "step", "config", "model", "train", "meta")
-
-
 # the shipped models that read the shared perception's latents
-READS_PERCEPTION = ("xpl", "plato", "xpl-noresidual", "proposal")
+READS_PERCEPTION = tuple(name for name, entry in STAGES.items() if entry.reads_latents)
 
 
 def available_models() -> list[str]:
@@ -37,7 +36,7 @@ def ship(run_dir: str | os.PathLike, out: str | os.PathLike | None = None) -> li
     run_dir = Path(run_dir)
     if not run_dir.is_dir():
         raise XvoeError(f"{run_dir}: no such run directory")
-    stages = [s for s in ("perception", *SHIPPED, "proposal") if (run_dir / f"{s}.pt").is_file()]
+    stages = [name for name, entry in STAGES.items() if (run_dir / entry.checkpoint).is_file()]
     if not stages:
         raise XvoeError(f"{run_dir} holds no checkpoint to ship (perception.pt with xpl.pt, or phydnet.pt)")
     if "perception" not in stages and (readers := [s for s in stages if s in READS_PERCEPTION]):

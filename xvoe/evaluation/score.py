@@ -23,6 +23,7 @@ from tqdm.auto import tqdm
 
 from ..benchmark import store
 from ..errors import XvoeError
+from ..models.nll import InferenceConfig
 from ..models.perception import ComponentVAE, normalise
 from ..models.phydnet import PhyDNet
 from ..models.xpl import XPL
@@ -32,15 +33,17 @@ from ..training.data import check_size, visible_threshold
 from ..training.latents import encode_frames
 from ..training.perception import load_perception
 from ..training.phydnet import load_phydnet
-from ..training.trajectory import with_trajectory
-from ..training.xpl import load_xpl
+from ..training.xpl import load_xpl, nll_settings_of
 from .metrics import excess
-from .surprise import aggregate, mse_surprise
+from .surprise import aggregate, every_explanation
 
-SCORE_COLUMNS = ("index", "model", "scenario", "setting", "pair", "member", "possible", "score", "s_img", "s_dyn")
+# score, s_img and s_dyn: the default verdict (for XPL, the better of two explanations); paper_score:
+# the paper's (XPL: always Transformer 2's proposal), the same for a model with no such choice
+SCORE_COLUMNS = ("index", "model", "scenario", "setting", "pair", "member", "possible", "score", "s_img", "s_dyn",
+                 "paper_score")
+# the per-frame curves beside a score file, in this order; the paper's score is the sum of the last two
+CURVES = ("s_img", "s_dyn", "s_rec", "paper_s_img", "paper_s_dyn")
 EXCESS_COLUMNS = ("s_rec", "excess")    # models with a perception module: XPL, its ablation, PLATO
-XPL_STAGES = ("xpl", "plato", "xpl-noresidual")
-STAGES = (*XPL_STAGES, "phydnet")
 
 
 @dataclass
@@ -106,9 +109,11 @@ class Scorer:
     xpl: XPL | None
     phydnet: PhyDNet | None = None
     custom: SurpriseModel | None = None
-    # the MSE score's explanation (xvoe.evaluation.surprise): "proposal", Transformer 2's wherever a
-    # slot is never seen (the paper's), or "better", the better of it and nothing hidden
-    explanation: str = "proposal"
+    # the MSE score's explanation (xvoe.evaluation.surprise): "better", the better of Transformer 2's
+    # proposal and nothing hidden (the default verdict), or "proposal", always Transformer 2's (the paper's)
+    explanation: str = "better"
+    # the NLL surprise's settings the model was made with (its recipe's; XPL only)
+    nll: InferenceConfig | None = None
 
     @property
     def is_random(self) -> bool:
@@ -118,8 +123,9 @@ class Scorer:
         """Per-frame surprise (B, T), the protocol every model answers: s_img + s_dyn for XPL."""
         if self.custom is not None:
             return self.custom.surprise(videos)
-        s_img, s_dyn, _ = _xpl_curves(self, encode(self, videos))
-        return s_img + s_dyn
+        curves = _xpl_curves(self, encode(self, videos))
+        prefix = "" if self.explanation == "better" else "paper_"
+        return curves[f"{prefix}s_img"] + curves[f"{prefix}s_dyn"]
 
     @property
     def image_size(self) -> int | None:
@@ -155,20 +161,19 @@ def load_model(model: str, device: str = "cpu") -> Scorer:
         run_dir, stage = shipped.parent, model
     elif path.is_file():
         run_dir, stage = path.parent, path.stem
-    elif path.name in STAGES and (path.parent / f"{path.name}.pt").is_file():
+    elif path.name in SHIPPED and (path.parent / f"{path.name}.pt").is_file():
         run_dir, stage = path.parent, path.name
     else:
         run_dir, stage = path, "xpl"
-    if stage not in STAGES:
+    if stage not in SHIPPED:
         raise XvoeError(f"{model} is not a model to score with: give a run directory, one of "
-                        f"{', '.join(s + '.pt' for s in STAGES)}, or 'random'")
+                        f"{', '.join(s + '.pt' for s in SHIPPED)}, or 'random'")
     if stage == "phydnet":
         net = load_phydnet(run_dir / "phydnet.pt", device)[0]
         return Scorer(stage, None, None, phydnet=net, custom=PhyDNetSurprise(net))
     vae, _ = load_perception(run_dir, device)
     xpl, state = load_xpl(run_dir, stage, device)
-    with_trajectory(xpl, state)
-    return Scorer(stage, vae, xpl)
+    return Scorer(stage, vae, xpl, nll=nll_settings_of(state["config"]) if xpl.config.use_reasoning else None)
 
 
 def load_surprise_model(reference: str) -> SurpriseModel:
@@ -254,31 +259,32 @@ def score_split(model: str | Scorer, data: str, out: str, *, how: str = "sum", v
         count, frames_count, size = file["rgbd"].shape[:3]
         first, last = shard_rows(count, videos_per_batch, shard)
         labels = store.labels(file, ("scenario", "setting", "pair", "member", "possible"))
-        curves = np.zeros((3, count, frames_count))     # s_img, s_dyn, s_rec
+        curves = np.zeros((len(CURVES), count, frames_count))
         values = [] if extra is not None else None
         for start in tqdm(range(first, last, videos_per_batch), desc=f"score {scorer.name}", unit="batch",
                           disable=not progress):
             stop = min(last, start + videos_per_batch)
-            if scorer.custom is not None:     # one term, in the s_dyn column
-                curves[1, start:stop] = custom_surprise(scorer, file, start, stop)
+            if scorer.custom is not None:     # one term, in the s_dyn columns
+                curves[[1, 4], start:stop] = custom_surprise(scorer, file, start, stop)
                 continue
             batch = encode_videos(scorer, file, start, stop)     # once, for every column
-            curves[:, start:stop] = torch.stack(_xpl_curves(scorer, batch)).numpy()
+            curves[:, start:stop] = torch.stack(list(_xpl_curves(scorer, batch).values())).numpy()
             if values is not None:
                 values.append(extra.batch(scorer, batch))
     with_rec = scorer.vae is not None
     curves = curves[:, first:last]
     added = extra.finish(np.concatenate(values), curves, size) if extra is not None else np.zeros((last - first, 0))
-    s_img, s_dyn, s_rec = (aggregate(torch.from_numpy(c), how).numpy() for c in curves)
+    s_img, s_dyn, s_rec = (aggregate(torch.from_numpy(c), how).numpy() for c in curves[:3])
+    paper = aggregate(torch.from_numpy(curves[3:].sum(0)), how).numpy()
     if score_column == "score":
         total = aggregate(torch.from_numpy(curves[:2].sum(0)), how).numpy()
     else:
         total = added[:, extra.names.index(score_column)]
     if with_rec:
-        excess_score = aggregate(torch.from_numpy(excess(*curves)), how).numpy()
+        excess_score = aggregate(torch.from_numpy(excess(*curves[:3])), how).numpy()
     # the CSV and its curves are one result: the CSV, which names the curves, is renamed last
     with atomic_paths(curves_path, out) as (curves_tmp, tmp), open(tmp, "w", newline="") as handle:
-        named = {"s_img": curves[0], "s_dyn": curves[1]} | ({"s_rec": curves[2]} if with_rec else {})
+        named = {name: curve for name, curve in zip(CURVES, curves) if with_rec or name != "s_rec"}
         with open(curves_tmp, "wb") as curves_file:
             np.savez_compressed(curves_file, **named)
         writer = csv.writer(handle)
@@ -288,7 +294,7 @@ def score_split(model: str | Scorer, data: str, out: str, *, how: str = "sum", v
             row_extra += list(map(float, added[row]))
             writer.writerow([i, scorer.name, labels["scenario"][i], labels["setting"][i], int(labels["pair"][i]),
                              int(labels["member"][i]), bool(labels["possible"][i]), float(total[row]),
-                             float(s_img[row]), float(s_dyn[row])] + row_extra)
+                             float(s_img[row]), float(s_dyn[row]), float(paper[row])] + row_extra)
     return out
 
 
@@ -364,8 +370,11 @@ def encode(scorer: Scorer, videos: Videos) -> dict[str, Tensor]:
             "occluder": torch.from_numpy(videos.walls)}
 
 
-def _xpl_curves(scorer: Scorer, batch: dict[str, Tensor]) -> tuple[Tensor, Tensor, Tensor]:
-    """s_img, s_dyn and s_rec (B, T) of encoded videos (`encode_videos`) under XPL or PLATO."""
-    surprise = mse_surprise(scorer.vae, scorer.xpl, batch["frames"], batch["mean"], batch["visible"],
-                            batch["background"], batch["occluder"], scorer.explanation)
-    return surprise.s_img, surprise.s_dyn, surprise.s_rec
+def _xpl_curves(scorer: Scorer, batch: dict[str, Tensor]) -> dict[str, Tensor]:
+    """The `CURVES` (B, T) of encoded videos (`encode_videos`) under XPL or PLATO, both
+    explanations from one set of decodes (s_rec is the same under both: it draws the seen slots)."""
+    found = every_explanation(scorer.vae, scorer.xpl, batch["frames"], batch["mean"], batch["visible"],
+                              batch["background"], batch["occluder"])
+    default, paper = found["better"], found["proposal"]
+    return {"s_img": default.s_img, "s_dyn": default.s_dyn, "s_rec": default.s_rec,
+            "paper_s_img": paper.s_img, "paper_s_dyn": paper.s_dyn}

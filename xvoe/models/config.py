@@ -18,8 +18,22 @@ def to_dict(config: Any) -> dict:
     return asdict(config)
 
 
+# Fields removed after checkpoints stored them, each with the value every recipe held (their
+# records: docs/log/decisions-2026-11.md). A stored config with that value loads without it.
+RETIRED: dict[str, dict[str, Any]] = {
+    "PerceptionConfig": {"where_latents": False, "where_scale": 0.5, "amodal": False, "cut_share": 0.0},
+    "XPLConfig": {"wall_refill": 0.0, "proposal_sees_seen": False, "latent_weights": (), "weigh_by_picture": False,
+                  "fill_from_neighbours": False, "line_between_only": False},
+    "PhyDNetConfig": {"lstm_chrono_frames": 0},
+    "InferenceConfig": {"smc_moves": 0, "smc_max_levels": 40, "smc_first": 0, "trajectory_proposal": False,
+                        "trajectory_scale_floor": 1.0},
+}
+
+
 def from_dict(cls: type, data: dict) -> Any:
-    """Rebuild a (possibly nested) config dataclass from `to_dict` output; unknown keys are an error."""
+    """Rebuild a (possibly nested) config dataclass from `to_dict` output; unknown keys are an
+    error, and so is a retired field (`RETIRED`) set to anything but the value it always held."""
+    data = _without_retired(cls, data)
     known = {f.name for f in fields(cls)}
     unknown = set(data) - known
     if unknown:
@@ -34,6 +48,15 @@ def from_dict(cls: type, data: dict) -> Any:
             value = tuple(value)
         values[name] = value
     return cls(**values)
+
+
+def _without_retired(cls: type, data: dict) -> dict:
+    retired = RETIRED.get(cls.__name__, {})
+    for name, held in retired.items():
+        value = data.get(name, held)
+        if (tuple(value) if isinstance(value, list) else value) != held:
+            raise XvoeError(f"this {cls.__name__} was made with {name}={value!r}, a setting xvoe no longer has")
+    return {key: value for key, value in data.items() if key not in retired}
 
 
 def _nested_dataclass(annotation: Any) -> type | None:

@@ -11,16 +11,6 @@ The background (the pixels of id 0: floor and sky) is one more component, encode
 decoded by the same networks and composited like the slots; its loss counts only its own
 pixels, so the decoder fills in the background behind the objects.
 
-With `where_latents` (the `cpu` preset) the first two latents are the object's position:
-the decoder draws the object relative to them, and the encoder starts them at the centroid
-of the object's visible pixels and learns only a correction (for occlusion, and for where
-the drawing's reference point sits). The preset also trains the encoder on object images
-with a side cut off against the whole object (`cut_share`), and leaves the pixels of other
-objects out of each object's own loss (`amodal`), so that a partly hidden object's latents
-say where the object is, not where its visible part is. Position is then linear in the
-latents by construction, for every kind of object alike. Per unit, these two latents move the
-picture hundreds of times more than the others, so the later stages weigh their latent losses
-by that (XPLConfig.weigh_by_picture; docs/decisions.md, "Where latents and picture weights").
 """
 from __future__ import annotations
 
@@ -61,18 +51,6 @@ class PerceptionConfig:
     decoder_channels: int = 32
     decoder_kernel: int = 5
     decoder_extra_convs: int = 0    # stride-1 convs after the upsampling (paper: 1)
-    # latents 0 and 1 are the object's (x, y): the decoder draws relative to them and the encoder
-    # starts them at the visible pixels' centroid (off in the paper; off in checkpoints made before it)
-    where_latents: bool = False
-    # frame coordinates ([-1, 1]) per unit of those two latents: 0.5 spans the frame over +-2 of the
-    # means' +-3, so that a pixel's move weighs more in the later stages' latent losses
-    where_scale: float = 0.5
-    # the per-object loss leaves out the other objects' pixels, where this one may stand hidden, so
-    # a partly hidden object is decoded whole (its latents then say where it is, not its visible part)
-    amodal: bool = False
-    # share of the object images the encoder sees with a random side cut off while the loss asks for
-    # the whole object: it learns where a partly hidden object is, and to draw it whole
-    cut_share: float = 0.0
     # likelihood and prior
     sigma: float = 0.05             # pixel standard deviation of the Gaussian likelihood
     beta: float = 0.5               # weight of the KL to N(0, I)
@@ -89,8 +67,6 @@ class PerceptionConfig:
                             "times a power of two")
         if self.encoder == "vit" and self.image_size % self.vit_patch:
             raise XvoeError(f"image_size {self.image_size} is not a multiple of vit_patch {self.vit_patch}")
-        if self.where_latents and self.latent_dim < 3:
-            raise XvoeError(f"where_latents needs latent_dim >= 3 (two for position), not {self.latent_dim}")
         if self.encoder == "vit" and self.vit_width % self.vit_heads:
             raise XvoeError(f"vit_width {self.vit_width} is not a multiple of vit_heads {self.vit_heads}")
 
@@ -103,16 +79,6 @@ def blank_like(images: Tensor) -> Tensor:
 def normalise(rgbd: Tensor) -> Tensor:
     """uint8 RGBD (..., H, W, 4) to float (..., 4, H, W) in [-1, 1]."""
     return (rgbd.movedim(-1, -3).float() / 127.5) - 1.0
-
-
-def visible_centroid(images: Tensor) -> Tensor:
-    """(x, y) in [-1, 1] (pixel centres, y downwards) of the non-blank pixels of masked images
-    (N,4,H,W); 0 for an image with none (an empty slot), so no NaN can arise."""
-    size = images.shape[-1]
-    shown = (images[:, 3] < (1.0 + BLANK_DEPTH) / 2).to(images.dtype)         # blank depth is beyond 1.0
-    ramp = torch.linspace(-1, 1, size, dtype=images.dtype, device=images.device)
-    count = shown.sum((1, 2)).clamp_min(1.0)
-    return torch.stack([(shown * ramp).sum((1, 2)) / count, (shown * ramp[:, None]).sum((1, 2)) / count], dim=-1)
 
 
 def to_uint8(images: Tensor) -> Tensor:
@@ -173,10 +139,6 @@ class BroadcastDecoder(nn.Module):
     """Spatial broadcast decoder: latent tiled on a small grid plus a position embedding,
     stride-2 transposed convolutions up to full size, RGBD out.
 
-    With `where_latents` the position embedding is an MLP of each grid cell's coordinates
-    relative to the first two latents (times where_scale), and only the others are tiled:
-    shifting those two by one grid cell shifts the picture by image_size / broadcast_size pixels.
-
     The output layer starts at the blank value with small weights, so every slot begins as
     "nothing here": without that the encoder saturates its means at +-3 within a few steps.
     """
@@ -184,24 +146,11 @@ class BroadcastDecoder(nn.Module):
     def __init__(self, config: PerceptionConfig):
         super().__init__()
         width, kernel, grid = config.decoder_channels, config.decoder_kernel, config.broadcast_size
-        self.grid, self.where, self.where_scale = grid, config.where_latents, config.where_scale
-        if self.where:
-            self.project = nn.Linear(config.latent_dim - 2, width)
-            # appearance scales the shape's features (colour where the object is); zero at first, so the
-            # decoder starts as a plain sum of the two
-            self.gate = nn.Linear(config.latent_dim - 2, width)
-            nn.init.zeros_(self.gate.weight)
-            nn.init.zeros_(self.gate.bias)
-            self.relative_position = nn.Sequential(nn.Linear(2, width), nn.ReLU(), nn.Linear(width, width))
-            # each cell's centre in the coordinates of visible_centroid (pixel centres spanning [-1, 1])
-            centres = ((torch.arange(grid) + 0.5) * (config.image_size / grid) - 0.5) * 2 / (config.image_size - 1) - 1
-            ys, xs = torch.meshgrid(centres, centres, indexing="ij")
-            self.register_buffer("cells", torch.stack([xs, ys], dim=-1), persistent=False)      # (g, g, 2)
-        else:
-            self.project = nn.Linear(config.latent_dim, width)
-            self.position = nn.Linear(4, width)
-            ys, xs = torch.meshgrid(torch.linspace(0, 1, grid), torch.linspace(0, 1, grid), indexing="ij")
-            self.register_buffer("coords", torch.stack([xs, ys, 1 - xs, 1 - ys], dim=-1), persistent=False)
+        self.grid = grid
+        self.project = nn.Linear(config.latent_dim, width)
+        self.position = nn.Linear(4, width)
+        ys, xs = torch.meshgrid(torch.linspace(0, 1, grid), torch.linspace(0, 1, grid), indexing="ij")
+        self.register_buffer("coords", torch.stack([xs, ys, 1 - xs, 1 - ys], dim=-1), persistent=False)
         layers = []
         for _ in range(int(math.log2(config.image_size // grid))):
             layers += [nn.ConvTranspose2d(width, width, kernel, stride=2, padding=kernel // 2, output_padding=1),
@@ -215,14 +164,7 @@ class BroadcastDecoder(nn.Module):
             self.out.bias.copy_(torch.tensor(BLANK))
 
     def forward(self, z: Tensor) -> Tensor:
-        if self.where:
-            relative = self.cells - self.where_scale * z[:, None, None, :2]                 # (N, g, g, 2)
-            appearance = z[:, 2:]
-            shape = self.relative_position(relative).permute(0, 3, 1, 2)
-            gate = 1 + self.gate(appearance)[:, :, None, None]
-            features = self.project(appearance)[:, :, None, None] + shape * gate
-        else:
-            features = self.project(z)[:, :, None, None] + self.position(self.coords).permute(2, 0, 1)
+        features = self.project(z)[:, :, None, None] + self.position(self.coords).permute(2, 0, 1)
         return self.out(self.convs(features))
 
 
@@ -231,17 +173,13 @@ class PerceptionBatch:
     """A batch of frames cut into per-object inputs (see xvoe.data.perception_batch).
 
     frames (B,4,H,W) targets; objects (M,4,H,W) the masked images of the slots with pixels,
-    which sit at (object_frame, object_slot), and object_inputs what the encoder sees of them
-    (the same, or cut: data.cut_objects), with object_known (M,1,H,W) = 0 on the pixels of
-    the other objects (what stands behind them is unknown); background (B,4,H,W) with
+    which sit at (object_frame, object_slot); background (B,4,H,W) with
     background_mask (B,1,H,W) = 1 on id-0 pixels; noise (B,K+1,D) for the reparameterisation (component 0 is
     the background), blank_noise (1,D) for the shared blank input.
     """
 
     frames: Tensor
     objects: Tensor
-    object_inputs: Tensor
-    object_known: Tensor
     object_frame: Tensor
     object_slot: Tensor
     background: Tensor
@@ -279,14 +217,8 @@ class ComponentVAE(nn.Module):
             last.bias[self.config.latent_dim:] = math.log(std / (STD_SCALE - std))
 
     def posterior(self, images: Tensor) -> tuple[Tensor, Tensor]:
-        """Mean in (-3, 3) and std in (0, 3) of q(z | masked image); images (N,4,H,W).
-
-        With where latents the first two means are 6*sigmoid(a + c)-3 with c the logit that
-        puts them at the visible pixels' centroid (divided by where_scale) when a = 0."""
+        """Mean in (-3, 3) and std in (0, 3) of q(z | masked image); images (N,4,H,W)."""
         a, b = self.encoder(images).chunk(2, dim=-1)
-        if self.config.where_latents:
-            start = torch.logit((visible_centroid(images) / self.config.where_scale + MEAN_RANGE) / (2 * MEAN_RANGE))
-            a = torch.cat([a[:, :2] + start, a[:, 2:]], dim=-1)
         return MEAN_RANGE * (2 * torch.sigmoid(a) - 1), STD_SCALE * torch.sigmoid(b)
 
     DECODE_CHUNK = 64   # latents per decoder pass outside training (benchmarks/decode.py)
@@ -300,17 +232,6 @@ class ComponentVAE(nn.Module):
         if torch.is_grad_enabled() or len(z) <= self.DECODE_CHUNK:
             return self.decoder(z)
         return torch.cat([self.decoder(chunk) for chunk in z.split(self.DECODE_CHUNK)])
-
-    @torch.no_grad()
-    def latent_sensitivity(self, z: Tensor, step: float = 1e-2) -> Tensor:
-        """How much each latent moves the picture: the mean over latents z (N, D) of the squared
-        pixel change per unit of latent d (D,), by finite differences through the decoder (the
-        diagonal of the decoder's Gauss-Newton metric). Latent losses that weigh every latent
-        alike match pixel losses only where these are about equal."""
-        base = self.decode(z)
-        moved = z[None].repeat(z.shape[1], 1, 1) + step * torch.eye(z.shape[1], dtype=z.dtype, device=z.device)[:, None]
-        change = (self.decode(moved.flatten(0, 1)).unflatten(0, moved.shape[:2]) - base) / step
-        return change.pow(2).flatten(2).sum(2).mean(1)
 
     def composite(self, layers: Tensor) -> Tensor:
         """Z-buffer the components (..., S, 4, H, W) into frames (..., 4, H, W)."""
@@ -333,7 +254,7 @@ class ComponentVAE(nn.Module):
         encoded once and its decoding stands in for every slot without pixels.
         """
         count = len(batch.frames)
-        inputs = torch.cat([batch.object_inputs, batch.background, self.blank()])
+        inputs = torch.cat([batch.objects, batch.background, self.blank()])
         mean, std = self.posterior(inputs)
         z = mean
         if sample:
@@ -350,10 +271,7 @@ class ComponentVAE(nn.Module):
         """Negative ELBO per frame: composite and per-object Gaussian likelihoods plus beta*KL.
 
         The per-object term is needed: with the composite alone the decoder can hide every
-        object behind the background, where it gets no gradient. With `amodal` it leaves out
-        the other objects' pixels: behind a wall the decoder may draw the whole object, which
-        the composite then hides, so its latents can say where it is, not where its visible
-        part is.
+        object behind the background, where it gets no gradient.
         """
         out, count = self.forward_batch(batch), len(batch.frames)
         scale = 0.5 / self.config.sigma ** 2
@@ -372,11 +290,8 @@ class ComponentVAE(nn.Module):
                 "psnr": 10 * torch.log10(4.0 / mse.clamp_min(1e-10))}
 
     def object_nll(self, pictures: Tensor, batch: PerceptionBatch) -> Tensor:
-        """Per-object Gaussian NLL (M,) of decoded pictures against the masked object images;
-        with `amodal`, not on the other objects' pixels, where the object may stand hidden."""
+        """Per-object Gaussian NLL (M,) of decoded pictures against the masked object images."""
         error = (pictures - batch.objects).pow(2)
-        if self.config.amodal:
-            error = error * batch.object_known
         return 0.5 / self.config.sigma ** 2 * error.flatten(1).sum(1)
 
     def forward(self, batch: PerceptionBatch) -> dict[str, Tensor]:

@@ -50,11 +50,6 @@ class PhyDNetConfig:
     # reaches 3 with its 3 stacked layers (docs/decisions.md, "PhyDNet's ConvLSTM kernel").
     # `widen_lstm_kernel` widens a trained network's gates
     lstm_kernel: int = 3
-    # > 1: chrono initialisation of the ConvLSTM gates (Tallec & Ollivier, ICLR 2018) for memories
-    # of up to this many frames; 0: PyTorch's default biases, whose forget gate halves the cell
-    # state each frame. Off: it brought no memory of hidden cubes and cost accuracy elsewhere
-    # (docs/decisions.md, "PhyDNet without chrono initialisation")
-    lstm_chrono_frames: int = 0
     moment_weight: float = 1.0                      # weight of the moment loss
     # extra weight, in the training loss only, of the pixels that change from one frame to the
     # next (the moving objects and what a wall uncovers: a few percent of a frame). 0 is the
@@ -70,8 +65,6 @@ class PhyDNetConfig:
             raise XvoeError(f"phycell_kernel must be odd, not {self.phycell_kernel}")
         if not self.lstm_channels:
             raise XvoeError("lstm_channels needs at least one ConvLSTM layer")
-        if self.lstm_chrono_frames == 1 or self.lstm_chrono_frames < 0:
-            raise XvoeError(f"lstm_chrono_frames must be 0 (off) or at least 2, not {self.lstm_chrono_frames}")
 
     @property
     def feature_size(self) -> int:
@@ -141,15 +134,6 @@ class ConvLSTMCell(nn.Module):
         c = torch.sigmoid(f) * c + torch.sigmoid(i) * torch.tanh(g)
         return torch.sigmoid(o) * torch.tanh(c), c
 
-    @torch.no_grad()
-    def chrono_init(self, frames: int) -> None:
-        """Forget-gate biases log(u), u ~ U[1, frames - 1], and input-gate biases their negation:
-        each channel starts keeping a share u / (1 + u) of its cell state per frame, a memory of
-        about 1 + u frames, the channels spread up to `frames`."""
-        forget = torch.empty(self.hidden).uniform_(1, frames - 1).log()
-        bias = self.gates.bias.view(4, self.hidden)     # gate order: input, forget, output, candidate
-        bias[0], bias[1] = -forget, forget
-
 
 def _conv_block(inputs: int, outputs: int, stride: int) -> nn.Sequential:
     # No normalisation in the encoder and decoder: a per-frame GroupNorm subtracts each feature
@@ -177,9 +161,6 @@ class PhyDNet(nn.Module):
                                      for _ in range(config.phycell_layers))
         sizes = (features, *config.lstm_channels)
         self.lstm = nn.ModuleList(ConvLSTMCell(a, b, config.lstm_kernel) for a, b in zip(sizes, sizes[1:]))
-        if config.lstm_chrono_frames:
-            for cell in self.lstm:
-                cell.chrono_init(config.lstm_chrono_frames)
         self.decode_physics = _conv_block(features, features, 1)
         self.decode_residual = _conv_block(config.lstm_channels[-1], features, 1)
         self.decoder = nn.Sequential(*(_up_block(a, b) for a, b in zip(widths[::-1], widths[-2::-1])),

@@ -43,12 +43,9 @@ class ReasoningTransformer(nn.Module):
                                              enable_nested_tensor=False)
         self.head = nn.Linear(config.width, 2 * config.latent_dim)
 
-    def forward(self, z: Tensor, keep: Tensor, unread: Tensor | None = None,
-                guess: Tensor | None = None) -> tuple[Tensor, Tensor]:
+    def forward(self, z: Tensor, keep: Tensor, unread: Tensor | None = None) -> tuple[Tensor, Tensor]:
         """z: (B, T, K, D) latents; keep: (B, T, K) bool, True where z is observed; unread:
-        (B, T, K) bool, entries no token attends to (their own outputs then carry nothing);
-        guess: (B, T, K, D), a first guess of the hidden entries (`interpolate_seen`) that their
-        tokens read (None: a hidden token holds the [M] token alone).
+        (B, T, K) bool, entries no token attends to (their own outputs then carry nothing).
 
         Returns the completed latents (observed entries exactly as given) and the predicted
         standard deviation of every entry (0 where observed).
@@ -59,8 +56,6 @@ class ReasoningTransformer(nn.Module):
                              f"built for {self.config.frames} x {self.config.slots}")
         kept = keep.unsqueeze(-1).to(z.dtype)
         tokens = self.embed(z) * kept + self.mask_token * (1 - kept)
-        if guess is not None:
-            tokens = tokens + self.embed(guess) * (1 - kept)
         tokens = tokens + self.position[:frames]
         padding = None if unread is None else unread.reshape(batch, frames * slots)
         hidden = self.encoder(tokens.reshape(batch, frames * slots, -1), src_key_padding_mask=padding)
@@ -75,29 +70,6 @@ def occlusion_keep(visible: Tensor) -> Tensor:
     hidden; slots never seen (empty, or an object hidden throughout) pass through."""
     seen_somewhere = visible.any(dim=1, keepdim=True)
     return visible | ~seen_somewhere
-
-
-def interpolate_seen(z: Tensor, keep: Tensor, between_only: bool = False) -> Tensor:
-    """Each hidden entry of z (B, T, K, D) as the straight line between its slot's nearest kept
-    entries before and after it, or the one kept entry on its side if the other has none (zero
-    there with `between_only`); zero where its slot is kept nowhere (its own value must not leak
-    into the guess): what a hidden token of Transformer 1 can start from (docs/decisions.md,
-    "Transformer 1 reads the line between seen latents")."""
-    batch, frames, slots, dim = z.shape
-    t = torch.arange(frames, device=z.device).view(1, frames, 1).expand(batch, frames, slots)
-    before = torch.where(keep, t, torch.full_like(t, -1)).cummax(dim=1).values
-    after = torch.where(keep, t, torch.full_like(t, frames)).flip(1).cummin(dim=1).values.flip(1)
-    has_before, has_after = before >= 0, after < frames
-    start, end = torch.where(has_before, before, after), torch.where(has_after, after, before)
-
-    def at(index: Tensor) -> Tensor:
-        return torch.gather(z, 1, index.clamp(0, frames - 1).unsqueeze(-1).expand_as(z))
-
-    share = ((t - start) / (end - start).clamp_min(1)).unsqueeze(-1).to(z.dtype)
-    line = torch.lerp(at(start), at(end), share)       # one-sided: start == end, the kept entry itself
-    known = has_before & has_after if between_only else has_before | has_after
-    line = torch.where(known.unsqueeze(-1), line, torch.zeros_like(z))
-    return torch.where(keep.unsqueeze(-1), z, line)
 
 
 def never_seen(visible: Tensor) -> Tensor:

@@ -19,7 +19,6 @@ from .reasoning import (
     ReasoningTransformer,
     gaussian_nll,
     hide_slot,
-    interpolate_seen,
     never_seen,
     occlusion_keep,
 )
@@ -37,33 +36,17 @@ class XPLConfig:
     stop_input_gradient: bool = False
     mae_weight: float = 1.0
     refill_weight: float = 1.0      # Transformer 1 rebuilding hidden spans of seen frames
-    # share of the training videos whose refill spans are what a made-up wall would hide (every
-    # object behind it, from the first frame or soon after, until near the end), not one random
-    # span per slot: the test walls hide an object from the start and an event with it, and a
-    # per-slot span seldom hides both together
-    wall_refill: float = 0.0
     # Transformer 1 also rebuilds the entries of seen objects that lie wholly outside the picture
     # (the simulator says where), as the blank latent the cache holds there. Nothing else trains
     # those fills, yet about a third of the hidden entries of the training videos are such (cubes
     # that fall in from above, balls that roll in), and the MSE score draws them where no wall stands
     outside_refill: bool = False
     permute_slots: bool = True      # slot order carries no meaning: shuffle it in training
-    # weight of each latent in the refill and dynamics losses (empty: all 1); e.g. how much each
-    # moves the decoded picture, so that a squared error in latents weighs as one in pixels
-    latent_weights: tuple[float, ...] = ()
-    # set latent_weights when training starts from how much each latent moves the picture of the
-    # perception module that made the latent cache (xvoe.latents.picture_weights), mean 1
-    weigh_by_picture: bool = False
     # walls exert no effect in the dynamics, and their own prediction is no part of its loss: a
     # wall stands in a nearer depth lane and touches nothing. Otherwise the dynamics learn the
     # training walls' schedule (lowered over frames 1-3) and carry it into the balls' motion in
     # test videos whose wall stands from the start (S2, S3)
     inert_walls: bool = False
-    # Transformer 2 proposes the hidden object from what was seen of the other objects, not from
-    # Transformer 1's fills of their occluded frames: those fills assume nothing is hidden, so a
-    # ball that bounced off a never-seen cube is filled as if it rolled on, and the cube was
-    # proposed farther off (docs/decisions.md, "Not kept: Transformer 2 reading the seen entries only")
-    proposal_sees_seen: bool = False
     # Transformer 1 reads no wall entry (and rebuilds none): a wall touches nothing (see
     # inert_walls), so no fill needs it, and a fill that attends to it can take on the wall's
     # latent, which draws a wall where a hidden cube stands (docs/decisions.md, "Transformer 1
@@ -73,14 +56,6 @@ class XPLConfig:
     # stage alone, and the joint step costs a third less, since nothing else in it reads them
     # (docs/decisions.md, "Not kept: Transformer 2 out of the joint stage")
     joint_proposal: bool = True
-    # each hidden token of Transformer 1 reads the straight line between its slot's nearest seen
-    # latents, not the [M] token alone: from [M] alone its fill of a cube at rest between two seen
-    # frames missed by about the cube's width (docs/decisions.md, "Transformer 1 reads the line
-    # between seen latents")
-    fill_from_neighbours: bool = False
-    # that line only between two seen latents: before a slot's first seen frame or after its last
-    # (an object still outside the picture, or gone) the held latent would draw it where it is not
-    line_between_only: bool = False
 
 
 class XPL(nn.Module):
@@ -118,9 +93,7 @@ class XPL(nn.Module):
 
     def fill(self, z: Tensor, keep: Tensor, unread: Tensor | None) -> Tensor:
         """Transformer 1's latents (B, T, K, D): z where kept, filled elsewhere."""
-        guess = (interpolate_seen(z, keep, self.config.line_between_only) if self.config.fill_from_neighbours
-                 else None)
-        return self.transformer1(z, keep, unread, guess)[0]
+        return self.transformer1(z, keep, unread)[0]
 
     def unread_walls(self, visible: Tensor, walls: Tensor | None) -> Tensor | None:
         """Transformer 1's unread entries (B, T, K): the walls' if the config says so, else None."""
@@ -147,14 +120,8 @@ class XPL(nn.Module):
         frame and rebuilt (-1: none; latents unchanged, scales 0 outside the rebuilt slot)."""
         proposed = ~hide_slot(visible.shape, slot.clamp_min(0))
         proposed[slot < 0] = False
-        mean, scale = self.transformer2(refined, self.proposal_keep(visible, proposed))
+        mean, scale = self.transformer2(refined, ~proposed)
         return torch.where(proposed.unsqueeze(-1), mean, refined), scale * proposed.unsqueeze(-1)
-
-    def proposal_keep(self, visible: Tensor, proposed: Tensor) -> Tensor:
-        """Transformer 2's input mask: every entry but the proposed ones (B, T, K); with
-        proposal_sees_seen, also not the occluded frames of the other objects (Transformer 1's fills)."""
-        keep = ~proposed
-        return keep & occlusion_keep(visible) if self.config.proposal_sees_seen else keep
 
     def existence_logit(self, mean: Tensor, scale: Tensor) -> Tensor:
         """Logit (B,) that the filled slot holds a real object, from Transformer 2's mean and
@@ -197,13 +164,13 @@ class XPL(nn.Module):
             if unread is not None:                 # what Transformer 1 does not read, it does not rebuild
                 rebuilt = rebuilt & ~unread
             if rebuilt.any():
-                out["refill"] = (self._weighted_square(refined - z) * rebuilt).sum() / rebuilt.sum()
+                out["refill"] = (_squared_norm(refined - z) * rebuilt).sum() / rebuilt.sum()
             fills = refined if not self.config.stop_target_gradient else refined.detach()
             target = torch.where(visible.unsqueeze(-1), z, fills)[:, 1:]
         else:
             refined, target = z, z[:, 1:]
         inputs = refined.detach() if self.config.stop_input_gradient else refined
-        error = self._weighted_square(self.predict(inputs, walls) - target)
+        error = _squared_norm(self.predict(inputs, walls) - target)
         if self.config.inert_walls:
             moving = (~walls)[:, None, :].expand_as(error)
             out["dynamics"] = (error * moving).sum() / moving.sum().clamp_min(1)
@@ -218,19 +185,13 @@ class XPL(nn.Module):
                        + self.config.mae_weight * out.get("mae", zero) + out.get("existence", zero))
         return out
 
-    def _weighted_square(self, error: Tensor) -> Tensor:
-        """Squared error summed over the latent axis, each latent weighted by latent_weights."""
-        if not self.config.latent_weights:
-            return (error ** 2).sum(-1)
-        return (error ** 2 * error.new_tensor(self.config.latent_weights)).sum(-1)
-
     def proposal_losses(self, refined: Tensor, visible: Tensor, slot: Tensor, beta: float = 0.0) -> dict[str, Tensor]:
         """Transformer 2 and the existence head, on refined latents (B, T, K, D) with slot
         `slot` (B,) hidden in every frame: the Gaussian NLL of what was hidden, -log q(z | rest)
         (the beta-NLL if beta > 0, see reasoning.gaussian_nll), and the cross-entropy of whether
         the slot held a seen object."""
         keep = hide_slot(visible.shape, slot)
-        mean, scale = self.transformer2(refined, self.proposal_keep(visible, ~keep))
+        mean, scale = self.transformer2(refined, keep)
         scale = scale.clamp_min(self.config.reasoning.min_scale)
         out = {"mae": gaussian_nll(mean, scale, refined, ~keep, beta)}
         rows = torch.arange(len(slot), device=refined.device)
@@ -239,6 +200,11 @@ class XPL(nn.Module):
         out["existence"] = nn.functional.binary_cross_entropy_with_logits(logit, exists)
         out["mae_mse"] = (((mean - refined) ** 2).sum(-1) * (~keep)).sum() / (~keep).sum()
         return out
+
+
+def _squared_norm(error: Tensor) -> Tensor:
+    """Squared error summed over the latent axis."""
+    return (error ** 2).sum(-1)
 
 
 def permute_slots(*tensors: Tensor, order: Tensor | None = None) -> tuple[Tensor, ...]:

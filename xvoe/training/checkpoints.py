@@ -12,10 +12,11 @@ from pathlib import Path
 import torch
 
 from ..errors import XvoeError
+from .stages import SCORED
 
 CHECKPOINT_FORMAT = 1
 WEIGHTS = Path(__file__).resolve().parent.parent / "weights"
-SHIPPED = ("xpl", "plato", "xpl-noresidual", "phydnet")
+SHIPPED = SCORED         # every model a checkpoint holds ships under its stage's name
 
 
 def save_checkpoint(path: Path, state: dict) -> None:

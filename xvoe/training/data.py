@@ -7,9 +7,7 @@ N processes sees the same global batch as one process holding all the shards.
 """
 from __future__ import annotations
 
-from collections.abc import Callable
 from dataclasses import dataclass
-from functools import partial
 
 import h5py
 import numpy as np
@@ -22,7 +20,6 @@ from ..errors import XvoeError
 from ..models.perception import BLANK, PerceptionBatch, normalise
 
 BLANK_SEED = 1 << 20      # the shard number of the blank input's noise (shared by all processes)
-CUT_SEED = 1 << 21        # the stream of the cuts of each shard's object images
 
 
 def visible_threshold(size: int) -> float:
@@ -46,9 +43,8 @@ def masked_inputs(frames: Tensor, ids: Tensor, slots: int) -> dict[str, Tensor]:
     """Cut normalised frames (B,4,H,W) into per-object inputs by the id map (B,H,W).
 
     Every slot with at least one pixel gives an object image (the frame blanked outside the
-    slot's mask; the encoder's input and the target alike) and an `object_known` mask (0 on
-    the pixels of the other objects, where this one may stand hidden); slots without pixels
-    give nothing (they all share the blank input).
+    slot's mask; the encoder's input and the target alike); slots without pixels give nothing
+    (they all share the blank input).
     The background input is the frame blanked on the objects, with a mask of its own pixels.
     """
     ids = ids.long()
@@ -57,57 +53,18 @@ def masked_inputs(frames: Tensor, ids: Tensor, slots: int) -> dict[str, Tensor]:
     blank = frames.new_tensor(BLANK).view(1, 4, 1, 1)
     own = ids[frame_index] == (component + 1).view(-1, 1, 1)
     objects = torch.where(own[:, None], frames[frame_index], blank)
-    object_known = (own | (ids[frame_index] == 0))[:, None].to(frames.dtype)
     background_mask = (ids == 0)[:, None].to(frames.dtype)
     background = torch.where(background_mask > 0, frames, blank)
-    return {"objects": objects, "object_inputs": objects, "object_known": object_known,
-            "object_frame": frame_index, "object_slot": component,
+    return {"objects": objects, "object_frame": frame_index, "object_slot": component,
             "background": background, "background_mask": background_mask, "pixels": counts[:, 1:]}
 
 
-def cut_plan(rng: np.random.Generator, count: int, share: float) -> np.ndarray:
-    """Which of `count` object images to cut (a random `share`), from which side (0-3: the
-    right, left, bottom or top part goes) and which fraction of the extent stays (0.3-0.9):
-    (count, 3) rows of (cut?, side, kept fraction)."""
-    return np.stack([rng.random(count) < share, rng.integers(0, 4, count), rng.uniform(0.3, 0.9, count)], axis=1)
-
-
-def cut_objects(objects: Tensor, plan: np.ndarray) -> Tensor:
-    """Object images (M,4,H,W) cut as `plan` (M,3) says (`cut_plan`): every pixel beyond a line
-    across the object's bounding box blanked, as a wall's edge or the frame's edge hides it."""
-    size = objects.shape[-1]
-    chosen, side, keep = plan[:, 0] > 0, plan[:, 1].astype(np.int64), plan[:, 2]
-    if not chosen.any():
-        return objects
-    shown = objects[:, 3] < (1.0 + BLANK[3]) / 2                          # (M, H, W): the object's pixels
-    ramp = torch.arange(size, dtype=objects.dtype)
-    fraction = torch.as_tensor(keep, dtype=objects.dtype)
-    cut = torch.zeros_like(shown)
-    for axis, along in ((0, ramp[None, :]), (1, ramp[:, None])):          # 0: columns (x), 1: rows (y)
-        extent = shown.any(dim=1 + axis)                                   # (M, size) occupied columns / rows
-        first = torch.where(extent, ramp, float(size)).amin(1)
-        last = torch.where(extent, ramp, -1.0).amax(1)
-        span = (last - first + 1).clamp_min(1)
-        low_keep = first + fraction * span                                # keep the low side: cut at or past
-        high_keep = last + 1 - fraction * span                            # keep the high side: cut below
-        low = torch.as_tensor((side == 2 * axis) & chosen)
-        high = torch.as_tensor((side == 2 * axis + 1) & chosen)
-        cut |= low[:, None, None] & (along[None] >= low_keep[:, None, None].ceil())
-        cut |= high[:, None, None] & (along[None] < high_keep[:, None, None].floor())
-    return torch.where(cut[:, None], objects.new_tensor(BLANK).view(1, 4, 1, 1), objects)
-
-
 def perception_batch(rgbd: np.ndarray | Tensor, ids: np.ndarray | Tensor, slots: int,
-                     noise: np.ndarray | Tensor, blank_noise: np.ndarray | Tensor,
-                     cuts: Callable[[Tensor], np.ndarray] | None = None) -> PerceptionBatch:
-    """A PerceptionBatch from uint8 frames (B,H,W,4), id maps (B,H,W) and noise (B,K+1,D), (1,D).
-    `cuts`, given each object's frame (M,), plans which of the encoder's object images to cut
-    (`cut_plan`); their targets stay whole, so the model learns to complete what is hidden."""
+                     noise: np.ndarray | Tensor, blank_noise: np.ndarray | Tensor) -> PerceptionBatch:
+    """A PerceptionBatch from uint8 frames (B,H,W,4), id maps (B,H,W) and noise (B,K+1,D), (1,D)."""
     frames = normalise(torch.as_tensor(rgbd))
     parts = masked_inputs(frames, torch.as_tensor(ids), slots)
     parts.pop("pixels")
-    if cuts is not None:
-        parts["object_inputs"] = cut_objects(parts["objects"], cuts(parts["object_frame"]))
     return PerceptionBatch(frames=frames, **parts, noise=torch.as_tensor(noise, dtype=torch.float32),
                            blank_noise=torch.as_tensor(blank_noise, dtype=torch.float32), slots=slots)
 
@@ -281,8 +238,7 @@ class ShardedFrames:
     """
 
     def __init__(self, path: str, *, image_size: int, latent_dim: int, batch_size: int, shards: int,
-                 rank: int = 0, world: int = 1, max_videos: int = 0, seed: int = 0, cut_share: float = 0.0,
-                 airborne_share: float = 0.0):
+                 rank: int = 0, world: int = 1, max_videos: int = 0, seed: int = 0, airborne_share: float = 0.0):
         with store.open_dataset(path, split="train") as file:
             check_size(file, image_size)
             videos = file["rgbd"].shape[0]
@@ -291,7 +247,7 @@ class ShardedFrames:
                              max_videos=max_videos)
         self.shards, self.bounds, self.per_shard = owned.shards, owned.bounds, owned.per_shard
         self.data = load_slice(path, owned.start, owned.stop)
-        self.latent_dim, self.seed, self.cut_share = latent_dim, seed, cut_share
+        self.latent_dim, self.seed = latent_dim, seed
         self.frames = self.data.rgbd.shape[1]
         self.airborne = airborne_frames_of(path, owned, airborne_share)
 
@@ -301,9 +257,8 @@ class ShardedFrames:
         video -= self.data.start
         blank_noise = np.random.default_rng([self.seed, step, BLANK_SEED]).standard_normal(
             (1, self.latent_dim), dtype=np.float32)
-        cuts = partial(self.cuts, step) if self.cut_share else None
         return perception_batch(self.data.rgbd[video, frame], self.data.ids[video, frame], self.slots,
-                                noise, blank_noise, cuts)
+                                noise, blank_noise)
 
     def picks(self, step: int) -> tuple[np.ndarray, np.ndarray]:
         """The file rows and frames of the local part of `step`'s batch, in batch order."""
@@ -323,11 +278,3 @@ class ShardedFrames:
                                           np.concatenate([frames[-1], lifted[:, 1]]))
             noises.append(rng.standard_normal((self.per_shard, self.slots + 1, self.latent_dim), dtype=np.float32))
         return np.concatenate(videos), np.concatenate(frames), np.concatenate(noises)
-
-    def cuts(self, step: int, object_frame: Tensor) -> np.ndarray:
-        """The cut plan of a step's objects, drawn shard by shard (the objects come in frame order,
-        and each shard gives per_shard frames), so it too does not depend on the process count."""
-        shard_of = object_frame.cpu().numpy() // self.per_shard
-        return np.concatenate([cut_plan(np.random.default_rng([self.seed, step, CUT_SEED, shard]),
-                                        int((shard_of == index).sum()), self.cut_share)
-                               for index, shard in enumerate(self.shards)])

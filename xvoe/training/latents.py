@@ -123,16 +123,6 @@ def encode_means(model, rgbd: np.ndarray, ids: np.ndarray, slots: int) -> tuple[
     return np.stack([e["mean"] for e in encoded]), np.stack([e["pixels"] for e in encoded])
 
 
-def picture_weights(model, mean: torch.Tensor, visible: torch.Tensor, objects: int = 256,
-                    seed: int = 0) -> torch.Tensor:
-    """How much each latent moves the decoded picture (`ComponentVAE.latent_sensitivity`),
-    averaged over `objects` visible entries drawn (seeded) from cached means (N,T,K,D) with
-    visibility (N,T,K): a squared error in latents times these weighs as one in pixels."""
-    seen = mean[visible.bool()]
-    chosen = torch.randperm(len(seen), generator=torch.Generator().manual_seed(seed))[:objects]
-    return model.latent_sensitivity(seen[chosen].to(model.theta.device)).cpu()
-
-
 def encode_split(model_ref: str | os.PathLike, data: str | os.PathLike, out: str | os.PathLike, *,
                  videos_per_batch: int = 16, overwrite: bool = False, progress: bool = True,
                  device: str | torch.device | None = None) -> Path:

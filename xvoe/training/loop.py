@@ -34,7 +34,41 @@ from ..errors import XvoeError
 from ..models.config import override, to_dict
 from ..outputs import claim_directory
 from .checkpoints import CHECKPOINT_FORMAT, load_checkpoint, save_checkpoint
-from .recipes import TrainConfig
+
+
+@dataclass(frozen=True)
+class TrainConfig:
+    """One training run of one stage: the shared loop reads only these fields."""
+
+    steps: int = 6000
+    batch_size: int = 32            # frames per step, summed over all processes
+    lr: float = 1e-3
+    warmup_steps: int = 200         # linear warm-up of the learning rate
+    decay_steps: int = 5000         # the learning rate halves every decay_steps after warm-up
+    grad_clip: float = 0.0          # clip the gradient norm to this (0 = no clipping)
+    # the checkpoint's weights are a moving average of the trained ones, each step's weighed this
+    # much less than the next one's (0 = the last step's weights); training resumes from the trained ones
+    average_decay: float = 0.0
+    seed: int = 0
+    checkpoint_minutes: float = 3.0  # a checkpoint is written at least this often
+    log_every: int = 10             # steps between rows of the loss CSV
+    max_minutes: float = 0.0        # stop early after this much training time (0 = no limit)
+    max_videos: int = 0             # videos of the data file to load (0 = all)
+    data_shards: int = 0            # slices of the file that each feed batch_size/data_shards frames
+                                    # per step; 0 = the number of processes of the first launch
+    threads: int = 0                # torch threads per process (0 = cores / processes)
+    # this share of each batch comes from the training videos of `focus_group` that have a wall
+    # (e.g. permanence, where cubes must be remembered behind it; several: permanence,continuity);
+    # 0 = uniform. PhyDNet, and the XPL, PLATO and proposal stages (through the split file the latent cache
+    # was encoded from)
+    focus_group: str = ""
+    focus_share: float = 0.0
+    # the perception stage alone: this share of each batch's frames shows a ball or cube off the
+    # floor (0 = frames drawn uniformly)
+    airborne_share: float = 0.0
+    # the PhyDNet stage alone: at the start of this phase its ConvLSTM gates widen to this size,
+    # the trained taps in the centre (0 = as they are)
+    lstm_kernel: int = 0
 
 
 @dataclass
@@ -200,7 +234,7 @@ class _Meter:
 
 
 # the stages whose batches are not videos drawn by group, and what they draw instead
-UNFOCUSED = {"perception": "single frames", "trajectory": "its videos uniformly"}
+UNFOCUSED = {"perception": "single frames"}
 
 
 def fit(job: Job, config: TrainConfig, run_dir: str | os.PathLike, *, place: Dist | None = None,

@@ -12,8 +12,8 @@ from ..models.config import from_dict, override, override_resumed, to_dict
 from ..models.perception import ComponentVAE, PerceptionConfig
 from .checkpoints import load_checkpoint, resolve_run
 from .data import ShardedFrames
-from .loop import Job, checkpoint_path, fit, setup_distributed, start_process
-from .recipes import DEFAULT_RECIPE, TrainConfig, recipe, recipe_of
+from .loop import Job, TrainConfig, checkpoint_path, fit, setup_distributed, start_process
+from .recipes import DEFAULT_RECIPE, recipe, recipe_of
 
 
 def load_perception(model: str | os.PathLike, device: str | torch.device = "cpu"):
@@ -62,7 +62,7 @@ def train_perception(data: str | os.PathLike | None, run_dir: str | os.PathLike,
     frames = ShardedFrames(str(data), image_size=model_config.image_size, latent_dim=model_config.latent_dim,
                            batch_size=config.batch_size, shards=config.data_shards, rank=place.rank,
                            world=place.world, max_videos=config.max_videos, seed=config.seed,
-                           cut_share=model_config.cut_share, airborne_share=config.airborne_share)
+                           airborne_share=config.airborne_share)
     job = Job("perception", model, frames.batch, {"recipe": recipe_name, "perception": to_dict(model_config)},
               items=lambda batch: batch.images, meta={"data": str(Path(data).resolve())})
     return fit(job, config, run_dir, place=place, resume=resume, overwrite=overwrite, progress=progress)

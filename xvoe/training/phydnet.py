@@ -22,8 +22,8 @@ from ..models.config import from_dict, override, override_resumed, to_dict
 from ..models.phydnet import PhyDNet, PhyDNetConfig, PhyDNetObjective, widen_lstm_kernel
 from .checkpoints import load_checkpoint, resolve_run, save_checkpoint
 from .data import check_size, focus_on, owned_shards
-from .loop import Dist, Job, checkpoint_path, fit, setup_distributed, start_process
-from .recipes import DEFAULT_RECIPE, TrainConfig, recipe, recipe_of
+from .loop import Dist, Job, TrainConfig, checkpoint_path, fit, setup_distributed, start_process
+from .recipes import DEFAULT_RECIPE, recipe, recipe_of
 
 STAGE = "phydnet"
 LOSS_FIELDS = ("change_weight", "moment_weight")   # PhyDNetConfig fields a resumed run may change

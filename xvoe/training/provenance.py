@@ -1,43 +1,39 @@
 """Whether a checkpoint is what its recipe makes: the stored configs against the recipe's.
 
-A checkpoint names its recipe; its network config and its last training config must be the
-ones the recipe gives its stage, so that `xvoe pipeline --recipe NAME --seed S` makes it
-again from nothing. What the data decide (the frames, slots and latent size a cache has,
-the latent weights measured on it) and what a run decides (its seed, data shards and
-threads) are taken from the checkpoint.
+A checkpoint names its recipe; its network config, its last training config and (for xpl.pt)
+its NLL settings must be the ones the recipe gives its stage, so that `xvoe pipeline --recipe
+NAME --seed S` makes it again from nothing. What the data decide (the frames, slots and latent
+size a cache has) and what a run decides (its seed, data shards and threads) are taken from the
+checkpoint.
 """
 from __future__ import annotations
 
-from dataclasses import replace
-
 from ..models.config import from_dict, to_dict
-from ..models.perception import PerceptionConfig
-from ..models.phydnet import PhyDNetConfig
 from ..models.xpl import XPLConfig
-from .recipes import TrainConfig, recipe, recipe_of
-from .xpl import stage_config
+from .loop import TrainConfig
+from .recipes import recipe, recipe_of
+from .stages import stage
+from .xpl import nll_settings_of, stage_config
 
 RUN_FIELDS = ("seed", "data_shards", "threads")
-XPL_STAGES = {"xpl": ("xpl", True), "xpl-noresidual": ("xpl", False), "plato": ("plato", True),
-              "proposal": ("xpl", True)}
 
 
 def expected_configs(state: dict) -> tuple[dict, dict]:
     """The stored config and training config the checkpoint's recipe gives its stage."""
-    stage, config = state["stage"], state["config"]
+    entry, config = stage(state["stage"]), state["config"]
     chosen = recipe(recipe_of(config))
-    if stage == "perception":
+    if entry.config_key == "perception":
         model = {"perception": to_dict(chosen.perception)}
-    elif stage == "phydnet":
+    elif entry.config_key == "phydnet":
         model = {"phydnet": to_dict(chosen.final_phydnet())}
     else:
         stored = from_dict(XPLConfig, config["xpl"])
-        kind, residual = XPL_STAGES[stage]
         shape = (stored.reasoning.frames, stored.reasoning.slots, stored.reasoning.latent_dim)
-        fitted = stage_config(chosen.xpl, kind, residual, True, shape)
-        model = {"xpl": to_dict(replace(fitted, latent_weights=stored.latent_weights))}
+        model = {"xpl": to_dict(stage_config(chosen.xpl, entry.name, True, shape))}
+        if entry.name == "xpl":
+            model["nll"] = to_dict(chosen.nll)
     model["recipe"] = chosen.name
-    train = to_dict(chosen.final_training(stage)) | {k: state["train"][k] for k in RUN_FIELDS}
+    train = to_dict(chosen.final_training(entry.name)) | {k: state["train"][k] for k in RUN_FIELDS}
     return model, train
 
 
@@ -47,9 +43,10 @@ def recipe_differences(state: dict) -> list[str]:
     model, train = expected_configs(state)
     config = state["config"]
     stored = {"recipe": recipe_of(config)}      # read as the loaders read it: a field added since takes its default
-    for key, cls in (("perception", PerceptionConfig), ("phydnet", PhyDNetConfig), ("xpl", XPLConfig)):
-        if key in config:
-            stored[key] = to_dict(from_dict(cls, config[key]))
+    entry = stage(state["stage"])
+    stored[entry.config_key] = to_dict(from_dict(entry.config, config[entry.config_key]))
+    if entry.name == "xpl":
+        stored["nll"] = to_dict(nll_settings_of(config))
     lines = _differences(stored, model, "") + _differences(to_dict(from_dict(TrainConfig, state["train"])), train,
                                                           "train.")
     if "step" in state and state["step"] != train["steps"]:     # a run stopped, or still going, inside its last phase

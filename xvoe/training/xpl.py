@@ -22,20 +22,22 @@ import torch
 from torch import Tensor, nn
 
 from ..benchmark import store
-from ..benchmark.scenes.behind import WALL_HALF_WIDTH, WALL_HEIGHT
-from ..benchmark.world import FLOOR, WORLD
+from ..benchmark.world import WORLD
 from ..errors import XvoeError
 from ..models.config import from_dict, override, override_resumed, to_dict
+from ..models.nll import InferenceConfig
 from ..models.reasoning import hide_slot
 from ..models.xpl import XPL, XPLConfig, permute_slots
 from .checkpoints import load_checkpoint, resolve_run
 from .data import focus_on, owned_shards
-from .latents import encode_split, open_latents, picture_weights
-from .loop import Job, checkpoint_path, fit, setup_distributed, start_process
-from .perception import load_perception
-from .recipes import DEFAULT_RECIPE, PROPOSAL_FIELDS, TrainConfig, recipe, recipe_of
+from .latents import encode_split, open_latents
+from .loop import Job, TrainConfig, checkpoint_path, fit, setup_distributed, start_process
+from .recipes import DEFAULT_RECIPE, recipe, recipe_of
+from .stages import STAGES
 
-STAGES = ("xpl", "plato")
+# the stages this module trains from the latent cache alone (the proposal stage builds on xpl.pt)
+TRAINED_ON_LATENTS = tuple(name for name, entry in STAGES.items() if entry.variant and entry.reads == "latents")
+
 PROPOSAL_OBJECT_SHARE = 0.5   # the proposal stage rebuilds a seen object this often (else any slot); as
                               # in the joint stage: more, and Transformer 2 fills empty slots with objects
 PROPOSAL_BETA = 0.5   # the proposal stage's loss is the beta-NLL: with the plain NLL a hard latent's scale
@@ -65,7 +67,7 @@ class LatentBatches:
 
     def __init__(self, path: str, *, batch_size: int, shards: int, rank: int = 0, world: int = 1,
                  max_videos: int = 0, seed: int = 0, object_share: float = 0.5, walls: bool = False,
-                 wall_refill: float = 0.0, outside: bool = False, focus_group: str = "", focus_share: float = 0.0):
+                 outside: bool = False, focus_group: str = "", focus_share: float = 0.0):
         with open_latents(path) as file:
             owned = owned_shards(path, file["mean"].shape[0], batch_size=batch_size, shards=shards, rank=rank,
                                  world=world, max_videos=max_videos)
@@ -75,10 +77,8 @@ class LatentBatches:
         self.focus = focus_on(split, owned, focus_group, focus_share)
         found = wall_slots(path, owned.start, owned.stop) if walls else None    # (read only when used)
         self.walls = torch.zeros_like(self.visible[:, 0]) if found is None else torch.from_numpy(found)
-        self.wall_refill = wall_refill
-        places, events = object_places(path, owned.start, owned.stop) if wall_refill or outside else (None, None)
+        places = object_places(path, owned.start, owned.stop) if outside else None
         self.outside = torch.from_numpy(outside_picture(places)) & ~self.visible if outside else None
-        self.places, self.events = (places, events) if wall_refill else (None, None)   # kept for behind_wall
         self.shards, self.bounds, self.per_shard = owned.shards, owned.bounds, owned.per_shard
         self.start, self.seed, self.object_share = owned.start, seed, object_share
         self.slots = self.mean.shape[2]
@@ -98,11 +98,7 @@ class LatentBatches:
             videos.append(video)
             orders.append(order)
             hidden.append(self.hidden_slots(rng, video, order))
-            spans = self.refill_spans(rng, len(video))
-            if self.wall_refill:
-                walled = rng.random(len(video)) < self.wall_refill
-                spans = np.where(walled[:, None, None], self.behind_wall(rng, video), spans)
-            refill.append(spans)
+            refill.append(self.refill_spans(rng, len(video)))
         return tuple(torch.from_numpy(np.concatenate(parts)) for parts in (videos, orders, hidden, refill))
 
     REFILL_SHARE = 0.5   # of the slots, this share has a span of frames hidden from Transformer 1
@@ -117,38 +113,6 @@ class LatentBatches:
         chosen = rng.random((videos, self.slots)) < self.REFILL_SHARE
         t = np.arange(frames)[None, :, None]
         return (t >= start[:, None]) & (t < (start + length)[:, None]) & chosen[:, None]
-
-    def behind_wall(self, rng: np.random.Generator, video: np.ndarray) -> np.ndarray:
-        """(B, T, K) bool in the original slot order: the seen entries a made-up wall would hide,
-        sized as the test walls, standing from frame 0 (half the time) or 1-3, and hiding its last
-        frame somewhere from T-6 to T-3 (the test walls are lifted from frame T-3). Where the video
-        has an event, 3 times in 4 the wall hides it as the test walls do: it stands about the
-        middle of a random object and the one nearest it at the event frame; otherwise about a
-        random object at a random frame. An object it would hide in every frame in which it is
-        seen is left out, so that Transformer 1 still sees it somewhere."""
-        places, visible = self.places[video], self.visible[video].numpy()
-        batch, frames = places.shape[:2]
-        movable = visible.any(axis=1) & ~self.walls[video].numpy()                   # (B, K)
-        anchor = (rng.random(movable.shape) * movable).argmax(axis=1)
-        on_event = (self.events[video] >= 0) & (rng.random(batch) < 0.75)
-        at = np.where(on_event, self.events[video], rng.integers(0, frames, batch))
-        half_width, height = rng.uniform(*WALL_HALF_WIDTH, batch), rng.uniform(*WALL_HEIGHT, batch)
-        rows = np.arange(batch)
-        x_then = places[rows, at, :, 0]                                                # (B, K)
-        gap = np.where(movable, np.abs(x_then - x_then[rows, anchor][:, None]), np.inf)
-        gap[rows, anchor] = np.inf
-        nearest = np.where(np.isfinite(gap.min(axis=1)), gap.argmin(axis=1), anchor)
-        centre = np.where(on_event, (x_then[rows, anchor] + x_then[rows, nearest]) / 2, x_then[rows, anchor])
-        centre = centre + rng.uniform(-0.5, 0.5, batch) * half_width * np.where(on_event, 0.5, 1.0)
-        start = np.where(rng.random(batch) < 0.5, 0, rng.integers(1, 4, batch))
-        stop = rng.integers(frames - 5, frames - 1, batch)
-        x, y, size = (places[..., i] for i in range(3))
-        behind = ((np.abs(x - centre[:, None, None]) <= half_width[:, None, None] - size)
-                  & (y + size <= FLOOR + height[:, None, None]))
-        t = np.arange(frames)[None, :, None]
-        standing = (t >= start[:, None, None]) & (t < stop[:, None, None])
-        hidden = behind & standing & visible & movable[:, None, :]
-        return hidden & (visible & ~hidden).any(axis=1)[:, None, :]
 
     def hidden_slots(self, rng: np.random.Generator, video: np.ndarray, order: np.ndarray) -> np.ndarray:
         """The slot (in the permuted order) Transformer 2 must rebuild in each video.
@@ -167,25 +131,26 @@ class LatentBatches:
         return inverse[np.arange(len(video)), original]
 
 
-def stage_config(base: XPLConfig, stage: str, residual: bool, stop_gradient: bool, shape: tuple) -> XPLConfig:
+def stage_config(base: XPLConfig, name: str, stop_gradient: bool, shape: tuple) -> XPLConfig:
     """The recipe's XPL config fitted to the cache's (T, K, D) and to the stage's variant."""
     frames, slots, dim = shape
+    entry = STAGES[name]
     reasoning = replace(base.reasoning, latent_dim=dim, slots=slots, frames=max(frames, base.reasoning.frames))
-    dynamics = replace(base.dynamics, latent_dim=dim, residual=residual and stage == "xpl")
-    return replace(base, reasoning=reasoning, dynamics=dynamics, use_reasoning=stage == "xpl",
+    dynamics = replace(base.dynamics, latent_dim=dim, residual=entry.residual and entry.variant == "xpl")
+    return replace(base, reasoning=reasoning, dynamics=dynamics, use_reasoning=entry.variant == "xpl",
                    stop_target_gradient=stop_gradient)
 
 
 def train_xpl(latents: str | os.PathLike | None, run_dir: str | os.PathLike, *, stage: str = "xpl",
-              recipe_name: str = DEFAULT_RECIPE, residual: bool = True, stop_gradient: bool = True,
+              recipe_name: str = DEFAULT_RECIPE, stop_gradient: bool = True,
               resume: bool = False, overwrite: bool = False, progress: bool = True, model_overrides: dict | None = None,
               **train_overrides: Any) -> Path:
-    """What `xvoe train xpl|plato` does (also under torchrun). The checkpoint is RUN_DIR/STAGE.pt,
-    or xpl-noresidual.pt for the ablation. `model_overrides` change XPLConfig fields of a fresh
-    run (dotted names reach nested configs); a resumed run keeps its network."""
-    if stage not in STAGES:
-        raise XvoeError(f"stage must be one of {STAGES}, not {stage!r}")
-    name = stage if residual or stage == "plato" else "xpl-noresidual"
+    """What `xvoe train xpl|plato|xpl-noresidual` does (also under torchrun), into RUN_DIR/STAGE.pt.
+    `model_overrides` change XPLConfig fields of a fresh run (dotted names reach nested
+    configs); a resumed run keeps its network."""
+    if stage not in TRAINED_ON_LATENTS:
+        raise XvoeError(f"stage must be one of {', '.join(TRAINED_ON_LATENTS)}, not {stage!r}")
+    name = stage
     place = setup_distributed()
     run_dir = Path(run_dir)
     ckpt = checkpoint_path(run_dir, name)
@@ -203,42 +168,32 @@ def train_xpl(latents: str | os.PathLike | None, run_dir: str | os.PathLike, *, 
             shape = file["mean"].shape[1:]
             if file.attrs.get("source_split") == "test":
                 raise XvoeError(f"{latents} was encoded from a test split; training on impossible events is refused")
-        model_config = override(stage_config(chosen.xpl, stage, residual, stop_gradient, shape),
+        model_config = override(stage_config(chosen.xpl, stage, stop_gradient, shape),
                                 **(model_overrides or {}))
-        if model_config.weigh_by_picture and not model_config.latent_weights:
-            model_config = replace(model_config, latent_weights=cache_picture_weights(latents))
         config = chosen.training(stage)
     config = override(config, **train_overrides)
     config = start_process(config, place)
-    needs_walls = model_config.inert_walls or model_config.wall_refill > 0 or model_config.refill_ignores_walls
+    needs_walls = model_config.inert_walls or model_config.refill_ignores_walls
     batches = LatentBatches(str(latents), batch_size=config.batch_size, shards=config.data_shards, rank=place.rank,
                             world=place.world, max_videos=config.max_videos, seed=config.seed, walls=needs_walls,
-                            wall_refill=model_config.wall_refill, outside=model_config.outside_refill,
+                            outside=model_config.outside_refill,
                             focus_group=config.focus_group, focus_share=config.focus_share)
     model = XPL(model_config)
     if model_config.use_reasoning and not model_config.joint_proposal:
         # trained by the proposal stage; frozen here, so that DistributedDataParallel expects no gradient
         for part in (model.transformer2, model.existence):
             part.requires_grad_(False)
-    job = Job(name, model, batches.batch, {"recipe": recipe_name, "xpl": to_dict(model_config)},
+    stored = {"recipe": recipe_name, "xpl": to_dict(model_config)}
+    if name == "xpl":       # the model the NLL surprise runs on keeps its recipe's settings of it
+        stored["nll"] = to_dict(nll_settings_of(state["config"]) if resume and ckpt.exists() else chosen.nll)
+    job = Job(name, model, batches.batch, stored,
               meta={"latents": str(Path(latents).resolve())})
     return fit(job, config, run_dir, place=place, resume=resume, overwrite=overwrite, progress=progress)
 
 
-def cache_picture_weights(latents: str | os.PathLike, videos: int = 200) -> tuple[float, ...]:
-    """XPLConfig.latent_weights for a latent cache: each latent's picture sensitivity under the
-    perception module that made the cache (recorded in it), over their mean."""
-    with open_latents(latents) as file:
-        source = file.attrs.get("perception_checkpoint")
-        if source is None:
-            raise XvoeError(f"{latents} does not say which perception module made it, and weigh_by_picture "
-                            "needs it; encode the split with `xvoe encode`")
-        mean, visible = torch.tensor(file["mean"][:videos]), torch.tensor(file["visible"][:videos])
-    if not Path(source).is_file():
-        raise XvoeError(f"{latents} was made by {source}, which is gone; the latent weights need it")
-    model, _ = load_perception(source)
-    sensitivity = picture_weights(model, mean, visible)
-    return tuple(round(float(w), 6) for w in sensitivity / sensitivity.mean())
+def nll_settings_of(config: dict) -> InferenceConfig:
+    """The NLL settings an xpl checkpoint's config stores; its recipe's where it stores none."""
+    return from_dict(InferenceConfig, config["nll"]) if "nll" in config else recipe(recipe_of(config)).nll
 
 
 def latent_cache_for(data: str | os.PathLike, run_dir: str | os.PathLike, perception: str | None = None,
@@ -402,18 +357,16 @@ def wall_slots(latents: str, start: int, stop: int) -> np.ndarray | None:
         return store.wall_mask(file, start, stop)
 
 
-def object_places(latents: str, start: int, stop: int) -> tuple[np.ndarray, np.ndarray]:
-    """(N, T, K, 3) float32: each slot's centre x, y (up) and size (radius or half side) in world units, per frame, and
-    (N,) the event frame (-1 if none), from the split file the cache was encoded from."""
-    with store.open_dataset(source_split(latents, "wall_refill")) as file:
+def object_places(latents: str, start: int, stop: int) -> np.ndarray:
+    """(N, T, K, 3) float32: each slot's centre x, y (up) and size (radius or half side) in world units,
+    per frame, from the split file the cache was encoded from."""
+    with store.open_dataset(source_split(latents, "outside_refill")) as file:
         columns = list(file["states"].attrs["state_columns"])
         states = file["states"][start:stop][..., [columns.index(c) for c in ("x", "y", "size")]]
         scale = WORLD / file["rgbd"].shape[2]
-        events = (file["event_frame"][start:stop].astype(np.int64) if "event_frame" in file
-                  else np.full(stop - start, -1, np.int64))
     states = states * scale
     states[..., 1] = WORLD - states[..., 1]
-    return states.astype(np.float32), events
+    return states.astype(np.float32)
 
 
 def outside_picture(places: np.ndarray) -> np.ndarray:
@@ -457,7 +410,7 @@ def train_proposal(run_dir: str | os.PathLike, latents: str | os.PathLike | None
     frame of the training videos (the simulator's trajectories, encoded), into
     RUN_DIR/proposal.pt. In the joint stage they get one step in each of the XPL's few steps
     and a hidden object is a rare draw; the explanation and the NLL's proposal need more.
-    `model_overrides` may change how Transformer 2 is used (PROPOSAL_FIELDS), not its network.
+    The network is the xpl.pt's: `model_overrides` that change it are refused.
     Also under torchrun (or `launch.on_cores`), as the XPL stage."""
     run_dir = Path(run_dir)
     place = setup_distributed()
@@ -470,7 +423,7 @@ def train_proposal(run_dir: str | os.PathLike, latents: str | os.PathLike | None
         xpl.config = from_dict(XPLConfig, state["config"]["xpl"])
     else:
         config = recipe(recipe_name).proposal_train
-    xpl.config = override_resumed(xpl.config, model_overrides, PROPOSAL_FIELDS, "proposal run")
+    xpl.config = override_resumed(xpl.config, model_overrides, what="proposal run")
     config = start_process(override(config, **train_overrides), place)
     latents = latents or xpl_state["meta"]["latents"]
     batches = ProposalBatches(str(latents), batch_size=config.batch_size, shards=config.data_shards, rank=place.rank,
@@ -500,7 +453,7 @@ def load_xpl(model: str | os.PathLike, stage: str = "xpl", device: str | torch.d
     attached apart (`xvoe.training.trajectory.with_trajectory`)."""
     path = resolve_run(model, stage)
     state = load_checkpoint(path)
-    if state["stage"] not in ("xpl", "plato", "xpl-noresidual"):
+    if state["stage"] not in TRAINED_ON_LATENTS:
         raise XvoeError(f"{path} is a {state['stage']} checkpoint, not an XPL one")
     xpl = XPL(from_dict(XPLConfig, state["config"]["xpl"]))
     xpl.load_state_dict(state["model"])

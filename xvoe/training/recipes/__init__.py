@@ -7,15 +7,12 @@ that the shipped checkpoints' configs are their recipe's.
 from __future__ import annotations
 
 from ...errors import XvoeError
-from . import cpu, cpu_line, cpu_short, cpu_walls, paper
-from .recipe import MODEL_CONFIGS, PROPOSAL_FIELDS, Recipe, TrainConfig, stage_settings
+from . import cpu_short, paper
+from .recipe import Recipe, stage_settings
 
-RECIPES: dict[str, Recipe] = {r.name: r for r in (cpu.RECIPE, cpu_walls.RECIPE, cpu_short.RECIPE, cpu_line.RECIPE,
-                                                  paper.RECIPE)}
+RECIPES: dict[str, Recipe] = {r.name: r for r in (cpu_short.RECIPE, paper.RECIPE)}
 # what `xvoe pipeline` runs and the shipped models come from (docs/decisions.md, "The default recipe")
 DEFAULT_RECIPE = "cpu-short"
-# checkpoints written before recipes named their preset; `cpu-broadcast` is today's `cpu`
-RENAMED = {"cpu-broadcast": "cpu"}
 
 
 def recipe(name: str) -> Recipe:
@@ -26,11 +23,8 @@ def recipe(name: str) -> Recipe:
 
 
 def recipe_of(config: dict) -> str:
-    """The recipe a checkpoint's config names (older checkpoints: the preset, renamed)."""
-    if "recipe" in config:
-        return config["recipe"]
-    return RENAMED.get(config["preset"], config["preset"])
+    """The recipe a checkpoint's config names."""
+    return config["recipe"]
 
 
-__all__ = ["DEFAULT_RECIPE", "MODEL_CONFIGS", "PROPOSAL_FIELDS", "RECIPES", "Recipe", "TrainConfig", "recipe",
-           "recipe_of", "stage_settings"]
+__all__ = ["DEFAULT_RECIPE", "RECIPES", "Recipe", "recipe", "recipe_of", "stage_settings"]

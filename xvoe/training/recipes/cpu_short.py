@@ -1,27 +1,64 @@
-"""The default recipe: `cpu-walls` inside the pipeline's 30 minutes on 2 cores.
+"""The default recipe, the shipped models' (docs/models.md): 32x32 frames on a 2-core CPU.
 
-Transformer 2 is left to the proposal stage (the joint step costs a third less), the
-perception and XPL stages are shorter, and the XPL and proposal stages keep a moving average
-of their weights, so that a shorter run does not end on a noisy last step; a quarter of the
-perception's frames show an object in the air, and the proposal stage draws half its batches
-from blocking videos. The shipped models come from its seed 0 (docs/decisions.md, "The default
-recipe"; docs/models.md).
+A small CNN encoder and a light decoder; walls inert in the dynamics and unread by
+Transformer 1, whose fills learn from rebuilding seen spans and objects outside the picture;
+Transformer 2 trained in a stage of its own; moving averages of the XPL and proposal weights;
+PLATO and PhyDNet trained longer, then with a share of each batch from the scenarios they
+were weakest in (docs/decisions.md, "The default recipe").
 """
 from dataclasses import replace
 
-from . import cpu_walls
+from ...models.perception import PerceptionConfig
+from ...models.phydnet import PhyDNetConfig
+from ...models.xpl import XPLConfig
+from ..loop import TrainConfig
+from .recipe import Recipe
 
-WALLS = cpu_walls.RECIPE
+# two fixed data shards: a stage's batches are then the same on one core, two or four
+# (docs/decisions.md, "Batches that do not depend on the cores")
+SHARDS = 2
+PLATO = TrainConfig(steps=60_000, batch_size=32, warmup_steps=100, decay_steps=15_000, data_shards=SHARDS)
+PHYDNET = TrainConfig(steps=9_000, batch_size=8, lr=2e-3, warmup_steps=100, decay_steps=2_500, data_shards=1)
+LATER = replace(PHYDNET, decay_steps=10_000)      # the later phases' rates halve every 10,000 steps
 
-RECIPE = replace(
-    WALLS, name="cpu-short",
-    # a quarter of each perception batch shows a ball or cube off the floor: a few percent of all
-    # frames otherwise, and falling cubes were encoded as nothing (docs/decisions.md, "Frames of
+
+def phydnet_phase(steps: int, lr: float, focus: str, share: float, **changes) -> tuple[str, TrainConfig]:
+    return "phydnet", replace(LATER, steps=steps, lr=lr, focus_group=focus, focus_share=share, **changes)
+
+
+RECIPE = Recipe(
+    name="cpu-short",
+    train_videos=10_000,
+    perception=PerceptionConfig(),
+    # a quarter of each batch shows a ball or cube off the floor (docs/decisions.md, "Frames of
     # objects in the air")
-    perception_train=replace(WALLS.perception_train, steps=4_000, decay_steps=3_333, airborne_share=0.25),
-    xpl=replace(WALLS.xpl, joint_proposal=False),
-    xpl_train=replace(WALLS.xpl_train, steps=9_000, decay_steps=6_000, average_decay=0.999),
-    # half of each proposal batch from blocking videos with a wall: there a hidden cube's place shows
-    # in the ball's path; most hidden objects elsewhere leave no trace to learn from
-    proposal_train=replace(WALLS.proposal_train, average_decay=0.999, focus_group="blocking", focus_share=0.5),
+    perception_train=TrainConfig(steps=4_000, decay_steps=3_333, airborne_share=0.25, data_shards=1),
+    xpl=XPLConfig(inert_walls=True, stop_input_gradient=True, outside_refill=True, refill_ignores_walls=True,
+                  joint_proposal=False),
+    xpl_train=TrainConfig(steps=9_000, batch_size=32, warmup_steps=100, decay_steps=6_000, average_decay=0.999,
+                          data_shards=SHARDS),
+    # half of each batch from blocking videos with a wall, where a hidden cube's place shows in the
+    # ball's path
+    proposal_train=TrainConfig(steps=4_000, batch_size=32, warmup_steps=100, decay_steps=1_500,
+                               average_decay=0.999, focus_group="blocking", focus_share=0.5, data_shards=SHARDS),
+    plato_train=PLATO,
+    # changing pixels weigh more in the training loss; 3x3 gates, widened to 5x5 in a later phase
+    # (docs/decisions.md, "PhyDNet's loss weight on changing pixels", "PhyDNet's ConvLSTM kernel")
+    phydnet=PhyDNetConfig(change_weight=20.0, lstm_kernel=3),
+    phydnet_train=PHYDNET,
+    # the scenarios each baseline was weakest in, a share of every batch (docs/decisions.md,
+    # "The baselines' later phases")
+    phases=(
+        ("plato", replace(PLATO, steps=75_000, focus_group="continuity", focus_share=0.5)),
+        phydnet_phase(10_000, 5.6e-4, "permanence", 0.5),
+        phydnet_phase(13_000, 1.1e-3, "permanence", 0.75),
+        phydnet_phase(15_000, 5.5e-4, "permanence", 0.5),
+        phydnet_phase(17_000, 5.5e-4, "permanence", 0.75),
+        phydnet_phase(19_500, 1.8e-3, "permanence", 0.75, lstm_kernel=5),
+        phydnet_phase(20_000, 9e-4, "permanence", 0.75),
+        phydnet_phase(20_500, 9e-4, "permanence", 0.5),
+        phydnet_phase(22_000, 4.5e-4, "permanence,continuity", 0.75),
+        phydnet_phase(25_000, 4.5e-4, "blocking,permanence", 0.5),
+        phydnet_phase(28_000, 4.5e-4, "permanence", 0.5),
+    ),
 )

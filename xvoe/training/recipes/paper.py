@@ -4,7 +4,8 @@ from ...models.perception import PerceptionConfig
 from ...models.phydnet import PhyDNetConfig
 from ...models.reasoning import ReasoningConfig
 from ...models.xpl import XPLConfig
-from .recipe import Recipe, TrainConfig
+from ..loop import TrainConfig
+from .recipe import Recipe
 
 RECIPE = Recipe(
     name="paper",
