@@ -1,26 +1,15 @@
-"""How good are the model's explanations? What the paper only shows in pictures, measured.
+"""How good are the model's explanations? xvoe.evaluation.explanation_quality's measures, printed.
 
     python benchmarks/explanation.py --model RUN_DIR --data test.h5 [--pairs 100] [--figure fig5b.png]
+                                     [--fills-figure fills.png] [--fills-video N]
 
-(a) hidden_iou: blocking S2 member 0 holds a cube that is visible in no frame; the IoU of the
-    decoded explanation (Transformer 2's never-seen slot) with the cube's true silhouette,
-    rasterised from the saved states, frame by frame.
-(b) mae_iou: on expected S1 videos, each ball or cube dropped from the input in all frames in
-    turn (its slot emptied, as the proposal stage trains: Transformer 1 sees no trace of it);
-    the IoU of Transformer 2's reconstruction with its silhouette.
-(c) dyn_mse: the dynamics' one-step pixel error (mean squared error per pixel, [-1, 1] units)
-    of the composite of predicted latents against the observed frame, expected S1 videos; and
-    its RMS error per latent (the NLL model's motion_sigma stands for it).
-Also the paper's Fig. 5b: the spread of the first ten principal components of the dynamics
-targets with the residual (z(t+1) - z(t)) and without it (z(t+1)).
-(d) fill_iou: permanence S1 expected videos, Transformer 1's fills of the cubes a wall hides
-    after they were seen, against their true silhouettes (and the centre's offset, also at the
-    frame before the wall is lifted: what the MSE score's dynamics term pays at the reveal), and the
-    IoU by frames before each cube is seen again.
-Also the share of those videos in which the MSE score with `--explanation better` keeps the
-proposal (it explains the video better than nothing hidden: what `xvoe explain` then draws),
-why hidden_iou falls short (the decoded centre's offset, area and empty frames) and its ceiling:
-the IoU of a wholly visible cube's own latent, decoded (blocking S1).
+hidden_iou (blocking S2's never-seen cube) and why it falls short, and its ceiling (a wholly
+visible cube's own latent, decoded); the share of those videos in which the MSE score with
+`--explanation better` keeps the proposal; mae_iou (expected S1 videos, each object dropped
+in turn); fill_iou (permanence S1: Transformer 1's fills of cubes hidden after they were seen,
+by frames before the reveal); the dynamics' one-step error; and the paper's Fig. 5b (the
+spread of the first ten principal components of the dynamics targets with and without the
+residual).
 Last line: hidden_iou=0.NN mae_iou=0.NN fill_iou=0.NN dyn_mse=...
 """
 from __future__ import annotations
@@ -33,136 +22,20 @@ import matplotlib.pyplot as plt
 import numpy as np
 import torch
 
+import xvoe
 from xvoe.benchmark import store
-from xvoe.benchmark.videos import silhouette
-from xvoe.evaluation.explain import decoded_mask, iou
-from xvoe.evaluation.score import encode_videos, load_model
-from xvoe.evaluation.surprise import dynamics_composites, explained_latents, mse_surprise
-from xvoe.models.reasoning import hide_slot
-from xvoe.models.slots import composite, decode_slots, scene_layers
-
-
-def pick(file, scenario: str, setting: str, member: int, limit: int) -> list[int]:
-    chosen = (store.strings(file, "scenario") == scenario) & (store.strings(file, "setting") == setting)
-    return list(np.flatnonzero(chosen & (file["member"][:] == member))[:limit])
-
-
-def encode(scorer, file, index: int) -> dict:
-    return encode_videos(scorer, file, index, index + 1)
+from xvoe.evaluation import explanation_quality as quality
+from xvoe.evaluation.score import Scorer, encode_videos
+from xvoe.evaluation.surprise import dynamics_composites, explained_latents
+from xvoe.models.slots import composite, scene_layers
 
 
 @torch.no_grad()
-def hidden_explanations(scorer, file, videos: list[int], names: list[str], columns: list[str]) -> dict:
-    """The never-seen cube's explanation, frame by frame against its true silhouette: the IoU
-    (hidden_iou), and why it falls short: how far the decoded centre is from the cube's (pixels,
-    median over frames that draw something), how much of that lies along the ball's approach
-    (`away_px`, signed: > 0 farther from the ball than the cube), the decoded area over the true
-    one (median), the share of frames that draw nothing; and Transformer 1's fill of the ball in
-    the frames the wall hides it (`ball_fill_px`: its x less the true x, > 0 beyond it, median)."""
-    x = columns.index("x")
-    scores, offsets, away, areas, empty, ball_fill, kept = [], [], [], [], [], [], []
-    for index in videos:
-        kinds = [names[k] for k in file["kind"][index]]
-        states = file["states"][index]
-        hidden = [k for k, kind in enumerate(kinds) if kind == "cube"
-                  and states[:, k, columns.index("visible")].max() == 0]
-        if len(hidden) != 1:
-            continue
-        video = encode(scorer, file, index)
-        refined = scorer.xpl.refine(video["mean"], video["visible"], video["occluder"])
-        explained, _, slot = scorer.xpl.explain(refined, video["visible"])
-        kept.append(bool(mse_surprise(scorer.vae, scorer.xpl, video["frames"], video["mean"], video["visible"],
-                                      video["background"], video["occluder"], "better").explained_slot[0] >= 0))
-        if slot[0] < 0:
-            scores.append(0.0)
-            continue
-        masks = decoded_mask(scorer.vae.decode(explained[0, :, slot[0]]))
-        truth = silhouette(states[:, hidden[0]], columns, "cube", masks.shape[-1])
-        scores.append(np.mean([iou(m, g) for m, g in zip(masks, truth)]))
-        balls = [k for k, kind in enumerate(kinds) if kind == "ball"]
-        # +1 where the ball starts right of the cube: "away from the ball" is then -x
-        side = np.sign(states[0, balls[0], x] - states[0, hidden[0], x]) if balls else 0.0
-        for mask, true in zip(masks, truth):
-            empty.append(not mask.any())
-            if mask.any() and true.any():
-                (my, mx), (ty, tx) = np.argwhere(mask).mean(0), np.argwhere(true).mean(0)
-                offsets.append(np.hypot(my - ty, mx - tx))
-                away.append(-(mx - tx) * side)
-                areas.append(mask.sum() / true.sum())
-        if balls:
-            ball = balls[0]
-            drawn = decoded_mask(scorer.vae.decode(refined[0, :, ball]))
-            present = states[:, ball, columns.index("present")] > 0
-            for t in np.flatnonzero(~video["visible"][0, :, ball].numpy() & present):
-                if drawn[t].any():     # the centre's x in pixels; states hold x in pixels too
-                    ball_fill.append(-(np.argwhere(drawn[t]).mean(0)[1] + 0.5 - states[t, ball, x]) * side)
-
-    def median(values: list) -> float:
-        return float(np.median(values)) if values else float("nan")
-
-    return {"iou": float(np.mean(scores)), "per_video": scores, "centre_px": median(offsets),
-            "away_px": median(away), "area_ratio": median(areas), "empty_share": float(np.mean(empty)),
-            "ball_fill_px": median(ball_fill), "kept_share": float(np.mean(kept)),
-            "shown_iou": float(np.mean(np.where(kept, scores, 0.0)))}
-
-
-@torch.no_grad()
-def hidden_fills(scorer, file, videos: list[int], names: list[str], columns: list[str]) -> dict:
-    """Transformer 1's fills of the cubes a wall hides after they were seen (permanence S1,
-    expected member: they fall behind it, land, and are shown again), against their true
-    silhouettes in the hidden frames: the mean IoU, the decoded centre's offset (pixels,
-    median), the offset at the last hidden frame alone, the IoU by frames before the cube is
-    seen again, and the share of fills that draw more than three times the cube's area (a fill
-    that took on the wall's shape). The MSE score's dynamics term
-    compares the frame after it with the prediction from that fill: a fill that is off costs the
-    possible member at the reveal, and the impossible one, whose cube never shows again, does not
-    pay it."""
-    scores, offsets, before_reveal, oversized, worst = [], [], [], [], (0, -1)
-    by_distance: dict[int, list[float]] = {}    # frames before the cube is seen again: IoUs
-    for index in videos:
-        kinds = [names[k] for k in file["kind"][index]]
-        states = file["states"][index]
-        video = encode(scorer, file, index)
-        refined = scorer.xpl.refine(video["mean"], video["visible"], video["occluder"])
-        for k, kind in enumerate(kinds):
-            seen = video["visible"][0, :, k].numpy()
-            hidden = ~seen & (states[:, k, columns.index("present")] > 0)
-            if kind != "cube" or not seen.any():
-                continue
-            frames = [t for t in np.flatnonzero(hidden) if seen[:t].any()]     # hidden after it was seen
-            if not frames:
-                continue
-            masks = decoded_mask(scorer.vae.decode(refined[0, frames, k]))
-            truth = silhouette(states[frames, k], columns, "cube", masks.shape[-1])
-            scores += [iou(m, g) for m, g in zip(masks, truth)]
-            for t, mask, true in zip(frames, masks, truth):
-                again = np.flatnonzero(seen[t + 1:])
-                if len(again):
-                    by_distance.setdefault(int(again[0]) + 1, []).append(iou(mask, true))
-                if true.any():
-                    oversized.append(mask.sum() > 3 * true.sum())
-                    worst = max(worst, (mask.sum() / true.sum(), index))
-                if mask.any() and true.any():
-                    offset = float(np.hypot(*(np.argwhere(mask).mean(0) - np.argwhere(true).mean(0))))
-                    offsets.append(offset)
-                    if t + 1 < len(seen) and seen[t + 1]:
-                        before_reveal.append(offset)
-
-    def median(values: list) -> float:
-        return float(np.median(values)) if values else float("nan")
-
-    return {"iou": float(np.mean(scores)) if scores else float("nan"), "centre_px": median(offsets),
-            "before_reveal_px": median(before_reveal), "oversized_share": float(np.mean(oversized)),
-            "frames": len(scores), "largest": int(worst[1]),
-            "before_reveal_iou": {d: (float(np.mean(v)), len(v)) for d, v in sorted(by_distance.items())}}
-
-
-@torch.no_grad()
-def draw_fills(scorer, file, index: int, path: str, title: str) -> None:
+def draw_fills(scorer: Scorer, file, index: int, path: str, title: str) -> None:
     """A video's frames over the composite of its refined moving slots, each under a wall
     they stand behind drawn as in the MSE score's dynamics term (the wall left out), and the
     dynamics' prediction of it: where a fill took on a wall's shape, it shows."""
-    video = encode(scorer, file, index)
+    video = encode_videos(scorer, file, index, index + 1)
     refined, slot, occupied = explained_latents(scorer.xpl, video["mean"], video["visible"], video["occluder"])
     frames = video["frames"].shape[1]
     background = scorer.vae.decode(video["background"][0])[None]
@@ -184,79 +57,6 @@ def draw_fills(scorer, file, index: int, path: str, title: str) -> None:
     fig.savefig(path, dpi=60)
 
 
-@torch.no_grad()
-def perception_iou(scorer, file, videos: list[int], names: list[str], columns: list[str]) -> float:
-    """The ceiling of any explanation this perception decodes: the IoU of a wholly visible
-    cube's own encoded latent, decoded, with its silhouette (all such frames of the videos)."""
-    scores = []
-    for index in videos:
-        kinds = [names[k] for k in file["kind"][index]]
-        states = file["states"][index]
-        cubes = [k for k, kind in enumerate(kinds) if kind == "cube"]
-        if not cubes:
-            continue
-        video = encode(scorer, file, index)
-        for k in cubes:
-            frames = np.flatnonzero(states[:, k, columns.index("visible")] >= 0.999)
-            if len(frames):
-                masks = decoded_mask(scorer.vae.decode(video["mean"][0, frames, k]))
-                truth = silhouette(states[frames, k], columns, "cube", masks.shape[-1])
-                scores += [iou(m, g) for m, g in zip(masks, truth)]
-    return float(np.mean(scores))
-
-
-@torch.no_grad()
-def mae_iou(scorer, file, videos: list[int], names: list[str], columns: list[str]) -> list[float]:
-    """The IoU of each ball or cube rebuilt by Transformer 2 with its silhouette (mae_iou is their mean)."""
-    empty = scorer.vae.posterior(scorer.vae.blank())[0][0]      # the encoder's latent of a slot with no pixels
-    scores = []
-    for index in videos:
-        kinds = [names[k] for k in file["kind"][index]]
-        video, states = encode(scorer, file, index), file["states"][index]
-        for slot, kind in enumerate(kinds):
-            if kind not in ("ball", "cube"):
-                continue
-            visible, mean = video["visible"].clone(), video["mean"].clone()
-            visible[0, :, slot] = False
-            mean[0, :, slot] = empty
-            refined = scorer.xpl.refine(mean, visible, video["occluder"])
-            keep = scorer.xpl.proposal_keep(visible, ~hide_slot(visible.shape, torch.tensor([slot])))
-            rebuilt, _ = scorer.xpl.transformer2(refined, keep)
-            masks = decoded_mask(scorer.vae.decode(rebuilt[0, :, slot]))
-            truth = silhouette(states[:, slot], columns, kind, masks.shape[-1])
-            scores.append(np.mean([iou(m, g) for m, g in zip(masks, truth)]))
-    return scores
-
-
-@torch.no_grad()
-def dynamics_error(scorer, file, videos: list[int]) -> tuple[float, float, np.ndarray, np.ndarray]:
-    """One-step pixel error, the one-step RMS error per latent of the occupied slots (what the
-    NLL's motion_sigma stands for), and the dynamics targets with and without the residual."""
-    errors, latent_errors, residual_targets, direct_targets = [], [], [], []
-    for index in videos:
-        video = encode(scorer, file, index)
-        refined = scorer.xpl.refine(video["mean"], video["visible"], video["occluder"])
-        occupied = video["visible"].any(1)
-        predicted = scorer.xpl.predict(refined, video["occluder"])
-        background = scorer.vae.decode(video["background"][0])[None]
-        expected = composite(scorer.vae, background[:, 1:], decode_slots(scorer.vae, predicted, occupied), occupied)
-        errors.append(float((expected - video["frames"][:, 1:]).pow(2).mean()))
-        latent_errors.append((predicted - refined[:, 1:])[0][:, occupied[0]].pow(2).flatten().numpy())
-        present = occupied[0].numpy()
-        z = refined[0][:, present].numpy()                       # (T, objects, D)
-        residual_targets.append((z[1:] - z[:-1]).reshape(-1, z.shape[-1]))
-        direct_targets.append(z[1:].reshape(-1, z.shape[-1]))
-    latent_rms = float(np.sqrt(np.concatenate(latent_errors).mean()))
-    return float(np.mean(errors)), latent_rms, np.concatenate(residual_targets), np.concatenate(direct_targets)
-
-
-def principal_spread(targets: np.ndarray, components: int = 10) -> np.ndarray:
-    """Standard deviation along the first principal components."""
-    centred = targets - targets.mean(0)
-    values = np.linalg.svd(centred, compute_uv=False) / np.sqrt(len(targets) - 1)
-    return values[:components]
-
-
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--model", required=True, help="a run directory or an xpl checkpoint")
@@ -268,21 +68,19 @@ def main() -> None:
                         "is largest against its cube)")
     args = parser.parse_args()
     torch.set_num_threads(2)
-    scorer = load_model(args.model)
+    scorer = xvoe.load_model(args.model)
     start = time.perf_counter()
     with store.open_dataset(args.data) as file:
-        names, columns = list(file.attrs["kind_names"]), list(file["states"].attrs["state_columns"])
-        hidden = hidden_explanations(scorer, file, pick(file, "blocking", "S2", 0, args.pairs), names, columns)
-        ceiling = perception_iou(scorer, file, pick(file, "blocking", "S1", 0, args.pairs), names, columns)
-        expected = [i for scenario in ("collision", "blocking", "permanence", "continuity")
-                    for i in pick(file, scenario, "S1", 0, max(1, args.pairs // 4))]
-        mae = float(np.mean(mae_iou(scorer, file, expected, names, columns)))
-        fills = hidden_fills(scorer, file, pick(file, "permanence", "S1", 0, args.pairs), names, columns)
+        hidden = quality.hidden_explanations(scorer, file, quality.pick(file, "blocking", "S2", 0, args.pairs))
+        ceiling = quality.perception_iou(scorer, file, quality.pick(file, "blocking", "S1", 0, args.pairs))
+        expected = quality.expected_videos(file, args.pairs)
+        mae = float(np.mean(quality.mae_iou(scorer, file, expected)))
+        fills = quality.hidden_fills(scorer, file, quality.pick(file, "permanence", "S1", 0, args.pairs))
         if args.fills_figure:
             draw_fills(scorer, file, fills["largest"] if args.fills_video is None else args.fills_video,
                        args.fills_figure, Path(args.model).name)
-        dyn, latent_rms, residual, direct = dynamics_error(scorer, file, expected)
-    spread_residual, spread_direct = principal_spread(residual), principal_spread(direct)
+        dyn, latent_rms, residual, direct = quality.dynamics_error(scorer, file, expected)
+    spread_residual, spread_direct = quality.principal_spread(residual), quality.principal_spread(direct)
     print(f"videos: {args.pairs} blocking S2, {len(expected)} expected S1; {time.perf_counter() - start:.0f} s")
     print(f"dynamics' one-step RMS error per latent, occupied slots: {latent_rms:.3f}")
     print("PC spread (std) with residual:   ", " ".join(f"{v:.3f}" for v in spread_residual))

@@ -8,7 +8,7 @@ both (95% intervals over pairs), and the share of videos in which "better" leave
 slot empty, per setting and member. DIR keeps each one's per-video scores (`proposal.csv`,
 `better.csv`, as `xvoe score` writes them; `xvoe metrics` reads them). One pass costs about 1.3 times the
 paper's score alone: the decodes are shared, the dynamics' prediction is decoded twice.
-Choose on a validation split; report on a fresh one (DESIGN section 8).
+Choose on a validation split; report on a fresh one (docs/design.md, "Recipes, choosing and shipping").
 """
 from __future__ import annotations
 

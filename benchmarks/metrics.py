@@ -11,6 +11,7 @@ import argparse
 import tempfile
 import time
 
+import xvoe
 from xvoe.evaluation import metrics
 
 
@@ -27,7 +28,7 @@ def main() -> None:
     rows_s = time.perf_counter() - start
     with tempfile.TemporaryDirectory() as out:
         start = time.perf_counter()
-        metrics.report(args.scores, out, rounds=args.rounds)
+        xvoe.report(args.scores, out, rounds=args.rounds, overwrite=True)
         report_s = time.perf_counter() - start
     print(f"{len(args.scores)} files, {rows} metric rows, {args.rounds} bootstrap rounds")
     print(f"metric_rows_s={rows_s:.1f} report_s={report_s:.1f}")

@@ -2,17 +2,16 @@
 repeatability between seeds, and its accuracy against the MSE score on the same pairs.
 
     python benchmarks/nll.py --model NAME_OR_RUN --data test.h5 [--particles 64] [--pairs N] [--threads 2]
-                             [--method smc|importance] [--seeds 0,1] [--smc-moves N] [--smc-pilot N]
-                             [--motion-sigma S] [--pixel-sigma S] [--exposure-penalty P] [--presence-penalty P]
-                             [--refine-steps N]
-                             [--proposal-widening F]
-                             [--independent-guide] [--trajectory-proposal] [--trajectory-scale-floor F]
+                             [--seeds 0,1] [--rows rows.csv] [--nll-set FIELD=VALUE ...]
+
+`--nll-set` changes a field of the NLL's settings (inference.InferenceConfig: method,
+pixel_sigma, motion_sigma, smc_pilot, refine_steps, proposal_widening, ...), as xvoe score's.
 
 Scores the first N pairs of every S1 and S3 setting and of blocking S2 with both surprise
 definitions, each video encoded once (as `xvoe score --surprise both` does), the NLL once per
 seed.
 (a) videos_per_s: NLL scoring throughput of the first seed, encoding included, MSE excluded
-    (goal >= 5 at 64 particles on 2 cores).
+    (goal >= 8 at 64 particles on 2 cores).
 (b) ESS: the median effective sample size among the particles that hold an object, on the
     videos whose ground truth holds an object visible in no frame (goal >= 16 of 64).
 (c) p_hidden_hidden: of those videos, the share with p_hidden > 0.5; (d) p_hidden_seen: of the
@@ -28,19 +27,22 @@ repeat_p99=N.NN min_comparative=N.N min_excess_auc=N.NN
 from __future__ import annotations
 
 import argparse
+import csv
 import time
 
 import numpy as np
 import torch
 from tqdm.auto import tqdm
 
+import xvoe
 from inference.model import InferenceConfig
-from inference.score import reference_nll
+from inference.score import nll_config, reference_nll
 from inference.surprise import nll_surprise
 from xvoe.benchmark import store
 from xvoe.errors import XvoeError
+from xvoe.evaluation.explanation_quality import ground_truth
 from xvoe.evaluation.metrics import comparative, holistic
-from xvoe.evaluation.score import encode_videos, load_model
+from xvoe.evaluation.score import encode_videos
 from xvoe.evaluation.surprise import mse_surprise
 from xvoe.training.data import check_size
 
@@ -61,13 +63,6 @@ def chosen_ranges(file, pairs: int) -> list[tuple[int, int]]:
             raise XvoeError(f"{file.filename} holds no {name} {kind} pairs; give a whole test split")
         ranges.append((int(where[0]), int(where[0]) + min(len(where), 2 * pairs)))
     return ranges
-
-
-def ground_truth(file, index: int, names: list[str], columns: list[str]) -> str:
-    """"hidden": an object visible in no frame; "seen": every object seen at some frame."""
-    visible = file["states"][index][:, :, columns.index("visible")].max(axis=0)
-    objects = [k for k, kind in enumerate(file["kind"][index]) if names[kind] != "none"]
-    return "hidden" if any(visible[k] == 0 for k in objects) else "seen"
 
 
 @torch.no_grad()
@@ -130,49 +125,9 @@ def main() -> None:
     parser.add_argument("--threads", type=int, default=2, help="torch threads (default 2)")
     parser.add_argument("--seeds", default="0,1", help="comma-separated seeds; each video is scored with each "
                                                         "(default 0,1: repeatability)")
-    parser.add_argument("--method", default=InferenceConfig.method, choices=("smc", "importance"),
-                        help=f"the estimator (default {InferenceConfig.method})")
-    parser.add_argument("--smc-moves", type=int, default=InferenceConfig.smc_moves,
-                        help="Metropolis moves per tempering level within a frame, 0: no tempering "
-                             f"(default {InferenceConfig.smc_moves})")
-    parser.add_argument("--smc-first", type=int, default=InferenceConfig.smc_first,
-                        help="SMC particles of the first frame, resampled down to --particles (0: as many; "
-                             f"default {InferenceConfig.smc_first})")
     parser.add_argument("--rows", help="also write each video's figures to this CSV")
-    parser.add_argument("--smc-pilot", default=str(InferenceConfig.smc_pilot).strip("()").replace(" ", ""),
-                        help="particles of the SMC's pilot run, or several comma-separated run in turn; 0: none "
-                             f"(default {InferenceConfig.smc_pilot})")
-    parser.add_argument("--motion-sigma", type=float, default=InferenceConfig.motion_sigma,
-                        help="standard deviation of the seen objects' latents around the dynamics "
-                             f"(default {InferenceConfig.motion_sigma})")
-    parser.add_argument("--pixel-sigma", type=float, default=InferenceConfig.pixel_sigma,
-                        help=f"standard deviation of the pixel likelihood (default {InferenceConfig.pixel_sigma})")
-    parser.add_argument("--exposure-penalty", type=float, default=InferenceConfig.exposure_penalty,
-                        help="nats per pixel the hidden object shows in front of everything else "
-                             f"(default {InferenceConfig.exposure_penalty})")
-    parser.add_argument("--presence-penalty", type=float, default=InferenceConfig.presence_penalty,
-                        help="nats per pixel the hidden object draws short of an object's area "
-                             f"(default {InferenceConfig.presence_penalty})")
-    parser.add_argument("--refine-steps", type=int, default=InferenceConfig.refine_steps,
-                        help="gradient steps that move the proposal's mean out of sight "
-                             f"(default {InferenceConfig.refine_steps})")
-    parser.add_argument("--refine-rate", type=float, default=InferenceConfig.refine_rate,
-                        help=f"their learning rate (default {InferenceConfig.refine_rate})")
-    parser.add_argument("--proposal-widening", type=float, default=InferenceConfig.proposal_widening,
-                        help="factor on Transformer 2's scales before they are fused with the latent prior and "
-                             f"the dynamics' step (default {InferenceConfig.proposal_widening})")
-    parser.add_argument("--smc-proposal-widening", default=",".join(map(str, InferenceConfig.smc_proposal_widening)),
-                        help="the same for the SMC's proposal, comma-separated for an equal-weight mixture; "
-                             "0: as --proposal-widening (default %(default)s)")
-    parser.add_argument("--independent-guide", action="store_true",
-                        help="draw the hidden trajectory frame by frame from Transformer 2 alone (the guide "
-                             "before it was fused with the dynamics' step), for comparison")
-    parser.add_argument("--trajectory-proposal", action="store_true",
-                        help="mix the learned trajectory proposal (trajectory.pt beside xpl.pt) into the SMC's "
-                             "proposal (off by default)")
-    parser.add_argument("--trajectory-scale-floor", type=float, default=InferenceConfig.trajectory_scale_floor,
-                        help="the learned component's scale after the first frame is at least this times the "
-                             f"transition's, 0: as learned (default {InferenceConfig.trajectory_scale_floor})")
+    parser.add_argument("--nll-set", action="append", default=[], metavar="FIELD=VALUE",
+                        help="change a field of the NLL's settings (inference.InferenceConfig), as xvoe score's")
     args = parser.parse_args()
     try:
         run(args)
@@ -183,61 +138,37 @@ def main() -> None:
 def run(args: argparse.Namespace) -> None:
     torch.set_num_threads(args.threads)
     seeds = [int(seed) for seed in args.seeds.split(",")]
-    scorer = load_model(args.model)
+    scorer = xvoe.load_model(args.model)
     if scorer.xpl is None or not scorer.xpl.config.use_reasoning:
         raise XvoeError(f"the NLL surprise needs an XPL model with reasoning; {scorer.name} has none")
-    config = InferenceConfig(particles=args.particles, motion_sigma=args.motion_sigma, pixel_sigma=args.pixel_sigma,
-                             exposure_penalty=args.exposure_penalty, presence_penalty=args.presence_penalty,
-                             refine_steps=args.refine_steps,
-                             refine_rate=args.refine_rate, proposal_widening=args.proposal_widening,
-                             guide_follows_dynamics=not args.independent_guide, method=args.method,
-                             smc_moves=args.smc_moves, smc_pilot=tuple(int(v) for v in args.smc_pilot.split(",")),
-                             smc_first=args.smc_first,
-                             smc_proposal_widening=widenings(args.smc_proposal_widening),
-                             trajectory_proposal=args.trajectory_proposal,
-                             trajectory_scale_floor=args.trajectory_scale_floor)
-    args.learned = scorer.xpl.trajectory is not None and config.trajectory_proposal
+    config = nll_config(args.particles, xvoe.nll_settings(args.nll_set))
     rows, nll_seconds, mse_seconds = [], 0.0, 0.0
     with store.open_dataset(args.data) as file:
         check_size(file, scorer.image_size, f"the model {scorer.name}")
-        names, columns = list(file.attrs["kind_names"]), list(file["states"].attrs["state_columns"])
         batches = [(a, min(stop, a + BATCH)) for start, stop in chosen_ranges(file, args.pairs)
                    for a in range(start, stop, BATCH)]
         for start, stop in tqdm(batches, desc="nll benchmark", unit="batch"):
             scored, nll_time, mse_time = score_range(scorer, file, start, stop, config, seeds)
             for row in scored:
-                row["truth"] = ground_truth(file, row["index"], names, columns)
+                row["truth"] = ground_truth(file, row["index"])
             rows += scored
             nll_seconds, mse_seconds = nll_seconds + nll_time, mse_seconds + mse_time
         table = label(rows, file)
     if args.rows:
-        import csv
-
         with open(args.rows, "w", newline="") as handle:
             writer = csv.DictWriter(handle, fieldnames=list(rows[0]))
             writer.writeheader()
             writer.writerows(rows)
-    report(table, args, nll_seconds, mse_seconds)
+    report(table, args, config, nll_seconds, mse_seconds)
 
 
-def widenings(text: str) -> tuple[float, ...] | None:
-    values = tuple(float(v) for v in text.split(","))
-    return None if values == (0.0,) else values
-
-
-def report(table: dict[str, np.ndarray], args: argparse.Namespace, nll_seconds: float, mse_seconds: float) -> None:
+def report(table: dict[str, np.ndarray], args: argparse.Namespace, config: InferenceConfig, nll_seconds: float,
+           mse_seconds: float) -> None:
     """Print the figures; the last line is the summary."""
     videos = len(table["index"])
     speed = videos / nll_seconds
     print(f"model {args.model}, {args.data}: {videos} videos ({args.pairs if args.pairs < 1_000_000 else 'all'} "
-          f"pairs per setting), method {args.method}, {args.particles} particles, seeds {args.seeds}, "
-          f"{args.threads} thread(s), smc moves {args.smc_moves}, smc pilot {args.smc_pilot}, "
-          f"smc first frame {args.smc_first}, smc proposal widening {args.smc_proposal_widening}, "
-          f"{'independent' if args.independent_guide else 'dynamics-fused'} guide, motion sigma {args.motion_sigma}, "
-          f"pixel sigma {args.pixel_sigma}, {args.refine_steps} steps out of sight at rate {args.refine_rate}, "
-          f"proposal widening {args.proposal_widening}, "
-          f"{'with' if getattr(args, 'learned', False) else 'without'} the learned trajectory proposal"
-          + (f" (scale floor {args.trajectory_scale_floor})" if getattr(args, "learned", False) else ""))
+          f"pairs per setting), seeds {args.seeds}, {args.threads} thread(s), {config}")
     print(f"NLL scoring: {speed:.2f} videos/s (first seed, encoding included, {nll_seconds:.0f} s); "
           f"MSE scoring: {videos / mse_seconds:.1f} videos/s (encoding included)")
     cpu = table["cpu_seconds"]      # the process's CPU time: less sensitive than the clock to other jobs

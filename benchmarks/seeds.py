@@ -6,10 +6,10 @@
 Scores the report split with each run's model (and the shipped one, beside them), then prints
 one markdown table: comparative accuracy per setting as the mean over the runs with its range
 (lowest, highest), each run's own value, and the shipped model's; the S3 - S2 gap per scenario
-(S2 has no goal of its own: DESIGN section 6); holistic AUC; and hidden_iou per model
-(benchmarks/explanation.py). The report split must come from a seed nothing was chosen on
-(DESIGN section 8). Scores already in --out are reused, so that a model added later costs only
-its own scoring.
+(S2 has no goal of its own: docs/design.md, "Metrics"); holistic AUC; and hidden_iou per model
+(xvoe.evaluation.explanation_quality). The report split must come from a seed nothing was
+chosen on (docs/design.md, "Recipes, choosing and shipping"). Scores already in --out are
+reused, so that a model added later costs only its own scoring.
 """
 from __future__ import annotations
 
@@ -18,10 +18,10 @@ from pathlib import Path
 
 import numpy as np
 import torch
-from explanation import hidden_explanations, pick
 
 import xvoe
 from xvoe.benchmark import store
+from xvoe.evaluation.explanation_quality import hidden_explanations, pick
 from xvoe.evaluation.surprise import EXPLANATIONS
 
 ORDER = [("collision", "S1"), ("collision", "S2"), ("collision", "S3"), ("blocking", "S1"), ("blocking", "S2"),
@@ -86,9 +86,8 @@ def main() -> None:
              shipped_rows[key] if shipped_rows else None)
     if args.hidden_pairs:
         with store.open_dataset(args.data) as file:
-            names_, columns = list(file.attrs["kind_names"]), list(file["states"].attrs["state_columns"])
             videos = pick(file, "blocking", "S2", 0, args.hidden_pairs)
-            ious = {m: hidden_explanations(xvoe.load_model(m), file, videos, names_, columns)["iou"] for m in models}
+            ious = {m: hidden_explanations(xvoe.load_model(m), file, videos)["iou"] for m in models}
         line("hidden_iou (x100)", [100 * ious[r] for r in runs], 100 * ious[args.shipped] if args.shipped else None)
 
 

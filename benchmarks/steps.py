@@ -23,9 +23,7 @@ would have to run on --threads cores for half the reference's time: above the pe
 cannot be met by making the step faster, only by a step with fewer operations.
 
     python benchmarks/steps.py --recipe paper --decoder-channels 32
-    python benchmarks/steps.py --recipe cpu --stages score
-    python benchmarks/steps.py --recipe cpu --stages xpl,xpl-compiled --videos 32   # torch.compile's gain
-    python benchmarks/steps.py --recipe cpu --stages xpl,xpl-bf16 --videos 32       # bfloat16 autocast's
+    python benchmarks/steps.py --recipe cpu-short --stages score
     python benchmarks/steps.py --recipe cpu-short --stages phydnet,phydnet-widened --threads 1
 
 The allocator setting (xvoe/allocator.py) is per process: compare it by running this twice,
@@ -43,6 +41,7 @@ import numpy as np
 import torch
 from torch.utils.flop_counter import FlopCounterMode
 
+from xvoe import allocator
 from xvoe.evaluation.surprise import mse_surprise
 from xvoe.models.perception import ComponentVAE, normalise
 from xvoe.models.phydnet import PhyDNet, PhyDNetObjective
@@ -57,14 +56,6 @@ UNIT = {"perception": "frame", "xpl": "video", "score": "video", "phydnet": "vid
 SLOTS, FRAMES = 8, 15
 
 
-def allocator_tuned() -> bool:
-    try:
-        from xvoe import allocator
-    except ImportError:     # a checkout from before xvoe/allocator.py
-        return False
-    return allocator.tuned()
-
-
 def random_frames(rng: np.random.Generator, count: int, size: int) -> tuple[np.ndarray, np.ndarray]:
     """uint8 RGBD frames (N,H,W,4) and id maps (N,H,W) with all 8 slots drawn as rectangles."""
     rgbd = rng.integers(0, 256, (count, size, size, 4), dtype=np.uint8)
@@ -77,12 +68,10 @@ def random_frames(rng: np.random.Generator, count: int, size: int) -> tuple[np.n
     return rgbd, ids
 
 
-def training_step(model, optimiser, batch, bf16: bool = False):
-    """One optimiser step on a fixed batch, as the training loop takes it; `bf16`: the forward
-    under CPU autocast to bfloat16 (the weights and Adam stay float32)."""
+def training_step(model, optimiser, batch):
+    """One optimiser step on a fixed batch, as the training loop takes it."""
     def step() -> None:
-        with torch.autocast("cpu", dtype=torch.bfloat16, enabled=bf16):
-            loss = model(batch)["loss"]
+        loss = model(batch)["loss"]
         optimiser.zero_grad(set_to_none=True)
         loss.backward()
         optimiser.step()
@@ -99,10 +88,8 @@ def perception_step(config, frames: int, rng: np.random.Generator):
     return training_step(model, optimiser, batch)
 
 
-def xpl_step(config, videos: int, rng: np.random.Generator, compiled: bool = False, bf16: bool = False):
+def xpl_step(config, videos: int, rng: np.random.Generator):
     model = XPL(config).train()
-    if compiled:        # torch.compile (inductor); the warm-up steps pay for the compilation
-        model.compile(dynamic=False)
     optimiser = torch.optim.Adam(model.parameters(), lr=1e-4)
     dim, shape = config.dynamics.latent_dim, (videos, FRAMES, SLOTS)
     walls = torch.zeros(videos, SLOTS, dtype=torch.bool)
@@ -113,7 +100,7 @@ def xpl_step(config, videos: int, rng: np.random.Generator, compiled: bool = Fal
                         hidden=torch.from_numpy(rng.integers(0, SLOTS, videos)),
                         refill=torch.from_numpy(rng.random(shape) < 0.2), walls=walls)
 
-    return training_step(model, optimiser, batch, bf16)
+    return training_step(model, optimiser, batch)
 
 
 def phydnet_step(config, videos: int, rng: np.random.Generator):
@@ -204,15 +191,13 @@ def main() -> None:
     if args.decoder_channels:
         perception = replace(perception, decoder_channels=args.decoder_channels)
     print(f"recipe {args.recipe}: {perception.image_size}px, decoder {perception.decoder_channels} channels, "
-          f"{args.threads} threads, allocator tuned: {allocator_tuned()}, torch {torch.__version__}")
+          f"{args.threads} threads, allocator tuned: {allocator.tuned()}, torch {torch.__version__}")
     peak = matmul_peak()
     print(f"peak: a 2048x2048 matrix product runs at {peak:.1f} GMAC per CPU second")
     print(f"{'stage':<15} {'ms/item':>9} {'+-':>6} {'vs ref':>7} {'cpu ms/item':>12} {'faults/step':>12} "
           f"{'kernel':>7} {'GMAC/item':>10} {'GMAC/cpu-s':>10} {'goal needs':>11}  items/step")
     builders = {"perception": lambda rng: (perception_step(perception, args.frames, rng), args.frames),
                 "xpl": lambda rng: (xpl_step(chosen.xpl, args.videos, rng), args.videos),
-                "xpl-compiled": lambda rng: (xpl_step(chosen.xpl, args.videos, rng, compiled=True), args.videos),
-                "xpl-bf16": lambda rng: (xpl_step(chosen.xpl, args.videos, rng, bf16=True), args.videos),
                 "score": lambda rng: (score_step(perception, chosen.xpl, args.score_videos, rng), args.score_videos),
                 "phydnet": lambda rng: (phydnet_step(chosen.phydnet, args.phydnet_videos, rng), args.phydnet_videos),
                 "phydnet-widened": lambda rng: (phydnet_step(chosen.final_phydnet(), args.phydnet_videos, rng),

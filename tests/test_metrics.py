@@ -1,4 +1,5 @@
-"""The metrics on hand-worked cases; AUC against a brute-force count; seeded bootstrap."""
+"""The metrics on hand-worked cases; AUC against a brute-force count and scipy's Mann-Whitney U;
+seeded bootstrap intervals; the permutation p-value; the paper's score beside the default verdict."""
 import csv
 import itertools
 
@@ -6,11 +7,13 @@ import numpy as np
 import pytest
 from hypothesis import given
 from hypothesis import strategies as st
+from scipy.stats import mannwhitneyu
 
 from xvoe.apps.report import report
 from xvoe.benchmark.generate import GenerateConfig, generate
 from xvoe.errors import XvoeError
 from xvoe.evaluation.metrics import (
+    VERDICTS,
     auc,
     comparative,
     disagreements,
@@ -21,6 +24,7 @@ from xvoe.evaluation.metrics import (
     relative,
     side_by_side,
 )
+from xvoe.evaluation.resampling import chance_p, values_interval
 
 
 def table(rows):
@@ -69,6 +73,35 @@ def test_relative_hand_case():
 def test_auc_equals_brute_force_with_half_ties(positive, negative):
     brute = np.mean([(p > n) + 0.5 * (p == n) for p, n in itertools.product(positive, negative)])
     assert auc(np.array(positive), np.array(negative)) == pytest.approx(brute)
+
+
+@given(st.lists(st.floats(-5, 5), min_size=1, max_size=15), st.lists(st.floats(-5, 5), min_size=1, max_size=15))
+def test_auc_is_mann_whitney_u_over_the_pair_count(positive, negative):
+    u = mannwhitneyu(positive, negative).statistic      # U of the first sample: wins plus half the ties
+    assert auc(np.array(positive), np.array(negative)) == pytest.approx(u / (len(positive) * len(negative)))
+
+
+def test_permutation_p_value_by_hand():
+    # 3 pairs, member 1 higher in all: of the 2^3 swaps of members, the share is 1 in one and 0 in
+    # one; two-sided p = 2 * P(share >= 1) = 2/8
+    assert chance_p(np.zeros(3), np.ones(3), rounds=100) == pytest.approx(0.25)
+    # 4 pairs all right: 2/16; in a table, comparative reports it as p
+    right = table([("blocking", "S1", p, m, m == 0, float(m)) for p in range(4) for m in (0, 1)])
+    assert comparative(right, rounds=100)["blocking", "S1"].p == pytest.approx(0.125)
+    # HAND's collision S1 (wins 1, 1/2, 0, 1): shares (k + 1/2)/4 with k ~ Binomial(3, 1/2); the
+    # observed k = 2: P(>=) = 4/8, P(<=) = 7/8, p = min(1, 2 * 4/8)
+    assert comparative(HAND, rounds=100)["collision", "S1"].p == pytest.approx(1.0)
+    assert chance_p(np.zeros(1), np.ones(1)) == 1.0       # a single pair's two orders: no evidence
+
+
+def test_bootstrap_interval_of_a_mean_matches_the_normal_closed_form():
+    # 400 units, half 1: the mean's standard error is sqrt(0.25 / 400) = 0.025, the interval
+    # about 0.5 -+ 1.96 * 0.025
+    values = np.tile([0.0, 1.0], 200)
+    low, high = values_interval(values, rounds=2000, seed=1)
+    assert low == pytest.approx(0.5 - 1.96 * 0.025, abs=0.01) and high == pytest.approx(0.5 + 1.96 * 0.025, abs=0.01)
+    assert values_interval(values, rounds=2000, seed=1) == (low, high)
+    assert values_interval(np.full(10, 0.7), rounds=50) == pytest.approx((0.7, 0.7))
 
 
 def random_scores(pairs=40, seed=0, signal=1.0):
@@ -139,14 +172,14 @@ def test_report_writes_table_and_figures(tmp_path):
         report([tmp_path / "a.csv", tmp_path / "a.csv"], tmp_path / "again", rounds=5)
 
 
-def with_nll(rows):
-    """rows: (scenario, setting, pair, member, possible, score, nll)."""
+def with_second(column, rows):
+    """rows: (scenario, setting, pair, member, possible, score, the second column's value)."""
     scores = table([r[:6] for r in rows])
-    scores["nll"] = np.array([r[6] for r in rows], dtype=float)
+    scores[column] = np.array([r[6] for r in rows], dtype=float)
     return scores
 
 
-BOTH = with_nll([
+BOTH = with_second("nll", [
     # blocking S1 (member 1 impossible): pair 0 both right; pair 1 only the score right; pair 2 only the NLL
     # right; pair 3 the score ties and the NLL is wrong: neither
     ("blocking", "S1", 0, 0, True, 1.0, 10.0), ("blocking", "S1", 0, 1, False, 2.0, 20.0),
@@ -197,6 +230,40 @@ def test_report_compares_the_two_surprises_and_draws_disagreements(test_data, te
     generate(GenerateConfig("test", pairs=1, size=16, seed=3), other, workers=1, progress=False)
     with pytest.raises(XvoeError, match="does not hold the videos"):
         report([path], tmp_path / "again", rounds=5, data=other)
+
+
+VERDICT_PAIRS = with_second("paper_score", [
+    # blocking S1 (member 1 impossible): the default verdict right in 3 of 4 pairs, the paper's
+    # score in 1 (pair 0 both right; pairs 1, 2 only the verdict; pair 3 neither, a paper's tie)
+    ("blocking", "S1", 0, 0, True, 1.0, 1.0), ("blocking", "S1", 0, 1, False, 2.0, 2.0),
+    ("blocking", "S1", 1, 0, True, 1.0, 5.0), ("blocking", "S1", 1, 1, False, 2.0, 2.0),
+    ("blocking", "S1", 2, 0, True, 1.0, 5.0), ("blocking", "S1", 2, 1, False, 2.0, 2.0),
+    ("blocking", "S1", 3, 0, True, 3.0, 2.0), ("blocking", "S1", 3, 1, False, 2.0, 2.0),
+])
+
+
+def test_the_paper_score_is_measured_beside_the_default_verdict():
+    rows = metric_rows(VERDICT_PAIRS, "m", rounds=20)
+    value = {(r["metric"], r["column"]): r["value"] for r in rows if r["setting"] in ("S1", "")}
+    assert value["comparative", "score"] == pytest.approx(3 / 4)
+    assert value["comparative", "paper_score"] == pytest.approx((1 + 0 + 0 + 0.5) / 4)
+    # holistic, paper's score: impossible 2, 2, 2, 2 against possible 1, 5, 5, 2: wins 1 + 0 + 0 + 1/2 each
+    assert value["holistic", "paper_score"] == pytest.approx(1.5 / 4)
+    assert has_both_surprises(VERDICT_PAIRS, VERDICTS)
+    s1 = next(r for r in side_by_side(VERDICT_PAIRS, rows, "m", VERDICTS)
+              if r["metric"] == "comparative" and r["setting"] == "S1")
+    assert (s1["score"], s1["paper_score"], s1["disagreeing_pairs"]) == (0.75, 0.375, 3)
+    differ = disagreements(VERDICT_PAIRS, VERDICTS)
+    assert [(r["pair"], r["score_says"], r["paper_score_says"], r["right"]) for r in differ] == [
+        (1, "member 1", "member 0", "score"), (2, "member 1", "member 0", "score"), (3, "member 0", "tie", "neither")]
+
+
+def test_without_the_paper_score_the_metrics_are_as_before():
+    plain = {k: v for k, v in VERDICT_PAIRS.items() if k != "paper_score"}
+    rows = metric_rows(plain, "m", rounds=20)
+    assert {r["column"] for r in rows} == {"score"} and not has_both_surprises(plain, VERDICTS)
+    # a model with no choice of explanation writes the same value twice: nothing to set side by side
+    assert not has_both_surprises({**plain, "paper_score": plain["score"]}, VERDICTS)
 
 
 def test_violation_onset_on_hand_made_curves():

@@ -3,16 +3,20 @@
 Scores are one row per test video (`index, scenario, setting, pair, member, possible` and
 one or more score columns: `score`, `s_img`, `s_dyn`, ...). A higher score means more
 surprise. s+ is an impossible video's score, s- a possible one's; a tie counts one half.
+`score` is the default verdict; `paper_score`, where a file has it, the paper's score (always
+Transformer 2's proposal), measured beside it under its own column name.
 
 - comparative, per setting: over pairs, 1[s(member 1) > s(member 0)]. Ideal: 1 for S1 and
-  S3 (member 1 is the impossible one), 0.5 for S2 (both possible).
+  S3 (member 1 is the impossible one), 0.5 for S2 (both possible). With it, `p`: the
+  permutation test's p-value that it differs from 50% (resampling.chance_p).
 - holistic, per scenario: over all (impossible, possible) pairs of videos of the scenario,
-  1[s+ > s-]: the ROC AUC of the score as a detector of impossible videos.
+  1[s+ > s-]: the ROC AUC of the score as a detector of impossible videos, the Mann-Whitney
+  U statistic over n+ n-.
 - relative: each video against the mean score of the S1 pair of its scenario and pair index
   (the same scene in every setting): judged impossible when above it. Accuracy per setting.
 
 Intervals resample pair indices with replacement (the unit that the settings of a scenario
-share), from a seeded generator.
+share), from a seeded generator (resampling.interval).
 """
 from __future__ import annotations
 
@@ -26,9 +30,10 @@ import numpy as np
 from ..benchmark import store
 from ..benchmark.scenes import SCENARIOS
 from ..errors import XvoeError
+from .resampling import chance_p, interval, pairwise_win
 
 REQUIRED = ("index", "scenario", "setting", "pair", "member", "possible")
-SCORE_NAMES = ("score", "s_img", "s_dyn", "s_rec", "excess", "nll", "ess", "p_hidden", "nll_excess")
+SCORE_NAMES = ("score", "paper_score", "s_img", "s_dyn", "s_rec", "excess", "nll", "ess", "p_hidden", "nll_excess")
 IDEAL_COMPARATIVE = {"S1": 1.0, "S2": 0.5, "S3": 1.0}
 
 
@@ -37,6 +42,7 @@ class Estimate:
     value: float
     low: float
     high: float
+    p: float = float("nan")     # comparative only: the p-value that the accuracy differs from 50%
 
 
 def read_scores(path: str | Path, data: str | Path | None = None) -> dict[str, np.ndarray]:
@@ -162,25 +168,16 @@ def score_problem(scores: dict[str, np.ndarray]) -> str | None:
     return None
 
 
-def pairwise_win(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """1 where a > b, 0.5 where equal, 0 where below."""
-    return (a > b) + 0.5 * (a == b)
-
-
 def auc(positive: np.ndarray, negative: np.ndarray) -> float:
-    """P(s+ > s-) + P(s+ = s-)/2 from ranks (Mann-Whitney U, ties given average ranks)."""
+    """P(s+ > s-) + P(s+ = s-)/2: the Mann-Whitney U of s+ over n+ n-, counted by binary search
+    in the sorted s- (scipy's rankdata gives the same U at ten times the cost per call, and the
+    bootstrap calls this a thousand times per scenario)."""
     positive, negative = np.asarray(positive, float), np.asarray(negative, float)
     if len(positive) == 0 or len(negative) == 0:
         return float("nan")
-    values = np.concatenate([positive, negative])
-    order = np.argsort(values, kind="mergesort")
-    sorted_values = values[order]
-    # each run of equal values gets the average of its ranks
-    run = np.cumsum(np.r_[True, sorted_values[1:] != sorted_values[:-1]]) - 1
-    average = np.bincount(run, np.arange(1, len(values) + 1)) / np.bincount(run)
-    ranks = np.empty(len(values))
-    ranks[order] = average[run]
-    u = ranks[: len(positive)].sum() - len(positive) * (len(positive) + 1) / 2.0
+    ordered = np.sort(negative)
+    below, not_above = np.searchsorted(ordered, positive, "left"), np.searchsorted(ordered, positive, "right")
+    u = below.sum() + 0.5 * (not_above - below).sum()
     return float(u / (len(positive) * len(negative)))
 
 
@@ -196,11 +193,14 @@ def pairs_table(scores: dict[str, np.ndarray], scenario: str, setting: str, colu
 
 def comparative(scores: dict[str, np.ndarray], column: str = "score", rounds: int = 1000,
                 seed: int = 0) -> dict[tuple[str, str], Estimate]:
-    """Per setting: the share of pairs whose member 1 is more surprising than member 0."""
+    """Per setting: the share of pairs whose member 1 is more surprising than member 0, and
+    the p-value that it differs from 50%."""
     out = {}
     for scenario, setting in _settings(scores):
         _, first, second = pairs_table(scores, scenario, setting, column)
-        out[scenario, setting] = _mean_by_unit(pairwise_win(second, first), np.arange(len(first)), rounds, seed)
+        found = _mean_by_unit(pairwise_win(second, first), np.arange(len(first)), rounds, seed)
+        found.p = chance_p(first, second, rounds, seed)
+        out[scenario, setting] = found
     return out
 
 
@@ -239,7 +239,7 @@ def _mean_by_unit(values: np.ndarray, unit: np.ndarray, rounds: int, seed: int) 
         return Estimate(float("nan"), float("nan"), float("nan"))
     units, slot = np.unique(unit, return_inverse=True)
     total, count = np.bincount(slot, values, len(units)), np.bincount(slot, minlength=len(units))
-    low, high = _bootstrap(lambda chosen: total[chosen].sum() / count[chosen].sum(), len(units), rounds, seed)
+    low, high = interval(lambda chosen: total[chosen].sum() / count[chosen].sum(), len(units), rounds, seed)
     return Estimate(float(values.mean()), low, high)
 
 
@@ -255,15 +255,7 @@ def _auc_by_unit(values: np.ndarray, possible: np.ndarray, unit: np.ndarray, rou
         rows = by_unit[np.repeat(starts, sizes) + offsets]
         return auc(values[rows][~possible[rows]], values[rows][possible[rows]])
 
-    return Estimate(auc(values[~possible], values[possible]), *_bootstrap(statistic, len(units), rounds, seed))
-
-
-def _bootstrap(statistic, units: int, rounds: int, seed: int) -> tuple[float, float]:
-    """95% percentile interval of statistic(a resample of range(units) with replacement)."""
-    rng = np.random.default_rng(seed)
-    draws = [statistic(rng.integers(0, units, units)) for _ in range(rounds)]
-    low, high = np.nanpercentile(draws, [2.5, 97.5])
-    return float(low), float(high)
+    return Estimate(auc(values[~possible], values[possible]), *interval(statistic, len(units), rounds, seed))
 
 
 def _unique(values: np.ndarray) -> list[str]:
@@ -281,7 +273,7 @@ def _settings(scores: dict[str, np.ndarray]) -> list[tuple[str, str]]:
 
 
 METRICS = ("comparative", "holistic", "relative")
-COMPONENTS = ("score", "s_img", "s_dyn", "excess", "nll", "nll_excess")    # the last three: when scored
+COMPONENTS = ("score", "paper_score", "s_img", "s_dyn", "excess", "nll", "nll_excess")    # each where scored
 
 Curve = TypeVar("Curve")    # numpy arrays or torch tensors
 
@@ -309,7 +301,7 @@ def metric_rows(scores: dict[str, np.ndarray], model: str, columns: tuple[str, .
 
 def _row(model, metric, column, scenario, setting, estimate: Estimate, ideal: float) -> dict:
     return {"model": model, "metric": metric, "column": column, "scenario": scenario, "setting": setting,
-            "value": estimate.value, "low": estimate.low, "high": estimate.high, "ideal": ideal}
+            "value": estimate.value, "low": estimate.low, "high": estimate.high, "ideal": ideal, "p": estimate.p}
 
 
 def model_name(path: str | Path, scores: dict[str, np.ndarray]) -> str:
@@ -319,17 +311,26 @@ def model_name(path: str | Path, scores: dict[str, np.ndarray]) -> str:
     return Path(path).stem
 
 
-# --- the two surprise definitions, compared -------------------------------------------------
+# --- two score columns compared (surprise definitions, or verdicts) ------------------------
 
 SURPRISES = ("score", "nll")     # the MSE score (`xvoe score --surprise both`) and the NLL
-DISAGREEMENT_FIELDS = ("scenario", "setting", "pair", "index_0", "index_1", "score_0", "score_1", "nll_0", "nll_1",
-                       "score_says", "nll_says", "right")
+VERDICTS = ("score", "paper_score")     # the default verdict and the paper's score, where a file has both
 
 
-def has_both_surprises(scores: dict[str, np.ndarray]) -> bool:
-    """True when the scores hold the MSE score and the NLL as two different columns (with
-    `--surprise nll` the score column is the NLL itself)."""
-    return all(c in scores for c in SURPRISES) and not np.array_equal(scores["score"], scores["nll"])
+def disagreement_fields(columns: tuple[str, str] = SURPRISES) -> tuple[str, ...]:
+    """The columns of `disagreements` between two score columns, named after them."""
+    a, b = columns
+    return ("scenario", "setting", "pair", "index_0", "index_1", f"{a}_0", f"{a}_1", f"{b}_0", f"{b}_1",
+            f"{a}_says", f"{b}_says", "right")
+
+
+DISAGREEMENT_FIELDS = disagreement_fields()
+
+
+def has_both_surprises(scores: dict[str, np.ndarray], columns: tuple[str, str] = SURPRISES) -> bool:
+    """True when the scores hold both columns and they differ (with `--surprise nll` the score
+    column is the NLL itself; a model with no choice of explanation writes its score twice)."""
+    return all(c in scores for c in columns) and not np.array_equal(scores[columns[0]], scores[columns[1]])
 
 
 def verdict(first: np.ndarray, second: np.ndarray) -> np.ndarray:
@@ -352,7 +353,7 @@ def disagreements(scores: dict[str, np.ndarray], columns: tuple[str, str] = SURP
         truth = np.where(possible_0 == possible_1, -2, np.where(possible_0, 1, 0))    # -2: no right answer
         for i in np.flatnonzero(says_a != says_b):
             right = "" if truth[i] == -2 else a if says_a[i] == truth[i] else b if says_b[i] == truth[i] else "neither"
-            rows.append(dict(zip(DISAGREEMENT_FIELDS, (
+            rows.append(dict(zip(disagreement_fields(columns), (
                 scenario, setting, int(pairs[i]), int(index_0[i]), int(index_1[i]), float(a_0[i]), float(a_1[i]),
                 float(b_0[i]), float(b_1[i]), _said(says_a[i]), _said(says_b[i]), right))))
     return rows
