@@ -10,7 +10,7 @@ from torch import Tensor
 
 from xvoe.errors import XvoeError
 from xvoe.evaluation.score import Scorer
-from xvoe.models.config import field_type, parse_value, split_assignment
+from xvoe.models.config import field_type, parse_value, split_assignment, to_dict
 
 from .model import InferenceConfig, pixel_log_normaliser
 from .surprise import nll_surprise
@@ -65,14 +65,17 @@ class NLLColumns:
     names = ("nll", "ess", "p_hidden", "nll_excess")
 
     def __init__(self, particles: int | None = None, seed: int = 0, settings: dict[str, Any] | None = None):
-        self.particles, self.settings, self.seed = particles, settings, seed
+        self.particles, self.changes, self.seed = particles, settings, seed
         self.config = nll_config(InferenceConfig(), particles, settings)     # bad settings fail before any work
 
     def check(self, scorer: Scorer) -> None:
         """The model's own NLL settings, with this run's changes."""
         if scorer.xpl is None or not scorer.xpl.config.use_reasoning:
             raise XvoeError(f"the NLL surprise needs an XPL model with reasoning; {scorer.name} has none")
-        self.config = nll_config(scorer.nll or InferenceConfig(), self.particles, self.settings)
+        self.config = nll_config(scorer.nll or InferenceConfig(), self.particles, self.changes)
+
+    def settings(self) -> dict:
+        return {"nll": to_dict(self.config), "nll_seed": self.seed}
 
     def batch(self, scorer: Scorer, videos: dict[str, Tensor]) -> np.ndarray:
         return np.array(xpl_nll(scorer, videos, self.config, self.seed), dtype=float).reshape(-1, 3)

@@ -29,7 +29,7 @@ class XPLScene(nn.Module):
         """refined: (T, K, D) latents; background: (T, 4, H, W) decoded background; visible:
         (T, K) what the encoder saw; occluder: (K,) the walls, whose motion is no evidence;
         hidden: the slot a hidden object would take (a never-seen one). As in the MSE score
-        (xvoe.score.scene_layers), a wall is drawn only where it was seen, and an object not seen
+        (xvoe.models.slots.scene_layers), a wall is drawn only where it was seen, and an object not seen
         in a frame stands behind the walls there: the seen objects' fills, and the hidden object
         in every frame."""
         super().__init__()

@@ -1,4 +1,5 @@
 """The NLL surprise through the real model's code path, with tiny untrained networks."""
+import json
 import warnings
 
 import numpy as np
@@ -22,6 +23,7 @@ from xvoe.benchmark import store
 from xvoe.benchmark.generate import GenerateConfig, generate
 from xvoe.evaluation.metrics import read_scores
 from xvoe.evaluation.score import encode_videos, load_model
+from xvoe.models.config import to_dict
 from xvoe.models.dynamics import DynamicsConfig
 from xvoe.models.perception import ComponentVAE, PerceptionConfig
 from xvoe.models.reasoning import ReasoningConfig
@@ -196,6 +198,11 @@ def test_the_nll_settings_reach_every_video_and_its_excess(tmp_path):
     curves = np.load(tmp_path / "b.curves.npz")
     reference = reference_nll(curves["s_rec"], 4 * scorer.image_size ** 2, 1.0)
     np.testing.assert_allclose(wide["nll_excess"], wide["nll"] - reference, rtol=1e-9, atol=1e-6)
+    # each file says what it was made with: the model's own settings (its recipe's) with the changes
+    header = xvoe.score_header(tmp_path / "b.csv")
+    assert header["nll"] == json.loads(json.dumps({**to_dict(scorer.nll), "pixel_sigma": 1.0, "particles": 8}))
+    assert header["model"] == "xpl"
+    assert xvoe.score_header(tmp_path / "a.csv")["nll"]["pixel_sigma"] == scorer.nll.pixel_sigma == 0.5
     assert xvoe.nll_settings(["pixel_sigma=1", "smc_pilot=8"]) == {"pixel_sigma": 1.0, "smc_pilot": 8}
 
 

@@ -38,7 +38,7 @@ _HOMES = {
     "xvoe.training.xpl": ("train_xpl", "train_proposal", "latent_cache_for"),
     "xvoe.training.phydnet": ("train_phydnet",),
     "xvoe.training.dataset": ("SplitDataset",),
-    "xvoe.evaluation.score": ("Scorer", "load_model", "SurpriseModel", "Videos", "merge_scores"),
+    "xvoe.evaluation.score": ("Scorer", "load_model", "SurpriseModel", "Videos", "merge_scores", "score_header"),
     "xvoe.evaluation.metrics": ("read_scores", "metric_rows", "comparative", "holistic", "relative",
                                 "disagreements", "onset", "onset_pairs"),
     "xvoe.apps.verbs": ("score", "explain"),

@@ -11,7 +11,9 @@ from __future__ import annotations
 
 import csv
 import importlib
+import importlib.metadata
 import importlib.util
+import json
 from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Protocol
@@ -230,8 +232,11 @@ class ExtraColumns(Protocol):
         """Per-video values (B, C) of a batch of `encode_videos`."""
 
     def finish(self, values: np.ndarray, curves: np.ndarray, size: int) -> np.ndarray:
-        """The columns (N, len(names)) from every batch's values (N, C), the curves (3, N, T)
-        s_img, s_dyn and s_rec, and the frame size."""
+        """The columns (N, len(names)) from every batch's values (N, C), the `CURVES` (5, N, T)
+        and the frame size."""
+
+    def settings(self) -> dict:
+        """What the columns were made with, for the score file's header (`score_header`)."""
 
 
 def score_split(model: str | Scorer, data: str, out: str, *, how: str = "sum", videos_per_batch: int = 16,
@@ -282,11 +287,13 @@ def score_split(model: str | Scorer, data: str, out: str, *, how: str = "sum", v
         total = added[:, extra.names.index(score_column)]
     if with_rec:
         excess_score = aggregate(torch.from_numpy(excess(*curves[:3])), how).numpy()
+    header = {"xvoe": package_version(), "model": scorer.name, "score": score_column, "aggregate": how,
+              **(extra.settings() if extra is not None else {})}
     # the CSV and its curves are one result: the CSV, which names the curves, is renamed last
     with atomic_paths(curves_path, out) as (curves_tmp, tmp), open(tmp, "w", newline="") as handle:
         named = {name: curve for name, curve in zip(CURVES, curves) if with_rec or name != "s_rec"}
         with open(curves_tmp, "wb") as curves_file:
-            np.savez_compressed(curves_file, **named)
+            np.savez_compressed(curves_file, header=np.array(json.dumps(header, sort_keys=True)), **named)
         writer = csv.writer(handle)
         writer.writerow(SCORE_COLUMNS + (EXCESS_COLUMNS if with_rec else ()) + (extra.names if extra else ()))
         for row, i in enumerate(range(first, last)):
@@ -296,6 +303,23 @@ def score_split(model: str | Scorer, data: str, out: str, *, how: str = "sum", v
                              int(labels["member"][i]), bool(labels["possible"][i]), float(total[row]),
                              float(s_img[row]), float(s_dyn[row]), float(paper[row])] + row_extra)
     return out
+
+
+def score_header(path: str | Path) -> dict:
+    """What a score file was made with: the package version, the model, the score column, the
+    aggregation over frames and, for the NLL, its settings and seed (kept in its curves file)."""
+    curves = Path(path).with_suffix(".curves.npz")
+    if not curves.is_file():
+        raise XvoeError(f"{path} has no curves file beside it ({curves.name}), which holds its header")
+    with np.load(curves) as found:
+        return json.loads(str(found["header"])) if "header" in found.files else {}
+
+
+def package_version() -> str:
+    try:
+        return importlib.metadata.version("xvoe")
+    except importlib.metadata.PackageNotFoundError:
+        return "unknown"
 
 
 def shard_rows(count: int, videos_per_batch: int, shard: tuple[int, int]) -> tuple[int, int]:
@@ -339,9 +363,12 @@ def merge_scores(parts: list[str | Path], out: str | Path, overwrite: bool = Fal
         with np.load(part.with_suffix(".curves.npz")) as curves:
             for name in curves.files:
                 arrays.setdefault(name, []).append(curves[name])
+        if len({str(header) for header in arrays.get("header", [])}) > 1:
+            raise XvoeError(f"{part} was scored with other settings than {found[0][1]} (their headers differ)")
     with atomic_paths(curves_path, out) as (curves_tmp, tmp):
         with open(curves_tmp, "wb") as curves_file:
-            np.savez_compressed(curves_file, **{name: np.concatenate(a) for name, a in arrays.items()})
+            np.savez_compressed(curves_file, **{name: a[0] if name == "header" else np.concatenate(a)
+                                                for name, a in arrays.items()})
         with open(tmp, "w", newline="") as handle:
             handle.writelines([header, *rows])
     return out

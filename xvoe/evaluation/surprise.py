@@ -132,8 +132,7 @@ def better_explanation(first: Surprise, second: Surprise) -> Surprise:
 def latent_surprise(vae: ComponentVAE, xpl: XPL, frames: Tensor, refined: Tensor, occupied: Tensor, visible: Tensor,
                     background: Tensor, occluder: Tensor) -> tuple[Tensor, Tensor, Tensor]:
     """s_img, s_dyn and s_rec (B, T) of given refined latents (B, T, K, D) with occupied slots (B, K),
-    as `mse_surprise` scores each explanation. Apart so that other latents can be scored the same
-    way (benchmarks/oracle_fills.py: the hidden objects' true latents for the fills)."""
+    as `mse_surprise` scores each explanation: any latents, e.g. the hidden objects' true ones."""
     background_pictures = decode_background(vae, background, frames)
     layers, walls = scene_layers(vae, refined, occupied, visible, occluder)
     return _terms(vae, xpl, frames, background_pictures, refined, layers, walls, occupied, visible, occluder)

@@ -170,7 +170,7 @@ class BroadcastDecoder(nn.Module):
 
 @dataclass
 class PerceptionBatch:
-    """A batch of frames cut into per-object inputs (see xvoe.data.perception_batch).
+    """A batch of frames cut into per-object inputs (see xvoe.training.data.perception_batch).
 
     frames (B,4,H,W) targets; objects (M,4,H,W) the masked images of the slots with pixels,
     which sit at (object_frame, object_slot); background (B,4,H,W) with
@@ -221,7 +221,7 @@ class ComponentVAE(nn.Module):
         a, b = self.encoder(images).chunk(2, dim=-1)
         return MEAN_RANGE * (2 * torch.sigmoid(a) - 1), STD_SCALE * torch.sigmoid(b)
 
-    DECODE_CHUNK = 64   # latents per decoder pass outside training (benchmarks/decode.py)
+    DECODE_CHUNK = 64   # latents per decoder pass outside training
 
     def decode(self, z: Tensor) -> Tensor:
         """RGBD pictures (N,4,H,W) of latents (N,D), each object alone on the blank.

@@ -54,7 +54,7 @@ class XPLConfig:
     refill_ignores_walls: bool = False
     # Transformer 2 and the existence head train in the joint stage too; off, in the proposal
     # stage alone, and the joint step costs a third less, since nothing else in it reads them
-    # (docs/decisions.md, "Not kept: Transformer 2 out of the joint stage")
+    # (docs/decisions.md, "Transformer 2 out of the joint stage")
     joint_proposal: bool = True
 
 
@@ -69,10 +69,6 @@ class XPL(nn.Module):
             # q(a hidden object exists | what Transformer 2 proposes for the slot it filled):
             # the amortised existence probability of the inference model's guide
             self.existence = mlp(2 * config.reasoning.latent_dim * config.reasoning.frames, 64, 1, 1)
-        # the NLL's learned proposal of whole trajectories (trajectory.pt beside xpl.pt, attached by
-        # xvoe.training.trajectory.with_trajectory);
-        # no part of XPL's own training
-        self.trajectory: nn.Module | None = None
 
     def forward(self, batch) -> dict[str, Tensor]:
         """The training objective of a LatentBatch (what the training loop calls)."""

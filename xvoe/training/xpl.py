@@ -449,8 +449,7 @@ def load_xpl(model: str | os.PathLike, stage: str = "xpl", device: str | torch.d
              proposal: bool = True) -> tuple[XPL, dict]:
     """A trained XPL (or PLATO) model in eval mode, and its checkpoint's contents. An xpl.pt
     with a proposal.pt beside it (the proposal stage ran) gets that checkpoint's Transformer 2
-    and existence head, unless `proposal` is False. The NLL's learned trajectory proposal is
-    attached apart (`xvoe.training.trajectory.with_trajectory`)."""
+    and existence head, unless `proposal` is False."""
     path = resolve_run(model, stage)
     state = load_checkpoint(path)
     if state["stage"] not in TRAINED_ON_LATENTS:
