@@ -4,9 +4,9 @@
                                      [--fills-figure fills.png] [--fills-video N]
 
 hidden_iou (blocking S2's never-seen cube) and why it falls short, and its ceiling (a wholly
-visible cube's own latent, decoded); the share of those videos in which the MSE score with
-`--explanation better` keeps the proposal; mae_iou (expected S1 videos, each object dropped
-in turn); fill_iou (permanence S1: Transformer 1's fills of cubes hidden after they were seen,
+visible cube's own latent, decoded); the share of those videos in which the default verdict
+(the better of two explanations) keeps the proposal; mae_iou (expected S1 videos, each object
+dropped in turn); fill_iou (permanence S1: Transformer 1's fills of cubes hidden after they were seen,
 by frames before the reveal); the dynamics' one-step error; and the paper's Fig. 5b (the
 spread of the first ten principal components of the dynamics targets with and without the
 residual).
@@ -100,9 +100,9 @@ def main() -> None:
           f"of the true one, {100 * hidden['empty_share']:.0f}% of frames empty; the perception's own IoU of a "
           f"wholly visible cube {ceiling:.2f}; Transformer 1's fill of the ball behind the wall "
           f"{hidden['ball_fill_px']:+.2f} px beyond the true ball (median)")
-    print(f"the MSE score with --explanation better keeps the proposal (it explains the video better than nothing "
-          f"hidden) in {100 * hidden['kept_share']:.0f}% of these videos; the IoU of the explanation it draws "
-          f"(0 where it draws nothing hidden) {hidden['shown_iou']:.2f}")
+    print(f"the default verdict (the better of two explanations) keeps the proposal (it explains the video "
+          f"better than nothing hidden) in {100 * hidden['kept_share']:.0f}% of these videos; the IoU of the "
+          f"explanation it draws (0 where it draws nothing hidden) {hidden['shown_iou']:.2f}")
     print(f"Transformer 1's fills of the cubes hidden after they were seen (permanence S1, expected; "
           f"{fills['frames']} frames): IoU {fills['iou']:.2f}, centre {fills['centre_px']:.2f} px off (median), "
           f"{fills['before_reveal_px']:.2f} px at the frame before the reveal, "

@@ -23,12 +23,12 @@ from tqdm.auto import tqdm
 import xvoe
 from xvoe.benchmark import store
 from xvoe.evaluation.metrics import excess
-from xvoe.evaluation.score import EXCESS_COLUMNS, SCORE_COLUMNS, encode_videos
+from xvoe.evaluation.score import encode_videos
 from xvoe.evaluation.surprise import EXPLANATIONS, every_explanation
 
-HEADER = SCORE_COLUMNS + EXCESS_COLUMNS
-LABELS = HEADER[2:HEADER.index("score")]       # scenario .. possible
-COLUMNS = HEADER[HEADER.index("score"):]       # score, s_img, s_dyn, s_rec, excess
+LABELS = ("scenario", "setting", "pair", "member", "possible")
+COLUMNS = ("score", "s_img", "s_dyn", "s_rec", "excess")       # one explanation's, as its own file's score columns
+HEADER = ("index", "model", *LABELS, *COLUMNS)
 
 
 def per_video(scorer, data: str, rows: range, batch: int, progress: bool) -> tuple[dict[str, np.ndarray], np.ndarray]:

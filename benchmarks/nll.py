@@ -1,10 +1,10 @@
 """The NLL surprise, measured: its scoring speed, the ESS, the hidden-object posterior, its
 repeatability between seeds, and its accuracy against the MSE score on the same pairs.
 
-    python benchmarks/nll.py --model NAME_OR_RUN --data test.h5 [--particles 64] [--pairs N] [--threads 2]
+    python benchmarks/nll.py --model NAME_OR_RUN --data test.h5 [--particles N] [--pairs N] [--threads 2]
                              [--seeds 0,1] [--rows rows.csv] [--nll-set FIELD=VALUE ...]
 
-`--nll-set` changes a field of the NLL's settings (inference.InferenceConfig: method,
+`--nll-set` changes a field of the model's NLL settings (xvoe.models.nll.InferenceConfig: method,
 pixel_sigma, motion_sigma, smc_pilot, refine_steps, proposal_widening, ...), as xvoe score's.
 
 Scores the first N pairs of every S1 and S3 setting and of blocking S2 with both surprise
@@ -35,7 +35,6 @@ import torch
 from tqdm.auto import tqdm
 
 import xvoe
-from inference.model import InferenceConfig
 from inference.score import nll_config, reference_nll
 from inference.surprise import nll_surprise
 from xvoe.benchmark import store
@@ -44,6 +43,7 @@ from xvoe.evaluation.explanation_quality import ground_truth
 from xvoe.evaluation.metrics import comparative, holistic
 from xvoe.evaluation.score import encode_videos
 from xvoe.evaluation.surprise import mse_surprise
+from xvoe.models.nll import InferenceConfig
 from xvoe.training.data import check_size
 
 SETTINGS = [(scenario, setting) for setting in ("S1", "S3")
@@ -120,7 +120,7 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--model", required=True, help="a shipped model's name (xpl), a run directory or checkpoint")
     parser.add_argument("--data", required=True, help="a test split at the model's resolution")
-    parser.add_argument("--particles", type=int, default=64, help="importance samples per video (default 64)")
+    parser.add_argument("--particles", type=int, help="particles per video (default: the model's NLL settings)")
     parser.add_argument("--pairs", type=int, default=1_000_000, help="pairs per setting (default: all)")
     parser.add_argument("--threads", type=int, default=2, help="torch threads (default 2)")
     parser.add_argument("--seeds", default="0,1", help="comma-separated seeds; each video is scored with each "
@@ -141,7 +141,7 @@ def run(args: argparse.Namespace) -> None:
     scorer = xvoe.load_model(args.model)
     if scorer.xpl is None or not scorer.xpl.config.use_reasoning:
         raise XvoeError(f"the NLL surprise needs an XPL model with reasoning; {scorer.name} has none")
-    config = nll_config(args.particles, xvoe.nll_settings(args.nll_set))
+    config = nll_config(scorer.nll or InferenceConfig(), args.particles, xvoe.nll_settings(args.nll_set))
     rows, nll_seconds, mse_seconds = [], 0.0, 0.0
     with store.open_dataset(args.data) as file:
         check_size(file, scorer.image_size, f"the model {scorer.name}")
@@ -181,7 +181,7 @@ def report(table: dict[str, np.ndarray], args: argparse.Namespace, config: Infer
     if hidden.any():
         print(f"ESS among the particles that hold an object, on the {int(hidden.sum())} videos with an object "
               f"visible in no frame: median {holding_ess:.1f}, 10th percentile {np.percentile(holding, 10):.1f}, "
-              f"lowest {holding.min():.1f} of {args.particles} (goal: median >= 16)")
+              f"lowest {holding.min():.1f} of {config.particles} (goal: median >= 16)")
     p_hidden_hidden = share(table["p_hidden"][hidden] > 0.5)
     p_hidden_seen = share(table["p_hidden"][seen] < 0.5)
     print(f"p_hidden > 0.5 on {int((table['p_hidden'][hidden] > 0.5).sum())} of {int(hidden.sum())} videos with an "

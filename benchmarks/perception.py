@@ -28,8 +28,9 @@ from xvoe.evaluation import perception_quality as quality
 from xvoe.models.config import from_dict
 from xvoe.models.perception import ComponentVAE
 from xvoe.training.data import perception_batch
+from xvoe.training.loop import TrainConfig
 from xvoe.training.perception import load_perception
-from xvoe.training.recipes import TrainConfig, recipe_of
+from xvoe.training.recipes import recipe_of
 
 
 def train_throughput(model: ComponentVAE, held: quality.HeldOut, config: TrainConfig, steps: int) -> float:

@@ -2,7 +2,7 @@
 (docs/design.md, "Goals") that the pipeline's own models show on a fresh test set.
 
     python benchmarks/pipeline.py --out runs/bench [--recipe cpu-short] [--seed 0] [--models xpl,random]
-                                  [--fresh-pairs 1000 | --fresh split.h5] [--explanation proposal]
+                                  [--fresh-pairs 1000 | --fresh split.h5]
 
 Runs `xvoe pipeline` (skipping stages a previous run finished) and prints each stage's time
 from the run's own records, so that a resumed run still reports its whole time. Then scores a
@@ -27,7 +27,6 @@ from xvoe.apps.pipeline import DEFAULT_MODELS, MODELS, PipelineConfig, run_pipel
 from xvoe.benchmark.generate import GenerateConfig, generate
 from xvoe.evaluation import scorecard
 from xvoe.evaluation.metrics import read_scores
-from xvoe.evaluation.surprise import EXPLANATIONS
 from xvoe.training.recipes import DEFAULT_RECIPE, recipe
 
 FRESH_SEED = 12345
@@ -69,8 +68,6 @@ def main() -> None:
     parser.add_argument("--fresh", help="an existing fresh test split (a seed nothing was chosen on) to score")
     parser.add_argument("--fresh-pairs", type=int, default=1000, help="pairs per setting of the fresh split made")
     parser.add_argument("--fresh-seed", type=int, default=FRESH_SEED)
-    parser.add_argument("--explanation", default="proposal", choices=EXPLANATIONS,
-                        help="the MSE score's explanation (xvoe score --explanation)")
     args = parser.parse_args()
     models = tuple(args.models.split(","))
     run_dir = Path(args.out)
@@ -103,10 +100,10 @@ def main() -> None:
                  progress=False)
     found = {}
     for model in models:
-        out = run_dir / "scores" / f"fresh-{fresh.stem}-{model}-{args.explanation}.csv"
+        out = run_dir / "scores" / f"fresh-{fresh.stem}-{model}.csv"
         reference = "random" if model == "random" else str(run_dir / f"{model}.pt")
         start = time.monotonic()
-        scores = read_scores(xvoe.score(reference, fresh, out, explanation=args.explanation, overwrite=True,
+        scores = read_scores(xvoe.score(reference, fresh, out, overwrite=True,
                                         progress=False))
         print(f"{model}: scored {len(scores['index'])} videos of {fresh} in {time.monotonic() - start:.0f} s")
         found[model] = scores

@@ -2,13 +2,13 @@
 
     python benchmarks/scorecard.py --model xpl --data val.h5 [--frames heldout-train.h5]
                                    [--baselines plato,phydnet] [--role xpl|baseline|random|reported]
-                                   [--particles 64] [--seeds 0,1] [--pairs 100] [--json card.json]
-                                   [--against shipped.json] [--nll-set FIELD=VALUE ...] [--explanation E]
+                                   [--particles N] [--seeds 0,1] [--pairs 100] [--json card.json]
+                                   [--against shipped.json] [--nll-set FIELD=VALUE ...]
 
 Scores the split (`xvoe score`; with `--surprise both` for an XPL model with reasoning, once per
 --seeds), then prints the card of xvoe.evaluation.scorecard: comparative accuracy per setting
-under the default verdict (the goals), the paper's score, the excess, the NLL and the NLL
-excess, each with its 95% interval over pairs and the permutation p-value against 50%; the
+under the default verdict (`score`, the goals), the paper's score (`paper_score`), the excess,
+the NLL and the NLL excess, each with its 95% interval over pairs and the permutation p-value against 50%; the
 S3 - S2 gap; holistic AUC; hidden_iou and mae_iou on --pairs videos; the NLL's p_hidden, ESS
 and repeatability; the perception's PSNR and position probe on --frames (a train-type split
 the model was not trained on); XPL's S3 lead over each of --baselines; videos per second.
@@ -28,7 +28,6 @@ import torch
 import xvoe
 from xvoe.benchmark import store
 from xvoe.evaluation import scorecard
-from xvoe.evaluation.surprise import EXPLANATIONS
 
 
 def timed_scores(model, data: str, out: Path, **options) -> tuple[dict, float]:
@@ -45,14 +44,13 @@ def reasons(model) -> bool:
 
 def card_lines(args: argparse.Namespace, model, work: Path) -> list[scorecard.Line]:
     """Score, then measure every line this model's card carries."""
-    options = {} if args.explanation is None else {"explanation": args.explanation}
-    scores, seconds = timed_scores(model, args.data, work / "mse.csv", **options)
+    scores, seconds = timed_scores(model, args.data, work / "mse.csv")
     lines = [scorecard.speed_line("MSE scoring", len(scores["index"]), seconds, scorecard.MSE_SPEED)]
     runs = []
     if reasons(model) and not args.no_nll:
         nll_settings = xvoe.nll_settings(args.nll_set)
         runs = [timed_scores(model, args.data, work / f"both-{seed}.csv", surprise="both", particles=args.particles,
-                             seed=seed, nll_settings=nll_settings, **options) for seed in args.seeds]
+                             seed=seed, nll_settings=nll_settings) for seed in args.seeds]
         scores = runs[0][0]
         lines.append(scorecard.speed_line("NLL scoring (with MSE)", len(scores["index"]), runs[0][1],
                                           scorecard.NLL_SPEED))
@@ -79,7 +77,7 @@ def parse() -> argparse.Namespace:
     parser.add_argument("--baselines", default="", help="comma-separated models scored beside for XPL's S3 lead")
     parser.add_argument("--role", choices=scorecard.ROLES,
                         help="which goals the lines carry (default: from the model's name; a run is an XPL)")
-    parser.add_argument("--particles", type=int, default=64)
+    parser.add_argument("--particles", type=int, help="the NLL's particles (default: the model's own NLL settings)")
     parser.add_argument("--seeds", default="0,1",
                         help="the NLL's seeds; the first scores, the second measures repeatability")
     parser.add_argument("--no-nll", action="store_true", help="leave out the NLL's lines (and its scoring time)")
@@ -88,7 +86,6 @@ def parse() -> argparse.Namespace:
     parser.add_argument("--threads", type=int, default=2)
     parser.add_argument("--nll-set", action="append", default=[], metavar="FIELD=VALUE",
                         help="change a field of the NLL's settings (inference.InferenceConfig), as xvoe score's")
-    parser.add_argument("--explanation", choices=EXPLANATIONS, help="the MSE score's explanation (xvoe score's)")
     parser.add_argument("--json", help="write the card here too")
     parser.add_argument("--against", help="the shipped model's card (--json) on the same split: the shipping rule")
     args = parser.parse_args()

@@ -1,7 +1,7 @@
 """A recipe over training seeds: the README's results table, from one command.
 
     python benchmarks/seeds.py --runs runs/s0,runs/s1,runs/s2 --data report.h5 --out seeds/ [--shipped xpl]
-                               [--surprise mse] [--explanation proposal] [--hidden-pairs 100]
+                               [--surprise mse] [--column score|paper_score] [--hidden-pairs 100]
 
 Scores the report split with each run's model (and the shipped one, beside them), then prints
 one markdown table: comparative accuracy per setting as the mean over the runs with its range
@@ -22,18 +22,18 @@ import torch
 import xvoe
 from xvoe.benchmark import store
 from xvoe.evaluation.explanation_quality import hidden_explanations, pick
-from xvoe.evaluation.surprise import EXPLANATIONS
+from xvoe.evaluation.metrics import VERDICTS
 
 ORDER = [("collision", "S1"), ("collision", "S2"), ("collision", "S3"), ("blocking", "S1"), ("blocking", "S2"),
          ("blocking", "S3"), ("permanence", "S1"), ("permanence", "S2"), ("continuity", "S1"),
          ("continuity", "S2"), ("continuity", "S3")]
 
 
-def scored(model: str, data: str, out: Path, surprise: str, explanation: str) -> dict:
+def scored(model: str, data: str, out: Path, surprise: str) -> dict:
     """The model's scores of the split (read back if --out already holds them)."""
-    path = out / f"{Path(model).name or model}{'' if explanation == 'proposal' else '-' + explanation}.csv"
+    path = out / f"{Path(model).name or model}.csv"
     if not path.exists():
-        xvoe.score(model, data, path, surprise=surprise, explanation=explanation, progress=False)
+        xvoe.score(model, data, path, surprise=surprise, progress=False)
     return xvoe.read_scores(path)
 
 
@@ -45,8 +45,8 @@ def main() -> None:
     parser.add_argument("--shipped", default="xpl", help="the shipped model to show beside ('' for none)")
     parser.add_argument("--surprise", default="mse", choices=("mse", "both"))
     parser.add_argument("--hidden-pairs", type=int, default=100, help="blocking S2 videos for hidden_iou (0: none)")
-    parser.add_argument("--explanation", default="proposal", choices=EXPLANATIONS,
-                        help="the MSE score's explanation (xvoe score --explanation)")
+    parser.add_argument("--column", default="score", choices=VERDICTS,
+                        help="the default verdict (score) or the paper's score (paper_score)")
     parser.add_argument("--threads", type=int, default=2)
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
@@ -54,10 +54,10 @@ def main() -> None:
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     models = runs + ([args.shipped] if args.shipped else [])
-    column = "score"
+    column = args.column
     rows = {}
     for model in models:
-        found = xvoe.metric_rows(scored(model, args.data, out, args.surprise, args.explanation), model, (column,))
+        found = xvoe.metric_rows(scored(model, args.data, out, args.surprise), model, (column,))
         rows[model] = {(r["metric"], r["scenario"], r["setting"]): 100 * r["value"] for r in found}
     names = [Path(r).name for r in runs]
     print(f"Comparative accuracy (%) on {args.data}, {len(runs)} training seeds: mean [lowest, highest]\n")

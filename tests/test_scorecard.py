@@ -107,6 +107,9 @@ def test_score_lines_carry_the_goals_of_the_role():
     assert baseline["MSE verdict collision S3 comparative (%)"].target is None
     chance = {line.name: line for line in score_lines(scores, "random", rounds=50)}
     assert chance["MSE verdict collision S1 comparative (%)"].direction == "within"
+    # a model with no choice of explanation writes its score twice: no second set of lines
+    twice = score_lines(table(rows, [value for (*_, value) in rows]), "baseline", rounds=50)
+    assert [line.name for line in twice] == [name for name in baseline if not name.startswith("paper's")]
 
 
 def test_xpl_s3_lead_over_a_baseline_by_hand():

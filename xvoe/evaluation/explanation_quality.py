@@ -208,7 +208,7 @@ def mae_iou(scorer: Scorer, file: h5py.File, videos: list[int]) -> list[float]:
             visible[0, :, slot] = False
             mean[0, :, slot] = empty
             refined = scorer.xpl.refine(mean, visible, video["occluder"])
-            keep = scorer.xpl.proposal_keep(visible, ~hide_slot(visible.shape, torch.tensor([slot])))
+            keep = hide_slot(visible.shape, torch.tensor([slot]))      # every entry but the dropped slot
             rebuilt, _ = scorer.xpl.transformer2(refined, keep)
             masks = decoded_mask(scorer.vae.decode(rebuilt[0, :, slot]))
             truth = silhouette(states[:, slot], columns, kind, masks.shape[-1])
