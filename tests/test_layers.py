@@ -1,5 +1,5 @@
-"""The import contract of ../shared/DESIGN.md section 2: layers import downhill only, at the
-top of a module, with no cycle; the benchmark layer needs no torch."""
+"""The import contract (docs/design.md, "Layers"): layers import downhill only, at the top of
+a module, with no cycle; the benchmark layer needs no torch."""
 from __future__ import annotations
 
 import ast

@@ -217,12 +217,17 @@ def test_report_compares_the_two_surprises_and_draws_disagreements(test_data, te
     path = tmp_path / "both.csv"
     with open(path, "w", newline="") as handle:
         writer = csv.writer(handle)
-        writer.writerow(["index", "model", "scenario", "setting", "pair", "member", "possible", "score", "nll"])
-        for i, (score, nll) in enumerate(rng.random((count, 2))):
+        writer.writerow(["index", "model", "scenario", "setting", "pair", "member", "possible", "score", "nll",
+                         "paper_score"])
+        for i, (score, nll, paper) in enumerate(rng.random((count, 3))):
             writer.writerow([i, "both", test_data["scenario"][i], test_data["setting"][i], test_data["pair"][i],
-                             test_data["member"][i], test_data["possible"][i], score, nll])
+                             test_data["member"][i], test_data["possible"][i], score, nll, paper])
     written = {p.name for p in report([path], tmp_path / "report", rounds=10, data=test_file)}
     assert {"surprise-both.csv", "disagreements-both.csv", "disagreements-both.png"} <= written
+    # the default verdict beside the paper's score, in every report of a file that holds both
+    assert {"verdicts-both.csv", "verdicts-disagreements-both.csv"} <= written
+    verdicts = list(csv.DictReader(open(tmp_path / "report" / "verdicts-disagreements-both.csv")))
+    assert verdicts and all(r["score_says"] != r["paper_score_says"] for r in verdicts)
     rows = list(csv.DictReader(open(tmp_path / "report" / "disagreements-both.csv")))
     assert rows and all(r["score_says"] != r["nll_says"] for r in rows)
     other = tmp_path / "other.h5"

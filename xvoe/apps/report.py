@@ -11,8 +11,10 @@ import numpy as np
 from ..benchmark import store
 from ..errors import XvoeError
 from ..evaluation.metrics import (
-    DISAGREEMENT_FIELDS,
     ONSET_FIELDS,
+    SURPRISES,
+    VERDICTS,
+    disagreement_fields,
     disagreements,
     has_both_surprises,
     metric_rows,
@@ -27,7 +29,8 @@ from . import figures
 
 # what a report writes, so that a rerun into the same directory leaves nothing of the last one
 REPORT_FILES = ("metrics.csv", "metrics.json", "holistic.png", "comparative.png", "components-*.png",
-                "disagreements-*.png", "surprise-*.csv", "disagreements-*.csv", "onset.csv", "onset.png")
+                "disagreements-*.png", "surprise-*.csv", "disagreements-*.csv", "verdicts-*.csv", "onset.csv",
+                "onset.png")
 
 
 def report(paths: list[str | Path], out_dir: str | Path, rounds: int = 1000, seed: int = 0,
@@ -35,12 +38,14 @@ def report(paths: list[str | Path], out_dir: str | Path, rounds: int = 1000, see
     """What `xvoe metrics` does: the table (CSV and JSON) and the figures, for one or more
     models' scores files. A scores file holding both surprise definitions (`xvoe score
     --surprise both`) also gets them side by side (surprise-MODEL.csv) and the pairs they
-    judge differently (disagreements-MODEL.csv); with `data`, the test split the scores
+    judge differently (disagreements-MODEL.csv); one whose default verdict and paper's score
+    differ gets the same for those two (verdicts-MODEL.csv, verdicts-disagreements-MODEL.csv);
+    with `data`, the test split the scores
     came from, a figure of a few of those pairs too, and for every model whose per-frame
     curves lie beside its scores, the violation onset (onset.csv, onset.png)."""
     rows = []
     names = []
-    compared = {}
+    compared, verdicts = {}, {}
     timing, timed_pairs = [], {}
     events = _event_frames(data) if data is not None else None
     for path in paths:
@@ -52,6 +57,8 @@ def report(paths: list[str | Path], out_dir: str | Path, rounds: int = 1000, see
         rows += metric_rows(scores, name, rounds=rounds, seed=seed)
         if has_both_surprises(scores):
             compared[name] = scores
+        if has_both_surprises(scores, VERDICTS):
+            verdicts[name] = scores
         per_frame = _per_frame(Path(path), len(scores["index"]))
         if events is not None and per_frame is not None:
             event = events[scores["index"].astype(int)]
@@ -75,13 +82,22 @@ def report(paths: list[str | Path], out_dir: str | Path, rounds: int = 1000, see
         drawn["onset.png"] = figures.plot_onset(timed_pairs)
     for name, scores in compared.items():
         differ = disagreements(scores)
-        written.append(write_csv(side_by_side(scores, rows, name), Path(out_dir) / f"surprise-{name}.csv"))
-        written.append(write_csv(differ, Path(out_dir) / f"disagreements-{name}.csv", DISAGREEMENT_FIELDS))
+        written += write_comparison(scores, rows, name, SURPRISES, out_dir, "surprise", "disagreements")
         if data is not None and differ:
             drawn[f"disagreements-{name}.png"] = _disagreement_figure(data, scores, differ)
+    for name, scores in verdicts.items():
+        written += write_comparison(scores, rows, name, VERDICTS, out_dir, "verdicts", "verdicts-disagreements")
     for filename, figure in drawn.items():
         written.append(figures.save_figure(figure, out_dir / filename, dpi=90))
     return written
+
+
+def write_comparison(scores: dict[str, np.ndarray], rows: list[dict], name: str, columns: tuple[str, str],
+                     out_dir: Path, side: str, differ: str) -> list[Path]:
+    """Two score columns of one model side by side (SIDE-NAME.csv) and the pairs they judge
+    differently (DIFFER-NAME.csv)."""
+    return [write_csv(side_by_side(scores, rows, name, columns), out_dir / f"{side}-{name}.csv"),
+            write_csv(disagreements(scores, columns), out_dir / f"{differ}-{name}.csv", disagreement_fields(columns))]
 
 
 def write_table(rows: list[dict], out_dir: str | Path) -> tuple[Path, Path]:

@@ -40,7 +40,8 @@ class Stage:
 STAGES: dict[str, Stage] = {stage.name: stage for stage in (
     Stage("perception", "the Component VAE, on a training split's frames", PerceptionConfig, "perception",
           "pixels", "perception_train"),
-    Stage("xpl", "Transformers 1 and 2 and the dynamics, on the latent cache (a split is encoded first)",
+    Stage("xpl", "Transformer 1 and the dynamics (Transformer 2 too where the recipe trains it jointly), on the "
+          "latent cache (a split is encoded first)",
           XPLConfig, "xpl", "latents", "xpl_train", scored=True, variant="xpl"),
     Stage("proposal", "Transformer 2 and the existence head further, on hidden objects (after xpl)",
           XPLConfig, "xpl", "xpl", "proposal_train", variant="xpl"),
