@@ -29,6 +29,7 @@ _HOMES = {
     "xvoe.benchmark.generate": ("GenerateConfig", "generate", "merge"),
     "xvoe.benchmark.scenes": ("SCENARIOS", "TEST_SETTINGS"),
     "xvoe.benchmark.store": ("open_dataset",),
+    "xvoe.benchmark.released": ("import_released",),
     "xvoe.benchmark.videos": ("describe", "find_pair", "true_objects"),
     "xvoe.training.recipes": ("DEFAULT_RECIPE", "RECIPES", "recipe", "stage_settings"),
     "xvoe.training.stages": ("STAGES",),

@@ -71,6 +71,10 @@ def cmd_generate(args: argparse.Namespace) -> None:
     print(out)
 
 
+def cmd_import(args: argparse.Namespace) -> None:
+    print(xvoe.import_released(args.source, args.split, args.out, overwrite=args.overwrite, progress=not args.quiet))
+
+
 def cmd_show(args: argparse.Namespace) -> None:
     out = args.out or Path(args.file).with_suffix(f".{args.index}.png").name
     print(xvoe.show(args.file, args.index, out, overwrite=args.overwrite, scores=args.scores))
@@ -251,6 +255,19 @@ def build_parser() -> argparse.ArgumentParser:
     gen.add_argument("--overwrite", action="store_true", help="replace --out if it exists")
     gen.add_argument("--quiet", action="store_true", help="no progress bar")
     gen.set_defaults(run=cmd_generate)
+
+    imp = verbs.add_parser("import", help="import the paper's released X-VoE TFRecords into an HDF5 file",
+                           description="Read the released X-VoE split (gzip TFRecords, no TensorFlow needed) and "
+                                       "write it in xvoe's HDF5 schema: RGBD frames, slot ids from the masks and, "
+                                       "for the test split, the labels as the reference's metrics lay them out "
+                                       "(docs/benchmark.md, \"The released X-VoE and this one\").")
+    imp.add_argument("source", help="the downloaded X-VoE directory (holding test/ and train/)")
+    imp.add_argument("--split", choices=("train", "test"), required=True,
+                     help="test: test/SCENARIO/eval-part-NNN.tfrecord; train: train/train-part-NNN.tfrecord")
+    imp.add_argument("--out", required=True, help="the HDF5 file to write")
+    imp.add_argument("--overwrite", action="store_true", help="replace --out if it exists")
+    imp.add_argument("--quiet", action="store_true", help="no progress bar")
+    imp.set_defaults(run=cmd_import)
 
     show = verbs.add_parser("show", help="contact sheet (PNG), animation (GIF) or video (MP4) of a video or pair",
                             description="Frames in a row: RGB, depth and slot ids; a test pair's members "

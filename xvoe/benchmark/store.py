@@ -78,8 +78,10 @@ class Writer:
         self.labels = {name: [None] * count for name in names}
         self.written = 0
 
-    def add(self, video: EncodedVideo) -> None:
-        i = self.written
+    def add(self, video: EncodedVideo, at: int | None = None) -> None:
+        """Store the next video, or with `at` the video of that row (an import whose source
+        order is not the schema's)."""
+        i = self.written if at is None else at
         self.rgbd.id.write_direct_chunk((i, 0, 0, 0, 0), video.rgbd)
         self.ids.id.write_direct_chunk((i, 0, 0, 0), video.ids)
         self.states[i], self.kind[i], self.color[i] = video.states, video.kind, video.color
