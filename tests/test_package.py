@@ -1,0 +1,82 @@
+"""The package as a user installs it: a wheel built from the sources, with the shipped weights,
+installed into a fresh venv, runs `xvoe generate`, `score --model random` and `metrics` from a
+directory that holds no source."""
+from __future__ import annotations
+
+import os
+import shutil
+import subprocess
+import sys
+import sysconfig
+import venv
+import zipfile
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parent.parent
+SOURCES = ("setup.cfg", "pyproject.toml", "README.md", "xvoe", "inference")
+
+
+def build_wheel(target: Path) -> Path:
+    """An sdist of a copy of the sources and a wheel built from that sdist (so the sdist must hold
+    all a build needs), offline with this venv's setuptools (no isolation: an isolated build would
+    fetch setuptools from the network); both must pass `twine check`."""
+    pytest.importorskip("build", reason="the dev extras' `build` is not installed")
+    pytest.importorskip("twine", reason="the dev extras' `twine` is not installed")
+    source = target / "source"
+    source.mkdir()
+    for name in SOURCES:
+        if (ROOT / name).is_dir():
+            shutil.copytree(ROOT / name, source / name, ignore=shutil.ignore_patterns("__pycache__", "*.egg-info"))
+        else:
+            shutil.copy2(ROOT / name, source / name)
+    done = subprocess.run([sys.executable, "-m", "build", "--no-isolation", "--skip-dependency-check",
+                           "--outdir", str(target / "dist"), str(source)], capture_output=True, text=True)
+    if done.returncode != 0:
+        pytest.skip(f"cannot build a wheel here: {done.stderr.strip().splitlines()[-1:]}")
+    built = [next((target / "dist").glob(pattern)) for pattern in ("xvoe-*.tar.gz", "xvoe-*.whl")]
+    subprocess.run([sys.executable, "-m", "twine", "check", "--strict", *map(str, built)], check=True,
+                   capture_output=True)
+    return built[1]
+
+
+def fresh_venv(where: Path) -> Path:
+    """A venv without xvoe that sees this venv's packages (torch, pyro...) through a .pth line: a
+    plain path, so this venv's editable xvoe (installed by a .pth import) stays out of it."""
+    venv.create(where, with_pip=False)
+    python = where / "bin" / "python"
+    purelib = subprocess.run([str(python), "-c", "import sysconfig; print(sysconfig.get_paths()['purelib'])"],
+                             capture_output=True, text=True, check=True).stdout.strip()
+    Path(purelib, "dependencies.pth").write_text(sysconfig.get_paths()["purelib"] + "\n")
+    return python
+
+
+def test_the_wheel_installs_and_runs_from_another_directory(tmp_path):
+    wheel = build_wheel(tmp_path)
+    names = zipfile.ZipFile(wheel).namelist()
+    shipped = {path.name for path in (ROOT / "xvoe" / "weights").glob("*.pt")}
+    assert {Path(name).name for name in names if name.startswith("xvoe/weights/")} == shipped
+    sources = {str(path.relative_to(ROOT)) for package in ("xvoe", "inference")
+               for path in (ROOT / package).rglob("*.py")}
+    assert sources <= set(names), f"missing from the wheel: {sorted(sources - set(names))[:5]}"
+
+    python = fresh_venv(tmp_path / "venv")
+    subprocess.run([sys.executable, "-m", "pip", "--python", str(python), "install", "--quiet", "--no-deps",
+                    "--no-index", str(wheel)], check=True, capture_output=True)
+    work = tmp_path / "elsewhere"
+    work.mkdir()
+    env = {**os.environ, "OMP_NUM_THREADS": "1"}
+    env.pop("PYTHONPATH", None)
+
+    def run(*args: str) -> str:
+        done = subprocess.run([str(python.parent / args[0]), *args[1:]], cwd=work, env=env, capture_output=True,
+                              text=True)
+        assert done.returncode == 0, done.stderr
+        return done.stdout
+
+    assert run("python", "-c", "import xvoe; print(xvoe.__file__)").startswith(str(tmp_path / "venv"))
+    run("xvoe", "generate", "--split", "test", "--pairs", "2", "--workers", "1", "--out", "test.h5", "--quiet")
+    run("xvoe", "score", "--model", "random", "--data", "test.h5", "--out", "scores/random.csv", "--quiet")
+    run("xvoe", "metrics", "scores/random.csv", "--out", "report", "--rounds", "20")
+    assert (work / "report" / "metrics.csv").read_text().count("\n") > 11
