@@ -5,6 +5,11 @@ models (untrained weights cost the same as trained ones):
   perception  one training step of the Component VAE (forward, backward, Adam), per frame
   xpl         one training step of XPL (Transformers 1 and 2, the dynamics, Adam), per video
   score       one MSE scoring pass (encode every frame, Transformers 1 and 2, decode, composite), per video
+  nll         one NLL scoring pass (encode every frame, then the recipe's NLL: proposal, SMC over the
+              particles), per video, on frames with one slot never seen (a hidden object's); its work
+              hangs on the video (a pilot run may spare the full one, a sure existence head skips
+              the pilot), so on random frames it is one draw; nll-least: the smallest pilot run
+              alone, nll-most: every pilot and then the full run; no reference
   phydnet     one training step of the PhyDNet baseline with the recipe's first ConvLSTM kernel, per
               video (phydnet-widened: with the kernel its widening phase gives it); no reference
 Each stage runs `--warmup` steps, then `--repeats` timed ones; it prints the median wall time
@@ -14,17 +19,20 @@ step, the peak resident memory, and the wall time over the reference's ("vs ref"
 below 0.5x at the paper preset). The reference (TensorFlow, 2 threads, a 32-channel decoder):
 383 ms per 128x128 frame, 539 ms per video, 881 ms per video.
 
-It also counts each step's multiply-accumulates (torch's FlopCounterMode: matrix products,
-convolutions and attention, forward and backward; the fused LSTM is not counted, so the XPL
-figure is a floor) and sets them against this machine's own rate: a large matrix product timed
-in the same process ("peak"). Rates are per core, multiply-accumulates per CPU second, so that
-other jobs on the machine move them little. "goal needs" is the rate per core at which our step
-would have to run on --threads cores for half the reference's time: above the peak, the goal
-cannot be met by making the step faster, only by a step with fewer operations.
+It also counts each step's multiply-accumulates (xvoe.evaluation.operations: torch's
+FlopCounterMode with the CPU flash attention and the fused LSTM layer registered; matrix
+products, convolutions and attention, forward and backward; "torch GMAC" is what FlopCounterMode
+counts alone) and sets them against this machine's own rate: a large matrix product timed in the
+same process ("peak"). `--count-only` prints the counts without timing anything. Rates are per
+core, multiply-accumulates per CPU second, so that other jobs on the machine move them little.
+"goal needs" is the rate per core at which our step would have to run on --threads cores for
+half the reference's time: above the peak, the goal cannot be met by making the step faster,
+only by a step with fewer operations.
 
     python benchmarks/steps.py --recipe paper --decoder-channels 32
     python benchmarks/steps.py --recipe cpu-short --stages score
     python benchmarks/steps.py --recipe cpu-short --stages phydnet,phydnet-widened --threads 1
+    python benchmarks/steps.py --recipe paper --stages perception,xpl,score,nll --count-only
 
 The allocator setting (xvoe/allocator.py) is per process: compare it by running this twice,
 once with XVOE_MALLOC=system; the faults column shows the difference without timing noise.
@@ -39,10 +47,12 @@ from dataclasses import replace
 
 import numpy as np
 import torch
-from torch.utils.flop_counter import FlopCounterMode
 
+from inference.surprise import nll_surprise
 from xvoe import allocator
+from xvoe.evaluation.operations import Operations, count_operations
 from xvoe.evaluation.surprise import mse_surprise
+from xvoe.models.nll import InferenceConfig
 from xvoe.models.perception import ComponentVAE, normalise
 from xvoe.models.phydnet import PhyDNet, PhyDNetObjective
 from xvoe.models.xpl import XPL
@@ -52,7 +62,7 @@ from xvoe.training.recipes import recipe
 from xvoe.training.xpl import LatentBatch
 
 REFERENCE_MS = {"perception": 383.0, "xpl": 539.0, "score": 881.0}   # TensorFlow, 2 threads, this machine
-UNIT = {"perception": "frame", "xpl": "video", "score": "video", "phydnet": "video"}
+UNIT = {"perception": "frame", "xpl": "video", "score": "video", "nll": "video", "phydnet": "video"}
 SLOTS, FRAMES = 8, 15
 
 
@@ -128,17 +138,33 @@ def score_step(perception, xpl_config, videos: int, rng: np.random.Generator):
     return step
 
 
-def counted_gmacs(step) -> float:
-    """Multiply-accumulates (10^9) of one run of the step, as torch counts them (2 FLOPs each)."""
-    counter = FlopCounterMode(display=False)
-    fastpath = torch.backends.mha.get_fastpath_enabled()
-    torch.backends.mha.set_fastpath_enabled(False)      # the Transformer's fused inference op is not counted
-    try:
-        with counter:
-            step()
-    finally:
-        torch.backends.mha.set_fastpath_enabled(fastpath)
-    return counter.get_total_flops() / 2e9
+def nll_step(perception, xpl_config, settings, rng: np.random.Generator):
+    """One video encoded and scored by the NLL, as xvoe score --surprise nll does per video. Its
+    last slot is never drawn: a slot free for a hidden object, without which the NLL samples nothing."""
+    vae, xpl = ComponentVAE(perception).eval(), XPL(xpl_config).eval()
+    size = perception.image_size
+    rgbd, ids = random_frames(rng, FRAMES, size)
+    ids[ids == SLOTS] = 0
+    occluder = torch.zeros(SLOTS, dtype=torch.bool)
+    occluder[0] = True
+
+    def step() -> None:
+        encoded = {k: torch.from_numpy(v) for k, v in encode_frames(vae, rgbd, ids, SLOTS).items()}
+        frames = normalise(torch.from_numpy(rgbd))
+        nll_surprise(vae, xpl, frames, encoded["mean"], encoded["pixels"] > visible_threshold(size),
+                     encoded["background_mean"], occluder, settings, seed=0)
+    return step
+
+
+def nll_least(settings: InferenceConfig) -> InferenceConfig:
+    """The NLL's cheapest path: its smallest pilot run decides, the full run is spared."""
+    sizes = [size for size in np.atleast_1d(settings.smc_pilot) if 0 < size < settings.particles]
+    return replace(settings, particles=int(min(sizes, default=settings.particles)), smc_pilot=0)
+
+
+def nll_most(settings: InferenceConfig) -> InferenceConfig:
+    """The NLL's dearest path: every pilot runs and none spares the full run."""
+    return replace(settings, smc_pilot_skip_exists=1.0, smc_pilot_margin=1e12)
 
 
 def matmul_peak(size: int = 2048, repeats: int = 5) -> float:
@@ -169,6 +195,22 @@ def measure(step, warmup: int, repeats: int) -> dict[str, float]:
             "kernel": system / max(1e-9, user + system)}
 
 
+def timed_row(stage: str, found: dict[str, float], counted: Operations, items: int, threads: int,
+              peak: float) -> str:
+    """One stage's line: times per item, the true and torch-counted GMAC, the rate and the goal."""
+    gmacs, ms = counted.gmacs / items, 1000 * found["wall"] / items
+    base = stage.split("-")[0]
+    if base in REFERENCE_MS:
+        needs = gmacs / (REFERENCE_MS[base] / 2 / 1000) / threads    # per core, for half the reference's time
+        versus, goal = f"{ms / REFERENCE_MS[base]:6.2f}x", f"{needs:7.1f} ({needs / peak:.1f}x peak)"
+    else:
+        versus, goal = f"{'-':>7}", f"{'-':>7}"
+    return (f"{stage:<15} {ms:9.1f} {1000 * found['spread'] / items:6.1f} {versus} "
+            f"{1000 * found['cpu'] / items:12.1f} {found['faults']:12.0f} {found['kernel']:7.1%} "
+            f"{gmacs:10.2f} {counted.torch_gmacs / items:10.2f} {gmacs / (found['cpu'] / items):10.1f} {goal}  "
+            f"{items} {UNIT[base]}s")
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--recipe", default="paper")
@@ -182,6 +224,7 @@ def main() -> None:
     parser.add_argument("--warmup", type=int, default=2)
     parser.add_argument("--repeats", type=int, default=5)
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--count-only", action="store_true", help="count the operations, time nothing")
     args = parser.parse_args()
 
     torch.set_num_threads(args.threads)
@@ -192,31 +235,33 @@ def main() -> None:
         perception = replace(perception, decoder_channels=args.decoder_channels)
     print(f"recipe {args.recipe}: {perception.image_size}px, decoder {perception.decoder_channels} channels, "
           f"{args.threads} threads, allocator tuned: {allocator.tuned()}, torch {torch.__version__}")
-    peak = matmul_peak()
-    print(f"peak: a 2048x2048 matrix product runs at {peak:.1f} GMAC per CPU second")
-    print(f"{'stage':<15} {'ms/item':>9} {'+-':>6} {'vs ref':>7} {'cpu ms/item':>12} {'faults/step':>12} "
-          f"{'kernel':>7} {'GMAC/item':>10} {'GMAC/cpu-s':>10} {'goal needs':>11}  items/step")
     builders = {"perception": lambda rng: (perception_step(perception, args.frames, rng), args.frames),
                 "xpl": lambda rng: (xpl_step(chosen.xpl, args.videos, rng), args.videos),
                 "score": lambda rng: (score_step(perception, chosen.xpl, args.score_videos, rng), args.score_videos),
+                "nll": lambda rng: (nll_step(perception, chosen.xpl, chosen.nll, rng), 1),
+                "nll-least": lambda rng: (nll_step(perception, chosen.xpl, nll_least(chosen.nll), rng), 1),
+                "nll-most": lambda rng: (nll_step(perception, chosen.xpl, nll_most(chosen.nll), rng), 1),
                 "phydnet": lambda rng: (phydnet_step(chosen.phydnet, args.phydnet_videos, rng), args.phydnet_videos),
                 "phydnet-widened": lambda rng: (phydnet_step(chosen.final_phydnet(), args.phydnet_videos, rng),
                                                 args.phydnet_videos)}
+    if args.count_only:
+        print(f"{'stage':<15} {'GMAC/item':>10} {'torch GMAC':>10}  items/step")
+        for stage in args.stages.split(","):
+            torch.manual_seed(args.seed)    # the same weights, so the NLL's path, whichever stages ran before
+            step, items = builders[stage](np.random.default_rng(args.seed))
+            counted = count_operations(step)
+            print(f"{stage:<15} {counted.gmacs / items:10.3f} {counted.torch_gmacs / items:10.3f}  "
+                  f"{items} {UNIT[stage.split('-')[0]]}s", flush=True)
+        return
+    peak = matmul_peak()
+    print(f"peak: a 2048x2048 matrix product runs at {peak:.1f} GMAC per CPU second")
+    print(f"{'stage':<15} {'ms/item':>9} {'+-':>6} {'vs ref':>7} {'cpu ms/item':>12} {'faults/step':>12} "
+          f"{'kernel':>7} {'GMAC/item':>10} {'torch GMAC':>10} {'GMAC/cpu-s':>10} {'goal needs':>11}  items/step")
     for stage in args.stages.split(","):
+        torch.manual_seed(args.seed)        # the same weights whichever stages ran before
         step, items = builders[stage](np.random.default_rng(args.seed))
         found = measure(step, args.warmup, args.repeats)
-        gmacs = counted_gmacs(step) / items
-        ms = 1000 * found["wall"] / items
-        base = stage.split("-")[0]
-        if base in REFERENCE_MS:
-            needs = gmacs / (REFERENCE_MS[base] / 2 / 1000) / args.threads  # per core, for half the reference's time
-            versus, goal = f"{ms / REFERENCE_MS[base]:6.2f}x", f"{needs:7.1f} ({needs / peak:.1f}x peak)"
-        else:
-            versus, goal = f"{'-':>7}", f"{'-':>7}"
-        print(f"{stage:<15} {ms:9.1f} {1000 * found['spread'] / items:6.1f} {versus} "
-              f"{1000 * found['cpu'] / items:12.1f} {found['faults']:12.0f} {found['kernel']:7.1%} "
-              f"{gmacs:10.2f} {gmacs / (found['cpu'] / items):10.1f} {goal}  "
-              f"{items} {UNIT[base]}s", flush=True)
+        print(timed_row(stage, found, count_operations(step), items, args.threads, peak), flush=True)
     print(f"peak resident memory {resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2**20:.2f} GiB")
 
 

@@ -1,0 +1,123 @@
+"""Multiply-accumulates (MACs) of a step, counted by torch's FlopCounterMode with the operations it
+leaves out registered.
+
+FlopCounterMode counts FLOPs (2 per multiply-accumulate of a matrix product or convolution) and
+only the operations in its registry. On the CPU two that carry much of our work are missing:
+the CPU flash attention (`aten._scaled_dot_product_flash_attention_for_cpu` and its backward,
+what `scaled_dot_product_attention` runs for the ViT, Transformers 1 and 2 and the object
+buffer) and the oneDNN LSTM layer (`aten.mkldnn_rnn_layer` and its backward, what `torch.lstm`
+runs for XPL's slot-wise LSTM). `EXTRA_FORMULAS` counts them from their shapes; elementwise work
+(activations, gates, softmax, norms) is counted by neither, as torch counts none.
+"""
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+from math import prod
+
+import torch
+from torch.utils.flop_counter import FlopCounterMode, flop_registry
+
+aten = torch.ops.aten
+
+
+def attention_macs(query: torch.Size, key: torch.Size, value: torch.Size) -> int:
+    """Forward: scores Q K^T and their weighted sum of V, over every (query, key) pair; a mask
+    does not shorten the CPU kernel's work, so none is subtracted."""
+    *batch, queries, width = query
+    keys, value_width = key[-2], value[-1]
+    return prod(batch) * queries * keys * (width + value_width)
+
+
+def attention_backward_macs(query: torch.Size, key: torch.Size, value: torch.Size) -> int:
+    """Backward: the flash kernel recomputes the scores from the saved log-sum-exp (Q K^T), then
+    forms dP = dO V^T, dV = P^T dO, dQ = dS K and dK = dS^T Q: five products of the forward's size."""
+    *batch, queries, width = query
+    keys, value_width = key[-2], value[-1]
+    return prod(batch) * queries * keys * (3 * width + 2 * value_width)
+
+
+def rnn_layer_macs(inputs: torch.Size, weight_ih: torch.Size, weight_hh: torch.Size) -> int:
+    """Forward of one recurrent layer: every time step of every sequence multiplies its input by
+    W_ih (gates x I) and the previous hidden state by W_hh (gates x L)."""
+    steps = prod(inputs) // inputs[-1]
+    return steps * (prod(weight_ih) + prod(weight_hh))
+
+
+def _flops(macs: int) -> int:
+    return 2 * macs
+
+
+def _attention(query, key, value, *args, out_shape=None, **kwargs) -> int:
+    return _flops(attention_macs(query, key, value))
+
+
+def _attention_backward(grad_out, query, key, value, *args, out_shape=None, **kwargs) -> int:
+    return _flops(attention_backward_macs(query, key, value))
+
+
+def _rnn_layer(inputs, weight_ih, weight_hh, *args, out_shape=None, **kwargs) -> int:
+    return _flops(rnn_layer_macs(inputs, weight_ih, weight_hh))
+
+
+def _rnn_layer_backward(inputs, weight_ih, weight_hh, *args, out_shape=None, **kwargs) -> int:
+    """Gradients of the inputs and hidden states and of both weights: twice the forward's products
+    (the saved workspace holds the gates, nothing is recomputed)."""
+    return _flops(2 * rnn_layer_macs(inputs, weight_ih, weight_hh))
+
+
+# FLOPs (FlopCounterMode's unit) of the operations its registry lacks, from their argument shapes
+EXTRA_FORMULAS: dict[object, Callable[..., int]] = {
+    aten._scaled_dot_product_flash_attention_for_cpu: _attention,
+    aten._scaled_dot_product_flash_attention_for_cpu_backward: _attention_backward,
+    aten.mkldnn_rnn_layer: _rnn_layer,
+    aten.mkldnn_rnn_layer_backward: _rnn_layer_backward,
+}
+
+
+class _GlobalOnly:
+    """Stands in for FlopCounterMode's module tracker: every count goes to "Global". The tracker's
+    backward hooks break `torch.autograd.grad` (the NLL's refinement) and per-module sums are unused."""
+
+    parents = frozenset({"Global"})
+
+    def __enter__(self) -> _GlobalOnly:
+        return self
+
+    def __exit__(self, *args) -> None:
+        return None
+
+
+@dataclass(frozen=True)
+class Operations:
+    """MACs of one run: `macs` all of them, `torch_macs` the part FlopCounterMode counts alone."""
+
+    macs: int
+    torch_macs: int
+    by_op: dict[str, int]       # MACs per aten operation
+
+    @property
+    def gmacs(self) -> float:
+        return self.macs / 1e9
+
+    @property
+    def torch_gmacs(self) -> float:
+        return self.torch_macs / 1e9
+
+
+def count_operations(step: Callable[[], object]) -> Operations:
+    """MACs of one call of `step`, forward and backward. The Transformer's fused inference path
+    is switched off while counting: it runs the same products in an op no counter knows."""
+    counter = FlopCounterMode(display=False, custom_mapping=EXTRA_FORMULAS)
+    counter.mod_tracker = _GlobalOnly()
+    fastpath = torch.backends.mha.get_fastpath_enabled()
+    torch.backends.mha.set_fastpath_enabled(False)
+    try:
+        with counter:
+            step()
+    finally:
+        torch.backends.mha.set_fastpath_enabled(fastpath)
+    flops = counter.get_flop_counts().get("Global", {})
+    by_op = {str(op): count // 2 for op, count in flops.items()}
+    torch_macs = sum(count for op, count in flops.items() if op in flop_registry) // 2
+    return Operations(sum(by_op.values()), torch_macs, by_op)
