@@ -10,7 +10,7 @@ from torch import Tensor
 
 from xvoe.errors import XvoeError
 from xvoe.evaluation.score import Scorer
-from xvoe.models.config import field_type, parse_value, split_assignment, to_dict
+from xvoe.models.config import check_config, field_type, parse_field, split_assignment, to_dict
 
 from .model import InferenceConfig, pixel_log_normaliser
 from .surprise import nll_surprise
@@ -25,7 +25,7 @@ def nll_config(base: InferenceConfig, particles: int | None = None,
         field_type(InferenceConfig, name)
     if "particles" in settings and particles is not None and settings["particles"] != particles:
         raise XvoeError("give the particles once: as particles, or in the NLL settings")
-    return replace(base, **({"particles": particles} if particles is not None else {}), **settings)
+    return check_config(replace(base, **({"particles": particles} if particles is not None else {}), **settings))
 
 
 def nll_settings(assignments: list[str]) -> dict[str, Any]:
@@ -33,7 +33,7 @@ def nll_settings(assignments: list[str]) -> dict[str, Any]:
     settings = {}
     for text in assignments:
         name, value = split_assignment(text, "--nll-set")
-        settings[name] = parse_value(field_type(InferenceConfig, name), value)
+        settings[name] = parse_field(InferenceConfig, name, value)
     return settings
 
 

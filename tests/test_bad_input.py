@@ -6,6 +6,11 @@ import csv
 import hashlib
 import os
 import shutil
+import subprocess
+import sys
+import tempfile
+import typing
+from dataclasses import fields
 from pathlib import Path
 
 import h5py
@@ -17,10 +22,20 @@ from hypothesis import strategies as st
 
 from xvoe.apps.cli import main
 from xvoe.benchmark import store
+from xvoe.benchmark.generate import GenerateConfig
 from xvoe.errors import XvoeError
 from xvoe.evaluation.metrics import read_scores, score_problem
+from xvoe.models.config import domain_of, field_type, override, parse_field
+from xvoe.models.dynamics import DynamicsConfig
+from xvoe.models.nll import InferenceConfig
+from xvoe.models.perception import PerceptionConfig
+from xvoe.models.phydnet import PhyDNetConfig
+from xvoe.models.reasoning import ReasoningConfig
+from xvoe.models.xpl import XPLConfig
 from xvoe.outputs import remove_stale_temporaries
+from xvoe.training.checkpoints import shipped_path
 from xvoe.training.latents import Latents, write_latents
+from xvoe.training.loop import TrainConfig
 
 
 def snapshot(root: Path) -> dict[str, str]:
@@ -130,7 +145,85 @@ def case_lines(files, tmp: Path) -> list[tuple[list[str], str]]:
         (["ship", str(tmp / "corrupt"), "--out", str(tmp / "weights")], "not a readable xvoe checkpoint"),
         (["ship", str(tmp / "nowhere"), "--out", str(tmp / "weights")], "no such run directory"),
     ]
-    return cases
+    return cases + domain_cases(files, tmp) + path_cases(files, tmp) + kind_cases(files, tmp)
+
+
+HUGE = str(2**70)
+
+
+def domain_cases(files, tmp: Path) -> list[tuple[list[str], str]]:
+    """Settings outside their domain, as flags, --set and --nll-set; and refused before a split is encoded."""
+    test, train = str(files["test"]), str(files["train"])
+    xpl = ["train", "xpl", "--data", train, "--out", str(tmp / "run"), "--quiet"]
+    nll = ["score", "--model", "xpl", "--data", test, "--out", str(tmp / "n.csv"), "--surprise", "nll"]
+    return [
+        (xpl + ["--lr", "nan"], "lr must be"),
+        (xpl + ["--lr", "-1"], "lr must be"),
+        (xpl + ["--set", "lr=inf"], "lr must be"),
+        (xpl + ["--set", "warmup_steps=-3"], "warmup_steps must be"),
+        (xpl + ["--set", "model.dynamics.hidden=0"], "dynamics.hidden must be"),
+        (xpl + ["--set", "model.mae_weight=nan"], "mae_weight must be"),
+        (xpl + ["--seed", HUGE], "seed must be"),
+        (xpl + ["--steps", "1.5"], "steps: expected a whole number"),
+        (["train", "perception", "--data", train, "--out", str(tmp / "run"), "--minutes", "nan"], "minutes must be"),
+        (["train", "perception", "--data", train, "--out", str(tmp / "run"), "--set", "sigma=-0.1"], "sigma must be"),
+        (["train", "phydnet", "--data", train, "--out", str(tmp / "run"), "--set", "change_weight=-1"],
+         "change_weight must be"),
+        (["generate", "--split", "test", "--seed", HUGE, "--out", str(tmp / "g.h5")], "seed must be"),
+        (["generate", "--split", "test", "--seed", "-1", "--out", str(tmp / "g.h5")], "seed must be"),
+        (["generate", "--split", "test", "--frames", "3", "--out", str(tmp / "g.h5")], "frames must be"),
+        (["score", "--model", "random", "--data", test, "--out", str(tmp / "s.csv"), "--seed", HUGE], "seed must be"),
+        (nll + ["--nll-set", "pixel_sigma=-1"], "pixel_sigma must be"),
+        (nll + ["--nll-set", "prior_hidden=nan"], "prior_hidden must be"),
+        (nll + ["--nll-set", "smc_proposal_widening=3,-inf"], "smc_proposal_widening must be"),
+        (nll + ["--particles", "0"], "particles must be"),
+        (["explain", "--model", "xpl", "--data", test, "--out", str(tmp / "e.png"), "--index", "-1"], "index must be"),
+        (["metrics", str(tmp / "taken.csv"), "--out", str(tmp / "r"), "--seed", "-5"], "seed must be"),
+        (xpl + ["--focus-share", "2"], "focus_share must be"),
+        (xpl + ["--focus-share", "-0.5"], "focus_share must be"),
+        (xpl + ["--focus-share", "nan"], "focus_share must be"),
+        (xpl + ["--focus-group", "juggling", "--focus-share", "0.5"], "names no group 'juggling'"),
+        (xpl + ["--set", "focus_group=permanence,juggling"], "names no group 'juggling'"),
+    ]
+
+
+def path_cases(files, tmp: Path) -> list[tuple[list[str], str]]:
+    """Outputs that are an input of the same command (by any name), or of a suffix not written."""
+    data = tmp / "input.h5"
+    shutil.copy(files["test"], data)
+    (tmp / "link.csv").symlink_to(data)
+    (tmp / "alias.h5").symlink_to(data)
+    score = ["score", "--model", "random", "--data", str(data), "--overwrite"]
+    return [
+        (score + ["--out", str(data)], "is the input"),
+        (score + ["--out", str(tmp / "link.csv")], "is the input"),
+        (["score", "--model", "random", "--data", str(tmp / "alias.h5"), "--out", str(data), "--overwrite"],
+         "is the input"),
+        (score + ["--out", str(tmp / "s.h5")], "--out must end in .csv, not .h5"),
+        (["generate", "--merge", str(data), "--out", str(tmp / "alias.h5"), "--overwrite"], "is the input"),
+        (["generate", "--split", "test", "--out", str(tmp / "g.csv")], "--out must end in .h5, not .csv"),
+        (["show", str(data), "--out", str(data), "--overwrite"], "is the input"),
+        (["show", str(data), "--out", str(tmp / "s.bmp")], "--out must end in .png, .gif or .mp4"),
+        (["explain", "--model", "xpl", "--data", str(data), "--out", str(tmp / "e.jpg")], "--out must end in .png"),
+        (["encode", "--model", "xpl", "--data", str(data), "--out", str(tmp / "run"), "--cache", str(data),
+          "--overwrite"], "--cache"),
+    ]
+
+
+def kind_cases(files, tmp: Path) -> list[tuple[list[str], str]]:
+    """A checkpoint of one kind under the name of another."""
+    swapped = tmp / "swapped"
+    swapped.mkdir()
+    shutil.copy(shipped_path("plato"), swapped / "xpl.pt")
+    shutil.copy(shipped_path("xpl", "perception"), swapped / "perception.pt")
+    shutil.copy(shipped_path("xpl"), swapped / "xpl-noresidual.pt")
+    score = ["score", "--data", str(files["test"]), "--out", str(tmp / "k.csv")]
+    return [
+        (score + ["--model", str(swapped)], "holds a plato model, not xpl"),
+        (score + ["--model", str(swapped / "xpl-noresidual.pt")], "holds a xpl model, not xpl-noresidual"),
+        (["explain", "--model", str(swapped / "xpl.pt"), "--data", str(files["test"]), "--out", str(tmp / "k.png")],
+         "holds a plato model, not xpl"),
+    ]
 
 
 def test_every_bad_input_gets_one_line_exit_2_and_changes_nothing(files, tmp_path, capsys, monkeypatch):
@@ -144,7 +237,81 @@ def test_every_bad_input_gets_one_line_exit_2_and_changes_nothing(files, tmp_pat
         assert "Traceback" not in err
         assert snapshot(tmp_path) == before, args
         tried += 1
-    assert tried == 5 * len(MALFORMED) + 27
+    assert tried == 5 * len(MALFORMED) + 27 + 26 + 10 + 3
+
+
+CONFIGS = (TrainConfig, PerceptionConfig, XPLConfig, ReasoningConfig, DynamicsConfig, PhyDNetConfig, InferenceConfig,
+           GenerateConfig)
+
+
+def _numeric(kind) -> bool:
+    return any(t in (int, float) for t in (kind, *typing.get_args(kind)))
+
+
+NUMERIC = [(cls, item.name) for cls in CONFIGS for item in fields(cls) if _numeric(field_type(cls, item.name))]
+
+
+def test_every_numeric_field_declares_its_domain():
+    assert len(NUMERIC) > 60
+    assert [f"{cls.__name__}.{name}" for cls, name in NUMERIC if domain_of(cls, name) is None] == []
+
+
+@hypothesis_settings(max_examples=300, deadline=None)
+@given(field=st.sampled_from(NUMERIC), value=st.one_of(st.floats(), st.integers(-2**80, 2**80)))
+def test_any_number_in_any_field_is_in_its_domain_or_refused_by_name(field, value):
+    cls, name = field
+    domain = domain_of(cls, name)
+    try:
+        parsed = parse_field(cls, name, repr(value))
+    except XvoeError as error:
+        assert str(error).startswith(f"{name}") and "\n" not in str(error)
+    else:
+        assert all(domain.holds(item) for item in (parsed if isinstance(parsed, tuple) else (parsed,)))
+    kind = field_type(cls, name)
+    if kind in (int, float) and isinstance(value, kind if kind is int else (int, float)):
+        held = cls() if cls is not GenerateConfig else GenerateConfig("test")
+        try:
+            changed = override(held, **{name: value})
+        except XvoeError as error:
+            assert name in str(error) and "\n" not in str(error)
+        else:
+            assert domain.holds(getattr(changed, name))
+
+
+def test_a_link_at_the_output_is_replaced_not_its_target(files, tmp_path):
+    other = tmp_path / "other.csv"
+    other.write_text("another command's result")
+    (tmp_path / "link.csv").symlink_to(other)
+    assert main(["score", "--model", "random", "--data", str(files["test"]), "--out", str(tmp_path / "link.csv"),
+                 "--overwrite", "--quiet"]) == 0
+    assert other.read_text() == "another command's result"
+    assert not (tmp_path / "link.csv").is_symlink() and read_scores(tmp_path / "link.csv")["score"].size
+
+
+UNPRIVILEGED = ["setpriv", "--reuid=65534", "--regid=65534", "--clear-groups"]
+
+
+@pytest.mark.skipif(shutil.which("setpriv") is None or os.geteuid() != 0, reason="needs setpriv, run as root")
+def test_a_directory_the_user_may_not_write_to_gets_one_line(files, tmp_path_factory):
+    root = Path(tempfile.mkdtemp(prefix="xvoe-unwritable-"))     # outside pytest's root-only folder
+    root.chmod(0o755)
+    data = root / "test.h5"
+    shutil.copy(files["test"], data)
+    data.chmod(0o644)
+    (root / "locked").mkdir(mode=0o555)
+    xvoe = str(Path(sys.executable).with_name("xvoe"))
+    try:
+        for args in (["score", "--model", "random", "--data", str(data), "--out", str(root / "locked" / "s.csv")],
+                     ["generate", "--split", "test", "--pairs", "1", "--out", str(root / "locked" / "g.h5")],
+                     ["train", "perception", "--data", str(data), "--out", str(root / "locked" / "run")]):
+            before = snapshot(root)
+            done = subprocess.run(UNPRIVILEGED + [xvoe, *args], capture_output=True, text=True, cwd=root,
+                                  env=os.environ | {"OMP_NUM_THREADS": "1"}, timeout=300)
+            assert done.returncode == 2 and len(done.stderr.strip().splitlines()) == 1, (args, done.stderr)
+            assert "permission denied" in done.stderr and "Traceback" not in done.stderr
+            assert snapshot(root) == before
+    finally:
+        shutil.rmtree(root)
 
 
 def test_a_stale_latent_cache_of_another_split_is_refused(files, tmp_path, capsys):

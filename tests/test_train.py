@@ -125,7 +125,7 @@ def test_the_checkpoint_holds_the_moving_average_of_the_weights(tmp_path):
     _, resumed = fit_regression(tmp_path / "stopped", 5, resume=True)
     assert_same_tensors(state["model"], resumed["model"])
     assert_same_tensors(state["trained"], resumed["trained"])
-    with pytest.raises(XvoeError, match="average_decay must lie in"):
+    with pytest.raises(XvoeError, match="average_decay must be"):
         fit_regression(tmp_path / "bad", 1, decay=1.0)
 
 

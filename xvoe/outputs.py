@@ -30,6 +30,23 @@ def claim_file(path: str | os.PathLike, overwrite: bool = False, *, what: str = 
     return path
 
 
+def refuse_overlap(inputs: list[str | os.PathLike], output: str | os.PathLike, suffixes: tuple[str, ...],
+                   *, what: str = "--out") -> None:
+    """Refuse, before any work, an output that is one of the command's inputs (the same file by
+    any name: both resolved through symbolic links) or whose suffix is not what is written. A
+    symbolic link at the output is replaced itself, never its target, so a link is refused only
+    where it leads to an input."""
+    out = Path(output)
+    if str(output).strip() == "" or out.is_dir():
+        return      # claim_file names an empty name or a directory
+    for source in inputs:
+        if Path(source).resolve() == out.resolve():
+            raise XvoeError(f"{what} {out} is the input {source}; write the result to another file")
+    if out.suffix.lower() not in suffixes:
+        named = " or ".join([", ".join(suffixes[:-1]), suffixes[-1]] if len(suffixes) > 1 else suffixes)
+        raise XvoeError(f"{what} must end in {named}, not {out.suffix or 'nothing'}")
+
+
 def claim_directory(path: str | os.PathLike, *, what: str = "--out", make: bool = True) -> Path:
     """`path` as a directory to write into: not a file, writable, and made if missing (unless
     `make` is false: a check before the work, which writes nothing)."""

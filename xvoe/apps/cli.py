@@ -6,12 +6,18 @@ import os
 import re
 import signal
 import sys
+from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
 import xvoe
 
 from ..errors import XvoeError
-from ..outputs import claim_directory, claim_file
+from ..models.config import NON_NEGATIVE, POSITIVE, SEED, Domain, check_number, parse_field, parse_value
+from ..models.nll import InferenceConfig
+from ..outputs import claim_directory, claim_file, refuse_overlap
+from ..training.data import check_focus_group
+from ..training.loop import TrainConfig
 
 
 class _Parser(argparse.ArgumentParser):
@@ -50,6 +56,26 @@ def _positive(text: str) -> int:
     if value < 1:
         raise argparse.ArgumentTypeError(f"expected a number >= 1, not {value}")
     return value
+
+
+def _argument(parse: Callable[[str], Any]) -> Callable[[str], Any]:
+    """An argparse type that refuses, in one line, what `parse` refuses: before any work."""
+    def checked(text: str) -> Any:
+        try:
+            return parse(text)
+        except XvoeError as error:
+            raise argparse.ArgumentTypeError(str(error)) from None
+    return checked
+
+
+def _flag(kind: type, domain: Domain, name: str) -> Callable[[str], Any]:
+    """The argparse type of a flag of no config field: a `kind` in `domain`, refused naming `name`."""
+    return _argument(lambda text: check_number(domain, name, parse_value(kind, text)))
+
+
+def _field(cls: type, name: str) -> Callable[[str], Any]:
+    """The argparse type of a flag that sets field `name` of config `cls`: its type and declared domain."""
+    return _argument(lambda text: parse_field(cls, name, text))
 
 
 def _default_workers() -> int:
@@ -96,8 +122,6 @@ def cmd_score(args: argparse.Namespace) -> None:
 
 
 def cmd_explain(args: argparse.Namespace) -> None:
-    if Path(args.out).suffix.lower() != ".png":
-        raise XvoeError(f"--out must end in .png, not {Path(args.out).suffix or 'nothing'}")
     claim_file(args.out, args.overwrite)
     explanation = xvoe.explain(args.model, args.data, args.index, surprise=args.surprise, particles=args.particles,
                                seed=args.seed, explanation=args.explanation)
@@ -116,16 +140,6 @@ def cmd_metrics(args: argparse.Namespace) -> None:
         print(path)
 
 
-def _positive_float(text: str) -> float:
-    try:
-        value = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a number, not {text!r}") from None
-    if value <= 0:
-        raise argparse.ArgumentTypeError(f"expected a number > 0, not {value}")
-    return value
-
-
 def cmd_ship(args: argparse.Namespace) -> None:
     for path in xvoe.ship(args.run_dir, args.out):
         print(f"{path}  {path.stat().st_size / 2**20:.1f} MB")
@@ -139,7 +153,9 @@ def _train_overrides(args: argparse.Namespace, stage: str) -> tuple[dict, dict]:
     flags = {"steps": args.steps, "max_minutes": args.minutes, "batch_size": args.batch_size, "seed": args.seed,
              "max_videos": args.max_videos, "lr": args.lr, "focus_group": getattr(args, "focus_group", None),
              "focus_share": getattr(args, "focus_share", None)}
-    return {**train, **{k: v for k, v in flags.items() if v is not None}}, model
+    train = {**train, **{k: v for k, v in flags.items() if v is not None}}
+    check_focus_group(train.get("focus_group", ""))
+    return train, model
 
 
 def cmd_train(args: argparse.Namespace) -> None:
@@ -194,21 +210,24 @@ def add_train_parser(verbs) -> None:
         if entry.reads != "xpl":
             parser.add_argument("--recipe", default=xvoe.DEFAULT_RECIPE,
                                 help=f"the recipe whose sizes and settings start the run: {_recipe_names()}")
-        parser.add_argument("--steps", type=_positive, help="training steps (default: the recipe's)")
-        parser.add_argument("--minutes", type=_positive_float, help="stop after this many minutes of training")
-        parser.add_argument("--batch-size", type=_positive,
+        parser.add_argument("--steps", type=_field(TrainConfig, "steps"), help="training steps (default: the recipe's)")
+        parser.add_argument("--minutes", type=_flag(float, POSITIVE, "minutes"),
+                            help="stop after this many minutes of training")
+        parser.add_argument("--batch-size", type=_field(TrainConfig, "batch_size"),
                             help="videos per step over all processes" if stage == "phydnet"
                             else "frames per step over all processes" if stage == "perception"
                             else "videos per step")
         parser.add_argument("--max-videos", type=_positive, help="use only the first N videos of --data")
-        parser.add_argument("--seed", type=int, help="the seed of initialisation and batches (default 0)")
-        parser.add_argument("--lr", type=_positive_float,
+        parser.add_argument("--seed", type=_field(TrainConfig, "seed"),
+                            help="the seed of initialisation and batches (default 0)")
+        parser.add_argument("--lr", type=_field(TrainConfig, "lr"),
                             help="peak learning rate (default: the recipe's; it halves every decay_steps)")
         if stage != "perception":      # the others draw videos, which can come from one group
             parser.add_argument("--focus-group", help="draw --focus-share of each batch from this group's training "
                                                       "videos with a wall (e.g. permanence; several: "
                                                       "permanence,continuity)")
-            parser.add_argument("--focus-share", type=float, help="the share of each batch from --focus-group")
+            parser.add_argument("--focus-share", type=_field(TrainConfig, "focus_share"),
+                                help="the share of each batch from --focus-group")
         if entry.reads == "latents":
             parser.add_argument("--no-stop-gradient", action="store_true",
                                 help="let the dynamics loss reach Transformer 1 through the target too")
@@ -242,12 +261,16 @@ def build_parser() -> argparse.ArgumentParser:
                                        "whatever the number of workers.")
     gen.add_argument("--split", choices=("train", "test"), help="training videos or test pairs")
     gen.add_argument("--out", required=True, help="the HDF5 file to write")
-    gen.add_argument("--videos", type=_positive, default=10_000, help="training videos (default 10000)")
-    gen.add_argument("--pairs", type=_positive, default=1_000, help="test pairs per setting (default 1000)")
-    gen.add_argument("--size", type=_positive, default=32,
+    gen.add_argument("--videos", type=_field(xvoe.GenerateConfig, "videos"), default=10_000,
+                     help="training videos (default 10000)")
+    gen.add_argument("--pairs", type=_field(xvoe.GenerateConfig, "pairs"), default=1_000,
+                     help="test pairs per setting (default 1000)")
+    gen.add_argument("--size", type=_field(xvoe.GenerateConfig, "size"), default=32,
                      help="frame size in pixels (default 32, what the default recipe's models read)")
-    gen.add_argument("--frames", type=_positive, default=15, help="frames per video (default 15)")
-    gen.add_argument("--seed", type=int, default=0, help="the seed every random choice flows from")
+    gen.add_argument("--frames", type=_field(xvoe.GenerateConfig, "frames"), default=15,
+                     help="frames per video (default 15)")
+    gen.add_argument("--seed", type=_field(xvoe.GenerateConfig, "seed"), default=0,
+                     help="the seed every random choice flows from")
     gen.add_argument("--workers", type=_positive, default=_default_workers(), help="worker processes")
     gen.add_argument("--shard", type=_shard, default=(0, 1), metavar="I/N",
                      help="write only part I of N (counted from 0); join the parts with --merge")
@@ -273,7 +296,8 @@ def build_parser() -> argparse.ArgumentParser:
                             description="Frames in a row: RGB, depth and slot ids; a test pair's members "
                                         "one above the other with the event frame outlined.")
     show.add_argument("file", help="an xvoe HDF5 file")
-    show.add_argument("--index", type=int, default=0, help="video index (a test video shows its pair)")
+    show.add_argument("--index", type=_flag(int, NON_NEGATIVE, "index"), default=0,
+                      help="video index (a test video shows its pair)")
     show.add_argument("--out", help="fig.png, anim.gif or pair.mp4 (default: FILE.INDEX.png here)")
     show.add_argument("--scores", help="mp4: a scores CSV of xvoe score, whose surprise curves play under the pair")
     show.add_argument("--overwrite", action="store_true", help="replace --out if it exists")
@@ -295,9 +319,10 @@ def build_parser() -> argparse.ArgumentParser:
     score.add_argument("--surprise", choices=("mse", "nll", "both"), default="mse",
                        help="mse: the MSE score; nll: -log p(video) under the Pyro model (adds nll, ess, "
                             "p_hidden, nll_excess); both: the MSE score with the NLL columns beside it")
-    score.add_argument("--particles", type=_positive,
+    score.add_argument("--particles", type=_field(InferenceConfig, "particles"),
                        help="particles per video (nll; default: the model's recipe's, 64 for the shipped one)")
-    score.add_argument("--seed", type=int, default=0, help="seed of the NLL's random draws (default 0)")
+    score.add_argument("--seed", type=_flag(int, SEED, "seed"), default=0,
+                       help="seed of the NLL's random draws (default 0)")
     score.add_argument("--nll-set", action="append", default=[], metavar="FIELD=VALUE",
                        help="change a field of the model's NLL settings (xvoe.models.nll.InferenceConfig; "
                             "repeatable), e.g. pixel_sigma=1.0")
@@ -321,18 +346,18 @@ def build_parser() -> argparse.ArgumentParser:
                                            "its heaviest distinct hypotheses, each with its weight.")
     explain.add_argument("--model", required=True, help="a run directory or a stage checkpoint (xpl.pt, ...)")
     explain.add_argument("--data", required=True, help="a split file")
-    explain.add_argument("--index", type=int, default=0, help="the video")
+    explain.add_argument("--index", type=_flag(int, NON_NEGATIVE, "index"), default=0, help="the video")
     explain.add_argument("--out", required=True, help="the PNG to write")
     explain.add_argument("--surprise", choices=("mse", "nll"), default="mse",
                          help="mse: Transformer 2's proposal (default, see --explanation); nll: the Pyro "
                               "model's posterior, the "
                               "weighted hidden object, its top hypotheses, p(hidden object) and the ESS")
-    explain.add_argument("--particles", type=_positive,
+    explain.add_argument("--particles", type=_field(InferenceConfig, "particles"),
                          help="particles (nll; default: the model's recipe's, 64 for the shipped one)")
     explain.add_argument("--explanation", choices=("better", "proposal"), default="better",
                          help="mse: draw Transformer 2's proposal only where it explains the video better than "
                               "nothing hidden (better, the default verdict), or always (proposal, the paper's)")
-    explain.add_argument("--seed", type=int, default=0, help="seed of the particles (nll)")
+    explain.add_argument("--seed", type=_flag(int, SEED, "seed"), default=0, help="seed of the particles (nll)")
     explain.add_argument("--overwrite", action="store_true", help="replace --out if it exists")
     explain.set_defaults(run=cmd_explain)
 
@@ -346,7 +371,7 @@ def build_parser() -> argparse.ArgumentParser:
     metrics.add_argument("scores", nargs="+", help="scores CSV files (one per model)")
     metrics.add_argument("--out", required=True, help="the report directory")
     metrics.add_argument("--rounds", type=_positive, default=1000, help="bootstrap resamples (default 1000)")
-    metrics.add_argument("--seed", type=int, default=0, help="seed of the bootstrap")
+    metrics.add_argument("--seed", type=_flag(int, SEED, "seed"), default=0, help="seed of the bootstrap")
     metrics.add_argument("--data", help="the test split that was scored: with scores of both surprise definitions "
                                         "(xvoe score --surprise both), draws pairs they judge differently")
     metrics.add_argument("--overwrite", action="store_true", help="replace a report already in --out")
@@ -363,9 +388,10 @@ def build_parser() -> argparse.ArgumentParser:
     pipeline.add_argument("--pairs", type=_positive, default=200, help="test pairs per setting (default 200)")
     pipeline.add_argument("--models", default="xpl,random",
                           help="comma-separated: xpl, plato, xpl-noresidual, phydnet, random (default xpl,random)")
-    pipeline.add_argument("--seed", type=int, default=0, help="training seed; the test split uses seed + 1")
+    pipeline.add_argument("--seed", type=_flag(int, Domain(0, SEED.high - 1), "seed"), default=0,
+                          help="training seed; the test split uses seed + 1")
     pipeline.add_argument("--workers", type=_positive, default=_default_workers(), help="generation workers")
-    pipeline.add_argument("--jobs", type=int, default=1,
+    pipeline.add_argument("--jobs", type=_flag(int, NON_NEGATIVE, "jobs"), default=1,
                           help="models trained side by side, the cores shared out (0: one per core; default 1: "
                                "one at a time); more lanes hold more memory")
     pipeline.add_argument("--train-processes", type=int, default=0,
@@ -384,11 +410,39 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+# each verb that writes a file: the arguments naming what it reads, the one naming what it
+# writes, and the suffixes of what it writes
+WRITES = {
+    "generate": (("merge",), "out", (".h5",)),
+    "import": (("source",), "out", (".h5",)),
+    "show": (("file", "scores"), "out", (".png", ".gif", ".mp4")),
+    "score": (("data", "model", "merge"), "out", (".csv",)),
+    "explain": (("data", "model"), "out", (".png",)),
+    "encode": (("data", "model"), "cache", (".h5",)),
+}
+
+
+def check_paths(args: argparse.Namespace) -> None:
+    """The one check of a command's paths before any work: no output may be one of its inputs."""
+    if args.verb not in WRITES:
+        return
+    reads, writes, suffixes = WRITES[args.verb]
+    output = getattr(args, writes)
+    if output is None:
+        return
+    inputs = []
+    for name in reads:
+        value = getattr(args, name)
+        inputs += value if isinstance(value, list) else [value] if value else []
+    refuse_overlap(inputs, output, suffixes, what=f"--{writes}")
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
     previous = signal.signal(signal.SIGTERM, _interrupt)   # so that a kill cleans up as Ctrl-C does
     try:
+        check_paths(args)
         args.run(args)
     except XvoeError as error:
         print(f"xvoe {args.verb}: error: {error}", file=sys.stderr)

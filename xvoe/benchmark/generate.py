@@ -21,6 +21,7 @@ import numpy as np
 from tqdm.auto import tqdm
 
 from ..errors import XvoeError
+from ..models.config import COUNT, SEED, Domain, check_config, within
 from . import store
 from .render import render
 from .scenes import SCENARIOS, TEST_SETTINGS, TRAINING_GROUPS
@@ -32,23 +33,16 @@ _SPLIT_CODE = {"train": 0, "test": 1}
 @dataclass(frozen=True)
 class GenerateConfig:
     split: str = "train"
-    videos: int = 10_000      # training videos
-    pairs: int = 1_000        # test pairs per setting
-    size: int = 32            # the default recipe's frames (a test holds the two together)
-    frames: int = 15
-    seed: int = 0
+    videos: int = within(10_000, COUNT)      # training videos
+    pairs: int = within(1_000, COUNT)        # test pairs per setting
+    size: int = within(32, Domain(16, 512))    # the default recipe's frames (a test holds the two together)
+    frames: int = within(15, Domain(10, 200))
+    seed: int = within(0, SEED)
 
     def __post_init__(self) -> None:
         if self.split not in store.SPLITS:
             raise XvoeError(f"split must be one of {store.SPLITS}, not {self.split!r}")
-        if not 16 <= self.size <= 512:
-            raise XvoeError(f"size must be between 16 and 512 pixels, not {self.size}")
-        if not 10 <= self.frames <= 200:
-            raise XvoeError(f"frames must be between 10 and 200, not {self.frames}")
-        if self.videos < 1 or self.pairs < 1:
-            raise XvoeError("videos and pairs must be at least 1")
-        if self.seed < 0:
-            raise XvoeError(f"seed must be a non-negative integer, not {self.seed}")
+        check_config(self)
 
     @property
     def units(self) -> int:

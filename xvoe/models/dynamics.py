@@ -14,14 +14,16 @@ from typing import NamedTuple
 import torch
 from torch import Tensor, nn
 
+from .config import COUNT, within
+
 
 @dataclass(frozen=True)
 class DynamicsConfig:
-    latent_dim: int = 16       # D
-    hidden: int = 64           # width of the object, buffer and interaction MLPs (paper: 512)
-    mlp_layers: int = 2        # layers of each MLP (paper: 3)
-    lstm: int = 128            # slot-wise LSTM size (paper: 2056)
-    buffer_heads: int = 4      # attention heads that read the object buffer
+    latent_dim: int = within(16, COUNT)       # D
+    hidden: int = within(64, COUNT)           # width of the object, buffer and interaction MLPs (paper: 512)
+    mlp_layers: int = within(2, COUNT)        # layers of each MLP (paper: 3)
+    lstm: int = within(128, COUNT)            # slot-wise LSTM size (paper: 2056)
+    buffer_heads: int = within(4, COUNT)      # attention heads that read the object buffer
     residual: bool = True      # XPL: predict the change; PLATO: predict the next latent
 
 

@@ -7,57 +7,63 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+from .config import COUNT, NON_NEGATIVE, POSITIVE, SHARE, Domain, within
+
 
 @dataclass(frozen=True)
 class InferenceConfig:
     """The NLL surprise's settings: a recipe's, stored in the xpl checkpoint it trains."""
 
-    prior_hidden: float = 0.5       # p: prior probability that a hidden object exists
+    # p: prior probability that a hidden object exists
+    prior_hidden: float = within(0.5, Domain(0, 1, open_low=True, open_high=True))
     # standard deviation of the pixel likelihood: wider than the reconstruction's RMS error, whose
     # errors come in blobs, so that the pixel terms do not drown the seen objects' motion
     # (docs/decisions.md, "NLL pixel sigma")
-    pixel_sigma: float = 0.5
-    transition_sigma: float = 0.1   # standard deviation of the hidden object's dynamics
+    pixel_sigma: float = within(0.5, POSITIVE)
+    transition_sigma: float = within(0.1, POSITIVE)   # standard deviation of the hidden object's dynamics
     # nats per pixel of the hidden object's exposure (what it shows in front of everything else):
     # the encoder reported no object in its slot, and that silence is evidence against one in the
     # open; without it a never-seen object is drawn in plain view to patch what the seen slots
     # reconstruct badly (docs/decisions.md, "NLL exposure penalty")
-    exposure_penalty: float = 12.0
+    exposure_penalty: float = within(12.0, NON_NEGATIVE)
     # nats per pixel the hidden object draws short of `object_area` (a share of the frame's pixels)
     # in front of the background, before any wall hides it: a latent that draws nothing is no
     # object, yet the dynamics let it push the seen ones, and it explained impossible events in
     # plain view at the price of no exposure (docs/decisions.md, "NLL presence penalty")
-    presence_penalty: float = 12.0
-    object_area: float = 0.008
+    presence_penalty: float = within(12.0, NON_NEGATIVE)
+    object_area: float = within(0.008, SHARE)
     # standard deviation of the seen objects' latents around the dynamics: the dynamics' own RMS
     # one-step error per latent (docs/decisions.md, "NLL motion sigma")
-    motion_sigma: float = 0.2
-    particles: int = 64
-    refine_steps: int = 5           # gradient steps on the proposal's mean (surprise.refine_out_of_sight)
-    refine_rate: float = 0.1        # their Adam learning rate
-    refine_tolerance: float = 1.0   # nats a frame of the proposal's mean may cost before it is moved
+    motion_sigma: float = within(0.2, POSITIVE)
+    particles: int = within(64, COUNT)
+    # gradient steps on the proposal's mean (surprise.refine_out_of_sight)
+    refine_steps: int = within(5, NON_NEGATIVE)
+    refine_rate: float = within(0.1, NON_NEGATIVE)        # their Adam learning rate
+    # nats a frame of the proposal's mean may cost before it is moved
+    refine_tolerance: float = within(1.0, NON_NEGATIVE)
     guide_follows_dynamics: bool = True   # fuse each frame's proposal with the dynamics' step
     # Transformer 2's scales are multiplied by this before the fusion: they are each frame's
     # marginal uncertainty, not fresh evidence about that frame, and too narrow for what a video
     # leaves open (docs/decisions.md, "NLL proposal widening")
-    proposal_widening: float = 3.0
+    proposal_widening: float = within(3.0, POSITIVE)
     # "smc": sequential Monte Carlo over frames with existence summed out (inference.smc);
     # "importance": one vectorised importance-sampling pass of the Pyro model and guide
     method: str = "smc"
-    resample_threshold: float = 0.5   # SMC resamples when the ESS falls below this share of the particles
+    # SMC resamples when the ESS falls below this share of the particles
+    resample_threshold: float = within(0.5, SHARE)
     # SMC first runs this many particles (0: none), or several pilots in turn (a tuple, smallest
     # first); where the branch with a hidden object then trails the one without by more than
     # smc_pilot_margin nats, it changes log p(x) by less than exp(-margin) and the larger runs
     # are skipped (most videos show every object)
-    smc_pilot: int | tuple[int, ...] = 16
-    smc_pilot_margin: float = 30.0
+    smc_pilot: int | tuple[int, ...] = within(16, NON_NEGATIVE)
+    smc_pilot_margin: float = within(30.0, NON_NEGATIVE)
     # no pilot where the guide's existence probability is above this (1.0: pilots everywhere):
     # a small pilot can miss a hidden object that XPL's existence head is sure of, and the
     # video's NLL then swings by hundreds of nats between seeds (docs/decisions.md, "The
     # existence head gates the SMC pilot")
-    smc_pilot_skip_exists: float = 0.5
+    smc_pilot_skip_exists: float = within(0.5, SHARE)
     # proposal_widening for the SMC (None: the same); several: an equal-weight mixture of the
     # proposals with each. The SMC reweights every frame, so a pull towards Transformer 2's
     # marginals costs weight variance at each step: the wide component keeps the particles near
     # the dynamics, the narrow one finds the hypotheses that the marginals point at
-    smc_proposal_widening: float | tuple[float, ...] | None = (3.0, 10.0)
+    smc_proposal_widening: float | tuple[float, ...] | None = within((3.0, 10.0), POSITIVE)

@@ -21,6 +21,7 @@ import torch
 from torch import Tensor, nn
 
 from ..errors import XvoeError
+from .config import COUNT, NON_NEGATIVE, POSITIVE, check_config, within
 
 BLANK_DEPTH = 1.5                                   # beyond the far plane (255 -> 1.0)
 BLANK = (1.0, 1.0, 1.0, BLANK_DEPTH)                # RGB white, depth past the background
@@ -32,33 +33,34 @@ STD_SCALE = 3.0                                     # std = 3*sigmoid(b)
 class PerceptionConfig:
     """The Component VAE: per-object encoder, spatial broadcast decoder, depth compositor."""
 
-    image_size: int = 32            # frames are image_size x image_size RGBD
-    latent_dim: int = 16            # D: size of each object's latent
+    image_size: int = within(32, COUNT)            # frames are image_size x image_size RGBD
+    latent_dim: int = within(16, COUNT)            # D: size of each object's latent
     encoder: str = "cnn"            # "cnn" (small, for CPUs) or "vit" (the paper's)
     # small CNN encoder: channels of its stride-2 5x5 convolutions, then an MLP
-    cnn_channels: tuple[int, ...] = (32, 32, 64, 64)
-    cnn_hidden: int = 128
+    cnn_channels: tuple[int, ...] = within((32, 32, 64, 64), COUNT)
+    cnn_hidden: int = within(128, COUNT)
     cnn_coords: bool = True         # pixel coordinates as extra input channels (CoordConv)
     # ViT encoder (paper: 8-pixel patches at 128 px, width 256, 6 layers, 8 heads, MLP 1024, head 512)
-    vit_patch: int = 8
-    vit_width: int = 256
-    vit_layers: int = 6
-    vit_heads: int = 8
-    vit_mlp: int = 1024
-    vit_head_hidden: int = 512
+    vit_patch: int = within(8, COUNT)
+    vit_width: int = within(256, COUNT)
+    vit_layers: int = within(6, COUNT)
+    vit_heads: int = within(8, COUNT)
+    vit_mlp: int = within(1024, COUNT)
+    vit_head_hidden: int = within(512, COUNT)
     # spatial broadcast decoder: broadcast grid, then stride-2 transposed convs up to image_size
-    broadcast_size: int = 8
-    decoder_channels: int = 32
-    decoder_kernel: int = 5
-    decoder_extra_convs: int = 0    # stride-1 convs after the upsampling (paper: 1)
+    broadcast_size: int = within(8, COUNT)
+    decoder_channels: int = within(32, COUNT)
+    decoder_kernel: int = within(5, COUNT)
+    decoder_extra_convs: int = within(0, NON_NEGATIVE)    # stride-1 convs after the upsampling (paper: 1)
     # likelihood and prior
-    sigma: float = 0.05             # pixel standard deviation of the Gaussian likelihood
-    beta: float = 0.5               # weight of the KL to N(0, I)
-    object_loss_weight: float = 1.0  # per-object masked reconstruction, next to the composite
-    theta_init: float = 1.0         # compositing temperature |theta|, learned
-    std_init: float = 0.05          # posterior std the encoder starts from (before training)
+    sigma: float = within(0.05, POSITIVE)             # pixel standard deviation of the Gaussian likelihood
+    beta: float = within(0.5, NON_NEGATIVE)               # weight of the KL to N(0, I)
+    object_loss_weight: float = within(1.0, NON_NEGATIVE)  # per-object masked reconstruction, next to the composite
+    theta_init: float = within(1.0, POSITIVE)         # compositing temperature |theta|, learned
+    std_init: float = within(0.05, POSITIVE)          # posterior std the encoder starts from (before training)
 
     def __post_init__(self) -> None:
+        check_config(self)      # each field in its domain before the relations between them are checked
         if self.encoder not in ("cnn", "vit"):
             raise XvoeError(f"encoder must be 'cnn' or 'vit', not {self.encoder!r}")
         ratio = self.image_size // self.broadcast_size

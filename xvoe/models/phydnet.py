@@ -28,6 +28,7 @@ import torch
 from torch import Tensor, nn
 
 from ..errors import XvoeError
+from .config import COUNT, NON_NEGATIVE, check_config, within
 from .perception import normalise
 
 
@@ -35,28 +36,29 @@ from .perception import normalise
 class PhyDNetConfig:
     """Every size of the network. Defaults are the CPU sizes (32x32 RGBD frames)."""
 
-    image_size: int = 32
-    channels: int = 4                               # RGBD
+    image_size: int = within(32, COUNT)
+    channels: int = within(4, COUNT)                               # RGBD
     # encoder: a stride-1 conv to the first width, then one stride-2 conv per further width;
     # the decoder mirrors it. The last width is the feature map the two branches work on: 16x16,
     # as in the original at 64x64 (docs/decisions.md, "PhyDNet's feature map")
-    encoder_channels: tuple[int, ...] = (16, 32)
-    phycell_kernel: int = 7                         # k: k^2 derivative filters up to order k-1
-    phycell_layers: int = 1
-    gain_kernel: int = 3                            # the correction gain's convolution
-    lstm_channels: tuple[int, ...] = (32,)          # ConvLSTM layers (the original: 128, 128, 64)
+    encoder_channels: tuple[int, ...] = within((16, 32), COUNT)
+    phycell_kernel: int = within(7, COUNT)                         # k: k^2 derivative filters up to order k-1
+    phycell_layers: int = within(1, COUNT)
+    gain_kernel: int = within(3, COUNT)                            # the correction gain's convolution
+    lstm_channels: tuple[int, ...] = within((32,), COUNT)          # ConvLSTM layers (the original: 128, 128, 64)
     # a ConvLSTM layer moves what it remembers by (kernel - 1) / 2 cells a frame: at 3, one cell
     # of the 16x16 map, slower than a cube falls behind a wall (~3 cells a frame); the original
     # reaches 3 with its 3 stacked layers (docs/decisions.md, "PhyDNet's ConvLSTM kernel").
     # `widen_lstm_kernel` widens a trained network's gates
-    lstm_kernel: int = 3
-    moment_weight: float = 1.0                      # weight of the moment loss
+    lstm_kernel: int = within(3, COUNT)
+    moment_weight: float = within(1.0, NON_NEGATIVE)                      # weight of the moment loss
     # extra weight, in the training loss only, of the pixels that change from one frame to the
     # next (the moving objects and what a wall uncovers: a few percent of a frame). 0 is the
     # published plain MSE; the surprise is the plain squared error whatever this is
-    change_weight: float = 0.0
+    change_weight: float = within(0.0, NON_NEGATIVE)
 
     def __post_init__(self) -> None:
+        check_config(self)      # each field in its domain before the relations between them are checked
         scale = 2 ** (len(self.encoder_channels) - 1)
         if not self.encoder_channels or self.image_size % scale:
             raise XvoeError(f"image_size {self.image_size} must be a multiple of {scale} "

@@ -15,17 +15,19 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
+from .config import COUNT, POSITIVE, within
+
 
 @dataclass(frozen=True)
 class ReasoningConfig:
-    latent_dim: int = 16       # D, as the perception module's
-    slots: int = 8             # K
-    frames: int = 15           # T: the longest video the position table covers
-    width: int = 64            # token width (paper: 256)
-    layers: int = 3            # (paper: 6)
-    heads: int = 4             # (paper: 8)
-    mlp: int = 128             # (paper: 256)
-    min_scale: float = 1e-3    # floor of the predicted standard deviation
+    latent_dim: int = within(16, COUNT)       # D, as the perception module's
+    slots: int = within(8, COUNT)             # K
+    frames: int = within(15, COUNT)           # T: the longest video the position table covers
+    width: int = within(64, COUNT)            # token width (paper: 256)
+    layers: int = within(3, COUNT)            # (paper: 6)
+    heads: int = within(4, COUNT)             # (paper: 8)
+    mlp: int = within(128, COUNT)             # (paper: 256)
+    min_scale: float = within(1e-3, POSITIVE)    # floor of the predicted standard deviation
 
 
 class ReasoningTransformer(nn.Module):

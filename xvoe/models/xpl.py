@@ -13,6 +13,7 @@ from dataclasses import dataclass, field
 import torch
 from torch import Tensor, nn
 
+from .config import NON_NEGATIVE, within
 from .dynamics import DynamicsConfig, InteractionLSTM, mlp
 from .reasoning import (
     ReasoningConfig,
@@ -34,8 +35,8 @@ class XPLConfig:
     # seen spans alone (refill), not by making the dynamics' task easier; through the input, the
     # fills of an impossible video drift towards what the dynamics expect and explain it away
     stop_input_gradient: bool = False
-    mae_weight: float = 1.0
-    refill_weight: float = 1.0      # Transformer 1 rebuilding hidden spans of seen frames
+    mae_weight: float = within(1.0, NON_NEGATIVE)
+    refill_weight: float = within(1.0, NON_NEGATIVE)      # Transformer 1 rebuilding hidden spans of seen frames
     # Transformer 1 also rebuilds the entries of seen objects that lie wholly outside the picture
     # (the simulator says where), as the blank latent the cache holds there. Nothing else trains
     # those fills, yet about a third of the hidden entries of the training videos are such (cubes

@@ -15,6 +15,7 @@ import torch
 from torch import Tensor
 
 from ..benchmark import store
+from ..benchmark.scenes import TRAINING_GROUPS
 from ..benchmark.world import FLOOR, WORLD
 from ..errors import XvoeError
 from ..models.perception import BLANK, PerceptionBatch, normalise
@@ -213,6 +214,15 @@ def airborne(file: h5py.File, start: int, stop: int) -> np.ndarray:
     floor_row = frame_size(file) * (1.0 - FLOOR / WORLD)
     lifted = (states[..., columns.index("visible")] > 0) & movable & (y + 2 * size <= floor_row)
     return lifted.any(axis=2)
+
+
+def check_focus_group(group: str) -> str:
+    """`group` if it names only groups of training videos: checked before any data is read or
+    encoded, so that a misspelt group costs no work."""
+    for name in (part.strip() for part in group.split(",") if group):
+        if name not in TRAINING_GROUPS:
+            raise XvoeError(f"focus_group names no group {name!r}; the groups are {', '.join(TRAINING_GROUPS)}")
+    return group
 
 
 def focus_videos(file: h5py.File, group: str, start: int, stop: int) -> np.ndarray:

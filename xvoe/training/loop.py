@@ -31,7 +31,7 @@ from torch import nn
 from tqdm.auto import tqdm
 
 from ..errors import XvoeError
-from ..models.config import override, to_dict
+from ..models.config import COUNT, NON_NEGATIVE, POSITIVE, SEED, SHARE, Domain, check_config, override, to_dict, within
 from ..outputs import claim_directory
 from .checkpoints import CHECKPOINT_FORMAT, load_checkpoint, save_checkpoint
 
@@ -40,35 +40,36 @@ from .checkpoints import CHECKPOINT_FORMAT, load_checkpoint, save_checkpoint
 class TrainConfig:
     """One training run of one stage: the shared loop reads only these fields."""
 
-    steps: int = 6000
-    batch_size: int = 32            # frames per step, summed over all processes
-    lr: float = 1e-3
-    warmup_steps: int = 200         # linear warm-up of the learning rate
-    decay_steps: int = 5000         # the learning rate halves every decay_steps after warm-up
-    grad_clip: float = 0.0          # clip the gradient norm to this (0 = no clipping)
+    steps: int = within(6000, COUNT)
+    batch_size: int = within(32, COUNT)            # frames per step, summed over all processes
+    lr: float = within(1e-3, POSITIVE)
+    warmup_steps: int = within(200, NON_NEGATIVE)         # linear warm-up of the learning rate
+    decay_steps: int = within(5000, COUNT)         # the learning rate halves every decay_steps after warm-up
+    grad_clip: float = within(0.0, NON_NEGATIVE)          # clip the gradient norm to this (0 = no clipping)
     # the checkpoint's weights are a moving average of the trained ones, each step's weighed this
     # much less than the next one's (0 = the last step's weights); training resumes from the trained ones
-    average_decay: float = 0.0
-    seed: int = 0
-    checkpoint_minutes: float = 3.0  # a checkpoint is written at least this often
-    log_every: int = 10             # steps between rows of the loss CSV
-    max_minutes: float = 0.0        # stop early after this much training time (0 = no limit)
-    max_videos: int = 0             # videos of the data file to load (0 = all)
-    data_shards: int = 0            # slices of the file that each feed batch_size/data_shards frames
-                                    # per step; 0 = the number of processes of the first launch
-    threads: int = 0                # torch threads per process (0 = cores / processes)
+    average_decay: float = within(0.0, Domain(0, 1, open_high=True))
+    seed: int = within(0, SEED)
+    checkpoint_minutes: float = within(3.0, POSITIVE)  # a checkpoint is written at least this often
+    log_every: int = within(10, COUNT)             # steps between rows of the loss CSV
+    max_minutes: float = within(0.0, NON_NEGATIVE)        # stop early after this much training time (0 = no limit)
+    max_videos: int = within(0, NON_NEGATIVE)             # videos of the data file to load (0 = all)
+    # slices of the file that each feed batch_size/data_shards frames per step; 0 = the number of
+    # processes of the first launch
+    data_shards: int = within(0, NON_NEGATIVE)
+    threads: int = within(0, NON_NEGATIVE)                # torch threads per process (0 = cores / processes)
     # this share of each batch comes from the training videos of `focus_group` that have a wall
     # (e.g. permanence, where cubes must be remembered behind it; several: permanence,continuity);
     # 0 = uniform. PhyDNet, and the XPL, PLATO and proposal stages (through the split file the latent cache
     # was encoded from)
     focus_group: str = ""
-    focus_share: float = 0.0
+    focus_share: float = within(0.0, SHARE)
     # the perception stage alone: this share of each batch's frames shows a ball or cube off the
     # floor (0 = frames drawn uniformly)
-    airborne_share: float = 0.0
+    airborne_share: float = within(0.0, SHARE)
     # the PhyDNet stage alone: at the start of this phase its ConvLSTM gates widen to this size,
     # the trained taps in the centre (0 = as they are)
-    lstm_kernel: int = 0
+    lstm_kernel: int = within(0, NON_NEGATIVE)
 
 
 @dataclass
@@ -167,8 +168,6 @@ class WeightAverage:
     last steps (the batch drawn, the learning rate still high) averages out."""
 
     def __init__(self, model: nn.Module, decay: float):
-        if not 0.0 < decay < 1.0:
-            raise XvoeError(f"average_decay must lie in (0, 1) or be 0 (off), not {decay}")
         self.decay = decay
         sources = model.state_dict()        # views of the parameters, updated in place by the optimiser
         self.state = {name: value.detach().clone() for name, value in sources.items()}
@@ -246,6 +245,7 @@ def fit(job: Job, config: TrainConfig, run_dir: str | os.PathLike, *, place: Dis
     shipped checkpoint (weights only), the weights and step do, with a fresh optimiser.
     """
     place = place or Dist()
+    check_config(config)        # a config built in Python, not through override, is checked too
     if config.airborne_share and job.stage != "perception":
         raise XvoeError(f"airborne_share picks the perception stage's frames; the {job.stage} stage has none")
     if config.lstm_kernel and job.stage != "phydnet":

@@ -452,8 +452,9 @@ def load_xpl(model: str | os.PathLike, stage: str = "xpl", device: str | torch.d
     and existence head, unless `proposal` is False."""
     path = resolve_run(model, stage)
     state = load_checkpoint(path)
-    if state["stage"] not in TRAINED_ON_LATENTS:
-        raise XvoeError(f"{path} is a {state['stage']} checkpoint, not an XPL one")
+    if state["stage"] != stage:     # else it would be scored as the kind it holds and labelled as the one named
+        raise XvoeError(f"{path} holds a {state['stage']} model, not {stage}: load it under its own name "
+                        f"({state['stage']}.pt)")
     xpl = XPL(from_dict(XPLConfig, state["config"]["xpl"]))
     xpl.load_state_dict(state["model"])
     tuned = path.parent / "proposal.pt"

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field, fields, replace
 
-from ...models.config import field_type, parse_value, split_assignment
+from ...models.config import parse_field, split_assignment
 from ...models.nll import InferenceConfig
 from ...models.perception import PerceptionConfig
 from ...models.phydnet import PhyDNetConfig
@@ -80,5 +80,5 @@ def stage_settings(stage: str, assignments: list[str]) -> tuple[dict, dict]:
             chosen = "train" if name.partition(".")[0] in {f.name for f in fields(TrainConfig)} else "model"
         config = owners[chosen]
         target = train if chosen == "train" else model
-        target[name] = parse_value(field_type(config, name), value)
+        target[name] = parse_field(config, name, value)
     return train, model
