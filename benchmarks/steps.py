@@ -195,6 +195,11 @@ def measure(step, warmup: int, repeats: int) -> dict[str, float]:
             "kernel": system / max(1e-9, user + system)}
 
 
+def gaps(counted: Operations) -> str:
+    """A warning after a row whose count misses a product kernel (a new torch, another path)."""
+    return f"  NOT COUNTED: {', '.join(sorted(counted.uncounted))}" if counted.uncounted else ""
+
+
 def timed_row(stage: str, found: dict[str, float], counted: Operations, items: int, threads: int,
               peak: float) -> str:
     """One stage's line: times per item, the true and torch-counted GMAC, the rate and the goal."""
@@ -251,7 +256,7 @@ def main() -> None:
             step, items = builders[stage](np.random.default_rng(args.seed))
             counted = count_operations(step)
             print(f"{stage:<15} {counted.gmacs / items:10.3f} {counted.torch_gmacs / items:10.3f}  "
-                  f"{items} {UNIT[stage.split('-')[0]]}s", flush=True)
+                  f"{items} {UNIT[stage.split('-')[0]]}s{gaps(counted)}", flush=True)
         return
     peak = matmul_peak()
     print(f"peak: a 2048x2048 matrix product runs at {peak:.1f} GMAC per CPU second")
@@ -261,7 +266,8 @@ def main() -> None:
         torch.manual_seed(args.seed)        # the same weights whichever stages ran before
         step, items = builders[stage](np.random.default_rng(args.seed))
         found = measure(step, args.warmup, args.repeats)
-        print(timed_row(stage, found, count_operations(step), items, args.threads, peak), flush=True)
+        counted = count_operations(step)
+        print(timed_row(stage, found, counted, items, args.threads, peak) + gaps(counted), flush=True)
     print(f"peak resident memory {resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2**20:.2f} GiB")
 
 

@@ -80,3 +80,14 @@ def test_counts_through_autograd_grad():
     # the NLL's refinement takes gradients with torch.autograd.grad, which module hooks would break
     layer, x = nn.Linear(24, 40), torch.randn(6, 24, requires_grad=True)
     assert count_operations(lambda: torch.autograd.grad(layer(x).sum(), x)).macs == 2 * 6 * 24 * 40
+
+
+def test_a_product_without_formula_is_named():
+    # the Transformer's fused inference kernel, called directly, runs products no formula counts
+    width, heads, x = 32, 4, torch.randn(3, 10, 32)
+    qkv, proj = nn.Linear(width, 3 * width), nn.Linear(width, width)
+    with torch.no_grad():
+        found = count_operations(lambda: torch._native_multi_head_attention(
+            x, x, x, width, heads, qkv.weight, qkv.bias, proj.weight, proj.bias, need_weights=False))
+    assert found.uncounted == {"aten._native_multi_head_attention"}
+    assert found.macs == 0

@@ -16,6 +16,7 @@ from dataclasses import dataclass
 from math import prod
 
 import torch
+from torch.utils._python_dispatch import TorchDispatchMode
 from torch.utils.flop_counter import FlopCounterMode, flop_registry
 
 aten = torch.ops.aten
@@ -88,6 +89,25 @@ class _GlobalOnly:
         return None
 
 
+# name parts of the operations that multiply-accumulate: products, convolutions, attention, RNNs
+PRODUCT_NAMES = ("mm", "conv", "attention", "rnn", "lstm", "gru", "matmul", "linear", "einsum")
+
+
+class _Watch(TorchDispatchMode):
+    """Notes the operations that look like products yet no formula counts, so that a new kernel
+    (another torch, another path) shows as a gap instead of a silently low count."""
+
+    def __init__(self, registry: dict) -> None:
+        super().__init__()
+        self.registry, self.uncounted = registry, set()
+
+    def __torch_dispatch__(self, func, types, args=(), kwargs=None):
+        name = str(func.overloadpacket)
+        if func.overloadpacket not in self.registry and any(part in name for part in PRODUCT_NAMES):
+            self.uncounted.add(name)
+        return func(*args, **(kwargs or {}))
+
+
 @dataclass(frozen=True)
 class Operations:
     """MACs of one run: `macs` all of them, `torch_macs` the part FlopCounterMode counts alone."""
@@ -95,6 +115,7 @@ class Operations:
     macs: int
     torch_macs: int
     by_op: dict[str, int]       # MACs per aten operation
+    uncounted: frozenset[str]   # operations that look like products but have no formula
 
     @property
     def gmacs(self) -> float:
@@ -112,12 +133,13 @@ def count_operations(step: Callable[[], object]) -> Operations:
     counter.mod_tracker = _GlobalOnly()
     fastpath = torch.backends.mha.get_fastpath_enabled()
     torch.backends.mha.set_fastpath_enabled(False)
+    watch = _Watch(counter.flop_registry)
     try:
-        with counter:
+        with counter, watch:
             step()
     finally:
         torch.backends.mha.set_fastpath_enabled(fastpath)
     flops = counter.get_flop_counts().get("Global", {})
     by_op = {str(op): count // 2 for op, count in flops.items()}
     torch_macs = sum(count for op, count in flops.items() if op in flop_registry) // 2
-    return Operations(sum(by_op.values()), torch_macs, by_op)
+    return Operations(sum(by_op.values()), torch_macs, by_op, frozenset(watch.uncounted))
