@@ -184,6 +184,8 @@ def domain_cases(files, tmp: Path) -> list[tuple[list[str], str]]:
         (xpl + ["--focus-share", "nan"], "focus_share must be"),
         (xpl + ["--focus-group", "juggling", "--focus-share", "0.5"], "names no group 'juggling'"),
         (xpl + ["--set", "focus_group=permanence,juggling"], "names no group 'juggling'"),
+        (xpl + ["--perception", "xpl", "--focus-share", "0.5"], "focus_share needs a focus_group"),
+        (xpl + ["--perception", "xpl", "--set", "focus_share=0.3"], "focus_share needs a focus_group"),
     ]
 
 
@@ -237,7 +239,7 @@ def test_every_bad_input_gets_one_line_exit_2_and_changes_nothing(files, tmp_pat
         assert "Traceback" not in err
         assert snapshot(tmp_path) == before, args
         tried += 1
-    assert tried == 5 * len(MALFORMED) + 27 + 26 + 10 + 3
+    assert tried == 5 * len(MALFORMED) + 27 + 28 + 10 + 3
 
 
 CONFIGS = (TrainConfig, PerceptionConfig, XPLConfig, ReasoningConfig, DynamicsConfig, PhyDNetConfig, InferenceConfig,

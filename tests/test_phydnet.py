@@ -270,7 +270,7 @@ def test_a_focus_group_fills_its_share_of_each_batch_with_that_groups_wall_video
         VideoBatches(str(splits[0]), image_size=16, batch_size=4, shards=1, focus_group="continuity", focus_share=1.5)
     with pytest.raises(XvoeError, match="needs a focus_group"):
         VideoBatches(str(splits[0]), image_size=16, batch_size=4, shards=1, focus_share=0.5)
-    with pytest.raises(XvoeError, match="no training videos of group 'permanance'"):
+    with pytest.raises(XvoeError, match="focus_group names no group 'permanance'"):
         VideoBatches(str(splits[0]), image_size=16, batch_size=4, shards=1, focus_group="permanance", focus_share=0.5)
     with pytest.raises(XvoeError, match="rounds to none"):
         VideoBatches(str(splits[0]), image_size=16, batch_size=4, shards=1, focus_group="continuity", focus_share=0.1)
@@ -294,7 +294,7 @@ def test_a_focus_on_several_groups_draws_from_the_wall_videos_of_each(tmp_path):
                            focus_group="continuity, permanence", focus_share=0.5)
     drawn = {int(row) for step in range(40) for row in batches.focus.draw(np.random.default_rng(step), 0, 0, 10, 4)[2:]}
     assert drawn == kinds["continuity"] | kinds["permanence"]
-    with pytest.raises(XvoeError, match="no training videos of group 'permanance'"):
+    with pytest.raises(XvoeError, match="focus_group names no group 'permanance'"):
         VideoBatches(str(path), image_size=16, batch_size=4, shards=1, focus_group="continuity,permanance",
                      focus_share=0.5)
 

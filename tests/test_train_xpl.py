@@ -304,7 +304,7 @@ def test_a_focus_group_fills_its_share_of_each_latent_batch(train_file, tmp_path
     assert all(torch.equal(a, b) for a, b in zip(plain.draw(5), unfocused.draw(5)))
     with pytest.raises(XvoeError, match="needs a focus_group"):
         LatentBatches(str(cache), batch_size=8, shards=1, focus_share=0.5)
-    with pytest.raises(XvoeError, match="no training videos of group 'continuty'"):
+    with pytest.raises(XvoeError, match="focus_group names no group 'continuty'"):
         LatentBatches(str(cache), batch_size=8, shards=1, focus_group="continuty", focus_share=0.5)
     moved = tmp_path / "moved.h5"
     cache.rename(moved)

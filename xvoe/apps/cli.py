@@ -16,7 +16,7 @@ from ..errors import XvoeError
 from ..models.config import NON_NEGATIVE, POSITIVE, SEED, Domain, check_number, parse_field, parse_value
 from ..models.nll import InferenceConfig
 from ..outputs import claim_directory, claim_file, refuse_overlap
-from ..training.data import check_focus_group
+from ..training.data import check_focus
 from ..training.loop import TrainConfig
 
 
@@ -154,7 +154,13 @@ def _train_overrides(args: argparse.Namespace, stage: str) -> tuple[dict, dict]:
              "max_videos": args.max_videos, "lr": args.lr, "focus_group": getattr(args, "focus_group", None),
              "focus_share": getattr(args, "focus_share", None)}
     train = {**train, **{k: v for k, v in flags.items() if v is not None}}
-    check_focus_group(train.get("focus_group", ""))
+    # a fresh run starts from its recipe's focus; where the run's config is not known yet (a resumed
+    # run, the proposal stage's recipe from its xpl.pt), the names alone are checked here
+    if args.resume or not hasattr(args, "recipe"):
+        check_focus(train.get("focus_group", ""))
+    else:
+        base = xvoe.recipe(args.recipe).training(stage)
+        check_focus(train.get("focus_group", base.focus_group), train.get("focus_share", base.focus_share))
     return train, model
 
 

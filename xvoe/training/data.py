@@ -172,8 +172,7 @@ def split_by_shard(path: str, owned: Ownership, found: np.ndarray, rows: np.ndar
 def focus_on(path: str, owned: Ownership, group: str, share: float) -> Focus:
     """The Focus of TrainConfig.focus_group / focus_share for the shards a process owns of the
     training split at `path`."""
-    if 0.0 <= share <= 1.0 and share and not group:
-        raise XvoeError("focus_share needs a focus_group (e.g. permanence)")
+    check_focus(group, share)
     count = share_count("focus_share", share, owned.per_shard, "videos")
     if not count:
         return Focus([], 0)
@@ -216,13 +215,14 @@ def airborne(file: h5py.File, start: int, stop: int) -> np.ndarray:
     return lifted.any(axis=2)
 
 
-def check_focus_group(group: str) -> str:
-    """`group` if it names only groups of training videos: checked before any data is read or
-    encoded, so that a misspelt group costs no work."""
+def check_focus(group: str, share: float | None = None) -> None:
+    """A focus_group of training groups only, and one wherever focus_share is set (None: not known
+    yet): checked before any data is read or encoded, so that a misspelt or missing group costs no work."""
     for name in (part.strip() for part in group.split(",") if group):
         if name not in TRAINING_GROUPS:
             raise XvoeError(f"focus_group names no group {name!r}; the groups are {', '.join(TRAINING_GROUPS)}")
-    return group
+    if share and not group:      # None (not known yet) is no share
+        raise XvoeError("focus_share needs a focus_group (e.g. permanence)")
 
 
 def focus_videos(file: h5py.File, group: str, start: int, stop: int) -> np.ndarray:
