@@ -219,12 +219,21 @@ def kind_cases(files, tmp: Path) -> list[tuple[list[str], str]]:
     shutil.copy(shipped_path("plato"), swapped / "xpl.pt")
     shutil.copy(shipped_path("xpl", "perception"), swapped / "perception.pt")
     shutil.copy(shipped_path("xpl"), swapped / "xpl-noresidual.pt")
+    shutil.copy(shipped_path("xpl"), swapped / "phydnet.pt")
+    shipping = tmp / "shipping"
+    shipping.mkdir()
+    shutil.copy(shipped_path("xpl", "perception"), shipping / "perception.pt")
+    shutil.copy(shipped_path("xpl"), shipping / "plato.pt")
     score = ["score", "--data", str(files["test"]), "--out", str(tmp / "k.csv")]
     return [
         (score + ["--model", str(swapped)], "holds a plato model, not xpl"),
         (score + ["--model", str(swapped / "xpl-noresidual.pt")], "holds a xpl model, not xpl-noresidual"),
+        (score + ["--model", str(swapped / "phydnet.pt")], "holds a xpl model, not phydnet"),
         (["explain", "--model", str(swapped / "xpl.pt"), "--data", str(files["test"]), "--out", str(tmp / "k.png")],
          "holds a plato model, not xpl"),
+        (["train", "xpl", "--out", str(swapped), "--resume", "--steps", "1", "--quiet"],
+         "holds a plato model, not xpl"),
+        (["ship", str(shipping), "--out", str(tmp / "weights")], "holds a xpl model, not plato"),
     ]
 
 
@@ -239,7 +248,7 @@ def test_every_bad_input_gets_one_line_exit_2_and_changes_nothing(files, tmp_pat
         assert "Traceback" not in err
         assert snapshot(tmp_path) == before, args
         tried += 1
-    assert tried == 5 * len(MALFORMED) + 27 + 28 + 10 + 3
+    assert tried == 5 * len(MALFORMED) + 27 + 28 + 10 + 6
 
 
 CONFIGS = (TrainConfig, PerceptionConfig, XPLConfig, ReasoningConfig, DynamicsConfig, PhyDNetConfig, InferenceConfig,

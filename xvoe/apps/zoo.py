@@ -43,7 +43,7 @@ def ship(run_dir: str | os.PathLike, out: str | os.PathLike | None = None) -> li
         raise XvoeError(f"{run_dir} holds no perception.pt, whose latents its {', '.join(readers)} read; "
                         "nothing was written")
     claim_directory(out or WEIGHTS, make=False)
-    states = {stage: load_checkpoint(run_dir / f"{stage}.pt") for stage in stages}
+    states = {stage: load_checkpoint(run_dir / f"{stage}.pt", stage) for stage in stages}
     for stage, state in states.items():
         if differences := recipe_differences(state):
             raise XvoeError(f"{run_dir / stage}.pt is not what its recipe makes ({'; '.join(differences[:3])}); "

@@ -30,8 +30,9 @@ def save_checkpoint(path: Path, state: dict) -> None:
             tmp.unlink()
 
 
-def load_checkpoint(path: str | os.PathLike) -> dict:
-    """A checkpoint written by this loop, or a one-line error."""
+def load_checkpoint(path: str | os.PathLike, stage: str | None = None) -> dict:
+    """A checkpoint written by this loop (of `stage`, if given), or a one-line error. A checkpoint
+    of one kind under another's name would be used as the kind it holds and labelled as the one named."""
     path = Path(path)
     if not path.is_file():
         raise XvoeError(f"{path}: no such checkpoint")
@@ -41,6 +42,9 @@ def load_checkpoint(path: str | os.PathLike) -> dict:
         raise XvoeError(f"{path} is not a readable xvoe checkpoint ({type(error).__name__})") from None
     if not isinstance(state, dict) or state.get("format") != CHECKPOINT_FORMAT:
         raise XvoeError(f"{path} is not an xvoe checkpoint of format {CHECKPOINT_FORMAT}")
+    if stage is not None and state.get("stage") != stage:
+        raise XvoeError(f"{path} holds a {state.get('stage')} model, not {stage}: load it under its own name "
+                        f"({state.get('stage')}.pt)")
     return state
 
 

@@ -262,7 +262,7 @@ def fit(job: Job, config: TrainConfig, run_dir: str | os.PathLike, *, place: Dis
     start, elapsed, meter = 0, 0.0, _Meter()
     average = WeightAverage(model, config.average_decay) if config.average_decay else None
     if resume and ckpt.exists():
-        state = load_checkpoint(ckpt)
+        state = load_checkpoint(ckpt, job.stage)
         model.load_state_dict(state.get("trained", state["model"]))
         if average:
             average.load(state["model"])

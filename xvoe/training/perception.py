@@ -19,9 +19,7 @@ from .recipes import DEFAULT_RECIPE, recipe, recipe_of
 def load_perception(model: str | os.PathLike, device: str | torch.device = "cpu"):
     """The trained ComponentVAE of a checkpoint (in eval mode) and the checkpoint's contents."""
     path = resolve_run(model)
-    state = load_checkpoint(path)
-    if state["stage"] != "perception":
-        raise XvoeError(f"{path} is a {state['stage']} checkpoint, not a perception one")
+    state = load_checkpoint(path, "perception")
     vae = ComponentVAE(from_dict(PerceptionConfig, state["config"]["perception"]))
     vae.load_state_dict(state["model"])
     state["path"] = str(path)
@@ -32,7 +30,7 @@ def perception_configs(recipe_name: str, run_dir: Path, resume: bool, **train_ov
     """Model and training configs: the checkpoint's when resuming, else the recipe's, with overrides."""
     ckpt = checkpoint_path(run_dir, "perception")
     if resume and ckpt.exists():
-        state = load_checkpoint(ckpt)
+        state = load_checkpoint(ckpt, "perception")
         model_config = from_dict(PerceptionConfig, state["config"]["perception"])
         train_config, recipe_name = from_dict(TrainConfig, state["train"]), recipe_of(state["config"])
     else:

@@ -60,7 +60,7 @@ def phydnet_configs(recipe_name: str, run_dir: Path, resume: bool, data: str | o
     """Model and training configs and the data file: the checkpoint's when resuming, else the recipe's."""
     ckpt = checkpoint_path(run_dir, STAGE)
     if resume and ckpt.exists():
-        state = load_checkpoint(ckpt)
+        state = load_checkpoint(ckpt, STAGE)
         model_config = from_dict(PhyDNetConfig, state["config"]["phydnet"])
         train_config, recipe_name = from_dict(TrainConfig, state["train"]), recipe_of(state["config"])
         return recipe_name, model_config, train_config, str(data or state["meta"]["data"])
@@ -105,7 +105,7 @@ def widen_checkpoint(path: Path, kernel: int, place: Dist) -> None:
     (`widen_lstm_kernel`: the same predictions to begin with) and Adam afresh, its step, RNG
     states and loss log kept, so that the resumed phase trains the wider gates."""
     if place.main:
-        state = load_checkpoint(path)
+        state = load_checkpoint(path, STAGE)
         narrow = from_dict(PhyDNetConfig, state["config"]["phydnet"])
         widened = {}
         for key in ("model", "trained"):        # "trained" beside "model" when the run averages its weights
@@ -125,9 +125,7 @@ def widen_checkpoint(path: Path, kernel: int, place: Dist) -> None:
 def load_phydnet(model: str | os.PathLike, device: str | torch.device = "cpu") -> tuple[PhyDNet, dict]:
     """A trained PhyDNet (in eval mode) from a checkpoint or run directory, and the checkpoint's contents."""
     path = resolve_run(model, STAGE)
-    state = load_checkpoint(path)
-    if state["stage"] != STAGE:
-        raise XvoeError(f"{path} is a {state['stage']} checkpoint, not a PhyDNet one")
+    state = load_checkpoint(path, STAGE)
     objective = PhyDNetObjective(PhyDNet(from_dict(PhyDNetConfig, state["config"]["phydnet"])))
     objective.load_state_dict(state["model"])
     state["path"] = str(path)

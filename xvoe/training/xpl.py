@@ -155,7 +155,7 @@ def train_xpl(latents: str | os.PathLike | None, run_dir: str | os.PathLike, *, 
     run_dir = Path(run_dir)
     ckpt = checkpoint_path(run_dir, name)
     if resume and ckpt.exists():
-        state = load_checkpoint(ckpt)
+        state = load_checkpoint(ckpt, name)
         model_config = from_dict(XPLConfig, state["config"]["xpl"])
         config, recipe_name = from_dict(TrainConfig, state["train"]), recipe_of(state["config"])
         latents = latents or state["meta"]["latents"]
@@ -418,7 +418,7 @@ def train_proposal(run_dir: str | os.PathLike, latents: str | os.PathLike | None
     ckpt = checkpoint_path(run_dir, "proposal")
     recipe_name = recipe_of(xpl_state["config"])
     if resume and ckpt.exists():
-        state = load_checkpoint(ckpt)
+        state = load_checkpoint(ckpt, "proposal")
         config = from_dict(TrainConfig, state["train"])
         xpl.config = from_dict(XPLConfig, state["config"]["xpl"])
     else:
@@ -451,15 +451,12 @@ def load_xpl(model: str | os.PathLike, stage: str = "xpl", device: str | torch.d
     with a proposal.pt beside it (the proposal stage ran) gets that checkpoint's Transformer 2
     and existence head, unless `proposal` is False."""
     path = resolve_run(model, stage)
-    state = load_checkpoint(path)
-    if state["stage"] != stage:     # else it would be scored as the kind it holds and labelled as the one named
-        raise XvoeError(f"{path} holds a {state['stage']} model, not {stage}: load it under its own name "
-                        f"({state['stage']}.pt)")
+    state = load_checkpoint(path, stage)
     xpl = XPL(from_dict(XPLConfig, state["config"]["xpl"]))
     xpl.load_state_dict(state["model"])
     tuned = path.parent / "proposal.pt"
     if proposal and state["stage"] == "xpl" and tuned.is_file():
-        extra = load_checkpoint(tuned)
+        extra = load_checkpoint(tuned, "proposal")
         if extra["meta"].get("xpl_fingerprint") != fingerprint(state["model"]):
             raise XvoeError(f"{tuned} was trained on another xpl.pt than {path}; retrain it "
                             "(xvoe train proposal --overwrite) or move it away")
