@@ -8,9 +8,10 @@ from typing import Any
 import numpy as np
 from torch import Tensor
 
+from xvoe.domains import check_config
 from xvoe.errors import XvoeError
 from xvoe.evaluation.score import Scorer
-from xvoe.models.config import check_config, field_type, parse_field, split_assignment, to_dict
+from xvoe.models.config import field_type, parse_field, split_assignment, to_dict
 
 from .model import InferenceConfig, pixel_log_normaliser
 from .surprise import nll_surprise

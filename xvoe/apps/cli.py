@@ -12,8 +12,9 @@ from typing import Any
 
 import xvoe
 
+from ..domains import NON_NEGATIVE, POSITIVE, SEED, Domain, check_number
 from ..errors import XvoeError
-from ..models.config import NON_NEGATIVE, POSITIVE, SEED, Domain, check_number, parse_field, parse_value
+from ..models.config import parse_field, parse_value
 from ..models.nll import InferenceConfig
 from ..outputs import claim_directory, claim_file, refuse_overlap
 from ..training.data import check_focus

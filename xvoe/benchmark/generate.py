@@ -20,8 +20,8 @@ from pathlib import Path
 import numpy as np
 from tqdm.auto import tqdm
 
+from ..domains import COUNT, SEED, Domain, check_config, within
 from ..errors import XvoeError
-from ..models.config import COUNT, SEED, Domain, check_config, within
 from . import store
 from .render import render
 from .scenes import SCENARIOS, TEST_SETTINGS, TRAINING_GROUPS

@@ -14,7 +14,7 @@ from typing import NamedTuple
 import torch
 from torch import Tensor, nn
 
-from .config import COUNT, within
+from ..domains import COUNT, within
 
 
 @dataclass(frozen=True)

@@ -7,7 +7,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from .config import COUNT, NON_NEGATIVE, POSITIVE, SHARE, Domain, within
+from ..domains import COUNT, NON_NEGATIVE, POSITIVE, SHARE, Domain, within
 
 
 @dataclass(frozen=True)

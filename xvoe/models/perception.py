@@ -20,8 +20,8 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor, nn
 
+from ..domains import COUNT, NON_NEGATIVE, POSITIVE, check_config, within
 from ..errors import XvoeError
-from .config import COUNT, NON_NEGATIVE, POSITIVE, check_config, within
 
 BLANK_DEPTH = 1.5                                   # beyond the far plane (255 -> 1.0)
 BLANK = (1.0, 1.0, 1.0, BLANK_DEPTH)                # RGB white, depth past the background

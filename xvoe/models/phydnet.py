@@ -27,8 +27,8 @@ from dataclasses import dataclass, replace
 import torch
 from torch import Tensor, nn
 
+from ..domains import COUNT, NON_NEGATIVE, check_config, within
 from ..errors import XvoeError
-from .config import COUNT, NON_NEGATIVE, check_config, within
 from .perception import normalise
 
 

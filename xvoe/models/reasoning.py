@@ -15,7 +15,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from .config import COUNT, POSITIVE, within
+from ..domains import COUNT, POSITIVE, within
 
 
 @dataclass(frozen=True)

@@ -13,7 +13,7 @@ from dataclasses import dataclass, field
 import torch
 from torch import Tensor, nn
 
-from .config import NON_NEGATIVE, within
+from ..domains import NON_NEGATIVE, within
 from .dynamics import DynamicsConfig, InteractionLSTM, mlp
 from .reasoning import (
     ReasoningConfig,

@@ -30,8 +30,9 @@ import torch.distributed as dist
 from torch import nn
 from tqdm.auto import tqdm
 
+from ..domains import COUNT, NON_NEGATIVE, POSITIVE, SEED, SHARE, Domain, check_config, within
 from ..errors import XvoeError
-from ..models.config import COUNT, NON_NEGATIVE, POSITIVE, SEED, SHARE, Domain, check_config, override, to_dict, within
+from ..models.config import override, to_dict
 from ..outputs import claim_directory
 from .checkpoints import CHECKPOINT_FORMAT, load_checkpoint, save_checkpoint
 
