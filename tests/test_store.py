@@ -180,7 +180,7 @@ def test_open_dataset_rejects_foreign_files(tmp_path):
 
 @pytest.mark.parametrize("kwargs,match", [
     ({"split": "val"}, "split"), ({"size": 8}, "size"), ({"frames": 5}, "frames"),
-    ({"videos": 0}, "at least 1"), ({"seed": -1}, "seed")])
+    ({"videos": 0}, "videos must be a finite number >= 1"), ({"seed": -1}, "seed")])
 def test_bad_config_is_refused(kwargs, match):
     with pytest.raises(XvoeError, match=match):
         GenerateConfig(**kwargs)
