@@ -196,8 +196,6 @@ def cmd_encode(args: argparse.Namespace) -> None:
                             progress=not args.quiet))
 
 
-
-
 def add_train_parser(verbs) -> None:
     train = verbs.add_parser(
         "train", help="train one stage of the XPL model, or a baseline, into a run directory",
@@ -357,8 +355,8 @@ def build_parser() -> argparse.ArgumentParser:
     explain.add_argument("--out", required=True, help="the PNG to write")
     explain.add_argument("--surprise", choices=("mse", "nll"), default="mse",
                          help="mse: Transformer 2's proposal (default, see --explanation); nll: the Pyro "
-                              "model's posterior, the "
-                              "weighted hidden object, its top hypotheses, p(hidden object) and the ESS")
+                              "model's posterior, the weighted hidden object, its top hypotheses, p(hidden "
+                              "object) and the ESS")
     explain.add_argument("--particles", type=_field(InferenceConfig, "particles"),
                          help="particles (nll; default: the model's recipe's, 64 for the shipped one)")
     explain.add_argument("--explanation", choices=("better", "proposal"), default="better",

@@ -25,7 +25,7 @@ class Stage:
     train_field: str            # the Recipe field of its first training run
     scored: bool = False        # a model `xvoe score --model NAME` scores
     variant: str = ""           # XPL-family stages: the network XPL is fitted to ("xpl" or "plato")
-    residual: bool = True       # ... and whether the dynamics predict a change (XPL) or the latent itself
+    residual: bool = True       # ... and whether its dynamics predict a change (XPL) or the latent itself (PLATO)
 
     @property
     def checkpoint(self) -> str:
@@ -46,7 +46,7 @@ STAGES: dict[str, Stage] = {stage.name: stage for stage in (
     Stage("proposal", "Transformer 2 and the existence head further, on hidden objects (after xpl)",
           XPLConfig, "xpl", "xpl", "proposal_train", variant="xpl"),
     Stage("plato", "the PLATO baseline: the dynamics alone, on the latent cache", XPLConfig, "xpl", "latents",
-          "plato_train", scored=True, variant="plato"),
+          "plato_train", scored=True, variant="plato", residual=False),
     Stage("xpl-noresidual", "XPL without the dynamics' residual (the paper's ablation), on the latent cache",
           XPLConfig, "xpl", "latents", "xpl_train", scored=True, variant="xpl", residual=False),
     Stage("phydnet", "the PhyDNet baseline, on a training split's pixels", PhyDNetConfig, "phydnet", "pixels",

@@ -77,8 +77,10 @@ class LatentBatches:
         self.focus = focus_on(split, owned, focus_group, focus_share)
         found = wall_slots(path, owned.start, owned.stop) if walls else None    # (read only when used)
         self.walls = torch.zeros_like(self.visible[:, 0]) if found is None else torch.from_numpy(found)
-        places = object_places(path, owned.start, owned.stop) if outside else None
-        self.outside = torch.from_numpy(outside_picture(places)) & ~self.visible if outside else None
+        self.outside = None     # (B, T, K) hidden entries wholly outside the picture, where asked for
+        if outside:
+            places = object_places(path, owned.start, owned.stop)
+            self.outside = torch.from_numpy(outside_picture(places)) & ~self.visible
         self.shards, self.bounds, self.per_shard = owned.shards, owned.bounds, owned.per_shard
         self.start, self.seed, self.object_share = owned.start, seed, object_share
         self.slots = self.mean.shape[2]
@@ -136,7 +138,7 @@ def stage_config(base: XPLConfig, name: str, stop_gradient: bool, shape: tuple) 
     frames, slots, dim = shape
     entry = STAGES[name]
     reasoning = replace(base.reasoning, latent_dim=dim, slots=slots, frames=max(frames, base.reasoning.frames))
-    dynamics = replace(base.dynamics, latent_dim=dim, residual=entry.residual and entry.variant == "xpl")
+    dynamics = replace(base.dynamics, latent_dim=dim, residual=entry.residual)
     return replace(base, reasoning=reasoning, dynamics=dynamics, use_reasoning=entry.variant == "xpl",
                    stop_target_gradient=stop_gradient)
 
@@ -150,16 +152,15 @@ def train_xpl(latents: str | os.PathLike | None, run_dir: str | os.PathLike, *, 
     configs); a resumed run keeps its network."""
     if stage not in TRAINED_ON_LATENTS:
         raise XvoeError(f"stage must be one of {', '.join(TRAINED_ON_LATENTS)}, not {stage!r}")
-    name = stage
     place = setup_distributed()
     run_dir = Path(run_dir)
-    ckpt = checkpoint_path(run_dir, name)
+    ckpt = checkpoint_path(run_dir, stage)
     if resume and ckpt.exists():
-        state = load_checkpoint(ckpt, name)
+        state = load_checkpoint(ckpt, stage)
         model_config = from_dict(XPLConfig, state["config"]["xpl"])
         config, recipe_name = from_dict(TrainConfig, state["train"]), recipe_of(state["config"])
         latents = latents or state["meta"]["latents"]
-        model_config = override_resumed(model_config, model_overrides, what=f"{name} run")
+        model_config = override_resumed(model_config, model_overrides, what=f"{stage} run")
     elif latents is None:
         raise XvoeError(f"nothing to resume in {run_dir}: give the latent cache to start a run")
     else:
@@ -184,9 +185,9 @@ def train_xpl(latents: str | os.PathLike | None, run_dir: str | os.PathLike, *, 
         for part in (model.transformer2, model.existence):
             part.requires_grad_(False)
     stored = {"recipe": recipe_name, "xpl": to_dict(model_config)}
-    if name == "xpl":       # the model the NLL surprise runs on keeps its recipe's settings of it
+    if stage == "xpl":      # the model the NLL surprise runs on keeps its recipe's settings of it
         stored["nll"] = to_dict(nll_settings_of(state["config"]) if resume and ckpt.exists() else chosen.nll)
-    job = Job(name, model, batches.batch, stored,
+    job = Job(stage, model, batches.batch, stored,
               meta={"latents": str(Path(latents).resolve())})
     return fit(job, config, run_dir, place=place, resume=resume, overwrite=overwrite, progress=progress)
 
