@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import os
 import re
+import stat
 from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
@@ -27,7 +28,18 @@ def claim_file(path: str | os.PathLike, overwrite: bool = False, *, what: str = 
     if path.exists() and not overwrite:
         raise XvoeError(f"{path} exists; pass --overwrite to replace it")
     _writable_directory(path.parent)
+    if os.path.lexists(path):
+        _replaceable(path)
     return path
+
+
+def _replaceable(path: Path) -> None:
+    """Refuse before the work a file whose replacement the folder will refuse at the end: in a
+    sticky folder (as /tmp) only the file's owner, the folder's or root may replace it."""
+    folder = path.parent.stat()
+    if folder.st_mode & stat.S_ISVTX and os.geteuid() not in (0, folder.st_uid, path.lstat().st_uid):
+        raise XvoeError(f"cannot replace {path}: it is another user's, in a folder where only its owner may "
+                        "replace it")
 
 
 def refuse_overlap(inputs: list[str | os.PathLike], output: str | os.PathLike, suffixes: tuple[str, ...],
