@@ -83,6 +83,7 @@ MALFORMED = {
     "lonely-member": lambda f: f["pair"].__setitem__(1, 999),
     "ids-past-slots": lambda f: f["ids"].__setitem__((0, 0, 0, 0), 200),
     "kind-past-names": lambda f: f["kind"].__setitem__((0, 0), 99),
+    "config-not-json": lambda f: f.attrs.__setitem__("config", "{size: 32"),
 }
 
 

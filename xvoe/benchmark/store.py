@@ -170,6 +170,12 @@ def schema_problem(file: h5py.File) -> str | None:
     for name in ("kind_names", "config"):
         if name not in file.attrs:
             return f"has no {name} attribute"
+    try:
+        config = config_of(file)
+    except (TypeError, ValueError):
+        config = None
+    if not isinstance(config, dict):
+        return "has a config attribute that is not a JSON object"
     labels = TEST_LABELS if split == "test" else TRAIN_LABELS
     for name, (dims, kind) in ARRAYS.items():
         if name not in file or not isinstance(file[name], h5py.Dataset):
