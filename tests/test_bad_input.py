@@ -488,6 +488,33 @@ def test_any_broken_dataset_is_named_on_opening(files, tmp_path, drop, how):
         store.open_dataset(path).close()
 
 
+LABEL_EDITS = {"scenario": ["collision", "permanence", "telekinesis", ""], "setting": ["S1", "S2", "S3", "S4"],
+               "pair": [-1, 0, 1, 999], "member": [0, 1, 2], "possible": [True, False],
+               "event_frame": [-2, -1, 0, 14, 15]}
+
+
+@hypothesis_settings(max_examples=80, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(edits=st.lists(st.tuples(st.integers(0, 200), st.sampled_from(sorted(LABEL_EDITS)), st.integers(0, 4)),
+                      max_size=3))
+def test_labels_a_split_may_hold_are_labels_the_metrics_can_read(files, edits):
+    """Whatever test labels opening a split lets through, the metrics take as they are: every
+    pair whole, every scenario and setting known."""
+    with store.open_dataset(files["test"]) as file:
+        found, frames = store.labels(file, store.TEST_LABELS), file["rgbd"].shape[1]
+    for row, name, choice in edits:
+        found[name][row % len(found[name])] = LABEL_EDITS[name][choice % len(LABEL_EDITS[name])]
+    problem = store.pair_labels_problem(found, frames)
+    if problem is not None:
+        assert problem.startswith("labels video") and "\n" not in problem
+        return
+    count = len(found["pair"])
+    table = {"index": np.arange(count, dtype=float), "score": np.zeros(count), "possible": found["possible"],
+             "scenario": found["scenario"], "setting": found["setting"], "pair": found["pair"].astype(float),
+             "member": found["member"].astype(float)}
+    assert score_problem(table) is None
+    assert np.all((found["event_frame"] >= -1) & (found["event_frame"] < frames))
+
+
 # --- score files from anywhere ----------------------------------------------------------
 
 def write_scores(path: Path, rows: list[dict]) -> Path:

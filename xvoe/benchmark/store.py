@@ -224,8 +224,8 @@ def value_problem(file: h5py.File) -> str | None:
     if len(columns) != file["states"].shape[3] or not {"x", "y", "present", "visible"} <= set(columns):
         return f"has states columns {columns}; expected one name per column, x, y, present and visible among them"
     if file.attrs["split"] == "train":
-        return train_label_problem(labels(file, TRAIN_LABELS), file["rgbd"].shape[1])
-    return test_label_problem(labels(file, TEST_LABELS), file["rgbd"].shape[1], bool(config_of(file).get("custom")))
+        return training_labels_problem(labels(file, TRAIN_LABELS), file["rgbd"].shape[1])
+    return pair_labels_problem(labels(file, TEST_LABELS), file["rgbd"].shape[1], bool(config_of(file).get("custom")))
 
 
 def _event_problem(event_frame: np.ndarray, frames: int) -> str | None:
@@ -236,7 +236,7 @@ def _event_problem(event_frame: np.ndarray, frames: int) -> str | None:
     return None
 
 
-def train_label_problem(found: dict[str, np.ndarray], frames: int) -> str | None:
+def training_labels_problem(found: dict[str, np.ndarray], frames: int) -> str | None:
     """What is wrong with a training split's labels, or None: known groups (`released` for
     the paper's imported videos), event frames within the frames."""
     groups = (*TRAINING_GROUPS, "released")
@@ -247,7 +247,7 @@ def train_label_problem(found: dict[str, np.ndarray], frames: int) -> str | None
     return _event_problem(found["event_frame"], frames)
 
 
-def test_label_problem(found: dict[str, np.ndarray], frames: int, custom: bool = False) -> str | None:
+def pair_labels_problem(found: dict[str, np.ndarray], frames: int, custom: bool = False) -> str | None:
     """What is wrong with a test split's labels, or None: every scenario and setting known (a
     hand-made split of `xvoe.custom` names its scenario freely), members 0 and 1 of every pair
     exactly once, member 0 possible and member 1 impossible except in S2, where both are
