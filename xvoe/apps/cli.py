@@ -19,6 +19,7 @@ from ..models.nll import InferenceConfig
 from ..outputs import claim_directory, claim_file, refuse_overlap
 from ..training.data import check_focus
 from ..training.loop import TrainConfig
+from ..training.xpl import default_cache
 
 
 class _Parser(argparse.ArgumentParser):
@@ -103,8 +104,7 @@ def cmd_import(args: argparse.Namespace) -> None:
 
 
 def cmd_show(args: argparse.Namespace) -> None:
-    out = args.out or Path(args.file).with_suffix(f".{args.index}.png").name
-    print(xvoe.show(args.file, args.index, out, overwrite=args.overwrite, scores=args.scores))
+    print(xvoe.show(args.file, args.index, output_of(args), overwrite=args.overwrite, scores=args.scores))
 
 
 def cmd_score(args: argparse.Namespace) -> None:
@@ -191,8 +191,7 @@ def cmd_train(args: argparse.Namespace) -> None:
 
 
 def cmd_encode(args: argparse.Namespace) -> None:
-    cache = args.cache or Path(args.out) / f"latents-{Path(args.data).stem}.h5"
-    print(xvoe.encode_split(args.model or args.out, args.data, cache, overwrite=args.overwrite,
+    print(xvoe.encode_split(args.model or args.out, args.data, output_of(args), overwrite=args.overwrite,
                             progress=not args.quiet))
 
 
@@ -426,20 +425,34 @@ WRITES = {
     "encode": (("data", "model"), "cache", (".h5",)),
 }
 
+# what a verb writes when its output argument is left out
+DEFAULT_OUTPUTS: dict[str, Callable[[argparse.Namespace], Path]] = {
+    "show": lambda args: Path(Path(args.file).with_suffix(f".{args.index}.png").name),
+    "encode": lambda args: default_cache(args.data, args.out),
+}
+
+
+def output_of(args: argparse.Namespace) -> str | Path | None:
+    """The file a verb writes: its output argument, or where the verb writes without one."""
+    output = getattr(args, WRITES[args.verb][1])
+    return output if output is not None or args.verb not in DEFAULT_OUTPUTS else DEFAULT_OUTPUTS[args.verb](args)
+
 
 def check_paths(args: argparse.Namespace) -> None:
-    """The one check of a command's paths before any work: no output may be one of its inputs."""
+    """The one check of a command's paths before any work: no output, given or by default, may
+    be one of its inputs."""
     if args.verb not in WRITES:
         return
     reads, writes, suffixes = WRITES[args.verb]
-    output = getattr(args, writes)
+    output = output_of(args)
     if output is None:
         return
     inputs = []
     for name in reads:
         value = getattr(args, name)
         inputs += value if isinstance(value, list) else [value] if value else []
-    refuse_overlap(inputs, output, suffixes, what=f"--{writes}")
+    given = getattr(args, writes) is not None
+    refuse_overlap(inputs, output, suffixes, what=f"--{writes}" if given else f"the default --{writes}")
 
 
 def main(argv: list[str] | None = None) -> int:
