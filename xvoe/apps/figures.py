@@ -19,7 +19,7 @@ from ..benchmark import store
 from ..benchmark.videos import _labels_of, _pair_rows, check_index, describe, video_indices, wall_lowered
 from ..errors import XvoeError
 from ..evaluation.metrics import excess, read_scores
-from ..evaluation.score import check_same_split
+from ..evaluation.score import check_same_split, warn_unchecked
 from ..identity import split_identity
 from ..models.perception import normalise, to_uint8
 from ..outputs import atomic_paths, claim_file
@@ -165,6 +165,7 @@ def _video_curves(scores: str | Path, file: h5py.File, indices: list[int]) -> li
     and its curves; scores of another split are refused."""
     check_same_split(scores, split_identity(file), file.filename)
     table = read_scores(scores)
+    warn_unchecked(scores)
     curves = Path(scores).with_suffix(".curves.npz")
     if not curves.is_file():
         raise XvoeError(f"{curves}: no such file; xvoe score writes the curves beside the CSV")
@@ -470,6 +471,7 @@ def plot_surprise_curves(scores: str | Path, data: str | Path | None, scenario: 
     if data is not None:
         with store.open_dataset(data) as file:
             check_same_split(scores, split_identity(file), data)
+            warn_unchecked(scores)
             for video in videos:
                 if not 0 <= video < file["rgbd"].shape[0] or _labels_of(file, video) != (scenario, setting, pair):
                     raise XvoeError(f"{scores} does not match {data}: its video {video} is not {scenario} "

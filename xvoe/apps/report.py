@@ -24,7 +24,7 @@ from ..evaluation.metrics import (
     read_scores,
     side_by_side,
 )
-from ..evaluation.score import check_same_split, score_header, scored_split
+from ..evaluation.score import check_same_split, score_header, scored_split, warn_unchecked
 from ..identity import describe_split, split_identity
 from ..outputs import claim_directory
 from . import figures
@@ -55,6 +55,7 @@ def report(paths: list[str | Path], out_dir: str | Path, rounds: int = 1000, see
     events = _event_frames(data) if data is not None else None
     for path in paths:
         scores = read_scores(path, data)
+        warn_unchecked(path)
         name = model_name(path, scores)
         if name in names:
             raise XvoeError(f"two scores files name the model {name!r}; give each model its own name")

@@ -16,6 +16,7 @@ import importlib.util
 import json
 import sys
 import warnings
+import zipfile
 from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Protocol
@@ -385,8 +386,11 @@ def score_header(path: str | Path) -> dict:
     curves = Path(path).with_suffix(".curves.npz")
     if not curves.is_file():
         raise XvoeError(f"{path} has no curves file beside it ({curves.name}), which holds its header")
-    with np.load(curves) as found:
-        return json.loads(str(found["header"])) if "header" in found.files else {}
+    try:
+        with np.load(curves) as found:
+            return json.loads(str(found["header"])) if "header" in found.files else {}
+    except (OSError, ValueError, zipfile.BadZipFile):
+        raise XvoeError(f"{curves} is not a curves file of xvoe score") from None
 
 
 class UncheckedScores(UserWarning):
@@ -397,13 +401,16 @@ class UncheckedScores(UserWarning):
 
 def scored_split(path: str | Path) -> dict | None:
     """The identity of the split a score file was scored on (`xvoe.identity.split_identity`), or
-    None, with a warning, for a file that records none."""
+    None for a file that records none (`warn_unchecked` says so, once the file has been read)."""
     header = score_header(path) if Path(path).with_suffix(".curves.npz").is_file() else {}
-    if "split" not in header:
-        warnings.warn(f"{path} does not record the split it was scored on, so it is not checked against "
-                      "one; rescore it with this xvoe to have it checked", UncheckedScores, stacklevel=2)
-        return None
-    return header["split"]
+    return header.get("split")
+
+
+def warn_unchecked(path: str | Path) -> None:
+    """A warning for a score file that records no split, after it was read without a problem."""
+    if scored_split(path) is None:
+        warnings.warn(f"{path} does not record the split it was scored on, so it is not checked against one; "
+                      "rescore it with this xvoe to have it checked", UncheckedScores, stacklevel=2)
 
 
 def check_same_split(path: str | Path, identity: dict, data: str | Path) -> None:
