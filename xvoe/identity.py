@@ -67,8 +67,9 @@ def split_identity(file) -> dict:
 
     The content hash covers every label, `kind`, `color` and `states` whole (any change of scene
     changes the states) and the frames (`rgbd`, `ids`) of the `sampled_videos` only, with the
-    frames' shape: a pixel changed in a video outside the sample is not seen. It reads about
-    64 videos and the small arrays, so a 1,000-pair split is identified in about a second."""
+    frames' shape: a pixel changed in a video outside the sample is not seen. It reads 64
+    videos and the small arrays: a 1,000-pair split at 32x32 in 2 s, 5 s from a cold disk
+    (docs/decisions.md, "Score files that say what they are")."""
     count = file["rgbd"].shape[0]
     labels = [name for name in ("scenario", "setting", "pair", "member", "possible", "event_frame", "group",
                                 "has_wall") if name in file]
