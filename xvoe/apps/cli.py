@@ -321,9 +321,11 @@ def build_parser() -> argparse.ArgumentParser:
     score = verbs.add_parser("score", help="score test videos with a trained model (surprise per video)",
                              description="One CSV row per test video (index, scenario, setting, pair, member, "
                                          "possible, score, s_img, s_dyn) and the per-frame surprise curves in "
-                                         "OUT.curves.npz. The MSE surprise is the paper's (Eq. 2-4): its score "
-                                         "column takes the better of Transformer 2's proposal and nothing hidden, "
-                                         "paper_score always the proposal, as the paper does.")
+                                         "OUT.curves.npz, with the header: the package version, the model's and "
+                                         "the split's identities, the surprise settings. The MSE surprise is "
+                                         "the paper's (Eq. 2-4): its score column takes the better of "
+                                         "Transformer 2's proposal and nothing hidden, paper_score always the "
+                                         "proposal, as the paper does.")
     score.add_argument("--model",
                        help="a run directory, a stage checkpoint (xpl.pt, plato.pt, xpl-noresidual.pt, "
                             "phydnet.pt) or random")
