@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import csv
 import hashlib
+import json
 import os
 import shutil
 import subprocess
@@ -22,7 +23,7 @@ from hypothesis import strategies as st
 
 from xvoe.apps.cli import main
 from xvoe.benchmark import store
-from xvoe.benchmark.generate import GenerateConfig
+from xvoe.benchmark.generate import GenerateConfig, generate
 from xvoe.errors import XvoeError
 from xvoe.evaluation.metrics import read_scores, score_problem
 from xvoe.models.config import domain_of, field_type, override, parse_field
@@ -36,6 +37,8 @@ from xvoe.outputs import atomic_paths, remove_stale_temporaries
 from xvoe.training.checkpoints import shipped_path
 from xvoe.training.latents import Latents, write_latents
 from xvoe.training.loop import TrainConfig
+
+EXAMPLES = Path(__file__).resolve().parent.parent / "examples"
 
 
 def snapshot(root: Path) -> dict[str, str]:
@@ -101,7 +104,9 @@ def files(test_file, train_file, tmp_path_factory):
     root = tmp_path_factory.mktemp("malformed")
     made = {name: mutate(test_file, root / f"{name}.h5", change) for name, change in MALFORMED.items()}
     made |= {name: mutate(train_file, root / f"{name}.h5", change) for name, (change, _) in MALFORMED_TRAIN.items()}
-    return made | {"test": test_file, "train": train_file}
+    # the test split's layout and labels from another seed (small frames, for speed)
+    other = generate(GenerateConfig("test", pairs=8, size=16, seed=4), root / "other.h5", progress=False)
+    return made | {"test": test_file, "train": train_file, "other": other}
 
 
 def case_lines(files, tmp: Path) -> list[tuple[list[str], str]]:
@@ -169,7 +174,7 @@ def case_lines(files, tmp: Path) -> list[tuple[list[str], str]]:
         (["ship", str(tmp / "corrupt"), "--out", str(tmp / "weights")], "not a readable xvoe checkpoint"),
         (["ship", str(tmp / "nowhere"), "--out", str(tmp / "weights")], "no such run directory"),
     ]
-    return cases + domain_cases(files, tmp) + path_cases(files, tmp) + kind_cases(files, tmp)
+    return cases + domain_cases(files, tmp) + path_cases(files, tmp) + kind_cases(files, tmp) + split_cases(files, tmp)
 
 
 HUGE = str(2**70)
@@ -267,6 +272,38 @@ def kind_cases(files, tmp: Path) -> list[tuple[list[str], str]]:
     ]
 
 
+def _rewrite_header(curves: Path, change) -> None:
+    with np.load(curves) as saved:
+        arrays = dict(saved)
+    header = json.loads(str(arrays["header"]))
+    change(header)
+    np.savez_compressed(curves, **arrays | {"header": np.array(json.dumps(header))})
+
+
+def split_cases(files, tmp: Path) -> list[tuple[list[str], str]]:
+    """Scores of another split than the one named, or than each other; files verify cannot rescore."""
+    test, other = str(files["test"]), str(files["other"])
+    ours, theirs = tmp / "ours.csv", tmp / "theirs.csv"
+    main(["score", "--model", "random", "--data", test, "--out", str(ours), "--quiet"])
+    main(["score", "--model", str(EXAMPLES / "frame_change.py:FrameChange"), "--data", other, "--out", str(theirs),
+          "--quiet"])
+    old, foreign = tmp / "old.csv", tmp / "foreign.csv"
+    for copy in (old, foreign):
+        shutil.copy(ours, copy)
+        shutil.copy(ours.with_suffix(".curves.npz"), copy.with_suffix(".curves.npz"))
+    _rewrite_header(old.with_suffix(".curves.npz"), lambda h: (h.pop("split"), h.pop("model_identity")))
+    _rewrite_header(foreign.with_suffix(".curves.npz"), lambda h: h["model_identity"].update(seed=1))
+    return [
+        (["metrics", str(ours), str(theirs), "--out", str(tmp / "r")], "scored on different splits"),
+        (["metrics", str(theirs), "--data", test, "--out", str(tmp / "r")], "scored on another split"),
+        (["show", test, "--out", str(tmp / "s.mp4"), "--scores", str(theirs)], "scored on another split"),
+        (["verify", str(old)], "rescore it with this xvoe"),
+        (["verify", str(foreign)], "is not the one that scored"),
+        (["verify", str(tmp)], "holds no headers.json"),
+        (["verify", str(ours), "--rows", "0"], "expected a number >= 1"),
+    ]
+
+
 def test_every_bad_input_gets_one_line_exit_2_and_changes_nothing(files, tmp_path, capsys, monkeypatch):
     monkeypatch.chdir(tmp_path)
     tried = 0
@@ -278,7 +315,7 @@ def test_every_bad_input_gets_one_line_exit_2_and_changes_nothing(files, tmp_pat
         assert "Traceback" not in err
         assert snapshot(tmp_path) == before, args
         tried += 1
-    assert tried == 5 * len(MALFORMED) + 2 * len(MALFORMED_TRAIN) + 27 + 28 + 12 + 6
+    assert tried == 5 * len(MALFORMED) + 2 * len(MALFORMED_TRAIN) + 27 + 28 + 12 + 6 + 7
 
 
 CONFIGS = (TrainConfig, PerceptionConfig, XPLConfig, ReasoningConfig, DynamicsConfig, PhyDNetConfig, InferenceConfig,

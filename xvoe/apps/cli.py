@@ -6,6 +6,7 @@ import os
 import re
 import signal
 import sys
+import warnings
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
@@ -139,6 +140,13 @@ def cmd_metrics(args: argparse.Namespace) -> None:
     for path in xvoe.report(args.scores, args.out, rounds=args.rounds, seed=args.seed, data=args.data,
                             overwrite=args.overwrite):
         print(path)
+
+
+def cmd_verify(args: argparse.Namespace) -> int:
+    found = xvoe.verify(args.scores, rows=args.rows, data=args.data, seed=args.seed)
+    print("\n".join(found.lines))
+    print("every row scored again matches the file" if found.matches else "some rows do not match the file")
+    return 0 if found.matches else 1
 
 
 def cmd_ship(args: argparse.Namespace) -> None:
@@ -312,9 +320,11 @@ def build_parser() -> argparse.ArgumentParser:
     score = verbs.add_parser("score", help="score test videos with a trained model (surprise per video)",
                              description="One CSV row per test video (index, scenario, setting, pair, member, "
                                          "possible, score, s_img, s_dyn) and the per-frame surprise curves in "
-                                         "OUT.curves.npz. The MSE surprise is the paper's (Eq. 2-4): its score "
-                                         "column takes the better of Transformer 2's proposal and nothing hidden, "
-                                         "paper_score always the proposal, as the paper does.")
+                                         "OUT.curves.npz, with the header: the package version, the model's and "
+                                         "the split's identities, the surprise settings. The MSE surprise is "
+                                         "the paper's (Eq. 2-4): its score column takes the better of "
+                                         "Transformer 2's proposal and nothing hidden, paper_score always the "
+                                         "proposal, as the paper does.")
     score.add_argument("--model",
                        help="a run directory, a stage checkpoint (xpl.pt, plato.pt, xpl-noresidual.pt, "
                             "phydnet.pt) or random")
@@ -380,6 +390,17 @@ def build_parser() -> argparse.ArgumentParser:
                                         "(xvoe score --surprise both), draws pairs they judge differently")
     metrics.add_argument("--overwrite", action="store_true", help="replace a report already in --out")
     metrics.set_defaults(run=cmd_metrics)
+
+    verify = verbs.add_parser("verify", help="score a sample of a scores file's rows again and compare",
+                              description="Score again a seeded sample of the rows of a scores file (or of every "
+                                          "scores file a report of xvoe metrics names), with the model and on the "
+                                          "split its header records, and say whether they match the file within "
+                                          "float tolerance: exit 0 when every one does, 1 when not.")
+    verify.add_argument("scores", help="a scores CSV of xvoe score, or a report directory of xvoe metrics")
+    verify.add_argument("--rows", type=_positive, default=5, help="rows to score again (default 5)")
+    verify.add_argument("--data", help="the scored split, where it is not at the path the header records")
+    verify.add_argument("--seed", type=_flag(int, SEED, "seed"), default=0, help="seed of the rows drawn")
+    verify.set_defaults(run=cmd_verify)
 
     pipeline = verbs.add_parser("pipeline", help="generate, train, score and report, end to end",
                                 description="Generate the benchmark, train every stage, score the test split, "
@@ -461,7 +482,9 @@ def main(argv: list[str] | None = None) -> int:
     previous = signal.signal(signal.SIGTERM, _interrupt)   # so that a kill cleans up as Ctrl-C does
     try:
         check_paths(args)
-        args.run(args)
+        with warnings.catch_warnings():     # a warning is one line, as an error is
+            warnings.showwarning = lambda message, *_: print(f"xvoe {args.verb}: warning: {message}", file=sys.stderr)
+            code = args.run(args)
     except XvoeError as error:
         print(f"xvoe {args.verb}: error: {error}", file=sys.stderr)
         return 2
@@ -471,7 +494,7 @@ def main(argv: list[str] | None = None) -> int:
         return 130
     finally:
         signal.signal(signal.SIGTERM, previous)
-    return 0
+    return code or 0
 
 
 def _interrupt(number: int, frame) -> None:

@@ -19,6 +19,8 @@ from ..benchmark import store
 from ..benchmark.videos import _labels_of, _pair_rows, check_index, describe, video_indices, wall_lowered
 from ..errors import XvoeError
 from ..evaluation.metrics import excess, read_scores
+from ..evaluation.score import check_same_split, warn_unchecked
+from ..identity import split_identity
 from ..models.perception import normalise, to_uint8
 from ..outputs import atomic_paths, claim_file
 from ..training.data import perception_batch
@@ -122,7 +124,7 @@ def save_video(file: h5py.File, index: int, out: str | Path, scores: str | Path 
     indices = video_indices(file, index)
     videos = [file["rgbd"][i][..., :3] for i in indices]
     titles = [describe(file, i) for i in indices]
-    curves = _video_curves(scores, indices) if scores is not None else None
+    curves = _video_curves(scores, file, indices) if scores is not None else None
     event = int(file["event_frame"][indices[-1]]) if "event_frame" in file else -1
     pictures = []
     for t in range(videos[0].shape[0]):
@@ -158,9 +160,12 @@ def save_video(file: h5py.File, index: int, out: str | Path, scores: str | Path 
     return Path(out)
 
 
-def _video_curves(scores: str | Path, indices: list[int]) -> list[np.ndarray]:
-    """Per-frame surprise (s_img + s_dyn) of videos `indices` from a scores CSV and its curves."""
+def _video_curves(scores: str | Path, file: h5py.File, indices: list[int]) -> list[np.ndarray]:
+    """Per-frame surprise (s_img + s_dyn) of videos `indices` of an open split from a scores CSV
+    and its curves; scores of another split are refused."""
+    check_same_split(scores, split_identity(file), file.filename)
     table = read_scores(scores)
+    warn_unchecked(scores)
     curves = Path(scores).with_suffix(".curves.npz")
     if not curves.is_file():
         raise XvoeError(f"{curves}: no such file; xvoe score writes the curves beside the CSV")
@@ -465,6 +470,8 @@ def plot_surprise_curves(scores: str | Path, data: str | Path | None, scenario: 
     events, lowered = [-1, -1], np.zeros(frames)
     if data is not None:
         with store.open_dataset(data) as file:
+            check_same_split(scores, split_identity(file), data)
+            warn_unchecked(scores)
             for video in videos:
                 if not 0 <= video < file["rgbd"].shape[0] or _labels_of(file, video) != (scenario, setting, pair):
                     raise XvoeError(f"{scores} does not match {data}: its video {video} is not {scenario} "
