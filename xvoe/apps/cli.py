@@ -12,7 +12,8 @@ from typing import Any
 
 import xvoe
 
-from ..domains import NON_NEGATIVE, POSITIVE, SEED, Domain, check_number
+from ..benchmark.display import DISPLAY_SIZE
+from ..domains import NON_NEGATIVE, PICTURE_SIZE, POSITIVE, SEED, Domain, check_number
 from ..errors import XvoeError
 from ..models.config import parse_field, parse_value
 from ..models.nll import InferenceConfig
@@ -104,7 +105,8 @@ def cmd_import(args: argparse.Namespace) -> None:
 
 def cmd_show(args: argparse.Namespace) -> None:
     out = args.out or Path(args.file).with_suffix(f".{args.index}.png").name
-    print(xvoe.show(args.file, args.index, out, overwrite=args.overwrite, scores=args.scores))
+    print(xvoe.show(args.file, args.index, out, overwrite=args.overwrite, scores=args.scores,
+                    display_size=args.display_size))
 
 
 def cmd_score(args: argparse.Namespace) -> None:
@@ -125,7 +127,7 @@ def cmd_score(args: argparse.Namespace) -> None:
 def cmd_explain(args: argparse.Namespace) -> None:
     claim_file(args.out, args.overwrite)
     explanation = xvoe.explain(args.model, args.data, args.index, surprise=args.surprise, particles=args.particles,
-                               seed=args.seed, explanation=args.explanation)
+                               seed=args.seed, explanation=args.explanation, display_size=args.display_size)
     print(xvoe.save_figure(xvoe.plot_explanation(explanation), args.out))
 
 
@@ -305,6 +307,8 @@ def build_parser() -> argparse.ArgumentParser:
                       help="video index (a test video shows its pair)")
     show.add_argument("--out", help="fig.png, anim.gif or pair.mp4 (default: FILE.INDEX.png here)")
     show.add_argument("--scores", help="mp4: a scores CSV of xvoe score, whose surprise curves play under the pair")
+    show.add_argument("--display-size", type=_flag(int, PICTURE_SIZE, "display-size"), default=DISPLAY_SIZE,
+                      help=f"pixels a side of the scene drawn above the model's frames (default {DISPLAY_SIZE})")
     show.add_argument("--overwrite", action="store_true", help="replace --out if it exists")
     show.set_defaults(run=cmd_show)
 
@@ -363,6 +367,9 @@ def build_parser() -> argparse.ArgumentParser:
                          help="mse: draw Transformer 2's proposal only where it explains the video better than "
                               "nothing hidden (better, the default verdict), or always (proposal, the paper's)")
     explain.add_argument("--seed", type=_flag(int, SEED, "seed"), default=0, help="seed of the particles (nll)")
+    explain.add_argument("--display-size", type=_flag(int, PICTURE_SIZE, "display-size"), default=DISPLAY_SIZE,
+                         help=f"pixels a side of the scene the explanation is drawn onto (default {DISPLAY_SIZE}); "
+                              "the model reads its own frames")
     explain.add_argument("--overwrite", action="store_true", help="replace --out if it exists")
     explain.set_defaults(run=cmd_explain)
 

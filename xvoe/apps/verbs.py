@@ -19,12 +19,14 @@ import torch
 from inference.explain import explain_nll
 from inference.score import NLLColumns
 
+from ..benchmark.display import DISPLAY_SIZE, check_display_size
 from ..errors import XvoeError
 from ..evaluation.explain import Explanation, explain_drawn
 from ..evaluation.explain import explain as explain_mse
 from ..evaluation.score import Scorer, load_model, merge_scores, score_split
 from ..evaluation.surprise import EXPLANATIONS
 from ..outputs import claim_file
+from .figures import with_display
 
 SURPRISES = ("mse", "nll", "both")
 
@@ -96,13 +98,24 @@ def _worker_threads(threads: int) -> None:
 
 
 def explain(model: str | Scorer, data: str | Path, index: int, *, surprise: str = "mse",
-            particles: int | None = None, seed: int = 0, explanation: str = "better") -> Explanation:
+            particles: int | None = None, seed: int = 0, explanation: str = "better",
+            display_size: int | None = DISPLAY_SIZE) -> Explanation:
     """What the model believes is behind the wall in video `index`: Transformer 2's proposal
     (surprise "mse"; with explanation "better", the default verdict's, only where it explains the
     video better than nothing hidden; "proposal", always, as the paper) or the Pyro model's
     posterior (surprise "nll", from `particles` importance samples drawn from `seed`; None: the
-    model's setting)."""
+    model's setting). With the video's scene at `display_size` for `plot_explanation` to draw
+    the explanation onto (None: the model's frames alone); the model reads its own frames."""
     check_explanation(explanation)
+    if display_size is not None:
+        check_display_size(display_size)
+    return with_display(_explain(model, data, index, surprise, particles, seed, explanation), data, index,
+                        display_size)
+
+
+def _explain(model: str | Scorer, data: str | Path, index: int, surprise: str, particles: int | None, seed: int,
+             explanation: str) -> Explanation:
+    """The explanation `explain` asked for, of the model's own frames."""
     scorer = load_model(model) if isinstance(model, str) else model
     scorer = replace(scorer, explanation=explanation) if scorer.custom is None else scorer
     if scorer.is_random:
