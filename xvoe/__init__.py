@@ -43,7 +43,7 @@ _HOMES = {
     "xvoe.evaluation.score": ("Scorer", "load_model", "SurpriseModel", "Videos", "merge_scores", "score_header"),
     "xvoe.evaluation.metrics": ("read_scores", "metric_rows", "comparative", "holistic", "relative",
                                 "disagreements", "onset", "onset_pairs"),
-    "xvoe.apps.verbs": ("score", "explain"),
+    "xvoe.apps.verbs": ("score", "explain", "with_display"),
     "inference.score": ("nll_settings",),
     "xvoe.apps.report": ("report",),
     "xvoe.apps.zoo": ("available_models", "ship"),
@@ -51,7 +51,7 @@ _HOMES = {
     "xvoe.apps.figures": ("show", "show_video", "save_gif", "save_video", "save_figure", "frame_rows",
                           "plot_explanation", "plot_comparative", "plot_components", "plot_holistic",
                           "plot_disagreements", "plot_surprise_curves", "plot_predictions", "plot_onset",
-                          "plot_settings", "with_display"),
+                          "plot_settings"),
 }
 _MODULES = {"custom": "xvoe.benchmark.custom"}     # make your own VoE event: xvoe.custom.make_pair(...)
 _HOME_OF = {name: module for module, names in _HOMES.items() for name in names}

@@ -8,7 +8,6 @@ frames alone) above what the model sees, its own frames enlarged without blur
 """
 from __future__ import annotations
 
-from dataclasses import replace
 from pathlib import Path
 
 import h5py
@@ -20,7 +19,7 @@ from matplotlib.patches import Rectangle
 from PIL import Image
 
 from ..benchmark import store
-from ..benchmark.display import DISPLAY_SIZE, check_display_size, display_video, enlarge, hidden_silhouettes, outline
+from ..benchmark.display import DISPLAY_SIZE, check_display_size, display_video, enlarge, outline
 from ..benchmark.scenes import SCENARIOS
 from ..benchmark.videos import _labels_of, _pair_rows, check_index, describe, find_pair, video_indices, wall_lowered
 from ..errors import XvoeError
@@ -446,7 +445,7 @@ def plot_explanation(explanation: Explanation) -> plt.Figure:
     """The paper's Fig. 7/8: observed frames, the scene behind the wall as the model believes
     it (occluder left out), and the explanation object alone; the rows an explanation gives
     (`Explanation.rows`), so the MSE and the NLL explanations draw alike. With the scene at a
-    display size (`with_display`), it comes first with the explanation drawn onto it
+    display size (`xvoe.apps.verbs.with_display`), it comes first with the explanation drawn onto it
     (`explanation_overlay`), and the model's rows are enlarged to its size."""
     rows = explanation.rows()
     if explanation.display is not None:
@@ -466,18 +465,6 @@ def _cell_inches(size: int) -> float:
     """Inches a frame of `size` pixels takes in a figure of frame rows: a display frame near
     its own size at the figures' dpi, the model's small frames as before."""
     return max(0.8, min(1.1, size / 100))
-
-
-def with_display(explanation: Explanation, data: str | Path, index: int,
-                 display_size: int | None = DISPLAY_SIZE) -> Explanation:
-    """The explanation of video `index` of split `data` with that video's scene at
-    `display_size` and where its never-seen objects stand there, for `plot_explanation`
-    (None: the explanation as it is)."""
-    if display_size is None:
-        return explanation
-    with store.open_dataset(data) as file:
-        display = display_video(file, index, display_size)
-        return replace(explanation, display=display.rgbd, true_hidden=hidden_silhouettes(file, index, display))
 
 
 def explanation_overlay(explanation: Explanation) -> np.ndarray:

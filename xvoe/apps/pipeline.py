@@ -41,8 +41,9 @@ from ..training.phydnet import train_phydnet
 from ..training.recipes import DEFAULT_RECIPE, RECIPES, Recipe, recipe
 from ..training.stages import SCORED, STAGES
 from ..training.xpl import TRAINED_ON_LATENTS, train_proposal, train_xpl
-from .figures import plot_explanation, with_display
+from .figures import plot_explanation
 from .report import report
+from .verbs import with_display
 
 MODELS = (*SCORED, "random")
 DEFAULT_MODELS = ("xpl", "random")

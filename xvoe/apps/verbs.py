@@ -19,14 +19,14 @@ import torch
 from inference.explain import explain_nll
 from inference.score import NLLColumns
 
-from ..benchmark.display import DISPLAY_SIZE, check_display_size
+from ..benchmark import store
+from ..benchmark.display import DISPLAY_SIZE, check_display_size, display_video, hidden_silhouettes
 from ..errors import XvoeError
 from ..evaluation.explain import Explanation, explain_drawn
 from ..evaluation.explain import explain as explain_mse
 from ..evaluation.score import Scorer, load_model, merge_scores, score_split
 from ..evaluation.surprise import EXPLANATIONS
 from ..outputs import claim_file
-from .figures import with_display
 
 SURPRISES = ("mse", "nll", "both")
 
@@ -133,3 +133,15 @@ def _explain(model: str | Scorer, data: str | Path, index: int, surprise: str, p
     if surprise != "mse":
         raise XvoeError(f"--surprise must be mse or nll, not {surprise!r}")
     return explain_mse(scorer, str(data), index)
+
+
+def with_display(explanation: Explanation, data: str | Path, index: int,
+                 display_size: int | None = DISPLAY_SIZE) -> Explanation:
+    """The explanation of video `index` of split `data` with that video's scene at
+    `display_size` and where its never-seen objects stand there, for `plot_explanation`
+    (None: the explanation as it is)."""
+    if display_size is None:
+        return explanation
+    with store.open_dataset(data) as file:
+        display = display_video(file, index, display_size)
+        return replace(explanation, display=display.rgbd, true_hidden=hidden_silhouettes(file, index, display))

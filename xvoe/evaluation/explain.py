@@ -32,7 +32,7 @@ class Explanation:
     slot: int                   # the explained slot, -1 if every slot was seen
     title: str
     # the scene at a display size for a figure (T, S, S, 4) uint8, and where the objects no frame
-    # shows stand in it (T, S, S) bool (xvoe.apps.figures.with_display); keyword-only, so that the
+    # shows stand in it (T, S, S) bool (xvoe.apps.verbs.with_display); keyword-only, so that the
     # subclasses' fields keep their places
     display: np.ndarray | None = field(default=None, kw_only=True)
     true_hidden: np.ndarray | None = field(default=None, kw_only=True)
