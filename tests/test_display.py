@@ -116,7 +116,8 @@ def test_the_sheet_and_the_gif_draw_the_scene_above_the_model_frames(splits, tmp
 
 def test_the_explanation_is_drawn_onto_the_scene():
     """The decoded object (an 8x8 square at 32x32) is half-blended in and outlined in magenta
-    where its enlarged picture stands; the true object's outline is dashed black and white."""
+    where its enlarged picture stands; the true object's outline, just outside it, is dashed
+    black and white."""
     frames = 3
     hidden = np.full((frames, 32, 32, 4), 255, np.uint8)
     hidden[:, 8:16, 8:16] = (200, 0, 0, 0)
@@ -132,9 +133,9 @@ def test_the_explanation_is_drawn_onto_the_scene():
     assert magenta[:, 28:34].any(axis=1).all() and magenta[:, 60:68].any(axis=1).all()   # enlarged four times
     assert not magenta[:, 36:58].any() and not magenta[:, :26].any()
     assert (drawn[:, 10, 10] == 100).all()                              # elsewhere the scene
-    edge = drawn[:, 80, 80:100]
+    edge = drawn[:, 79, 80:100]                                          # just outside the true object
     assert {tuple(c) for c in edge.reshape(-1, 3)} == {(0, 0, 0), (255, 255, 255)}
-    assert (drawn[:, 90, 90] == 100).all()
+    assert (drawn[:, 90, 90] == 100).all() and (drawn[:, 80, 80] == 100).all()
     nothing = explanation_overlay(Explanation(scene[:, ::4, ::4], scene[:, ::4, ::4], hidden, -1, "t",
                                               display=scene))
     np.testing.assert_array_equal(nothing, scene[..., :3])              # no slot explained: the scene alone

@@ -470,8 +470,9 @@ def _cell_inches(size: int) -> float:
 def explanation_overlay(explanation: Explanation) -> np.ndarray:
     """The scene at its display size (T, S, S, 3) with the model's explanation drawn onto it:
     the decoded hidden object enlarged (bilinear), half-blended where it stands and outlined in
-    magenta, and the true never-seen objects' outline dashed black and white, seen through the
-    wall as the model sees it."""
+    magenta inside its edge, and the true never-seen objects outlined just outside theirs,
+    dashed black and white, so that the two lines stay apart where they agree; both are seen
+    through the wall, as the model sees the object."""
     scene = explanation.display[..., :3].copy()
     size = scene.shape[1]
     if explanation.slot >= 0:
@@ -481,7 +482,7 @@ def explanation_overlay(explanation: Explanation) -> np.ndarray:
         scene[drawn] = (scene[drawn].astype(np.uint16) + colour[drawn]) // 2
         scene[outline(drawn)] = EXPLAINED_COLOR
     if explanation.true_hidden is not None:
-        edge = outline(explanation.true_hidden)
+        edge = outline(~explanation.true_hidden)        # the ring just outside it
         rows, columns = np.indices((size, size))
         light = ((rows + columns) // 4) % 2 == 0                  # dashes of four pixels
         scene[edge & light] = 255
