@@ -161,11 +161,11 @@ def save_video(file: h5py.File, index: int, out: str | Path, scores: str | Path 
     titles = [describe(file, i) for i in indices]
     curves = _video_curves(scores, indices) if scores is not None else None
     event = int(file["event_frame"][indices[-1]]) if "event_frame" in file else -1
+    panels = [(video, display[m, ..., :3] if display is not None else None, title)
+              for m, (video, title) in enumerate(zip(videos, titles))]
     pictures = []
     for t in range(videos[0].shape[0]):
         fig = plt.figure(figsize=(6.4, 4.8 if curves is not None else 3.2), dpi=100)
-        panels = [(video, display[m, ..., :3] if display is not None else None, title)
-                  for m, (video, title) in enumerate(zip(videos, titles))]
         grid = fig.add_gridspec(2 if curves is not None else 1, 2 * len(videos),
                                 width_ratios=[3, 1] * len(videos) if display is not None else None)
         for column, (video, scene, title) in enumerate(panels):
@@ -548,10 +548,9 @@ def plot_settings(file: h5py.File, scenario: str, pair: int, display_size: int =
     at `display_size` with the model's frames under it, the event frame outlined in red;
     `frames`: the frame numbers to show (default all)."""
     check_display_size(display_size)
-    settings = SCENARIOS[scenario].SETTINGS if scenario in SCENARIOS else ()
-    found = [(setting, find_pair(file, scenario, setting, pair)) for setting in settings]
-    if not found:
+    if scenario not in SCENARIOS:
         raise XvoeError(f"{scenario!r} is not a scenario of the benchmark; its scenarios: {', '.join(SCENARIOS)}")
+    found = [(setting, find_pair(file, scenario, setting, pair)) for setting in SCENARIOS[scenario].SETTINGS]
     count = file["rgbd"].shape[1]
     frames = list(range(count)) if frames is None else frames
     if not frames or not all(0 <= t < count for t in frames):

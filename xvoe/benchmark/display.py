@@ -3,13 +3,14 @@
 The shipped models read 32x32 frames, where a ball is 2-3 pixels: too small to point at in a
 class. A figure draws the same scene at a display size (128x128 by default) beside them. For a
 generated split that is the video's unit simulated again from the split's seed and rendered at
-that size. It is exact: the physics does not depend on the picture's size, so the states are
-the stored ones times display / stored size (all but `visible`, a pixel ratio) and every pixel
-of a display block that is one colour is the stored pixel there (tests/test_display.py). It is
-cheap: one pair, about 40 ms at 128x128. Drawing the stored states anew would miss what they do
-not hold: the background and floor colours, a wall's window. A split that cannot be simulated
-again (a hand-made event of xvoe.custom, an import of the released X-VoE) is enlarged pixel by
-pixel instead, and says so (`DisplayVideo.resimulated`).
+that size. It is exact: the physics does not depend on the picture's size, so the frames are
+those `xvoe generate --size S` stores, to the bit, the states the stored ones times S / stored
+size (all but `visible`, a pixel ratio), and every display block of one colour is the stored
+pixel there (tests/test_display.py). It is cheap: under 0.1 s a video at 128x128 (docs/decisions.md,
+"Pictures at a display size: the scene simulated again"). Drawing the stored states anew would
+miss what they do not hold: the background and floor colours, a wall's window. A split that
+cannot be simulated again (a hand-made event of xvoe.custom, an import of the released X-VoE)
+is enlarged pixel by pixel instead, and says so (`DisplayVideo.resimulated`).
 """
 from __future__ import annotations
 
@@ -36,7 +37,7 @@ class DisplayVideo:
     rgbd: np.ndarray        # (T, S, S, 4) uint8
     ids: np.ndarray         # (T, S, S) uint8
     states: np.ndarray      # (T, K, C) float32: the stored states, lengths in pixels at S
-    resimulated: bool       # drawn anew from the split's seed (True) or the stored frames enlarged
+    resimulated: bool       # drawn anew from the split's seed, or (False) the stored frames, enlarged
 
     @property
     def size(self) -> int:
@@ -54,6 +55,8 @@ def display_video(file: h5py.File, index: int, size: int = DISPLAY_SIZE) -> Disp
     check_display_size(size)
     check_index(file, index)
     states = _scaled_states(file["states"][index], size / file["rgbd"].shape[2])
+    if size == file["rgbd"].shape[2]:
+        return DisplayVideo(file["rgbd"][index], file["ids"][index], states, False)
     again = _simulated_again(file, index, size)
     if again is not None and _same_scene(again.states, states):
         return DisplayVideo(again.rgbd, again.ids, states, True)
