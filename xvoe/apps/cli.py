@@ -300,8 +300,9 @@ def build_parser() -> argparse.ArgumentParser:
     imp.set_defaults(run=cmd_import)
 
     show = verbs.add_parser("show", help="contact sheet (PNG), animation (GIF) or video (MP4) of a video or pair",
-                            description="Frames in a row: RGB, depth and slot ids; a test pair's members "
-                                        "one above the other with the event frame outlined.")
+                            description="Frames in a row: the scene at --display-size above what the model "
+                                        "sees, its RGB, depth and slot ids; a test pair's members one above the "
+                                        "other with the event frame outlined.")
     show.add_argument("file", help="an xvoe HDF5 file")
     show.add_argument("--index", type=_flag(int, NON_NEGATIVE, "index"), default=0,
                       help="video index (a test video shows its pair)")
@@ -350,7 +351,8 @@ def build_parser() -> argparse.ArgumentParser:
     explain = verbs.add_parser("explain", help="draw the model's explanation of what is behind the wall",
                                description="Rows of observed frames, the decoded scene with the occluder left "
                                            "out (what the model believes is behind the wall), and the decoded "
-                                           "explanation object alone. With --surprise nll the explanation is the "
+                                           "explanation object alone, under the scene at --display-size with the "
+                                           "explanation drawn onto it. With --surprise nll the explanation is the "
                                            "posterior mean of the particles that hold a hidden object, and "
                                            "its heaviest distinct hypotheses, each with its weight.")
     explain.add_argument("--model", required=True, help="a run directory or a stage checkpoint (xpl.pt, ...)")
