@@ -207,6 +207,10 @@ def domain_cases(files, tmp: Path) -> list[tuple[list[str], str]]:
         (nll + ["--nll-set", "smc_proposal_widening=3,-inf"], "smc_proposal_widening must be"),
         (nll + ["--particles", "0"], "particles must be"),
         (["explain", "--model", "xpl", "--data", test, "--out", str(tmp / "e.png"), "--index", "-1"], "index must be"),
+        (["explain", "--model", "xpl", "--data", test, "--out", str(tmp / "e.png"), "--display-size", "8"],
+         "display-size must be"),
+        (["show", test, "--out", str(tmp / "s.png"), "--display-size", "1000"], "display-size must be"),
+        (["show", test, "--out", str(tmp / "s.gif"), "--display-size", "big"], "display-size: expected"),
         (["metrics", str(tmp / "taken.csv"), "--out", str(tmp / "r"), "--seed", "-5"], "seed must be"),
         (xpl + ["--focus-share", "2"], "focus_share must be"),
         (xpl + ["--focus-share", "-0.5"], "focus_share must be"),
@@ -315,7 +319,7 @@ def test_every_bad_input_gets_one_line_exit_2_and_changes_nothing(files, tmp_pat
         assert "Traceback" not in err
         assert snapshot(tmp_path) == before, args
         tried += 1
-    assert tried == 5 * len(MALFORMED) + 2 * len(MALFORMED_TRAIN) + 27 + 28 + 12 + 6 + 7
+    assert tried == 5 * len(MALFORMED) + 2 * len(MALFORMED_TRAIN) + 27 + 31 + 12 + 6 + 7
 
 
 CONFIGS = (TrainConfig, PerceptionConfig, XPLConfig, ReasoningConfig, DynamicsConfig, PhyDNetConfig, InferenceConfig,

@@ -31,6 +31,7 @@ _HOMES = {
     "xvoe.benchmark.store": ("open_dataset",),
     "xvoe.benchmark.released": ("import_released",),
     "xvoe.benchmark.videos": ("describe", "find_pair", "true_objects"),
+    "xvoe.benchmark.display": ("DISPLAY_SIZE", "display_video"),
     "xvoe.training.recipes": ("DEFAULT_RECIPE", "RECIPES", "recipe", "stage_settings"),
     "xvoe.training.stages": ("STAGES",),
     "xvoe.training.provenance": ("recipe_differences",),
@@ -44,7 +45,7 @@ _HOMES = {
     "xvoe.identity": ("split_identity",),
     "xvoe.evaluation.metrics": ("read_scores", "metric_rows", "comparative", "holistic", "relative",
                                 "disagreements", "onset", "onset_pairs"),
-    "xvoe.apps.verbs": ("score", "explain"),
+    "xvoe.apps.verbs": ("score", "explain", "with_display"),
     "inference.score": ("nll_settings",),
     "xvoe.apps.report": ("report",),
     "xvoe.apps.verify": ("verify",),
@@ -52,7 +53,8 @@ _HOMES = {
     "xvoe.apps.pipeline": ("PipelineConfig", "run_pipeline"),
     "xvoe.apps.figures": ("show", "show_video", "save_gif", "save_video", "save_figure", "frame_rows",
                           "plot_explanation", "plot_comparative", "plot_components", "plot_holistic",
-                          "plot_disagreements", "plot_surprise_curves", "plot_predictions", "plot_onset"),
+                          "plot_disagreements", "plot_surprise_curves", "plot_predictions", "plot_onset",
+                          "plot_settings"),
 }
 _MODULES = {"custom": "xvoe.benchmark.custom"}     # make your own VoE event: xvoe.custom.make_pair(...)
 _HOME_OF = {name: module for module, names in _HOMES.items() for name in names}

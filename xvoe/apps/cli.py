@@ -13,7 +13,8 @@ from typing import Any
 
 import xvoe
 
-from ..domains import NON_NEGATIVE, POSITIVE, SEED, Domain, check_number
+from ..benchmark.display import DISPLAY_SIZE
+from ..domains import NON_NEGATIVE, PICTURE_SIZE, POSITIVE, SEED, Domain, check_number
 from ..errors import XvoeError
 from ..models.config import parse_field, parse_value
 from ..models.nll import InferenceConfig
@@ -105,7 +106,8 @@ def cmd_import(args: argparse.Namespace) -> None:
 
 
 def cmd_show(args: argparse.Namespace) -> None:
-    print(xvoe.show(args.file, args.index, output_of(args), overwrite=args.overwrite, scores=args.scores))
+    print(xvoe.show(args.file, args.index, output_of(args), overwrite=args.overwrite, scores=args.scores,
+                    display_size=args.display_size))
 
 
 def cmd_score(args: argparse.Namespace) -> None:
@@ -126,7 +128,7 @@ def cmd_score(args: argparse.Namespace) -> None:
 def cmd_explain(args: argparse.Namespace) -> None:
     claim_file(args.out, args.overwrite)
     explanation = xvoe.explain(args.model, args.data, args.index, surprise=args.surprise, particles=args.particles,
-                               seed=args.seed, explanation=args.explanation)
+                               seed=args.seed, explanation=args.explanation, display_size=args.display_size)
     print(xvoe.save_figure(xvoe.plot_explanation(explanation), args.out))
 
 
@@ -305,13 +307,16 @@ def build_parser() -> argparse.ArgumentParser:
     imp.set_defaults(run=cmd_import)
 
     show = verbs.add_parser("show", help="contact sheet (PNG), animation (GIF) or video (MP4) of a video or pair",
-                            description="Frames in a row: RGB, depth and slot ids; a test pair's members "
-                                        "one above the other with the event frame outlined.")
+                            description="Frames in a row: the scene at --display-size above what the model "
+                                        "sees, its RGB, depth and slot ids; a test pair's members one above the "
+                                        "other with the event frame outlined.")
     show.add_argument("file", help="an xvoe HDF5 file")
     show.add_argument("--index", type=_flag(int, NON_NEGATIVE, "index"), default=0,
                       help="video index (a test video shows its pair)")
     show.add_argument("--out", help="fig.png, anim.gif or pair.mp4 (default: FILE.INDEX.png here)")
     show.add_argument("--scores", help="mp4: a scores CSV of xvoe score, whose surprise curves play under the pair")
+    show.add_argument("--display-size", type=_flag(int, PICTURE_SIZE, "display-size"), default=DISPLAY_SIZE,
+                      help=f"pixels a side of the scene drawn above the model's frames (default {DISPLAY_SIZE})")
     show.add_argument("--overwrite", action="store_true", help="replace --out if it exists")
     show.set_defaults(run=cmd_show)
 
@@ -355,7 +360,8 @@ def build_parser() -> argparse.ArgumentParser:
     explain = verbs.add_parser("explain", help="draw the model's explanation of what is behind the wall",
                                description="Rows of observed frames, the decoded scene with the occluder left "
                                            "out (what the model believes is behind the wall), and the decoded "
-                                           "explanation object alone. With --surprise nll the explanation is the "
+                                           "explanation object alone, under the scene at --display-size with the "
+                                           "explanation drawn onto it. With --surprise nll the explanation is the "
                                            "posterior mean of the particles that hold a hidden object, and "
                                            "its heaviest distinct hypotheses, each with its weight.")
     explain.add_argument("--model", required=True, help="a run directory or a stage checkpoint (xpl.pt, ...)")
@@ -372,6 +378,9 @@ def build_parser() -> argparse.ArgumentParser:
                          help="mse: draw Transformer 2's proposal only where it explains the video better than "
                               "nothing hidden (better, the default verdict), or always (proposal, the paper's)")
     explain.add_argument("--seed", type=_flag(int, SEED, "seed"), default=0, help="seed of the particles (nll)")
+    explain.add_argument("--display-size", type=_flag(int, PICTURE_SIZE, "display-size"), default=DISPLAY_SIZE,
+                         help=f"pixels a side of the scene the explanation is drawn onto (default {DISPLAY_SIZE}); "
+                              "the model reads its own frames")
     explain.add_argument("--overwrite", action="store_true", help="replace --out if it exists")
     explain.set_defaults(run=cmd_explain)
 

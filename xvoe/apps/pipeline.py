@@ -44,6 +44,7 @@ from ..training.stages import SCORED, STAGES
 from ..training.xpl import TRAINED_ON_LATENTS, train_proposal, train_xpl
 from .figures import plot_explanation
 from .report import header_lines, report
+from .verbs import with_display
 
 MODELS = (*SCORED, "random")
 DEFAULT_MODELS = ("xpl", "random")
@@ -269,7 +270,7 @@ def _explanations(run_dir: Path, test_data: Path, models: tuple[str, ...]) -> No
         member = file["member"][:]
     for name, want in (("blocking-S2", ("blocking", "S2")), ("collision-S3", ("collision", "S3"))):
         index = next(i for i in range(len(member)) if (scenario[i], setting[i]) == want and member[i] == 0)
-        figure = plot_explanation(explain(scorer, str(test_data), index))
+        figure = plot_explanation(with_display(explain(scorer, str(test_data), index), test_data, index))
         figure.savefig(run_dir / "report" / f"explanation-{name}.png", dpi=90, bbox_inches="tight")
         plt.close(figure)
 
