@@ -9,6 +9,10 @@ resampled (systematic resampling) when the effective sample size falls below a t
     log p^(x | object) = sum over resampling epochs of log mean w      (unbiased in p, not in log p)
     log p^(x) = logsumexp(log p + log p^(x | object), log(1 - p) + log p(x | no object))
 
+Both branches are kept frame by frame too: the SMC's normaliser after each frame estimates
+p(x_<=t | object) (as unbiased as the whole video's), the branch without one is exact per
+frame, and the differences of their mixture are each frame's surprise, -log p^(x_t | x_<t).
+
 Pyro's `SMCFilter` is not used: it keeps float32 weights, renormalises them every step (the
 evidence is lost), and draws from the global random state; here the weights are float64 and a
 `torch.Generator` makes a score reproducible from a seed. Runs may be batched (`runs`), so the
@@ -68,6 +72,7 @@ class SMCRun:
     ess: Tensor                   # (R, T) before each frame's resampling decision
     resampled: Tensor             # (R, T) bool
     origin: Tensor                # (R, N) the first-frame particle each final particle descends from
+    frame_log_evidence: Tensor    # (R, T) float64 log p^(x_<=t): the normaliser after each frame
 
     @property
     def final_ess(self) -> Tensor:
@@ -85,19 +90,22 @@ def run_smc(model: SequentialModel, particles: int, runs: int = 1, threshold: fl
 
     After frame t, a run whose ESS is under threshold * particles is resampled and its mean
     weight moved into its evidence; the last frame's weights are never resampled (nothing
-    follows to use the copies), so they stay a weighted sample of the posterior."""
+    follows to use the copies), so they stay a weighted sample of the posterior. The evidence
+    after every frame, resampled or not, is the epochs' evidence times the carried weights'
+    mean (frame t adds log sum_i W_i w_t,i): the last frame's is the whole video's."""
     n = runs * particles
     state = model.start(n)
     log_weights = torch.zeros(runs, particles, dtype=torch.float64)
     log_evidence = torch.zeros(runs, dtype=torch.float64)
     origin = torch.arange(particles).expand(runs, particles).clone()
-    ess, resampled = [], []
+    ess, resampled, so_far = [], [], []
     base = (torch.arange(runs) * particles)[:, None]
     target = threshold * particles
 
     for t in range(model.frames):
         state, increment = model.step(t, state, generator)
         log_weights = log_weights + increment.reshape(runs, particles)
+        so_far.append(log_evidence + (torch.logsumexp(log_weights, dim=1) - math.log(particles)))
         current = effective_sample_size(log_weights)
         ess.append(current)
         due = current < target if t < model.frames - 1 else torch.zeros(runs, dtype=torch.bool)
@@ -111,7 +119,8 @@ def run_smc(model: SequentialModel, particles: int, runs: int = 1, threshold: fl
             log_weights[due] = 0.0
             origin = origin.gather(1, ancestors)
     log_evidence += torch.logsumexp(log_weights, dim=1) - math.log(particles)
-    return SMCRun(log_evidence, log_weights, state, torch.stack(ess, dim=1), torch.stack(resampled, dim=1), origin)
+    return SMCRun(log_evidence, log_weights, state, torch.stack(ess, dim=1), torch.stack(resampled, dim=1), origin,
+                  torch.stack(so_far, dim=1))
 
 
 # --- the hidden object's trajectory as a sequential model ---------------------------------
@@ -222,14 +231,14 @@ class SceneSteps(Protocol):
 
     def select(self, carried: Any, index: Tensor) -> Any: ...
 
-    def empty_log_likelihood(self) -> float: ...
+    def empty_frame_log_likelihood(self) -> Tensor: ...
 
 
 def pixel_frame_log_density(expected: Tensor, observed: Tensor, sigma: float) -> Tensor:
     """log N(observed | expected, sigma^2) of each leading entry of expected (n, ...) against
-    one observed frame, summed in float64."""
+    one observed frame (...) or one each (n, ...), summed in float64."""
     squares = ((expected - observed) / sigma).square().flatten(start_dim=1)
-    return -0.5 * squares.sum(dim=1, dtype=torch.float64) - pixel_log_normaliser(observed.numel(), sigma)
+    return -0.5 * squares.sum(dim=1, dtype=torch.float64) - pixel_log_normaliser(squares.shape[1], sigma)
 
 
 class LinearSteps:
@@ -257,8 +266,8 @@ class LinearSteps:
     def select(self, carried: None, index: Tensor) -> None:
         return None
 
-    def empty_log_likelihood(self) -> float:
-        return float(pixel_frame_log_density(self.scene.empty()[None], self.observed, self.sigma)[0])
+    def empty_frame_log_likelihood(self) -> Tensor:
+        return pixel_frame_log_density(self.scene.empty(), self.observed, self.sigma)
 
 
 class XPLSteps:
@@ -315,14 +324,15 @@ class XPLSteps:
 
         return type(carried)(*(pick(part) for part in carried))
 
-    def empty_log_likelihood(self) -> float:
-        """log p(frames, seen motion | no hidden object): the free slot holds what the encoder
-        made of its empty pixels, as in `XPLScene.seen_motion`."""
-        pixels = pixel_frame_log_density(self.scene.empty()[None], self.observed, self.config.pixel_sigma)[0]
+    def empty_frame_log_likelihood(self) -> Tensor:
+        """log p(frame t, seen motion at t + 1 | no hidden object, frames < t) (T,) float64, the
+        terms the step at t adds with an object: the free slot holds what the encoder made of
+        its empty pixels, as in `XPLScene.seen_motion`."""
+        pixels = pixel_frame_log_density(self.scene.empty(), self.observed, self.config.pixel_sigma)
         predicted = self.scene.xpl.predict(self.scene.refined[None], self.scene.occluder)[0, :, self.moving]
         density = torch.distributions.Normal(predicted, self.config.motion_sigma).log_prob(self.seen)
-        motion = (density * self.observed_motion[..., None]).sum(dtype=torch.float64)
-        return float(pixels + motion)
+        motion = (density * self.observed_motion[..., None]).sum(dim=(1, 2), dtype=torch.float64)
+        return pixels + torch.cat([motion, motion.new_zeros(1)])
 
 
 def scene_steps(scene, frames: Tensor, config: InferenceConfig) -> SceneSteps:
@@ -348,6 +358,7 @@ class SMCEstimate:
     particles: int
     trajectories: Tensor | None   # (N, T, D) final particles, None where no object can be placed
     log_weights: Tensor | None    # (N,) float64 final log-weights
+    frame_nll: Tensor | None = None   # (T,) float64 -log p^(x_t | x_<t), existence summed out; sums to nll
 
     @property
     def nll(self) -> float:
@@ -366,6 +377,16 @@ def mixture(prior_hidden: float, log_hidden: float, log_empty: float) -> tuple[f
     return total, math.exp(a - total)
 
 
+def frame_surprise(prior_hidden: float, hidden: Tensor | None, empty: Tensor) -> Tensor:
+    """-log p(x_t | x_<t) (T,) float64 from each branch's log evidence of the frames so far
+    (T,) (hidden None: no object can be placed): the differences of their mixture over frames."""
+    never = torch.full_like(empty, -math.inf)
+    a = math.log(prior_hidden) + hidden if prior_hidden > 0 and hidden is not None else never
+    b = math.log1p(-prior_hidden) + empty if prior_hidden < 1 else never
+    so_far = torch.logaddexp(a, b)
+    return -torch.diff(so_far, prepend=so_far.new_zeros(1))
+
+
 @torch.no_grad()
 def smc_evidence(scene, frames: Tensor, config: InferenceConfig, proposal: Proposal | None,
                  generator: torch.Generator | None = None, free: bool = True) -> SMCEstimate:
@@ -374,11 +395,13 @@ def smc_evidence(scene, frames: Tensor, config: InferenceConfig, proposal: Propo
     the evidence is that of the branch without one, weighted by its prior (as the importance
     sampler's guide, which then never proposes an object, gives it)."""
     steps = scene_steps(scene, frames, config)
-    log_empty = steps.empty_log_likelihood()
+    empty = steps.empty_frame_log_likelihood().cumsum(0)          # log p(x_<=t | no object)
+    log_empty = float(empty[-1])
     particles = config.particles
     if not free:
         return SMCEstimate(math.log1p(-config.prior_hidden) + log_empty, -math.inf, log_empty, 0.0,
-                           float(particles), float(particles), 0, 0, particles, None, None)
+                           float(particles), float(particles), 0, 0, particles, None, None,
+                           frame_surprise(config.prior_hidden, None, empty))
     model = HiddenTrajectory(steps, config, proposal)
     run = None
     sure = proposal is not None and float(proposal.p_exists) > config.smc_pilot_skip_exists
@@ -396,7 +419,7 @@ def smc_evidence(scene, frames: Tensor, config: InferenceConfig, proposal: Propo
     return SMCEstimate(total, log_hidden, log_empty, p_hidden, float(run.final_ess[0]), float(run.ess[0].min()),
                        int(run.lineages[0]), int(run.resampled[0].sum()), particles,
                        run.state.trajectory,
-                       run.log_weights[0])
+                       run.log_weights[0], frame_surprise(config.prior_hidden, run.frame_log_evidence[0], empty))
 
 
 def pilot_sizes(config: InferenceConfig) -> tuple[int, ...]:

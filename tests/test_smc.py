@@ -111,18 +111,23 @@ def simulated_frames(seed=0):
     return torch.stack(frames)
 
 
-def kalman(frames):
-    """log p(frames | object) and the filtered means, by the Kalman filter."""
-    mean, cov, total = M_0, S_0 ** 2 * torch.eye(D), 0.0
+def kalman_frames(frames):
+    """log p(frame t | frames < t, object) (T,), the predictive densities of the Kalman filter."""
+    mean, cov, found = M_0, S_0 ** 2 * torch.eye(D), []
     for t in range(T):
         if t:
             mean, cov = A @ mean, A @ cov @ A.T + Q ** 2 * torch.eye(D)
         innovation = H @ cov @ H.T + SIGMA ** 2 * torch.eye(OBS)
         predicted = BACKGROUND + H @ mean
-        total += float(torch.distributions.MultivariateNormal(predicted, innovation).log_prob(frames[t]))
+        found.append(torch.distributions.MultivariateNormal(predicted, innovation).log_prob(frames[t]))
         gain = cov @ H.T @ torch.linalg.inv(innovation)
         mean, cov = mean + gain @ (frames[t] - predicted), (torch.eye(D) - gain @ H) @ cov
-    return total
+    return torch.stack(found)
+
+
+def kalman(frames):
+    """log p(frames | object), by the Kalman filter."""
+    return float(kalman_frames(frames).sum())
 
 
 def config(**changes):
@@ -152,6 +157,21 @@ def test_smc_evidence_matches_the_kalman_filter(particles, proposal):
     assert found.resampled.any()
 
 
+def test_the_evidence_after_every_frame_matches_the_kalman_filter():
+    """The normaliser after frame t estimates p(x_<=t | object) without bias at every t, resampled
+    there or not (over 2,000 runs, within three standard errors of the Kalman filter's), and the
+    last frame's is the whole video's evidence."""
+    frames, runs = simulated_frames(), 2000
+    model = HiddenTrajectory(LinearSteps(linear_scene(), frames, config()), config(), rough_proposal())
+    found = run_smc(model, 8, runs=runs, generator=torch.Generator().manual_seed(6))
+    exact = kalman_frames(frames).cumsum(0)
+    ratio = torch.exp(found.frame_log_evidence - exact)
+    assert ((ratio.mean(0) - 1).abs() < 3 * ratio.std(0) / math.sqrt(runs)).all()
+    assert float(ratio[:, -1].std()) > 0.05          # the runs do differ: the check has teeth
+    assert found.resampled[:, :-1].any() and not found.resampled[:, :-1].all()
+    assert torch.equal(found.frame_log_evidence[:, -1], found.log_evidence)
+
+
 def test_more_particles_narrow_the_estimate():
     frames, runs = simulated_frames(), 500
     model = HiddenTrajectory(LinearSteps(linear_scene(), frames, config()), config(), None)
@@ -171,6 +191,13 @@ def test_the_mixture_over_existence_matches_the_closed_form():
     assert found.log_evidence == pytest.approx(exact, abs=0.4)     # 3 sd of log p^ at 4,096 particles here
     assert found.p_hidden == pytest.approx(math.exp(math.log(P) + with_object - exact), abs=0.1)
     assert found.trajectories.shape == (4096, T, D) and found.log_weights.dtype == torch.float64
+    # frame by frame: -log p(x_t | x_<t) adds up to the NLL, and is the closed form's within 3 sd
+    assert float(found.frame_nll.sum()) == pytest.approx(found.nll, rel=1e-13, abs=1e-12)
+    empty = torch.distributions.Normal(BACKGROUND, SIGMA).log_prob(frames).sum(1).cumsum(0)
+    hidden = kalman_frames(frames).cumsum(0)
+    so_far = torch.logaddexp(math.log(P) + hidden, math.log(1 - P) + empty)
+    exact_frames = -torch.diff(so_far, prepend=so_far.new_zeros(1))
+    torch.testing.assert_close(found.frame_nll, exact_frames, rtol=0, atol=0.4)
     assert 1 <= found.ess <= 4096 and 1 <= found.lineages <= 4096
 
 
@@ -179,6 +206,8 @@ def test_without_a_free_slot_the_estimate_is_the_empty_branch_and_exact():
     found = smc_evidence(linear_scene(), frames, config(), None, torch.Generator().manual_seed(0), free=False)
     without = float(torch.distributions.Normal(BACKGROUND, SIGMA).log_prob(frames).sum())
     assert found.log_evidence == pytest.approx(math.log(1 - P) + without)
+    per_frame = torch.distributions.Normal(BACKGROUND, SIGMA).log_prob(frames).sum(1)
+    torch.testing.assert_close(found.frame_nll, -per_frame - math.log(1 - P) * (torch.arange(T) == 0))
     assert found.p_hidden == 0.0 and found.trajectories is None and top_hypotheses(found) is None
 
 
@@ -273,7 +302,7 @@ def test_the_frame_by_frame_factors_add_up_to_the_pyro_models_joint_density():
                 loc, carried, motion = steps.advance(t, z, carried)
                 scale = torch.full_like(loc, settings.transition_sigma)
                 total += float(motion)
-        for exists, expected in ((1.0, total), (0.0, steps.empty_log_likelihood())):
+        for exists, expected in ((1.0, total), (0.0, float(steps.empty_frame_log_likelihood().sum()))):
             values = {"exists": torch.tensor([exists])} | {f"z_{t}": trajectory[:, t] for t in range(scene.frames)}
             trace = poutine.trace(poutine.condition(model.model, data=values)).get_trace(frames, particles=1)
             trace.compute_log_prob()
@@ -339,3 +368,23 @@ def test_explain_surprise_returns_the_heaviest_hypotheses_and_the_posterior_mean
     assert posterior.holding == 32
     importance = explain_surprise(vae, xpl, *args, InferenceConfig(particles=32), method="importance", top=3)
     assert importance.method == "importance" and importance.hypotheses is not None
+
+
+@pytest.mark.parametrize("hidden_free", [True, False])
+def test_the_nll_of_each_frame_adds_up_to_the_videos(hidden_free):
+    """-log p(x_t | x_<t) of the XPL scene, existence summed out, sums to the video's NLL to
+    float64 precision, with a free slot (both branches) and without one (the exact branch)."""
+    from test_nll import tiny_models, video
+
+    from inference.surprise import nll_surprise
+
+    torch.set_default_dtype(torch.float32)
+    vae, xpl = tiny_models()
+    # a prior that leaves the hidden object about as likely as not (its branch is 15 nats better here)
+    settings = InferenceConfig(particles=16, exposure_penalty=0.0, prior_hidden=1e-7)
+    found = nll_surprise(vae, xpl, *video(hidden_free), settings, seed=3)
+    frames = video()[0].shape[0]
+    assert found.frame_nll.shape == (frames,) and found.frame_nll.dtype == torch.float64
+    assert float(found.frame_nll.sum()) == pytest.approx(found.nll, rel=1e-13)
+    assert not hidden_free or 0.01 < found.p_hidden < 0.99       # both branches count in the sum
+    assert nll_surprise(vae, xpl, *video(hidden_free), settings, method="importance").frame_nll is None
