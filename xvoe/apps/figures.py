@@ -139,7 +139,7 @@ def save_video(file: h5py.File, index: int, out: str | Path, scores: str | Path 
             ax.set_title(title.replace(" member", "\nmember"), fontsize=7, color="red" if t == event else "black")
             ax.set_axis_off()
         if curves is not None:
-            panels = grid[1, :].subgridspec(1, len(curves))
+            panels = grid[1, :].subgridspec(1, len(curves), wspace=0.4)
             for column, (name, (unit, values)) in enumerate(curves.items()):
                 ax = fig.add_subplot(panels[0, column])
                 draw_pair_curves(ax, values, labels, [event], lowered, frame=t)
@@ -147,7 +147,8 @@ def save_video(file: h5py.File, index: int, out: str | Path, scores: str | Path 
                 ax.set_xlabel("frame", fontsize=8)
                 ax.set_ylabel(unit, fontsize=8)
                 ax.tick_params(labelsize=7)
-                ax.legend(fontsize=6)
+                if column == 0:
+                    ax.legend(fontsize=6)
         fig.canvas.draw()
         pictures.append(np.asarray(fig.canvas.buffer_rgba())[..., :3].copy())
         plt.close(fig)

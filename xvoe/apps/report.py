@@ -62,9 +62,11 @@ def report(paths: list[str | Path], out_dir: str | Path, rounds: int = 1000, see
             verdicts[name] = scores
         if events is not None:
             event = events[scores["index"].astype(int)]
-            for surprise, per_frame in _per_frame(Path(path), len(scores["index"])).items():
+            definitions = _per_frame(Path(path), len(scores["index"]))
+            for surprise, per_frame in definitions.items():
                 timing += onset(scores, per_frame, event, name, rounds=rounds, seed=seed, surprise=surprise)
-                timed_pairs[name if surprise == "mse" else f"{name} {surprise}"] = onset_pairs(scores, per_frame, event)
+                series = name if len(definitions) == 1 else f"{name} {surprise}"
+                timed_pairs[series] = onset_pairs(scores, per_frame, event)
     if not rows:
         raise XvoeError("the scores hold no test pairs to measure")
     out_dir = claim_directory(out_dir)
