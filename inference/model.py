@@ -124,9 +124,15 @@ class HiddenObjectModel(nn.Module):
     # --- the model ------------------------------------------------------------------------------
 
     def init(self, state: State, particles: int) -> None:
-        exists = pyro.sample("exists", dist.Bernoulli(torch.tensor(self.config.prior_hidden)))
+        exists = pyro.sample("exists", dist.Bernoulli(logits=self.prior_logit()))
         state.update(exists=exists.bool(), trajectory=None, memory=None)
         state["loc"], state["scale"] = self.scene.initial(particles)
+
+    def prior_logit(self) -> Tensor:
+        """log p - log(1 - p) of a hidden object, in float64: a probability held in float32 is
+        clamped to its epsilon, and a prior under 1e-7 would lose its nats."""
+        p = self.config.prior_hidden
+        return torch.tensor(math.log(p) - math.log1p(-p), dtype=torch.float64)
 
     def step(self, state: State, t: int, frame: Tensor) -> None:
         alive = state["exists"]
@@ -178,8 +184,8 @@ class HiddenObjectModel(nn.Module):
     # --- the guide ------------------------------------------------------------------------------
 
     def guide_init(self, state: State, particles: int, proposal: Proposal | None) -> None:
-        p_exists = torch.tensor(self.config.prior_hidden) if proposal is None else proposal.p_exists
-        state["exists"] = pyro.sample("exists", dist.Bernoulli(p_exists)).bool()
+        existence = dist.Bernoulli(logits=self.prior_logit()) if proposal is None else dist.Bernoulli(proposal.p_exists)
+        state["exists"] = pyro.sample("exists", existence).bool()
         if "loc" not in state:
             state["loc"], state["scale"] = self.scene.initial(particles)
 

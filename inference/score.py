@@ -14,7 +14,7 @@ from xvoe.evaluation.score import Scorer
 from xvoe.models.config import field_type, parse_field, split_assignment, to_dict
 
 from .model import InferenceConfig, pixel_log_normaliser
-from .surprise import nll_surprise
+from .surprise import NLLSurprise, nll_surprise
 
 
 def nll_config(base: InferenceConfig, particles: int | None = None,
@@ -47,21 +47,18 @@ def reference_nll(s_rec: np.ndarray, pixels: int, sigma: float) -> np.ndarray:
     return s_rec.sum(axis=1) / (2 * sigma ** 2) + pixel_log_normaliser(pixels * s_rec.shape[1], sigma)
 
 
-def xpl_nll(scorer: Scorer, batch: dict[str, Tensor], config: InferenceConfig,
-            seed: int = 0) -> list[tuple[float, float, float]]:
-    """(nll, ess, p_hidden) of each encoded video (`encode_videos`) under the Pyro hidden-object model,
+def xpl_nll(scorer: Scorer, batch: dict[str, Tensor], config: InferenceConfig, seed: int = 0) -> list[NLLSurprise]:
+    """The NLL surprise of each encoded video (`encode_videos`) under the Pyro hidden-object model,
     each from its own generator seeded `seed`, so that a video's score does not hang on the others'."""
-    results = []
-    for i in range(len(batch["mean"])):
-        found = nll_surprise(scorer.vae, scorer.xpl, batch["frames"][i], batch["mean"][i], batch["visible"][i],
-                             batch["background"][i], batch["occluder"][i], config, seed=seed)
-        results.append((found.nll, found.ess, found.p_hidden))
-    return results
+    return [nll_surprise(scorer.vae, scorer.xpl, batch["frames"][i], batch["mean"][i], batch["visible"][i],
+                         batch["background"][i], batch["occluder"][i], config, seed=seed)
+            for i in range(len(batch["mean"]))]
 
 
 class NLLColumns:
     """The columns nll, ess, p_hidden and nll_excess of a score file (xvoe.evaluation.score's
-    ExtraColumns): one Pyro estimate per video, from the batch the MSE score encoded."""
+    ExtraColumns), and the curve nll, -log p(x_t | x_<t) (the SMC's; importance sampling keeps
+    none): one Pyro estimate per video, from the batch the MSE score encoded."""
 
     names = ("nll", "ess", "p_hidden", "nll_excess")
 
@@ -78,8 +75,16 @@ class NLLColumns:
     def settings(self) -> dict:
         return {"nll": to_dict(self.config), "nll_seed": self.seed}
 
-    def batch(self, scorer: Scorer, videos: dict[str, Tensor]) -> np.ndarray:
-        return np.array(xpl_nll(scorer, videos, self.config, self.seed), dtype=float).reshape(-1, 3)
+    @property
+    def curve_names(self) -> tuple[str, ...]:
+        return ("nll",) if self.config.method == "smc" else ()
+
+    def batch(self, scorer: Scorer, videos: dict[str, Tensor]) -> tuple[np.ndarray, np.ndarray]:
+        found = xpl_nll(scorer, videos, self.config, self.seed)
+        values = np.array([(f.nll, f.ess, f.p_hidden) for f in found], dtype=float).reshape(-1, 3)
+        if not self.curve_names:
+            return values, np.zeros((0, len(found), videos["frames"].shape[1]))
+        return values, np.stack([f.frame_nll.numpy() for f in found])[None]
 
     def finish(self, values: np.ndarray, curves: np.ndarray, size: int) -> np.ndarray:
         nll_excess = values[:, 0] - reference_nll(curves[2], 4 * size * size, self.config.pixel_sigma)

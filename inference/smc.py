@@ -11,6 +11,10 @@ never resampled, the guide proposing existence too.
     log p^(x, object) = sum over resampling epochs of log mean w      (unbiased in p, not in log p)
     log p^(x) = logaddexp(log p^(x, object), log p(x, no object))
 
+Both branches are kept frame by frame too: the SMC's normaliser after each frame estimates
+p(x_<=t | object) (as unbiased as the whole video's), the branch without one is exact per
+frame, and the differences of their mixture are each frame's surprise, -log p^(x_t | x_<t).
+
 Pyro's `SMCFilter` is not used: it keeps float32 weights, renormalises them every step (the
 evidence is lost), and resamples from the global random state; here the weights are float64
 and a `torch.Generator` makes a score reproducible from a seed. Runs may be batched (`runs`),
@@ -76,6 +80,7 @@ class SMCRun:
     ess: Tensor                   # (R, T) before each frame's resampling decision
     resampled: Tensor             # (R, T) bool
     origin: Tensor                # (R, N) the first-frame particle each final particle descends from
+    frame_log_evidence: Tensor    # (R, T) float64 log p^(x_<=t): the normaliser after each frame
 
     @property
     def final_ess(self) -> Tensor:
@@ -93,19 +98,22 @@ def run_smc(model: SequentialModel, particles: int, runs: int = 1, threshold: fl
 
     After frame t, a run whose ESS is under threshold * particles is resampled and its mean
     weight moved into its evidence; the last frame's weights are never resampled (nothing
-    follows to use the copies), so they stay a weighted sample of the posterior."""
+    follows to use the copies), so they stay a weighted sample of the posterior. The evidence
+    after every frame, resampled or not, is the epochs' evidence times the carried weights'
+    mean (frame t adds log sum_i W_i w_t,i): the last frame's is the whole video's."""
     n = runs * particles
     state = model.start(n)
     log_weights = torch.zeros(runs, particles, dtype=torch.float64)
     log_evidence = torch.zeros(runs, dtype=torch.float64)
     origin = torch.arange(particles).expand(runs, particles).clone()
-    ess, resampled = [], []
+    ess, resampled, so_far = [], [], []
     base = (torch.arange(runs) * particles)[:, None]
     target = threshold * particles
 
     for t in range(model.frames):
         state, increment = model.step(t, state, generator)
         log_weights = log_weights + increment.reshape(runs, particles)
+        so_far.append(log_evidence + (torch.logsumexp(log_weights, dim=1) - math.log(particles)))
         current = effective_sample_size(log_weights)
         ess.append(current)
         due = current < target if t < model.frames - 1 else torch.zeros(runs, dtype=torch.bool)
@@ -119,7 +127,8 @@ def run_smc(model: SequentialModel, particles: int, runs: int = 1, threshold: fl
             log_weights[due] = 0.0
             origin = origin.gather(1, ancestors)
     log_evidence += torch.logsumexp(log_weights, dim=1) - math.log(particles)
-    return SMCRun(log_evidence, log_weights, state, torch.stack(ess, dim=1), torch.stack(resampled, dim=1), origin)
+    return SMCRun(log_evidence, log_weights, state, torch.stack(ess, dim=1), torch.stack(resampled, dim=1), origin,
+                  torch.stack(so_far, dim=1))
 
 
 # --- the Pyro model, frame by frame ---------------------------------------------------------
@@ -245,6 +254,7 @@ class Evidence:
     trajectories: Tensor | None   # (N, T, D) final particles, None where no object can be placed
     log_weights: Tensor | None    # (N,) float64 final log-weights
     exists: Tensor | None = None  # (N,) bool: which final particles hold an object (None: all)
+    frame_nll: Tensor | None = None   # (T,) float64 -log p^(x_t | x_<t), existence summed out; sums to nll
 
     @property
     def nll(self) -> float:
@@ -272,6 +282,13 @@ def widenings_of(config: InferenceConfig) -> tuple[float, ...]:
     return (widenings,) if isinstance(widenings, (int, float)) else tuple(widenings)
 
 
+def frame_surprise(hidden: Tensor | None, empty: Tensor) -> Tensor:
+    """-log p(x_t | x_<t) (T,) float64 from each branch's log p(x_<=t, branch) after every frame
+    (T,) (hidden None: no object can be placed): the differences of their sum over frames."""
+    so_far = empty if hidden is None else torch.logaddexp(hidden, empty)
+    return -torch.diff(so_far, prepend=so_far.new_zeros(1))
+
+
 @torch.no_grad()
 def smc_evidence(scene: Scene, frames: Tensor, config: InferenceConfig, proposal: Proposal | None,
                  generator: torch.Generator | None = None, free: bool = True) -> Evidence:
@@ -280,11 +297,11 @@ def smc_evidence(scene: Scene, frames: Tensor, config: InferenceConfig, proposal
     `free` False: no slot is left for a hidden object, and the evidence is the first branch's."""
     model = HiddenObjectModel(scene, config)
     with seeded(generator):
-        empty = float(empty_branch(model, frames).sum())
-        particles = config.particles
+        empty_so_far = empty_branch(model, frames).cumsum(0)
+        empty, particles = float(empty_so_far[-1]), config.particles
         if not free:
             return Evidence(empty, -math.inf, empty, 0.0, float(particles), float(particles), 0, 0, particles,
-                            None, None)
+                            None, None, frame_nll=frame_surprise(None, empty_so_far))
         steps = ModelSteps(model, frames, proposal, widenings_of(config), exists=True)
         run = None
         sure = proposal is not None and float(proposal.p_exists) > config.smc_pilot_skip_exists
@@ -299,7 +316,7 @@ def smc_evidence(scene: Scene, frames: Tensor, config: InferenceConfig, proposal
     total = float(torch.logaddexp(torch.tensor(hidden, dtype=torch.float64), torch.tensor(empty, dtype=torch.float64)))
     return Evidence(total, hidden, empty, math.exp(hidden - total), float(run.final_ess[0]), float(run.ess[0].min()),
                     int(run.lineages[0]), int(run.resampled[0].sum()), particles, run.state["trajectory"],
-                    run.log_weights[0])
+                    run.log_weights[0], frame_nll=frame_surprise(run.frame_log_evidence[0], empty_so_far))
 
 
 @torch.no_grad()

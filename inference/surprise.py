@@ -30,6 +30,11 @@ class NLLSurprise:
     holding_ess: float = 0.0   # effective sample size among the particles that hold an object
     method: str = "importance"
 
+    @property
+    def frame_nll(self) -> Tensor | None:
+        """-log p(x_t | x_<t) (T,) float64, summing to nll: the SMC's; importance sampling keeps none."""
+        return self.estimate.frame_nll
+
 
 Seed = int | torch.Generator | None
 

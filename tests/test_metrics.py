@@ -237,6 +237,28 @@ def test_report_compares_the_two_surprises_and_draws_disagreements(test_data, te
         report([path], tmp_path / "again", rounds=5, data=other)
 
 
+def test_the_report_times_the_onset_of_each_definition_the_curves_hold(test_data, test_file, tmp_path):
+    """onset.csv has rows for the MSE's curves and, where they were scored, the NLL's: here every
+    impossible member's NLL rises at the event frame and its MSE at frame 0, before it."""
+    count, frames = test_data["rgbd"].shape[:2]
+    path = tmp_path / "m.csv"
+    with open(path, "w", newline="") as handle:
+        writer = csv.writer(handle)
+        writer.writerow(["index", "model", "scenario", "setting", "pair", "member", "possible", "score", "nll"])
+        for i in range(count):
+            writer.writerow([i, "m", test_data["scenario"][i], test_data["setting"][i], test_data["pair"][i],
+                             test_data["member"][i], test_data["possible"][i], i, -i])
+    impossible, after = ~test_data["possible"][:, None], np.arange(frames) >= test_data["event_frame"][:, None]
+    mse = np.where(impossible & (np.arange(frames) == 0), 5.0, 1.0)
+    np.savez(path.with_suffix(".curves.npz"), s_img=mse, s_dyn=np.zeros_like(mse),
+             nll=np.where(impossible & after, 5.0, 1.0))
+    report([path], tmp_path / "report", rounds=10, data=test_file)
+    rows = list(csv.DictReader(open(tmp_path / "report" / "onset.csv")))
+    timely = {surprise: {float(r["timely"]) for r in rows if r["surprise"] == surprise} for surprise in ("mse", "nll")}
+    assert timely == {"mse": {0.0}, "nll": {1.0}}
+    assert len(rows) == 2 * len({(r["scenario"], r["setting"]) for r in rows}) == 2 * 7
+
+
 VERDICT_PAIRS = with_second("paper_score", [
     # blocking S1 (member 1 impossible): the default verdict right in 3 of 4 pairs, the paper's
     # score in 1 (pair 0 both right; pairs 1, 2 only the verdict; pair 3 neither, a paper's tie)

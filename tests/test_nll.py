@@ -188,6 +188,23 @@ def test_nll_scores_are_the_same_bytes_from_the_same_seed(tmp_path):
     assert first == second
 
 
+def test_the_score_file_holds_the_nlls_curve_beside_the_mses(tmp_path):
+    """`xvoe score --surprise nll` writes -log p(x_t | x_<t) per video as the curve nll, which
+    adds up to the video's nll column; importance sampling keeps no such curve."""
+    scorer = load_model("xpl")
+    data = generate(GenerateConfig("test", pairs=1, size=scorer.image_size, seed=5), tmp_path / "t.h5",
+                    workers=1, progress=False)
+    scores = read_scores(xvoe.score(scorer, str(data), str(tmp_path / "nll.csv"), surprise="nll", particles=8,
+                                    progress=False))
+    with np.load(tmp_path / "nll.curves.npz") as curves:
+        assert {"s_img", "s_dyn", "nll"} <= set(curves.files)
+        assert curves["nll"].shape == curves["s_img"].shape
+        np.testing.assert_allclose(curves["nll"].sum(axis=1), scores["nll"], rtol=1e-12)
+    xvoe.score(scorer, str(data), str(tmp_path / "is.csv"), surprise="nll", particles=8, progress=False,
+               nll_settings={"method": "importance"})
+    assert "nll" not in np.load(tmp_path / "is.curves.npz").files
+
+
 def test_the_nll_settings_reach_every_video_and_its_excess(tmp_path):
     """`nll_settings` changes the NLL's own settings: another pixel sigma moves every video's
     NLL, and the excess is taken under the same sigma."""

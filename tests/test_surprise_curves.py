@@ -47,6 +47,26 @@ def test_curves_with_the_perception_error_add_the_excess_panel(scored, test_file
     np.testing.assert_allclose(drawn[0], s_img[first] - s_rec[first] + s_dyn[first])
 
 
+def test_the_two_definitions_are_drawn_side_by_side_each_on_its_own_axis(scored, test_file, tmp_path):
+    """The MSE's per-frame surprise and the NLL's, each with its unit and the event frame."""
+    with np.load(scored.with_suffix(".curves.npz")) as saved:
+        s_img, s_dyn = saved["s_img"], saved["s_dyn"]
+    nll = 100 + 10 * s_dyn[:, ::-1]
+    np.savez(tmp_path / "nll.npz", s_img=s_img, s_dyn=s_dyn, nll=nll)
+    fig = xvoe.plot_surprise_definitions(scored, test_file, "collision", "S3", 2, curves=tmp_path / "nll.npz")
+    assert [(ax.get_title().splitlines()[0], ax.get_ylabel()) for ax in fig.axes] == [
+        ("MSE: s_img + s_dyn", "squared pixel error"), ("NLL: -log p(x_t | x_<t)", "nats")]
+    with store.open_dataset(test_file) as file:
+        first, second = xvoe.find_pair(file, "collision", "S3", 2)
+        event = int(file["event_frame"][second])
+    for ax, expected in zip(fig.axes, (s_img + s_dyn, nll)):
+        drawn = [line.get_ydata() for line in ax.get_lines() if len(line.get_ydata()) > 2]
+        np.testing.assert_allclose(drawn, expected[[first, second]])
+        assert any(list(line.get_xdata()) == [event, event] and line.get_color() == "red" for line in ax.get_lines())
+    with pytest.raises(XvoeError, match="holds no NLL curve"):
+        xvoe.plot_surprise_definitions(scored, test_file, "collision", "S3", 2)
+
+
 def test_wall_timetables_read_back_from_the_states(test_file):
     with store.open_dataset(test_file) as file:
         s1 = videos.wall_lowered(file, xvoe.find_pair(file, "blocking", "S1", 0)[0])

@@ -53,8 +53,8 @@ _HOMES = {
     "xvoe.apps.pipeline": ("PipelineConfig", "run_pipeline"),
     "xvoe.apps.figures": ("show", "show_video", "save_gif", "save_video", "save_figure", "frame_rows",
                           "plot_explanation", "plot_comparative", "plot_components", "plot_holistic",
-                          "plot_disagreements", "plot_surprise_curves", "plot_predictions", "plot_onset",
-                          "plot_settings"),
+                          "plot_disagreements", "plot_surprise_curves", "plot_surprise_definitions",
+                          "plot_predictions", "plot_onset", "plot_settings"),
 }
 _MODULES = {"custom": "xvoe.benchmark.custom"}     # make your own VoE event: xvoe.custom.make_pair(...)
 _HOME_OF = {name: module for module, names in _HOMES.items() for name in names}

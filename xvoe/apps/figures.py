@@ -8,6 +8,7 @@ frames alone) above what the model sees, its own frames enlarged without blur
 """
 from __future__ import annotations
 
+from dataclasses import dataclass
 from pathlib import Path
 
 import h5py
@@ -156,7 +157,8 @@ def save_video(file: h5py.File, index: int, out: str | Path, scores: str | Path 
     """An MP4 for slides and a class: the video's pair side by side (each member the scene at
     `display_size` with the model's frame beside it), and, given the `scores` CSV of `xvoe
     score` (its curves beside it), each member's per-frame surprise under them with the frame
-    marked as it plays."""
+    marked as it plays: where the scores hold the NLL's curve, the MSE's and the NLL's side by
+    side, each on its own axis, so that one sees when each definition is surprised."""
     indices = video_indices(file, index)
     videos = [file["rgbd"][i][..., :3] for i in indices]
     display = display_rows(file, indices, display_size)
@@ -165,6 +167,9 @@ def save_video(file: h5py.File, index: int, out: str | Path, scores: str | Path 
     event = int(file["event_frame"][indices[-1]]) if "event_frame" in file else -1
     panels = [(video, display[m, ..., :3] if display is not None else None, title)
               for m, (video, title) in enumerate(zip(videos, titles))]
+    if curves is not None:
+        labels = _member_labels([bool(file["possible"][i]) for i in indices])
+        lowered = np.max([wall_lowered(file, i) for i in indices], axis=0)
     pictures = []
     for t in range(videos[0].shape[0]):
         fig = plt.figure(figsize=(6.4, 4.8 if curves is not None else 3.2), dpi=100)
@@ -181,15 +186,16 @@ def save_video(file: h5py.File, index: int, out: str | Path, scores: str | Path 
                 beside.set_title(f"model's\n{video.shape[1]}x{video.shape[2]}", fontsize=6)
                 beside.set_axis_off()
         if curves is not None:
-            ax = fig.add_subplot(grid[1, :])
-            for column, curve in enumerate(curves):
-                ax.plot(curve, label=f"member {column}")
-            ax.axvline(t, color="black", linewidth=1)
-            if event >= 0:
-                ax.axvline(event, color="red", linewidth=1, linestyle=":")
-            ax.set_xlabel("frame", fontsize=8)
-            ax.set_ylabel("surprise", fontsize=8)
-            ax.legend(fontsize=7)
+            below = grid[1, :].subgridspec(1, len(curves), wspace=0.4)
+            for column, (name, (unit, values)) in enumerate(curves.items()):
+                ax = fig.add_subplot(below[0, column])
+                draw_pair_curves(ax, values, labels, [event], lowered, frame=t)
+                ax.set_title(name, fontsize=8)
+                ax.set_xlabel("frame", fontsize=8)
+                ax.set_ylabel(unit, fontsize=8)
+                ax.tick_params(labelsize=7)
+                if column == 0:
+                    ax.legend(fontsize=6)
         fig.canvas.draw()
         pictures.append(np.asarray(fig.canvas.buffer_rgba())[..., :3].copy())
         plt.close(fig)
@@ -205,9 +211,9 @@ def save_video(file: h5py.File, index: int, out: str | Path, scores: str | Path 
     return Path(out)
 
 
-def _video_curves(scores: str | Path, file: h5py.File, indices: list[int]) -> list[np.ndarray]:
-    """Per-frame surprise (s_img + s_dyn) of videos `indices` of an open split from a scores CSV
-    and its curves; scores of another split are refused."""
+def _video_curves(scores: str | Path, file: h5py.File, indices: list[int]) -> dict[str, tuple[str, np.ndarray]]:
+    """Each definition's per-frame surprise (`definition_curves`) of videos `indices` of an open
+    split from a scores CSV and its curves; scores of another split are refused."""
     check_same_split(scores, split_identity(file), file.filename)
     table = read_scores(scores)
     warn_unchecked(scores)
@@ -219,7 +225,8 @@ def _video_curves(scores: str | Path, file: h5py.File, indices: list[int]) -> li
     if missing:
         raise XvoeError(f"{scores} has no score of video {missing[0]}; were these scores made from this split?")
     with np.load(curves) as saved:
-        return [saved["s_img"][rows[i]] + saved["s_dyn"][rows[i]] for i in indices]
+        return definition_curves({name: saved[name][[rows[i] for i in indices]] for name in saved.files
+                                  if name != "header"})
 
 
 def show(path: str | Path, index: int, out: str | Path | None = None, overwrite: bool = False,
@@ -578,15 +585,21 @@ def plot_settings(file: h5py.File, scenario: str, pair: int, display_size: int =
 
 # --- surprise over frames, and frames side by side ----------------------------------------
 
-def plot_surprise_curves(scores: str | Path, data: str | Path | None, scenario: str, setting: str, pair: int, *,
-                         curves: str | Path | None = None, frame: int | None = None) -> plt.Figure:
-    """Per-frame surprise of the two members of a test pair: s_img, s_dyn and their sum, and
-    the excess (s_img - s_rec + s_dyn) when the curves hold s_rec (models with a perception).
+@dataclass
+class PairCurves:
+    """The saved per-frame curves of a test pair's two members, with what marks their frames."""
 
-    scores: a CSV written by `xvoe score` (score_split); curves: its per-frame curves (default:
-    the .curves.npz beside it); data: the test split that was scored, for the event frame (red
-    line) and the frames where the wall stands (grey; lighter while it moves), or None for
-    the curves alone. frame: a frame to mark (a cursor)."""
+    model: str
+    curves: dict[str, np.ndarray]   # name -> (2, T): member 0, member 1
+    possible: list[bool]
+    events: list[int]               # each member's event frame (-1: none, or no split given)
+    lowered: np.ndarray             # (T,) how far the wall stands in either member (0 without the split)
+
+
+def pair_curves(scores: str | Path, data: str | Path | None, scenario: str, setting: str, pair: int,
+                curves: str | Path | None = None, frame: int | None = None) -> PairCurves:
+    """The curves of a test pair from a scores CSV and its curves file, checked against the test
+    split `data` (None: the curves alone); `frame`, a cursor to draw, checked against them."""
     table = read_scores(scores)
     curves = Path(curves) if curves is not None else Path(scores).with_suffix(".curves.npz")
     if not curves.is_file():
@@ -594,15 +607,14 @@ def plot_surprise_curves(scores: str | Path, data: str | Path | None, scenario: 
     with np.load(curves) as saved:
         if not {"s_img", "s_dyn"} <= set(saved.files):
             raise XvoeError(f"{curves} is not a curves file (it holds {', '.join(saved.files)})")
-        s_img, s_dyn = saved["s_img"], saved["s_dyn"]
-        s_rec = saved["s_rec"] if "s_rec" in saved.files else None
-    if s_img.shape[0] != len(table["index"]):
-        raise XvoeError(f"{curves} holds {s_img.shape[0]} videos but {scores} {len(table['index'])}: "
+        found = {name: saved[name] for name in saved.files if name != "header"}
+    if found["s_img"].shape[0] != len(table["index"]):
+        raise XvoeError(f"{curves} holds {found['s_img'].shape[0]} videos but {scores} {len(table['index'])}: "
                         "they were not written together")
     rows = _pair_rows(table["scenario"], table["setting"], table["pair"], table["member"], scenario, setting, pair,
                       str(scores))
     videos = [int(table["index"][r]) for r in rows]
-    frames = s_img.shape[1]
+    frames = found["s_img"].shape[1]
     events, lowered = [-1, -1], np.zeros(frames)
     if data is not None:
         with store.open_dataset(data) as file:
@@ -618,37 +630,98 @@ def plot_surprise_curves(scores: str | Path, data: str | Path | None, scenario: 
             lowered = np.maximum(wall_lowered(file, videos[0]), wall_lowered(file, videos[1]))
     if frame is not None and not 0 <= frame < frames:
         raise XvoeError(f"frame {frame} is out of range: the videos have frames 0..{frames - 1}")
-
     model = str(table["model"][0]) if "model" in table else Path(scores).stem
-    panels = [("s_img", s_img), ("s_dyn", s_dyn), ("s_img + s_dyn", s_img + s_dyn)]
-    if s_rec is not None:
-        panels.append(("excess: s_img - s_rec + s_dyn", excess(s_img, s_dyn, s_rec)))
-    fig, axes = plt.subplots(1, len(panels), figsize=(3.7 * len(panels), 3.4), sharex=True)
-    t = np.arange(frames)
-    for ax, (name, values) in zip(axes, panels):
-        for t0 in t[lowered > 0]:
-            ax.axvspan(t0 - 0.5, t0 + 0.5, color="grey", alpha=0.25 if lowered[t0] >= 1 else 0.1, linewidth=0)
-        if frame is not None:
-            ax.axvline(frame, color="black", linewidth=2, alpha=0.35)
-        for event in sorted(set(e for e in events if e >= 0)):
-            ax.axvline(event, color="red", linestyle=":", linewidth=1.5)
-        for m, (row, style) in enumerate(zip(rows, ("-o", "--s"))):
-            label = "possible" if table["possible"][row] else "impossible"
-            ax.plot(t, values[row], style, markersize=3, label=f"member {m} ({label})")
-        first, second = values[rows[0]], values[rows[1]]
+    return PairCurves(model, {name: values[list(rows)] for name, values in found.items()},
+                      [bool(table["possible"][r]) for r in rows], events, lowered)
+
+
+def draw_pair_curves(ax, values: np.ndarray, labels: list[str], events: list[int], lowered: np.ndarray | None = None,
+                     frame: int | None = None) -> None:
+    """Each member's curve (values (M, T)) on one axis, labelled; the event frames as red dotted
+    lines, the frames where the wall stands shaded grey (lighter while it moves), and `frame`
+    as a cursor."""
+    t = np.arange(values.shape[1])
+    for t0 in t[lowered > 0] if lowered is not None else ():
+        ax.axvspan(t0 - 0.5, t0 + 0.5, color="grey", alpha=0.25 if lowered[t0] >= 1 else 0.1, linewidth=0)
+    if frame is not None:
+        ax.axvline(frame, color="black", linewidth=2, alpha=0.35)
+    for event in sorted(set(e for e in events if e >= 0)):
+        ax.axvline(event, color="red", linestyle=":", linewidth=1.5)
+    for curve, label, style in zip(values, labels, ("-o", "--s", "-.^")):
+        ax.plot(t, curve, style, markersize=3, label=label)
+
+
+def _member_labels(possible: list[bool]) -> list[str]:
+    return [f"member {m} ({'possible' if p else 'impossible'})" for m, p in enumerate(possible)]
+
+
+def _curves_figure(found: PairCurves, panels: list[tuple[str, str, np.ndarray]], title: str, marks: list[str],
+                   frame: int | None) -> plt.Figure:
+    """Panels (title, y label, values (2, T)) of one pair side by side, each on its own axis."""
+    fig, axes = plt.subplots(1, len(panels), figsize=(3.7 * len(panels), 3.4), sharex=True, squeeze=False)
+    frames = panels[0][2].shape[1]
+    for ax, (name, unit, values) in zip(axes[0], panels):
+        draw_pair_curves(ax, values, _member_labels(found.possible), found.events, found.lowered, frame)
+        first, second = values
         ax.set_title(f"{name}\nsum {first.sum():.3g} vs {second.sum():.3g}, "
                      f"max {first.max():.3g} vs {second.max():.3g}", fontsize=8)
         ax.set_xlabel("frame")
-    axes[0].set_ylabel("surprise (squared pixel error)")
-    axes[0].set_xticks(t[:: -(-frames // 8)])
-    marks = ["red: event frame", "grey: the wall stands (lighter: it moves)"] if data is not None else []
-    marks += [f"black: frame {frame}"] if frame is not None else []
-    handles, labels = axes[0].get_legend_handles_labels()
+        if unit:
+            ax.set_ylabel(unit)
+    axes[0][0].set_xticks(np.arange(frames)[:: -(-frames // 8)])
+    handles, labels = axes[0][0].get_legend_handles_labels()
     fig.legend(handles, labels, loc="lower center", ncol=2, fontsize=8, frameon=False)
-    fig.suptitle(f"{model}: {scenario} {setting} pair {pair}" + (f"   ({'; '.join(marks)})" if marks else ""),
-                 fontsize=9)
+    fig.suptitle(title + (f"   ({'; '.join(marks)})" if marks else ""), fontsize=9)
     fig.tight_layout(rect=(0, 0.07, 1, 1))
     return fig
+
+
+def _marks(data: str | Path | None, frame: int | None) -> list[str]:
+    marks = ["red: event frame", "grey: the wall stands (lighter: it moves)"] if data is not None else []
+    return marks + ([f"black: frame {frame}"] if frame is not None else [])
+
+
+def plot_surprise_curves(scores: str | Path, data: str | Path | None, scenario: str, setting: str, pair: int, *,
+                         curves: str | Path | None = None, frame: int | None = None) -> plt.Figure:
+    """Per-frame surprise of the two members of a test pair: s_img, s_dyn and their sum, and
+    the excess (s_img - s_rec + s_dyn) when the curves hold s_rec (models with a perception).
+
+    scores: a CSV written by `xvoe score` (score_split); curves: its per-frame curves (default:
+    the .curves.npz beside it); data: the test split that was scored, for the event frame (red
+    line) and the frames where the wall stands (grey; lighter while it moves), or None for
+    the curves alone. frame: a frame to mark (a cursor)."""
+    found = pair_curves(scores, data, scenario, setting, pair, curves, frame)
+    s_img, s_dyn = found.curves["s_img"], found.curves["s_dyn"]
+    unit = "surprise (squared pixel error)"
+    panels = [("s_img", unit, s_img), ("s_dyn", "", s_dyn), ("s_img + s_dyn", "", s_img + s_dyn)]
+    if "s_rec" in found.curves:
+        panels.append(("excess: s_img - s_rec + s_dyn", "", excess(s_img, s_dyn, found.curves["s_rec"])))
+    return _curves_figure(found, panels, f"{found.model}: {scenario} {setting} pair {pair}", _marks(data, frame),
+                          frame)
+
+
+def plot_surprise_definitions(scores: str | Path, data: str | Path | None, scenario: str, setting: str, pair: int,
+                              *, curves: str | Path | None = None, frame: int | None = None) -> plt.Figure:
+    """When each definition is surprised: the MSE's per-frame surprise (s_img + s_dyn) and the
+    NLL's, -log p(x_t | x_<t), of the two members of a test pair side by side, each on its own
+    axis, with the event frame marked. The scores need the NLL's curve (`xvoe score --surprise
+    nll` or `both`); the arguments are `plot_surprise_curves`'."""
+    found = pair_curves(scores, data, scenario, setting, pair, curves, frame)
+    if "nll" not in found.curves:
+        raise XvoeError(f"{scores} holds no NLL curve; score with --surprise nll or both (its SMC keeps one)")
+    panels = [(name, unit, values) for name, (unit, values) in definition_curves(found.curves).items()]
+    return _curves_figure(found, panels, f"{found.model}: {scenario} {setting} pair {pair}, two definitions",
+                          _marks(data, frame), frame)
+
+
+def definition_curves(curves: dict[str, np.ndarray]) -> dict[str, tuple[str, np.ndarray]]:
+    """Each surprise definition's per-frame curve in saved curves, by name: its axis label and
+    values. With the NLL's: the MSE's (s_img + s_dyn) and the NLL's; without: the score's own."""
+    summed = curves["s_img"] + curves["s_dyn"]
+    if "nll" not in curves:
+        return {"surprise": ("surprise", summed)}
+    return {"MSE: s_img + s_dyn": ("squared pixel error", summed),
+            "NLL: -log p(x_t | x_<t)": ("nats", curves["nll"])}
 
 
 def frame_rows(rows: list[tuple[str, np.ndarray]], title: str = "") -> plt.Figure:

@@ -44,9 +44,10 @@ def report(paths: list[str | Path], out_dir: str | Path, rounds: int = 1000, see
     differ gets the same for those two (verdicts-MODEL.csv, verdicts-disagreements-MODEL.csv);
     with `data`, the test split the scores
     came from, a figure of a few of those pairs too, and for every model whose per-frame
-    curves lie beside its scores, the violation onset (onset.csv, onset.png). Scores of another
-    split than `data`, or than each other, are refused; headers.json repeats every scores
-    file's header (`score_header`)."""
+    curves lie beside its scores, the violation onset (onset.csv, onset.png) of each definition
+    they hold: the MSE's, and the NLL's where it was scored. Scores of another split than `data`,
+    or than each other, are refused; headers.json repeats every scores file's header
+    (`score_header`)."""
     check_one_split(paths, data)
     rows = []
     names = []
@@ -65,11 +66,13 @@ def report(paths: list[str | Path], out_dir: str | Path, rounds: int = 1000, see
             compared[name] = scores
         if has_both_surprises(scores, VERDICTS):
             verdicts[name] = scores
-        per_frame = _per_frame(Path(path), len(scores["index"]))
-        if events is not None and per_frame is not None:
+        if events is not None:
             event = events[scores["index"].astype(int)]
-            timing += onset(scores, per_frame, event, name, rounds=rounds, seed=seed)
-            timed_pairs[name] = onset_pairs(scores, per_frame, event)
+            definitions = _per_frame(Path(path), len(scores["index"]))
+            for surprise, per_frame in definitions.items():
+                timing += onset(scores, per_frame, event, name, rounds=rounds, seed=seed, surprise=surprise)
+                series = name if len(definitions) == 1 else f"{name} {surprise}"
+                timed_pairs[series] = onset_pairs(scores, per_frame, event)
     if not rows:
         raise XvoeError("the scores hold no test pairs to measure")
     out_dir = claim_directory(out_dir)
@@ -184,12 +187,16 @@ def _event_frames(data: str | Path) -> np.ndarray:
         return file["event_frame"][:]
 
 
-def _per_frame(path: Path, rows: int) -> np.ndarray | None:
-    """The per-frame surprise (s_img + s_dyn) saved beside a scores file, row by row, or None."""
+def _per_frame(path: Path, rows: int) -> dict[str, np.ndarray]:
+    """The per-frame surprise saved beside a scores file, row by row, by definition: "mse" (s_img
+    + s_dyn) and, where the NLL was scored, "nll"; none without a curves file."""
     curves = path.with_suffix(".curves.npz")
     if not curves.is_file():
-        return None
+        return {}
     with np.load(curves) as saved:
         if not {"s_img", "s_dyn"} <= set(saved.files) or saved["s_img"].shape[0] != rows:
             raise XvoeError(f"{curves} does not hold the curves of {path} (s_img and s_dyn, one row per video)")
-        return saved["s_img"] + saved["s_dyn"]
+        found = {"mse": saved["s_img"] + saved["s_dyn"]}
+        if "nll" in saved.files:
+            found["nll"] = saved["nll"]
+        return found

@@ -88,11 +88,12 @@ def _verify_file(path: Path, rows: int, data: str | Path | None, seed: int, foun
         check_same_split(path, split_identity(file), data)
         for row in picked:
             video = int(table["index"][row])
-            curves, added = score_rows(scorer, file, video, video + 1, 1, extra)
+            curves, added, extra_curves = score_rows(scorer, file, video, video + 1, 1, extra)
             again = row_columns(scorer, curves, added, header["aggregate"], extra, header["score"])
             again |= {f"curve {name}": curves[i, 0] for i, name in enumerate(CURVES) if name in saved.files}
+            again |= {f"curve {name}": values[0] for name, values in extra_curves.items() if name in saved.files}
             held = {name: table[name][row] for name in again if name in table}
-            held |= {f"curve {name}": saved[name][row] for name in CURVES if name in saved.files}
+            held |= {name: saved[name.removeprefix("curve ")][row] for name in again if name.startswith("curve ")}
             differ = [name for name in held if not np.allclose(held[name], again[name], **TOLERANCE)]
             found.matches &= not differ
             found.lines.append(f"{path.name} video {video}: " + ("matches" if not differ else "differs in " + ", ".join(

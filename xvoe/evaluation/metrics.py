@@ -390,7 +390,7 @@ def side_by_side(scores: dict[str, np.ndarray], rows: list[dict], model: str,
 # --- violation onset: is the model surprised at the right moment? ------------------------------
 
 ONSET_SHARE = 0.1       # of the peak difference: where the surprise "rises"
-ONSET_FIELDS = ("model", "scenario", "setting", "pairs", "timely", "timely_low", "timely_high",
+ONSET_FIELDS = ("model", "surprise", "scenario", "setting", "pairs", "timely", "timely_low", "timely_high",
                 "median_peak_offset")
 
 
@@ -426,16 +426,17 @@ def onset_pairs(scores: dict[str, np.ndarray], per_frame: np.ndarray, event_fram
 
 
 def onset(scores: dict[str, np.ndarray], per_frame: np.ndarray, event_frame: np.ndarray, model: str,
-          rounds: int = 1000, seed: int = 0) -> list[dict]:
+          rounds: int = 1000, seed: int = 0, surprise: str = "mse") -> list[dict]:
     """Per S1/S3 setting: the share of pairs whose surprise rises at or after the event (with a
-    bootstrap interval over pairs) and the median frame of its peak after the event."""
+    bootstrap interval over pairs) and the median frame of its peak after the event. surprise:
+    the definition whose curves `per_frame` are ("mse": s_img + s_dyn; "nll": -log p(x_t | x_<t))."""
     pairs = onset_pairs(scores, per_frame, event_frame)
     rows = []
     for scenario, setting in dict.fromkeys((p["scenario"], p["setting"]) for p in pairs):
         chosen = [p for p in pairs if (p["scenario"], p["setting"]) == (scenario, setting)]
         timely = np.array([p["timely"] for p in chosen], dtype=float)
         estimate = _mean_by_unit(timely, np.array([p["pair"] for p in chosen]), rounds, seed)
-        rows.append(dict(zip(ONSET_FIELDS, (model, scenario, setting, len(chosen), estimate.value, estimate.low,
-                                            estimate.high,
+        rows.append(dict(zip(ONSET_FIELDS, (model, surprise, scenario, setting, len(chosen), estimate.value,
+                                            estimate.low, estimate.high,
                                             float(np.median([p["peak_offset"] for p in chosen]))))))
     return rows

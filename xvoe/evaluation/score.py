@@ -48,7 +48,8 @@ from .surprise import aggregate, every_explanation
 # the paper's (XPL: always Transformer 2's proposal), the same for a model with no such choice
 SCORE_COLUMNS = ("index", "model", "scenario", "setting", "pair", "member", "possible", "score", "s_img", "s_dyn",
                  "paper_score")
-# the per-frame curves beside a score file, in this order; the paper's score is the sum of the last two
+# the per-frame curves beside a score file, in this order (then any extra columns' own: the NLL's
+# nll); the paper's score is the sum of the last two
 CURVES = ("s_img", "s_dyn", "s_rec", "paper_s_img", "paper_s_dyn")
 EXCESS_COLUMNS = ("s_rec", "excess")    # models with a perception module: XPL, its ablation, PLATO
 
@@ -276,15 +277,16 @@ def custom_surprise(scorer: Scorer, file, start: int, stop: int) -> np.ndarray:
 class ExtraColumns(Protocol):
     """Columns that a higher layer adds to a score file (the NLL's: inference.score.NLLColumns):
     checked against the scorer, computed batch by batch from the encoded videos, finished once
-    every video is in."""
+    every video is in; with per-frame curves of its own, written beside the `CURVES`."""
 
     names: tuple[str, ...]
+    curve_names: tuple[str, ...]
 
     def check(self, scorer: Scorer) -> None:
         """A one-line XvoeError if the scorer cannot give these columns."""
 
-    def batch(self, scorer: Scorer, videos: dict[str, Tensor]) -> np.ndarray:
-        """Per-video values (B, C) of a batch of `encode_videos`."""
+    def batch(self, scorer: Scorer, videos: dict[str, Tensor]) -> tuple[np.ndarray, np.ndarray]:
+        """Per-video values (B, C) of a batch of `encode_videos`, and its curves (len(curve_names), B, T)."""
 
     def finish(self, values: np.ndarray, curves: np.ndarray, size: int) -> np.ndarray:
         """The columns (N, len(names)) from every batch's values (N, C), the `CURVES` (5, N, T)
@@ -300,9 +302,10 @@ def score_split(model: str | Scorer, data: str, out: str, *, how: str = "sum", v
     """One CSV row per test video, and the per-frame surprise curves (s_img, s_dyn: (N, T);
     s_rec too for a model with a perception module) in an .npz beside it, with the header
     (`score_header`). Models with a perception module also get the columns s_rec and excess
-    (xvoe.evaluation.surprise). `extra` adds columns after these; `score_column` names one of
-    them to be the score instead of the MSE score. `shard` (I, N) scores part I of N, whole
-    batches of it, so that `merge_scores` of the parts writes the bytes one run would have."""
+    (xvoe.evaluation.surprise). `extra` adds columns after these (and its curves beside the
+    others); `score_column` names one of them to be the score instead of the MSE score. `shard`
+    (I, N) scores part I of N, whole batches of it, so that `merge_scores` of the parts writes
+    the bytes one run would have."""
     if how not in ("sum", "max"):
         raise XvoeError(f"--aggregate must be sum or max, not {how!r}")
     if score_column != "score" and (extra is None or score_column not in extra.names):
@@ -322,11 +325,12 @@ def score_split(model: str | Scorer, data: str, out: str, *, how: str = "sum", v
                   "split": split_identity(file), "data": str(Path(data).resolve()), "score": score_column,
                   "aggregate": how, "surprise": surprise_definitions(scorer, how),
                   **(extra.settings() if extra is not None else {})}
-        curves, added = score_rows(scorer, file, first, last, videos_per_batch, extra, progress)
+        curves, added, extra_curves = score_rows(scorer, file, first, last, videos_per_batch, extra, progress)
     columns = row_columns(scorer, curves, added, how, extra, score_column)
     # the CSV and its curves are one result: the CSV, which names the curves, is renamed last
     with atomic_paths(curves_path, out) as (curves_tmp, tmp), open(tmp, "w", newline="") as handle:
         named = {name: curve for name, curve in zip(CURVES, curves) if scorer.vae is not None or name != "s_rec"}
+        named |= extra_curves
         with open(curves_tmp, "wb") as curves_file:
             np.savez_compressed(curves_file, header=np.array(json.dumps(header, sort_keys=True)), **named)
         writer = csv.writer(handle)
@@ -339,11 +343,11 @@ def score_split(model: str | Scorer, data: str, out: str, *, how: str = "sum", v
 
 
 def score_rows(scorer: Scorer, file, first: int, last: int, videos_per_batch: int, extra: ExtraColumns | None,
-               progress: bool = False) -> tuple[np.ndarray, np.ndarray]:
-    """The `CURVES` (5, N, T) of videos [first, last) of an open test split, batch by batch, and
-    the `extra` columns (N, C), finished (C = 0 without)."""
+               progress: bool = False) -> tuple[np.ndarray, np.ndarray, dict[str, np.ndarray]]:
+    """The `CURVES` (5, N, T) of videos [first, last) of an open test split, batch by batch, the
+    `extra` columns (N, C), finished (C = 0 without), and the extra curves (N, T) by name."""
     curves = np.zeros((len(CURVES), last - first, file["rgbd"].shape[1]))
-    values = []
+    values, extra_curves = [], []
     for start in tqdm(range(first, last, videos_per_batch), desc=f"score {scorer.name}", unit="batch",
                       disable=not progress):
         stop = min(last, start + videos_per_batch)
@@ -354,10 +358,13 @@ def score_rows(scorer: Scorer, file, first: int, last: int, videos_per_batch: in
         batch = encode_videos(scorer, file, start, stop)     # once, for every column
         curves[:, rows] = torch.stack(list(_xpl_curves(scorer, batch).values())).numpy()
         if extra is not None:
-            values.append(extra.batch(scorer, batch))
+            found, found_curves = extra.batch(scorer, batch)
+            values.append(found)
+            extra_curves.append(found_curves)
     if extra is None:
-        return curves, np.zeros((last - first, 0))
-    return curves, extra.finish(np.concatenate(values), curves, file["rgbd"].shape[2])
+        return curves, np.zeros((last - first, 0)), {}
+    named = dict(zip(extra.curve_names, np.concatenate(extra_curves, axis=1)))
+    return curves, extra.finish(np.concatenate(values), curves, file["rgbd"].shape[2]), named
 
 
 def row_columns(scorer: Scorer, curves: np.ndarray, added: np.ndarray, how: str, extra: ExtraColumns | None,
