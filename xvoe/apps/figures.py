@@ -19,6 +19,7 @@ from ..benchmark import store
 from ..benchmark.videos import _labels_of, _pair_rows, check_index, describe, video_indices, wall_lowered
 from ..errors import XvoeError
 from ..evaluation.metrics import excess, read_scores
+from ..evaluation.score import read_curves
 from ..models.perception import normalise, to_uint8
 from ..outputs import atomic_paths, claim_file
 from ..training.data import perception_batch
@@ -122,7 +123,7 @@ def save_video(file: h5py.File, index: int, out: str | Path, scores: str | Path 
     indices = video_indices(file, index)
     videos = [file["rgbd"][i][..., :3] for i in indices]
     titles = [describe(file, i) for i in indices]
-    curves = _video_curves(scores, indices) if scores is not None else None
+    curves, label = _video_curves(scores, indices) if scores is not None else (None, "")
     event = int(file["event_frame"][indices[-1]]) if "event_frame" in file else -1
     pictures = []
     for t in range(videos[0].shape[0]):
@@ -141,7 +142,7 @@ def save_video(file: h5py.File, index: int, out: str | Path, scores: str | Path 
             if event >= 0:
                 ax.axvline(event, color="red", linewidth=1, linestyle=":")
             ax.set_xlabel("frame", fontsize=8)
-            ax.set_ylabel("surprise", fontsize=8)
+            ax.set_ylabel(f"surprise\n({label})", fontsize=8)
             ax.legend(fontsize=7)
         fig.canvas.draw()
         pictures.append(np.asarray(fig.canvas.buffer_rgba())[..., :3].copy())
@@ -158,18 +159,15 @@ def save_video(file: h5py.File, index: int, out: str | Path, scores: str | Path 
     return Path(out)
 
 
-def _video_curves(scores: str | Path, indices: list[int]) -> list[np.ndarray]:
-    """Per-frame surprise (s_img + s_dyn) of videos `indices` from a scores CSV and its curves."""
+def _video_curves(scores: str | Path, indices: list[int]) -> tuple[list[np.ndarray], str]:
+    """Per-frame surprise of videos `indices` from a scores CSV and its curves, and what its axis measures."""
     table = read_scores(scores)
-    curves = Path(scores).with_suffix(".curves.npz")
-    if not curves.is_file():
-        raise XvoeError(f"{curves}: no such file; xvoe score writes the curves beside the CSV")
+    curves = read_curves(Path(scores).with_suffix(".curves.npz"), len(table["index"]))
     rows = {int(video): row for row, video in enumerate(table["index"])}
     missing = [i for i in indices if i not in rows]
     if missing:
         raise XvoeError(f"{scores} has no score of video {missing[0]}; were these scores made from this split?")
-    with np.load(curves) as saved:
-        return [saved["s_img"][rows[i]] + saved["s_dyn"][rows[i]] for i in indices]
+    return [curves.total[rows[i]] for i in indices], curves.label
 
 
 def show(path: str | Path, index: int, out: str | Path | None = None, overwrite: bool = False,
@@ -440,28 +438,20 @@ def plot_disagreements(file: h5py.File, rows: list[dict], examples: int = 4) -> 
 def plot_surprise_curves(scores: str | Path, data: str | Path | None, scenario: str, setting: str, pair: int, *,
                          curves: str | Path | None = None, frame: int | None = None) -> plt.Figure:
     """Per-frame surprise of the two members of a test pair: s_img, s_dyn and their sum, and
-    the excess (s_img - s_rec + s_dyn) when the curves hold s_rec (models with a perception).
+    the excess (s_img - s_rec + s_dyn) when the curves hold s_rec (models with a perception);
+    a model's own curve alone, on its own axis, for a model answering `surprise(videos)`.
 
     scores: a CSV written by `xvoe score` (score_split); curves: its per-frame curves (default:
     the .curves.npz beside it); data: the test split that was scored, for the event frame (red
     line) and the frames where the wall stands (grey; lighter while it moves), or None for
     the curves alone. frame: a frame to mark (a cursor)."""
     table = read_scores(scores)
-    curves = Path(curves) if curves is not None else Path(scores).with_suffix(".curves.npz")
-    if not curves.is_file():
-        raise XvoeError(f"{curves}: no such file; score_split (xvoe score) writes the curves beside the CSV")
-    with np.load(curves) as saved:
-        if not {"s_img", "s_dyn"} <= set(saved.files):
-            raise XvoeError(f"{curves} is not a curves file (it holds {', '.join(saved.files)})")
-        s_img, s_dyn = saved["s_img"], saved["s_dyn"]
-        s_rec = saved["s_rec"] if "s_rec" in saved.files else None
-    if s_img.shape[0] != len(table["index"]):
-        raise XvoeError(f"{curves} holds {s_img.shape[0]} videos but {scores} {len(table['index'])}: "
-                        "they were not written together")
+    saved = read_curves(curves if curves is not None else Path(scores).with_suffix(".curves.npz"),
+                        len(table["index"]))
     rows = _pair_rows(table["scenario"], table["setting"], table["pair"], table["member"], scenario, setting, pair,
                       str(scores))
     videos = [int(table["index"][r]) for r in rows]
-    frames = s_img.shape[1]
+    frames = saved.total.shape[1]
     events, lowered = [-1, -1], np.zeros(frames)
     if data is not None:
         with store.open_dataset(data) as file:
@@ -477,10 +467,9 @@ def plot_surprise_curves(scores: str | Path, data: str | Path | None, scenario: 
         raise XvoeError(f"frame {frame} is out of range: the videos have frames 0..{frames - 1}")
 
     model = str(table["model"][0]) if "model" in table else Path(scores).stem
-    panels = [("s_img", s_img), ("s_dyn", s_dyn), ("s_img + s_dyn", s_img + s_dyn)]
-    if s_rec is not None:
-        panels.append(("excess: s_img - s_rec + s_dyn", excess(s_img, s_dyn, s_rec)))
-    fig, axes = plt.subplots(1, len(panels), figsize=(3.7 * len(panels), 3.4), sharex=True)
+    panels = _curve_panels(saved)
+    fig, axes = plt.subplots(1, len(panels), figsize=(max(3.7 * len(panels), 6.0), 3.4), sharex=True, squeeze=False)
+    axes = axes[0]
     t = np.arange(frames)
     for ax, (name, values) in zip(axes, panels):
         for t0 in t[lowered > 0]:
@@ -496,7 +485,7 @@ def plot_surprise_curves(scores: str | Path, data: str | Path | None, scenario: 
         ax.set_title(f"{name}\nsum {first.sum():.3g} vs {second.sum():.3g}, "
                      f"max {first.max():.3g} vs {second.max():.3g}", fontsize=8)
         ax.set_xlabel("frame")
-    axes[0].set_ylabel("surprise (squared pixel error)")
+    axes[0].set_ylabel(f"surprise ({saved.label})")
     axes[0].set_xticks(t[:: -(-frames // 8)])
     marks = ["red: event frame", "grey: the wall stands (lighter: it moves)"] if data is not None else []
     marks += [f"black: frame {frame}"] if frame is not None else []
@@ -506,6 +495,17 @@ def plot_surprise_curves(scores: str | Path, data: str | Path | None, scenario: 
                  fontsize=9)
     fig.tight_layout(rect=(0, 0.07, 1, 1))
     return fig
+
+
+def _curve_panels(curves) -> list[tuple[str, np.ndarray]]:
+    """The panels of `plot_surprise_curves`: a model's own curve, or the MSE's terms, their sum and the excess."""
+    if curves.own:
+        return [(curves.own, curves.total)]
+    s_img, s_dyn = curves.arrays["s_img"], curves.arrays["s_dyn"]
+    panels = [("s_img", s_img), ("s_dyn", s_dyn), ("s_img + s_dyn", curves.total)]
+    if "s_rec" in curves.arrays:
+        panels.append(("excess: s_img - s_rec + s_dyn", excess(s_img, s_dyn, curves.arrays["s_rec"])))
+    return panels
 
 
 def frame_rows(rows: list[tuple[str, np.ndarray]], title: str = "") -> plt.Figure:

@@ -24,6 +24,7 @@ from ..evaluation.metrics import (
     read_scores,
     side_by_side,
 )
+from ..evaluation.score import read_curves
 from ..outputs import claim_directory
 from . import figures
 
@@ -132,11 +133,6 @@ def _event_frames(data: str | Path) -> np.ndarray:
 
 
 def _per_frame(path: Path, rows: int) -> np.ndarray | None:
-    """The per-frame surprise (s_img + s_dyn) saved beside a scores file, row by row, or None."""
+    """The per-frame surprise saved beside a scores file, row by row (`read_curves`), or None."""
     curves = path.with_suffix(".curves.npz")
-    if not curves.is_file():
-        return None
-    with np.load(curves) as saved:
-        if not {"s_img", "s_dyn"} <= set(saved.files) or saved["s_img"].shape[0] != rows:
-            raise XvoeError(f"{curves} does not hold the curves of {path} (s_img and s_dyn, one row per video)")
-        return saved["s_img"] + saved["s_dyn"]
+    return read_curves(curves, rows).total if curves.is_file() else None
