@@ -63,7 +63,7 @@ def test_a_module_factory_loads_and_bad_models_get_one_line(test_file, tmp_path,
     out = tmp_path / "s.csv"
     assert main(["score", "--model", "my_models:make", "--data", str(test_file), "--out", str(out), "--quiet"]) == 0
     assert {r["model"] for r in csv.DictReader(open(out))} == {"still"}
-    for reference, needle in [("my_models:Wrong", "shape (3,) for 8 videos"), ("my_models:nothing", "not a surprise model"),
+    for reference, needle in [("my_models:Wrong", "shape (3,)"), ("my_models:nothing", "not a surprise model"),
                               ("my_models:absent", "has no 'absent'"), ("no_such_module:x", "cannot import"),
                               ("my_models:Small", "works at 32x32"), ("missing.py:x", "no such file")]:
         code = main(["score", "--model", reference, "--data", str(test_file), "--out", str(tmp_path / "x.csv"),

@@ -23,7 +23,7 @@ def test_the_curves_of_a_pair_are_drawn_and_written(scored, test_file, tmp_path)
     assert out.stat().st_size > 10_000
     axes = fig.axes      # the random agent's own curve, alone, on its own axis
     assert [ax.get_title().splitlines()[0] for ax in axes] == ["surprise"]
-    assert axes[0].get_ylabel() == "surprise (surprise)"
+    assert axes[0].get_ylabel() == "surprise\n(surprise)"
     with np.load(scored.with_suffix(".curves.npz")) as curves, store.open_dataset(test_file) as file:
         first, second = xvoe.find_pair(file, "collision", "S3", 2)
         drawn = [line.get_ydata() for line in axes[0].get_lines() if len(line.get_ydata()) > 2]
@@ -42,7 +42,7 @@ def test_curves_with_the_perception_error_add_the_excess_panel(scored, test_file
     fig = xvoe.plot_surprise_curves(scored, None, "collision", "S3", 2, curves=tmp_path / "rec.npz")
     assert [ax.get_title().splitlines()[0] for ax in fig.axes] == ["s_img", "s_dyn", "s_img + s_dyn",
                                                                    "excess: s_img - s_rec + s_dyn"]
-    assert fig.axes[0].get_ylabel() == "surprise (squared pixel error)"
+    assert fig.axes[0].get_ylabel() == "surprise\n(squared pixel error)"
     with store.open_dataset(test_file) as file:
         first, _ = xvoe.find_pair(file, "collision", "S3", 2)
     drawn = [line.get_ydata() for line in fig.axes[3].get_lines() if len(line.get_ydata()) > 2]

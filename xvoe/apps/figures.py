@@ -468,7 +468,7 @@ def plot_surprise_curves(scores: str | Path, data: str | Path | None, scenario: 
 
     model = str(table["model"][0]) if "model" in table else Path(scores).stem
     panels = _curve_panels(saved)
-    fig, axes = plt.subplots(1, len(panels), figsize=(max(3.7 * len(panels), 6.0), 3.4), sharex=True, squeeze=False)
+    fig, axes = plt.subplots(1, len(panels), figsize=(max(3.7 * len(panels), 7.4), 3.4), sharex=True, squeeze=False)
     axes = axes[0]
     t = np.arange(frames)
     for ax, (name, values) in zip(axes, panels):
@@ -485,7 +485,7 @@ def plot_surprise_curves(scores: str | Path, data: str | Path | None, scenario: 
         ax.set_title(f"{name}\nsum {first.sum():.3g} vs {second.sum():.3g}, "
                      f"max {first.max():.3g} vs {second.max():.3g}", fontsize=8)
         ax.set_xlabel("frame")
-    axes[0].set_ylabel(f"surprise ({saved.label})")
+    axes[0].set_ylabel(f"surprise\n({saved.label})")
     axes[0].set_xticks(t[:: -(-frames // 8)])
     marks = ["red: event frame", "grey: the wall stands (lighter: it moves)"] if data is not None else []
     marks += [f"black: frame {frame}"] if frame is not None else []

@@ -52,7 +52,7 @@ def score(model: str | Scorer, data: str | Path, out: str | Path, *, surprise: s
     processes").
     checks: a model answering `surprise(videos)` (a model of your own, PhyDNet, random) passes
     the harness of xvoe.evaluation.checks before its scores are written; False skips all but
-    the finite check (docs/evaluate-your-model.md, "The checks")."""
+    the finite check (docs/evaluate-your-model.md, "4. The checks")."""
     if surprise not in SURPRISES:
         raise XvoeError(f"--surprise must be mse, nll or both, not {surprise!r}")
     if workers < 1:
