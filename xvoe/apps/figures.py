@@ -19,7 +19,7 @@ from ..benchmark import store
 from ..benchmark.videos import _labels_of, _pair_rows, check_index, describe, video_indices, wall_lowered
 from ..errors import XvoeError
 from ..evaluation.metrics import excess, read_scores
-from ..evaluation.score import read_curves
+from ..evaluation.score import Curves, read_curves
 from ..models.perception import normalise, to_uint8
 from ..outputs import atomic_paths, claim_file
 from ..training.data import perception_batch
@@ -497,7 +497,7 @@ def plot_surprise_curves(scores: str | Path, data: str | Path | None, scenario: 
     return fig
 
 
-def _curve_panels(curves) -> list[tuple[str, np.ndarray]]:
+def _curve_panels(curves: Curves) -> list[tuple[str, np.ndarray]]:
     """The panels of `plot_surprise_curves`: a model's own curve, or the MSE's terms, their sum and the excess."""
     if curves.own:
         return [(curves.own, curves.total)]

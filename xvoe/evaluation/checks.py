@@ -23,7 +23,6 @@ SAMPLE = 8          # videos scored again in other batches: enough to move each 
 SEED = 0            # the sample is drawn from this seed
 RELATIVE = 1e-4     # float tolerance: a batched matrix product may round differently from a single one
 ABSOLUTE = 1e-6     # ... and relative to the largest surprise, for frames near zero
-CHECKS = ("finite", "repeat", "order", "batch size", "spread")
 
 # per-frame surprise (B, T) of the sample's videos at these positions, in this order, as one batch
 ScoreBatch = Callable[[np.ndarray], np.ndarray]
