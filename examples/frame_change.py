@@ -13,6 +13,8 @@ import xvoe
 
 class FrameChange:
     name = "frame-change"
+    curve = "frame_change"              # its per-frame surprise, stored under this name and drawn on this axis
+    curve_label = "summed squared change of the frame"
 
     def surprise(self, videos: xvoe.Videos) -> np.ndarray:
         """Per frame, the summed squared change of RGB and depth from the frame before (0 at the first)."""

@@ -19,6 +19,8 @@ WALL_DEPTH = 96     # walls stand nearer the camera than objects: darker than th
 
 class ObjectTracker:
     name = "object-tracker"
+    curve = "events"
+    curve_label = "unexplained appearances, disappearances and jumps"
 
     def surprise(self, videos: xvoe.Videos) -> np.ndarray:
         batch, frames, size = videos.ids.shape[:3]

@@ -134,6 +134,9 @@ def case_lines(files, tmp: Path) -> list[tuple[list[str], str]]:
     (tmp / "taken.png").write_text("earlier picture")
     (tmp / "report").mkdir()
     (tmp / "report" / "metrics.csv").write_text("earlier report")
+    (tmp / "constant.py").write_text("import numpy as np\nclass Constant:\n    name = 'constant'\n"
+                                     "    def surprise(self, videos):\n"
+                                     "        return np.ones((len(videos.rgbd), videos.frames))\n")
     (tmp / "corrupt").mkdir()
     for stage in ("perception", "xpl"):
         (tmp / "corrupt" / f"{stage}.pt").write_bytes(b"not a checkpoint")
@@ -149,6 +152,8 @@ def case_lines(files, tmp: Path) -> list[tuple[list[str], str]]:
         (["explain", "--model", "xpl", "--data", test, "--out", str(tmp / "taken.png")], "--overwrite"),
         (["score", "--model", "random", "--data", test, "--out", str(tmp / "taken.csv")], "--overwrite"),
         (["score", "--model", "random", "--data", train, "--out", str(tmp / "s.csv")], "test split"),
+        (["score", "--model", f"{tmp / 'constant.py'}:Constant", "--data", test, "--out", str(tmp / "s.csv"),
+          "--quiet"], "failed the check 'spread'"),
         (["score", "--model", "random", "--data", test, "--out", str(tmp / "taken.png").replace(".png", ".csv")
           .replace("taken", "fresh"), "--aggregate", "mean"], "invalid choice"),
         (["score", "--model", "xpl", "--data", test, "--out", str(tmp / "n.csv"), "--surprise", "nll",
@@ -319,7 +324,7 @@ def test_every_bad_input_gets_one_line_exit_2_and_changes_nothing(files, tmp_pat
         assert "Traceback" not in err
         assert snapshot(tmp_path) == before, args
         tried += 1
-    assert tried == 5 * len(MALFORMED) + 2 * len(MALFORMED_TRAIN) + 27 + 31 + 12 + 6 + 7
+    assert tried == 5 * len(MALFORMED) + 2 * len(MALFORMED_TRAIN) + 28 + 31 + 12 + 6 + 7
 
 
 CONFIGS = (TrainConfig, PerceptionConfig, XPLConfig, ReasoningConfig, DynamicsConfig, PhyDNetConfig, InferenceConfig,

@@ -11,15 +11,17 @@ from xvoe.apps.cli import main
 EXAMPLES = Path(__file__).resolve().parent.parent / "examples"
 
 
-@pytest.mark.parametrize("reference", ["frame_change.py:FrameChange", "object_tracker.py:ObjectTracker"])
-def test_an_example_model_goes_from_score_to_the_paper_metrics(reference, test_file, tmp_path):
+@pytest.mark.parametrize("reference, curve", [("frame_change.py:FrameChange", "frame_change"),
+                                              ("object_tracker.py:ObjectTracker", "events")])
+def test_an_example_model_goes_from_score_to_the_paper_metrics(reference, curve, test_file, tmp_path):
     scores = tmp_path / "scores.csv"
     assert main(["score", "--model", str(EXAMPLES / reference), "--data", str(test_file), "--out", str(scores),
                  "--quiet"]) == 0
     rows = list(csv.DictReader(open(scores)))
     assert len(rows) == 176 and all(float(r["s_img"]) == 0 for r in rows)     # 8 pairs of 11 settings
-    curves = np.load(scores.with_suffix(".curves.npz"))
-    np.testing.assert_allclose([float(r["score"]) for r in rows], curves["s_dyn"].sum(1), rtol=1e-9)
+    curves = np.load(scores.with_suffix(".curves.npz"))      # its own curve, under its own name
+    assert sorted(curves.files) == sorted(["header", curve])
+    np.testing.assert_allclose([float(r["score"]) for r in rows], curves[curve].sum(1), rtol=1e-9)
     assert main(["metrics", str(scores), "--out", str(tmp_path / "report"), "--rounds", "10"]) == 0
     assert (tmp_path / "report" / "comparative.png").exists()
 
@@ -47,7 +49,7 @@ def test_a_module_factory_loads_and_bad_models_get_one_line(test_file, tmp_path,
         "    name = 'still'\n"
         "    image_size = 64\n"
         "    def surprise(self, videos):\n"
-        "        return np.zeros((len(videos.rgbd), videos.frames))\n"
+        "        return videos.rgbd.mean(axis=(2, 3, 4))\n"
         "def make():\n"
         "    return Still()\n"
         "class Wrong:\n"
@@ -61,7 +63,7 @@ def test_a_module_factory_loads_and_bad_models_get_one_line(test_file, tmp_path,
     out = tmp_path / "s.csv"
     assert main(["score", "--model", "my_models:make", "--data", str(test_file), "--out", str(out), "--quiet"]) == 0
     assert {r["model"] for r in csv.DictReader(open(out))} == {"still"}
-    for reference, needle in [("my_models:Wrong", "expected (16, 15)"), ("my_models:nothing", "not a surprise model"),
+    for reference, needle in [("my_models:Wrong", "shape (3,)"), ("my_models:nothing", "not a surprise model"),
                               ("my_models:absent", "has no 'absent'"), ("no_such_module:x", "cannot import"),
                               ("my_models:Small", "works at 32x32"), ("missing.py:x", "no such file")]:
         code = main(["score", "--model", reference, "--data", str(test_file), "--out", str(tmp_path / "x.csv"),

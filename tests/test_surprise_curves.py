@@ -21,13 +21,14 @@ def test_the_curves_of_a_pair_are_drawn_and_written(scored, test_file, tmp_path)
     out = tmp_path / "curves.png"
     fig.savefig(out)
     assert out.stat().st_size > 10_000
-    axes = fig.axes
-    assert [ax.get_title().splitlines()[0] for ax in axes] == ["s_img", "s_dyn", "s_img + s_dyn"]
+    axes = fig.axes      # the random agent's own curve, alone, on its own axis
+    assert [ax.get_title().splitlines()[0] for ax in axes] == ["surprise"]
+    assert axes[0].get_ylabel() == "surprise\n(surprise)"
     with np.load(scored.with_suffix(".curves.npz")) as curves, store.open_dataset(test_file) as file:
         first, second = xvoe.find_pair(file, "collision", "S3", 2)
-        drawn = [line.get_ydata() for line in axes[2].get_lines() if len(line.get_ydata()) > 2]
-        np.testing.assert_allclose(drawn[0], curves["s_img"][first] + curves["s_dyn"][first])
-        np.testing.assert_allclose(drawn[1], curves["s_img"][second] + curves["s_dyn"][second])
+        drawn = [line.get_ydata() for line in axes[0].get_lines() if len(line.get_ydata()) > 2]
+        np.testing.assert_allclose(drawn[0], curves["surprise"][first])
+        np.testing.assert_allclose(drawn[1], curves["surprise"][second])
         event = int(file["event_frame"][first])
     assert any(list(line.get_xdata()) == [event, event] and line.get_color() == "red" for line in axes[0].get_lines())
     xvoe.plot_surprise_curves(scored, None, "permanence", "S2", 0)       # the curves alone
@@ -35,12 +36,13 @@ def test_the_curves_of_a_pair_are_drawn_and_written(scored, test_file, tmp_path)
 
 def test_curves_with_the_perception_error_add_the_excess_panel(scored, test_file, tmp_path):
     with np.load(scored.with_suffix(".curves.npz")) as saved:
-        s_img, s_dyn = saved["s_img"], saved["s_dyn"]
+        s_img, s_dyn = saved["surprise"], 2 * saved["surprise"]
     s_rec = 0.5 * s_img
     np.savez(tmp_path / "rec.npz", s_img=s_img, s_dyn=s_dyn, s_rec=s_rec)
     fig = xvoe.plot_surprise_curves(scored, None, "collision", "S3", 2, curves=tmp_path / "rec.npz")
     assert [ax.get_title().splitlines()[0] for ax in fig.axes] == ["s_img", "s_dyn", "s_img + s_dyn",
                                                                    "excess: s_img - s_rec + s_dyn"]
+    assert fig.axes[0].get_ylabel() == "surprise\n(squared pixel error)"
     with store.open_dataset(test_file) as file:
         first, _ = xvoe.find_pair(file, "collision", "S3", 2)
     drawn = [line.get_ydata() for line in fig.axes[3].get_lines() if len(line.get_ydata()) > 2]
@@ -49,8 +51,8 @@ def test_curves_with_the_perception_error_add_the_excess_panel(scored, test_file
 
 def test_the_two_definitions_are_drawn_side_by_side_each_on_its_own_axis(scored, test_file, tmp_path):
     """The MSE's per-frame surprise and the NLL's, each with its unit and the event frame."""
-    with np.load(scored.with_suffix(".curves.npz")) as saved:
-        s_img, s_dyn = saved["s_img"], saved["s_dyn"]
+    with np.load(scored.with_suffix(".curves.npz")) as saved:     # the MSE's terms made of the agent's curve
+        s_img, s_dyn = 0.5 * saved["surprise"], saved["surprise"] ** 2
     nll = 100 + 10 * s_dyn[:, ::-1]
     np.savez(tmp_path / "nll.npz", s_img=s_img, s_dyn=s_dyn, nll=nll)
     fig = xvoe.plot_surprise_definitions(scored, test_file, "collision", "S3", 2, curves=tmp_path / "nll.npz")

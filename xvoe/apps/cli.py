@@ -122,7 +122,7 @@ def cmd_score(args: argparse.Namespace) -> None:
     print(xvoe.score(args.model, args.data, args.out, surprise=args.surprise, particles=args.particles,
                      seed=args.seed, nll_settings=xvoe.nll_settings(args.nll_set), how=args.aggregate,
                      shard=args.shard, videos_per_batch=args.batch, workers=args.workers,
-                     overwrite=args.overwrite, progress=not args.quiet))
+                     checks=not args.no_checks, overwrite=args.overwrite, progress=not args.quiet))
 
 
 def cmd_explain(args: argparse.Namespace) -> None:
@@ -332,7 +332,7 @@ def build_parser() -> argparse.ArgumentParser:
                                          "proposal, as the paper does.")
     score.add_argument("--model",
                        help="a run directory, a stage checkpoint (xpl.pt, plato.pt, xpl-noresidual.pt, "
-                            "phydnet.pt) or random")
+                            "phydnet.pt), random, or a model of your own, path/to/file.py:name or module:name")
     score.add_argument("--data", help="a test split file")
     score.add_argument("--out", required=True, help="the scores CSV to write")
     score.add_argument("--surprise", choices=("mse", "nll", "both"), default="mse",
@@ -350,6 +350,10 @@ def build_parser() -> argparse.ArgumentParser:
     score.add_argument("--workers", type=_positive, default=1,
                        help="processes scoring a shard each, the cores shared out, merged into --out (default 1; "
                             "2 on 2 cores is the fastest for --surprise nll)")
+    score.add_argument("--no-checks", action="store_true",
+                       help="a model of your own (file.py:name), phydnet or random: write its scores without the "
+                            "checks that the same videos score the same in another order, batch size and on a "
+                            "repeat, and not all alike (NaN and inf are refused still)")
     score.add_argument("--overwrite", action="store_true", help="replace --out if it exists")
     score.add_argument("--quiet", action="store_true", help="no progress bar")
     score.add_argument("--shard", type=_shard, default=(0, 1), metavar="I/N",

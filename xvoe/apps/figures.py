@@ -26,7 +26,7 @@ from ..benchmark.videos import _labels_of, _pair_rows, check_index, describe, fi
 from ..errors import XvoeError
 from ..evaluation.explain import OBJECT_DEPTH_LIMIT, Explanation
 from ..evaluation.metrics import excess, read_scores
-from ..evaluation.score import check_same_split, warn_unchecked
+from ..evaluation.score import MSE_LABEL, check_same_split, read_curves, warn_unchecked
 from ..identity import split_identity
 from ..models.perception import normalise, to_uint8
 from ..outputs import atomic_paths, claim_file
@@ -217,16 +217,14 @@ def _video_curves(scores: str | Path, file: h5py.File, indices: list[int]) -> di
     check_same_split(scores, split_identity(file), file.filename)
     table = read_scores(scores)
     warn_unchecked(scores)
-    curves = Path(scores).with_suffix(".curves.npz")
-    if not curves.is_file():
-        raise XvoeError(f"{curves}: no such file; xvoe score writes the curves beside the CSV")
+    curves = read_curves(Path(scores).with_suffix(".curves.npz"), len(table["index"]))
     rows = {int(video): row for row, video in enumerate(table["index"])}
     missing = [i for i in indices if i not in rows]
     if missing:
         raise XvoeError(f"{scores} has no score of video {missing[0]}; were these scores made from this split?")
-    with np.load(curves) as saved:
-        return definition_curves({name: saved[name][[rows[i] for i in indices]] for name in saved.files
-                                  if name != "header"})
+    picked = [rows[i] for i in indices]
+    return definition_curves({name: values[picked] for name, values in curves.arrays.items()}, curves.own,
+                             curves.label)
 
 
 def show(path: str | Path, index: int, out: str | Path | None = None, overwrite: bool = False,
@@ -594,6 +592,8 @@ class PairCurves:
     possible: list[bool]
     events: list[int]               # each member's event frame (-1: none, or no split given)
     lowered: np.ndarray             # (T,) how far the wall stands in either member (0 without the split)
+    own: str | None = None          # a model's own curve (`xvoe.evaluation.score.Curves`); None: the MSE's terms
+    label: str = MSE_LABEL          # what its axis measures
 
 
 def pair_curves(scores: str | Path, data: str | Path | None, scenario: str, setting: str, pair: int,
@@ -601,20 +601,12 @@ def pair_curves(scores: str | Path, data: str | Path | None, scenario: str, sett
     """The curves of a test pair from a scores CSV and its curves file, checked against the test
     split `data` (None: the curves alone); `frame`, a cursor to draw, checked against them."""
     table = read_scores(scores)
-    curves = Path(curves) if curves is not None else Path(scores).with_suffix(".curves.npz")
-    if not curves.is_file():
-        raise XvoeError(f"{curves}: no such file; score_split (xvoe score) writes the curves beside the CSV")
-    with np.load(curves) as saved:
-        if not {"s_img", "s_dyn"} <= set(saved.files):
-            raise XvoeError(f"{curves} is not a curves file (it holds {', '.join(saved.files)})")
-        found = {name: saved[name] for name in saved.files if name != "header"}
-    if found["s_img"].shape[0] != len(table["index"]):
-        raise XvoeError(f"{curves} holds {found['s_img'].shape[0]} videos but {scores} {len(table['index'])}: "
-                        "they were not written together")
+    saved = read_curves(curves if curves is not None else Path(scores).with_suffix(".curves.npz"),
+                        len(table["index"]))
     rows = _pair_rows(table["scenario"], table["setting"], table["pair"], table["member"], scenario, setting, pair,
                       str(scores))
     videos = [int(table["index"][r]) for r in rows]
-    frames = found["s_img"].shape[1]
+    frames = saved.total.shape[1]
     events, lowered = [-1, -1], np.zeros(frames)
     if data is not None:
         with store.open_dataset(data) as file:
@@ -631,8 +623,8 @@ def pair_curves(scores: str | Path, data: str | Path | None, scenario: str, sett
     if frame is not None and not 0 <= frame < frames:
         raise XvoeError(f"frame {frame} is out of range: the videos have frames 0..{frames - 1}")
     model = str(table["model"][0]) if "model" in table else Path(scores).stem
-    return PairCurves(model, {name: values[list(rows)] for name, values in found.items()},
-                      [bool(table["possible"][r]) for r in rows], events, lowered)
+    return PairCurves(model, {name: values[list(rows)] for name, values in saved.arrays.items()},
+                      [bool(table["possible"][r]) for r in rows], events, lowered, saved.own, saved.label)
 
 
 def draw_pair_curves(ax, values: np.ndarray, labels: list[str], events: list[int], lowered: np.ndarray | None = None,
@@ -684,18 +676,22 @@ def _marks(data: str | Path | None, frame: int | None) -> list[str]:
 def plot_surprise_curves(scores: str | Path, data: str | Path | None, scenario: str, setting: str, pair: int, *,
                          curves: str | Path | None = None, frame: int | None = None) -> plt.Figure:
     """Per-frame surprise of the two members of a test pair: s_img, s_dyn and their sum, and
-    the excess (s_img - s_rec + s_dyn) when the curves hold s_rec (models with a perception).
+    the excess (s_img - s_rec + s_dyn) when the curves hold s_rec (models with a perception);
+    a model's own curve alone, on its own axis, for a model answering `surprise(videos)`.
 
     scores: a CSV written by `xvoe score` (score_split); curves: its per-frame curves (default:
     the .curves.npz beside it); data: the test split that was scored, for the event frame (red
     line) and the frames where the wall stands (grey; lighter while it moves), or None for
     the curves alone. frame: a frame to mark (a cursor)."""
     found = pair_curves(scores, data, scenario, setting, pair, curves, frame)
-    s_img, s_dyn = found.curves["s_img"], found.curves["s_dyn"]
-    unit = "surprise (squared pixel error)"
-    panels = [("s_img", unit, s_img), ("s_dyn", "", s_dyn), ("s_img + s_dyn", "", s_img + s_dyn)]
-    if "s_rec" in found.curves:
-        panels.append(("excess: s_img - s_rec + s_dyn", "", excess(s_img, s_dyn, found.curves["s_rec"])))
+    if found.own:
+        panels = [(found.own, f"surprise\n({found.label})", found.curves[found.own])]
+    else:
+        s_img, s_dyn = found.curves["s_img"], found.curves["s_dyn"]
+        unit = f"surprise\n({MSE_LABEL})"
+        panels = [("s_img", unit, s_img), ("s_dyn", "", s_dyn), ("s_img + s_dyn", "", s_img + s_dyn)]
+        if "s_rec" in found.curves:
+            panels.append(("excess: s_img - s_rec + s_dyn", "", excess(s_img, s_dyn, found.curves["s_rec"])))
     return _curves_figure(found, panels, f"{found.model}: {scenario} {setting} pair {pair}", _marks(data, frame),
                           frame)
 
@@ -714,13 +710,17 @@ def plot_surprise_definitions(scores: str | Path, data: str | Path | None, scena
                           _marks(data, frame), frame)
 
 
-def definition_curves(curves: dict[str, np.ndarray]) -> dict[str, tuple[str, np.ndarray]]:
+def definition_curves(curves: dict[str, np.ndarray], own: str | None = None,
+                      label: str = MSE_LABEL) -> dict[str, tuple[str, np.ndarray]]:
     """Each surprise definition's per-frame curve in saved curves, by name: its axis label and
-    values. With the NLL's: the MSE's (s_img + s_dyn) and the NLL's; without: the score's own."""
+    values. With the NLL's: the MSE's (s_img + s_dyn) and the NLL's; without: the score's own (a
+    model's `own` curve, under its `label`)."""
+    if own:
+        return {own: (label, curves[own])}
     summed = curves["s_img"] + curves["s_dyn"]
     if "nll" not in curves:
-        return {"surprise": ("surprise", summed)}
-    return {"MSE: s_img + s_dyn": ("squared pixel error", summed),
+        return {"surprise": (MSE_LABEL, summed)}
+    return {"MSE: s_img + s_dyn": (MSE_LABEL, summed),
             "NLL: -log p(x_t | x_<t)": ("nats", curves["nll"])}
 
 

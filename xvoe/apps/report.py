@@ -24,7 +24,7 @@ from ..evaluation.metrics import (
     read_scores,
     side_by_side,
 )
-from ..evaluation.score import check_same_split, score_header, scored_split, warn_unchecked
+from ..evaluation.score import check_same_split, read_curves, score_header, scored_split, warn_unchecked
 from ..identity import describe_split, split_identity
 from ..outputs import claim_directory
 from . import figures
@@ -188,15 +188,11 @@ def _event_frames(data: str | Path) -> np.ndarray:
 
 
 def _per_frame(path: Path, rows: int) -> dict[str, np.ndarray]:
-    """The per-frame surprise saved beside a scores file, row by row, by definition: "mse" (s_img
-    + s_dyn) and, where the NLL was scored, "nll"; none without a curves file."""
+    """The per-frame surprise saved beside a scores file, row by row (`read_curves`), by
+    definition: "mse" (s_img + s_dyn, or a model's own curve) and, where the NLL was scored,
+    "nll"; none without a curves file."""
     curves = path.with_suffix(".curves.npz")
     if not curves.is_file():
         return {}
-    with np.load(curves) as saved:
-        if not {"s_img", "s_dyn"} <= set(saved.files) or saved["s_img"].shape[0] != rows:
-            raise XvoeError(f"{curves} does not hold the curves of {path} (s_img and s_dyn, one row per video)")
-        found = {"mse": saved["s_img"] + saved["s_dyn"]}
-        if "nll" in saved.files:
-            found["nll"] = saved["nll"]
-        return found
+    saved = read_curves(curves, rows)
+    return {"mse": saved.total} | ({"nll": saved.arrays["nll"]} if "nll" in saved.arrays else {})

@@ -33,8 +33,8 @@ SURPRISES = ("mse", "nll", "both")
 
 def score(model: str | Scorer, data: str | Path, out: str | Path, *, surprise: str = "mse",
           particles: int | None = None, seed: int = 0, nll_settings: dict[str, Any] | None = None, how: str = "sum",
-          videos_per_batch: int = 16, shard: tuple[int, int] = (0, 1), workers: int = 1, overwrite: bool = False,
-          progress: bool = True) -> Path:
+          videos_per_batch: int = 16, shard: tuple[int, int] = (0, 1), workers: int = 1, checks: bool = True,
+          overwrite: bool = False, progress: bool = True) -> Path:
     """Score every video of a test split into a CSV (and the per-frame curves beside it).
 
     surprise: "mse", the MSE score (the columns score, s_img and s_dyn hold the default verdict,
@@ -51,7 +51,10 @@ def score(model: str | Scorer, data: str | Path, out: str | Path, *, surprise: s
     workers: processes that each score a shard with the cores shared out, then merged: the
     bytes of one run with as many threads as each worker has. On 2 cores the NLL's small
     tensors keep two processes busier than two threads (docs/decisions.md, "Scoring in worker
-    processes")."""
+    processes").
+    checks: a model answering `surprise(videos)` (a model of your own, PhyDNet, random) passes
+    the harness of xvoe.evaluation.checks before its scores are written; False skips all but
+    the finite check (docs/evaluate-your-model.md, "4. The checks")."""
     if surprise not in SURPRISES:
         raise XvoeError(f"--surprise must be mse, nll or both, not {surprise!r}")
     if workers < 1:
@@ -62,11 +65,11 @@ def score(model: str | Scorer, data: str | Path, out: str | Path, *, surprise: s
             raise XvoeError("--workers shards the split itself; leave out --shard")
         return _score_in_workers(model, data, out, workers, overwrite, progress, surprise=surprise,
                                  particles=particles, seed=seed, nll_settings=nll_settings, how=how,
-                                 videos_per_batch=videos_per_batch)
+                                 videos_per_batch=videos_per_batch, checks=checks)
     scorer = load_model(model) if isinstance(model, str) else model
     return score_split(scorer, str(data), str(out), how=how, videos_per_batch=videos_per_batch, extra=extra,
-                       score_column="nll" if surprise == "nll" else "score", shard=shard, overwrite=overwrite,
-                       progress=progress)
+                       score_column="nll" if surprise == "nll" else "score", shard=shard, checks=checks,
+                       overwrite=overwrite, progress=progress)
 
 
 def check_explanation(explanation: str) -> None:

@@ -6,6 +6,11 @@ and any a higher layer adds, such as the NLL's) is computed from that one encodi
 The PhyDNet baseline predicts pixels, not latents: its per-frame surprise is the squared
 error of its one-step prediction summed over pixels (0 at frame 0). It is written in the
 s_dyn column and curve; s_img is all zeros for it.
+
+A model answering `surprise(videos)` (`SurpriseModel`: PhyDNet, the random agent, a model of
+your own) has one term, written in the s_dyn column; its per-frame curve is stored under the
+model's own name for it (`curve_of`), and it passes the harness of xvoe.evaluation.checks
+before anything is written.
 """
 from __future__ import annotations
 
@@ -14,6 +19,7 @@ import importlib
 import importlib.metadata
 import importlib.util
 import json
+import re
 import sys
 import warnings
 import zipfile
@@ -41,6 +47,7 @@ from ..training.latents import encode_frames
 from ..training.perception import load_perception
 from ..training.phydnet import load_phydnet
 from ..training.xpl import load_xpl, nll_settings_of
+from .checks import check_batches, check_finite, check_spread, sample_rows
 from .metrics import excess
 from .surprise import aggregate, every_explanation
 
@@ -51,6 +58,7 @@ SCORE_COLUMNS = ("index", "model", "scenario", "setting", "pair", "member", "pos
 # the per-frame curves beside a score file, in this order (then any extra columns' own: the NLL's
 # nll); the paper's score is the sum of the last two
 CURVES = ("s_img", "s_dyn", "s_rec", "paper_s_img", "paper_s_dyn")
+MSE_LABEL = "squared pixel error"       # the unit of the MSE curves, on every axis that draws them
 EXCESS_COLUMNS = ("s_rec", "excess")    # models with a perception module: XPL, its ablation, PLATO
 
 
@@ -71,8 +79,9 @@ class SurpriseModel(Protocol):
     takes it: an object, or a factory of one, with a `name` and a `surprise` method; an
     `image_size` attribute, if it has one, is checked against the split's frames. It may also
     have `explain(videos)`, the frames (B, T, H, W, C >= 3) uint8 of what it believes is behind
-    the wall, which `xvoe explain` draws under the video. docs/evaluate-your-model.md walks
-    through one."""
+    the wall, which `xvoe explain` draws under the video, and `curve` and `curve_label`, the
+    name its per-frame surprise is stored under and the axis it is drawn on (`curve_of`).
+    docs/evaluate-your-model.md walks through one."""
 
     name: str
 
@@ -97,6 +106,7 @@ class PhyDNetSurprise:
     """The PhyDNet baseline as a surprise model: its one-step prediction error per frame."""
 
     name = "phydnet"
+    curve, curve_label = "s_dyn", MSE_LABEL
 
     def __init__(self, net: PhyDNet):
         self.net, self.image_size = net, net.config.image_size
@@ -258,20 +268,54 @@ def load_surprise_model(reference: str) -> SurpriseModel:
     if not callable(getattr(model, "surprise", None)) or not isinstance(getattr(model, "name", None), str):
         raise XvoeError(f"{reference} is not a surprise model: it needs a name (str) and a surprise(videos) "
                         "method (docs/evaluate-your-model.md)")
+    curve_of(model)
     return model
+
+
+def curve_of(model: SurpriseModel) -> tuple[str, str]:
+    """The name a model's per-frame surprise is stored under in the curves file and the axis
+    label it is drawn with: its `curve` and `curve_label`, by default "surprise" for both (a
+    model's own surprise is in its own units, not the MSE's squared pixel error)."""
+    curve = getattr(model, "curve", "surprise")
+    label = getattr(model, "curve_label", curve)
+    if not isinstance(curve, str) or not re.fullmatch(r"[A-Za-z][A-Za-z0-9_-]{0,39}", curve) or curve == "header":
+        raise XvoeError(f"the model {model.name}'s curve must be a name of letters, digits, _ and - (up to 40, "
+                        f"not 'header'), not {curve!r}")
+    if not isinstance(label, str) or not label.strip() or "\n" in label:
+        raise XvoeError(f"the model {model.name}'s curve_label must be one line of text, not {label!r}")
+    return curve, label
 
 
 def custom_surprise(scorer: Scorer, file, start: int, stop: int) -> np.ndarray:
     """A model of your own's per-frame surprise (B, T) of videos [start, stop), checked."""
-    rgbd = file["rgbd"][start:stop]
-    found = scorer.custom.surprise(read_videos(file, start, stop))
+    return checked_surprise(scorer, read_videos(file, start, stop))
+
+
+def checked_surprise(scorer: Scorer, videos: Videos) -> np.ndarray:
+    """`scorer.custom.surprise(videos)` as floats (B, T), refused in one line unless of that shape and finite."""
+    found = scorer.custom.surprise(videos)
     values = np.asarray(found.detach().cpu() if isinstance(found, Tensor) else found, dtype=float)
-    if values.shape != rgbd.shape[:2]:
-        raise XvoeError(f"the model {scorer.name} gave surprise of shape {values.shape} for {rgbd.shape[0]} videos "
-                        f"of {rgbd.shape[1]} frames; expected {rgbd.shape[:2]}")
-    if not np.all(np.isfinite(values)):
-        raise XvoeError(f"the model {scorer.name} gave surprise that is not finite for videos {start}..{stop - 1}")
+    expected = videos.rgbd.shape[:2]
+    if values.shape != expected:
+        raise XvoeError(f"the model {scorer.name} gave surprise of shape {values.shape} for {expected[0]} videos "
+                        f"of {expected[1]} frames; expected {expected}")
+    check_finite(values, videos.index, scorer.name)
     return values
+
+
+def check_model(scorer: Scorer, file, first: int, last: int) -> None:
+    """The harness's batch checks (xvoe.evaluation.checks) on a seeded sample of videos [first, last)."""
+    rows = sample_rows(first, last)
+    sample = [read_videos(file, row, row + 1) for row in rows]
+    check_batches(lambda positions: checked_surprise(scorer, stack_videos([sample[p] for p in positions])), rows,
+                  scorer.name)
+
+
+def stack_videos(videos: list[Videos]) -> Videos:
+    """Batches of videos as one batch, in the order given."""
+    return Videos(np.concatenate([v.rgbd for v in videos]), np.concatenate([v.ids for v in videos]),
+                  videos[0].frames, np.concatenate([v.walls for v in videos]),
+                  np.concatenate([v.index for v in videos]))
 
 
 class ExtraColumns(Protocol):
@@ -298,14 +342,16 @@ class ExtraColumns(Protocol):
 
 def score_split(model: str | Scorer, data: str, out: str, *, how: str = "sum", videos_per_batch: int = 16,
                 extra: ExtraColumns | None = None, score_column: str = "score", shard: tuple[int, int] = (0, 1),
-                overwrite: bool = False, progress: bool = True) -> Path:
+                checks: bool = True, overwrite: bool = False, progress: bool = True) -> Path:
     """One CSV row per test video, and the per-frame surprise curves (s_img, s_dyn: (N, T);
     s_rec too for a model with a perception module) in an .npz beside it, with the header
     (`score_header`). Models with a perception module also get the columns s_rec and excess
     (xvoe.evaluation.surprise). `extra` adds columns after these (and its curves beside the
     others); `score_column` names one of them to be the score instead of the MSE score. `shard`
     (I, N) scores part I of N, whole batches of it, so that `merge_scores` of the parts writes
-    the bytes one run would have."""
+    the bytes one run would have. `checks`: a model answering `surprise(videos)` passes the
+    harness of xvoe.evaluation.checks (on the shard's videos) before anything is written; False
+    skips all but the finite check."""
     if how not in ("sum", "max"):
         raise XvoeError(f"--aggregate must be sum or max, not {how!r}")
     if score_column != "score" and (extra is None or score_column not in extra.names):
@@ -320,6 +366,9 @@ def score_split(model: str | Scorer, data: str, out: str, *, how: str = "sum", v
         out = claim_file(out, overwrite)
         curves_path = claim_file(out.with_suffix(".curves.npz"), overwrite, what="the curves beside --out")
         first, last = shard_rows(file["rgbd"].shape[0], videos_per_batch, shard)
+        checks = checks and scorer.custom is not None
+        if checks:
+            check_model(scorer, file, first, last)
         labels = store.labels(file, ("scenario", "setting", "pair", "member", "possible"))
         header = {"xvoe": package_version(), "model": scorer.name, "model_identity": model_identity(scorer),
                   "split": split_identity(file), "data": str(Path(data).resolve()), "score": score_column,
@@ -327,10 +376,15 @@ def score_split(model: str | Scorer, data: str, out: str, *, how: str = "sum", v
                   **(extra.settings() if extra is not None else {})}
         curves, added, extra_curves = score_rows(scorer, file, first, last, videos_per_batch, extra, progress)
     columns = row_columns(scorer, curves, added, how, extra, score_column)
+    if checks:
+        check_spread(columns["score"], scorer.name)
+    named = {name: curve for name, curve in zip(CURVES, curves) if scorer.vae is not None or name != "s_rec"}
+    named |= extra_curves
+    if scorer.custom is not None:       # one term, under the model's own name
+        own, header["curve_label"] = curve_of(scorer.custom)
+        named, header["curve"] = {own: curves[1]}, own
     # the CSV and its curves are one result: the CSV, which names the curves, is renamed last
     with atomic_paths(curves_path, out) as (curves_tmp, tmp), open(tmp, "w", newline="") as handle:
-        named = {name: curve for name, curve in zip(CURVES, curves) if scorer.vae is not None or name != "s_rec"}
-        named |= extra_curves
         with open(curves_tmp, "wb") as curves_file:
             np.savez_compressed(curves_file, header=np.array(json.dumps(header, sort_keys=True)), **named)
         writer = csv.writer(handle)
@@ -426,6 +480,40 @@ def check_same_split(path: str | Path, identity: dict, data: str | Path) -> None
     if found is not None and found != identity:
         raise XvoeError(f"{path} was scored on another split ({describe_split(found)}) than {data} "
                         f"({describe_split(identity)}); score {data} instead")
+
+
+@dataclass
+class Curves:
+    """A score file's per-frame curves as figures draw them: the MSE's terms (s_img, s_dyn, and
+    s_rec for a model with a perception module), or a model's own curve alone."""
+
+    arrays: dict[str, np.ndarray]   # name -> (N, T), one row per row of the score file
+    own: str | None                 # the name of a model's own curve (`curve_of`); None: the MSE's terms
+    label: str                      # what the axis measures
+
+    @property
+    def total(self) -> np.ndarray:
+        """(N, T): the per-frame surprise whose sum over frames is the score."""
+        return self.arrays[self.own] if self.own else self.arrays["s_img"] + self.arrays["s_dyn"]
+
+
+def read_curves(path: str | Path, videos: int) -> Curves:
+    """The curves file `path` (.curves.npz) of a score file of `videos` rows; a one-line error
+    for a missing file, one that is not a curves file or one of another score file."""
+    path = Path(path)
+    if not path.is_file():
+        raise XvoeError(f"{path}: no such file; xvoe score writes the curves beside the CSV")
+    with np.load(path) as saved:
+        header = json.loads(str(saved["header"])) if "header" in saved.files else {}
+        own = header.get("curve")
+        needed = {own} if own else {"s_img", "s_dyn"}
+        if not needed <= set(saved.files):
+            raise XvoeError(f"{path} is not a curves file (it holds {', '.join(saved.files)})")
+        arrays = {name: saved[name] for name in saved.files if name != "header"}
+    if any(len(values) != videos for values in arrays.values()):
+        raise XvoeError(f"{path} does not hold the curves of its score file ({videos} videos): "
+                        "they were not written together")
+    return Curves(arrays, own, header.get("curve_label", MSE_LABEL) if own else MSE_LABEL)
 
 
 def package_version() -> str:
