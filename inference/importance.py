@@ -53,10 +53,9 @@ class Estimate:
 def site_log_probs(trace: poutine.Trace, particles: int) -> torch.Tensor:
     """Per-particle sum of every sample site's log-density (masks and scales applied)."""
     trace.compute_log_prob()
-    total = torch.zeros(particles, dtype=torch.float64)
-    for node in trace.nodes.values():
-        if node["type"] != "sample":
-            continue
+    sites = [node for node in trace.nodes.values() if node["type"] == "sample"]
+    total = torch.zeros(particles, dtype=torch.float64, device=sites[0]["log_prob"].device if sites else None)
+    for node in sites:
         log_prob = node["log_prob"].to(torch.float64)
         if log_prob.dim() == 0:
             log_prob = log_prob.expand(particles)

@@ -99,7 +99,7 @@ class HiddenObjectModel(nn.Module):
         if isinstance(self.scene, nn.Module):
             pyro.module("scene", self.scene)
         with pyro.plate("particles", particles, dim=-1):
-            exists = pyro.sample("exists", dist.Bernoulli(torch.tensor(self.config.prior_hidden)))
+            exists = pyro.sample("exists", dist.Bernoulli(torch.tensor(self.config.prior_hidden, device=frames.device)))
             with poutine.mask(mask=exists.bool()):
                 loc, scale = self.scene.initial(particles)
                 trajectory = [pyro.sample("z_0", dist.Normal(loc, scale).to_event(1))]
@@ -126,7 +126,7 @@ class HiddenObjectModel(nn.Module):
             squares = ((expected - frames) / sigma).square().flatten(start_dim=expected.dim() - frames.dim())
             return -0.5 * squares.sum(dim=-1, dtype=torch.float64) - constant
 
-        result = torch.empty(len(alive), dtype=torch.float64)
+        result = torch.empty(len(alive), dtype=torch.float64, device=frames.device)
         if not alive.all():
             result[~alive] = log_density(self.scene.empty())
         if alive.any():

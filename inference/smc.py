@@ -47,8 +47,9 @@ def systematic_resample(weights: Tensor, generator: torch.Generator | None = Non
     multinomial draws."""
     runs, particles = weights.shape
     count = particles if count is None else count
-    offset = torch.rand(runs, 1, generator=generator, dtype=torch.float64)
-    points = (offset + torch.arange(count, dtype=torch.float64)) / count
+    # drawn from the CPU generator and moved: one seed, the same draws on every device
+    offset = torch.rand(runs, 1, generator=generator, dtype=torch.float64).to(weights.device)
+    points = (offset + torch.arange(count, dtype=torch.float64, device=weights.device)) / count
     cumulative = weights.to(torch.float64).cumsum(dim=1)
     cumulative = cumulative / cumulative[:, -1:]           # a sum of 1 - 1e-16 must not leave a point past the end
     return torch.searchsorted(cumulative, points).clamp_max(particles - 1)
@@ -80,19 +81,20 @@ class SMCRun:
 
 
 def run_smc(model: SequentialModel, particles: int, runs: int = 1, threshold: float = 0.5,
-            generator: torch.Generator | None = None) -> SMCRun:
-    """`runs` independent particle filters of `particles` particles each, stepped together.
+            generator: torch.Generator | None = None, device: torch.device | str = "cpu") -> SMCRun:
+    """`runs` independent particle filters of `particles` particles each, stepped together, their
+    weights on `device` (the model's).
 
     After frame t, a run whose ESS is under threshold * particles is resampled and its mean
     weight moved into its evidence; the last frame's weights are never resampled (nothing
     follows to use the copies), so they stay a weighted sample of the posterior."""
     n = runs * particles
     state = model.start(n)
-    log_weights = torch.zeros(runs, particles, dtype=torch.float64)
-    log_evidence = torch.zeros(runs, dtype=torch.float64)
-    origin = torch.arange(particles).expand(runs, particles).clone()
+    log_weights = torch.zeros(runs, particles, dtype=torch.float64, device=device)
+    log_evidence = torch.zeros(runs, dtype=torch.float64, device=device)
+    origin = torch.arange(particles, device=device).expand(runs, particles).clone()
     ess, resampled = [], []
-    base = (torch.arange(runs) * particles)[:, None]
+    base = (torch.arange(runs, device=device) * particles)[:, None]
     target = threshold * particles
 
     for t in range(model.frames):
@@ -100,11 +102,11 @@ def run_smc(model: SequentialModel, particles: int, runs: int = 1, threshold: fl
         log_weights = log_weights + increment.reshape(runs, particles)
         current = effective_sample_size(log_weights)
         ess.append(current)
-        due = current < target if t < model.frames - 1 else torch.zeros(runs, dtype=torch.bool)
+        due = current < target if t < model.frames - 1 else torch.zeros(runs, dtype=torch.bool, device=device)
         resampled.append(due)
         if due.any():
             log_evidence[due] += torch.logsumexp(log_weights[due], dim=1) - math.log(particles)
-            ancestors = torch.arange(particles).expand(runs, particles).clone()
+            ancestors = torch.arange(particles, device=device).expand(runs, particles).clone()
             ancestors[due] = systematic_resample(torch.softmax(log_weights[due], dim=1), generator)
             state = model.select(state, (base + ancestors).reshape(-1))
             log_weights = log_weights.clone()
@@ -145,10 +147,11 @@ class HiddenTrajectory:
         else:
             prior_loc, prior_scale = state.loc, torch.full_like(state.loc, self.config.transition_sigma)
         locs, scales = self.proposal_at(t, prior_loc, prior_scale)
-        chosen = torch.randint(locs.shape[1], (n,), generator=generator)
-        rows = torch.arange(n)
+        # drawn from the CPU generator and moved: one seed, the same draws on every device
+        chosen = torch.randint(locs.shape[1], (n,), generator=generator).to(locs.device)
+        rows = torch.arange(n, device=locs.device)
         loc, scale = locs[rows, chosen], scales[rows, chosen]
-        z = loc + scale * torch.randn(loc.shape, generator=generator, dtype=loc.dtype)
+        z = loc + scale * torch.randn(loc.shape, generator=generator, dtype=loc.dtype).to(loc.device)
         drawn = self.evaluate(t, z, (prior_loc, prior_scale), (locs, scales), state.carried)
         drawn.trajectory = torch.cat([state.trajectory, z[:, None]], dim=1)
         return drawn, drawn.increment
@@ -252,7 +255,7 @@ class LinearSteps:
         return pixel_frame_log_density(self.scene.background + z @ self.scene.H.T, self.observed[t], self.sigma)
 
     def advance(self, t: int, z: Tensor, carried: None) -> tuple[Tensor, None, Tensor]:
-        return z @ self.scene.A.T, None, torch.zeros(len(z), dtype=torch.float64)
+        return z @ self.scene.A.T, None, torch.zeros(len(z), dtype=torch.float64, device=z.device)
 
     def select(self, carried: None, index: Tensor) -> None:
         return None
@@ -283,7 +286,7 @@ class XPLSteps:
         return None
 
     def frame_log_likelihood(self, t: int, z: Tensor) -> Tensor:
-        chosen = torch.full((len(z),), t, dtype=torch.long)
+        chosen = torch.full((len(z),), t, dtype=torch.long, device=z.device)
         drawing = self.scene.draw_frames(z, chosen)
         pixels = pixel_frame_log_density(drawing.frames, self.observed[t], self.config.pixel_sigma)
         return pixels - drawing_cost(self.config, drawing)
@@ -383,14 +386,15 @@ def smc_evidence(scene, frames: Tensor, config: InferenceConfig, proposal: Propo
     run = None
     sure = proposal is not None and float(proposal.p_exists) > config.smc_pilot_skip_exists
     for size in () if sure else pilot_sizes(config):
-        pilot = run_smc(model, size, threshold=config.resample_threshold, generator=generator)
+        pilot = run_smc(model, size, threshold=config.resample_threshold, generator=generator, device=frames.device)
         gap = ((math.log1p(-config.prior_hidden) + log_empty)
                - (math.log(config.prior_hidden) + float(pilot.log_evidence[0])))
         if gap > config.smc_pilot_margin:
             run, particles = pilot, size
             break
     if run is None:
-        run = run_smc(model, particles, threshold=config.resample_threshold, generator=generator)
+        run = run_smc(model, particles, threshold=config.resample_threshold, generator=generator,
+                      device=frames.device)
     log_hidden = float(run.log_evidence[0])
     total, p_hidden = mixture(config.prior_hidden, log_hidden, log_empty)
     return SMCEstimate(total, log_hidden, log_empty, p_hidden, float(run.final_ess[0]), float(run.ess[0].min()),
@@ -428,8 +432,10 @@ def top_hypotheses(estimate: SMCEstimate, top: int = 4) -> Hypotheses | None:
     if estimate.trajectories is None:
         return None
     unique, inverse = torch.unique(estimate.trajectories.flatten(1), dim=0, return_inverse=True)
-    weights = torch.zeros(len(unique), dtype=torch.float64).index_add_(0, inverse, estimate.weights)
-    copies = torch.zeros(len(unique), dtype=torch.long).index_add_(0, inverse, torch.ones_like(inverse))
+    weights = torch.zeros(len(unique), dtype=torch.float64, device=unique.device).index_add_(0, inverse,
+                                                                                             estimate.weights)
+    copies = torch.zeros(len(unique), dtype=torch.long, device=unique.device).index_add_(0, inverse,
+                                                                                         torch.ones_like(inverse))
     order = weights.argsort(descending=True)[:top]
     trajectories = unique[order].reshape(len(order), *estimate.trajectories.shape[1:])
     chosen = weights[order]

@@ -73,7 +73,7 @@ def nll_surprise(vae: ComponentVAE, xpl: XPL, frames: Tensor, mean: Tensor, visi
     scene, loc, spread, free = hidden_object_scene(vae, xpl, mean, visible, background, occluder)
     hidden = scene.hidden
     model = HiddenObjectModel(scene, config)
-    p_exists = torch.sigmoid(xpl.existence_logit(loc[None], spread[None]))[0] if free else torch.tensor(0.0)
+    p_exists = torch.sigmoid(xpl.existence_logit(loc[None], spread[None]))[0] if free else mean.new_zeros(())
     if free and config.refine_steps:
         loc = refine_out_of_sight(scene, loc, frames, config)
     proposal = Proposal(defensive(p_exists, config.particles) if free else p_exists, loc, spread)
@@ -120,7 +120,7 @@ def refine_out_of_sight(scene: XPLScene, loc: Tensor, frames: Tensor, config: In
     `refine_tolerance` nats are left as they are. A deterministic function of the video: the
     guide stays a proper proposal."""
     without = (scene.empty() - frames).square()
-    every = torch.arange(len(loc))
+    every = torch.arange(len(loc), device=loc.device)
 
     def extra_cost(latents: Tensor, chosen: Tensor) -> Tensor:
         """Nats (F,) the hidden object's pictures and its drawing (`drawing_cost`) add in the

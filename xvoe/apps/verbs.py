@@ -24,6 +24,7 @@ from ..evaluation.explain import Explanation, explain_drawn
 from ..evaluation.explain import explain as explain_mse
 from ..evaluation.score import Scorer, load_model, merge_scores, score_split
 from ..evaluation.surprise import EXPLANATIONS
+from ..models.devices import resolve_device
 from ..outputs import claim_file
 
 SURPRISES = ("mse", "nll", "both")
@@ -32,7 +33,7 @@ SURPRISES = ("mse", "nll", "both")
 def score(model: str | Scorer, data: str | Path, out: str | Path, *, surprise: str = "mse",
           particles: int | None = None, seed: int = 0, nll_settings: dict[str, Any] | None = None, how: str = "sum",
           videos_per_batch: int = 16, shard: tuple[int, int] = (0, 1), workers: int = 1, overwrite: bool = False,
-          progress: bool = True) -> Path:
+          progress: bool = True, device: str = "cpu") -> Path:
     """Score every video of a test split into a CSV (and the per-frame curves beside it).
 
     surprise: "mse", the MSE score (the columns score, s_img and s_dyn hold the default verdict,
@@ -49,19 +50,21 @@ def score(model: str | Scorer, data: str | Path, out: str | Path, *, surprise: s
     workers: processes that each score a shard with the cores shared out, then merged: the
     bytes of one run with as many threads as each worker has. On 2 cores the NLL's small
     tensors keep two processes busier than two threads (docs/decisions.md, "Scoring in worker
-    processes")."""
+    processes"). device: where a model given by name runs (cpu, cuda, cuda:N, mps; a loaded
+    `Scorer` runs where it was loaded)."""
     if surprise not in SURPRISES:
         raise XvoeError(f"--surprise must be mse, nll or both, not {surprise!r}")
     if workers < 1:
         raise XvoeError(f"--workers must be at least 1, not {workers}")
     extra = NLLColumns(particles, seed, nll_settings) if surprise != "mse" else None   # bad settings fail here
+    resolve_device(device)      # an absent device too, before any work
     if workers > 1:
         if shard != (0, 1):
             raise XvoeError("--workers shards the split itself; leave out --shard")
         return _score_in_workers(model, data, out, workers, overwrite, progress, surprise=surprise,
                                  particles=particles, seed=seed, nll_settings=nll_settings, how=how,
-                                 videos_per_batch=videos_per_batch)
-    scorer = load_model(model) if isinstance(model, str) else model
+                                 videos_per_batch=videos_per_batch, device=device)
+    scorer = load_model(model, device) if isinstance(model, str) else model
     return score_split(scorer, str(data), str(out), how=how, videos_per_batch=videos_per_batch, extra=extra,
                        score_column="nll" if surprise == "nll" else "score", shard=shard, overwrite=overwrite,
                        progress=progress)
@@ -96,14 +99,15 @@ def _worker_threads(threads: int) -> None:
 
 
 def explain(model: str | Scorer, data: str | Path, index: int, *, surprise: str = "mse",
-            particles: int | None = None, seed: int = 0, explanation: str = "better") -> Explanation:
+            particles: int | None = None, seed: int = 0, explanation: str = "better",
+            device: str = "cpu") -> Explanation:
     """What the model believes is behind the wall in video `index`: Transformer 2's proposal
     (surprise "mse"; with explanation "better", the default verdict's, only where it explains the
     video better than nothing hidden; "proposal", always, as the paper) or the Pyro model's
     posterior (surprise "nll", from `particles` importance samples drawn from `seed`; None: the
-    model's setting)."""
+    model's setting). device: where a model given by name runs."""
     check_explanation(explanation)
-    scorer = load_model(model) if isinstance(model, str) else model
+    scorer = load_model(model, device) if isinstance(model, str) else model
     scorer = replace(scorer, explanation=explanation) if scorer.custom is None else scorer
     if scorer.is_random:
         raise XvoeError("the random agent explains nothing; give a trained model")
