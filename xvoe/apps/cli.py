@@ -15,7 +15,7 @@ import xvoe
 from ..domains import NON_NEGATIVE, POSITIVE, SEED, Domain, check_number
 from ..errors import XvoeError
 from ..models.config import parse_field, parse_value
-from ..models.devices import DEVICES, resolve_device
+from ..models.devices import DEVICES, parse_device, resolve_device
 from ..models.nll import InferenceConfig
 from ..outputs import claim_directory, claim_file, refuse_overlap
 from ..training.data import check_focus
@@ -80,13 +80,9 @@ def _field(cls: type, name: str) -> Callable[[str], Any]:
     return _argument(lambda text: parse_field(cls, name, text))
 
 
-def _device(text: str) -> str:
-    """The argparse type of --device: a device this machine has, refused in one line otherwise."""
-    return str(resolve_device(text))
-
-
 def _add_device(parser: argparse.ArgumentParser, what: str) -> None:
-    parser.add_argument("--device", type=_argument(_device), default="cpu",
+    # a device name is checked here; whether this machine has it, first thing in `main`
+    parser.add_argument("--device", type=_argument(lambda text: str(parse_device(text))), default="cpu",
                         help=f"where {what} runs: {DEVICES} (default cpu)")
 
 
@@ -465,6 +461,7 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     previous = signal.signal(signal.SIGTERM, _interrupt)   # so that a kill cleans up as Ctrl-C does
     try:
+        resolve_device(getattr(args, "device", "cpu"))      # a device this machine lacks, before any work
         check_paths(args)
         args.run(args)
     except XvoeError as error:

@@ -19,6 +19,7 @@ from ..benchmark import store
 from ..benchmark.videos import _labels_of, _pair_rows, check_index, describe, video_indices, wall_lowered
 from ..errors import XvoeError
 from ..evaluation.metrics import excess, read_scores
+from ..models.devices import device_of
 from ..models.perception import normalise, to_uint8
 from ..outputs import atomic_paths, claim_file
 from ..training.data import perception_batch
@@ -229,7 +230,7 @@ def save_reconstructions(model, rgbd: np.ndarray, ids: np.ndarray, out: str | Pa
     chosen = np.sort(rng.choice(most, rows, replace=False) if len(most) >= rows
                      else np.argsort(-objects, kind="stable")[:rows])
     noise = np.zeros((len(chosen), slots + 1, model.config.latent_dim), np.float32)
-    batch = perception_batch(flat_rgbd[chosen], flat_ids[chosen], slots, noise, noise[:1, 0])
+    batch = perception_batch(flat_rgbd[chosen], flat_ids[chosen], slots, noise, noise[:1, 0]).to(device_of(model))
     with torch.no_grad():
         result = model.forward_batch(batch, sample=False)
     shown = int(objects[chosen].max()) + 1
@@ -531,7 +532,8 @@ def predicted_frames(net, rgbd: np.ndarray) -> np.ndarray:
     it, as uint8 of the same shape; frame 0, which nothing predicts, is blank (255)."""
 
     with torch.no_grad():
-        predicted = to_uint8(net(normalise(torch.from_numpy(np.ascontiguousarray(rgbd))[None]))[0]).numpy()
+        frames = normalise(torch.from_numpy(np.ascontiguousarray(rgbd))[None]).to(device_of(net))
+        predicted = to_uint8(net(frames)[0]).numpy()
     return np.concatenate([np.full_like(rgbd[:1], 255), predicted])
 
 
@@ -545,7 +547,7 @@ def plot_predictions(model, data: str | Path, index: int) -> plt.Figure:
     with store.open_dataset(data) as file:
         check_index(file, index)
         rgbd = file["rgbd"][index]
-    surprise = net.surprise(normalise(torch.from_numpy(rgbd))[None])[0, 1:]
+    surprise = net.surprise(normalise(torch.from_numpy(rgbd))[None].to(device_of(net)))[0, 1:]
     per_frame = " ".join(f"{value:.0f}" for value in surprise.tolist())
     return frame_rows([("observed", rgbd), ("predicted", predicted_frames(net, rgbd))],
                       f"video {index}: surprise of frames 1-{len(rgbd) - 1}: {per_frame}")

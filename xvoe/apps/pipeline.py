@@ -135,7 +135,8 @@ def run_pipeline(config: PipelineConfig) -> Path:
         workers=config.workers, overwrite=True, progress=config.progress))
     cores = len(os.sched_getaffinity(0))
     processes = config.train_processes or cores
-    if config.device != "cpu":      # lanes and one-thread processes share out CPU cores; one process drives a device
+    on_device = resolve_device(config.device).type != "cpu"
+    if on_device:       # lanes and one-thread processes share out CPU cores; one process drives a device
         processes = 1
     if any(model in TRAINED_ON_LATENTS for model in config.models):     # PhyDNet and random need no perception
         # one process with every core's thread: its convolutions use them (docs/decisions.md, "Training
@@ -147,7 +148,7 @@ def run_pipeline(config: PipelineConfig) -> Path:
                                                         progress=config.progress, device=config.device))
     (run_dir / "scores").mkdir(exist_ok=True)
     heavy = sorted((m for m in config.models if m != "random"), key=LANE_ORDER.index)
-    lanes = min(config.jobs or cores, len(heavy)) if config.device == "cpu" else 1
+    lanes = 1 if on_device else min(config.jobs or cores, len(heavy))
     if lanes > 1:       # one model's training per lane, the cores shared out: two 1-thread runs beat one 2-thread run
         threads = max(1, cores // lanes)
         context = multiprocessing.get_context("spawn")

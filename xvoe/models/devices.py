@@ -17,29 +17,35 @@ from ..errors import XvoeError
 DEVICES = "cpu, cuda, cuda:N or mps"
 
 
-def resolve_device(name: str | torch.device = "cpu") -> torch.device:
-    """The device `name` names, or a one-line XvoeError when it is none or this machine lacks it."""
+def parse_device(name: str | torch.device) -> torch.device:
+    """The device `name` names, on this machine or not, or a one-line XvoeError."""
     try:
         found = torch.device(name)
     except (RuntimeError, TypeError):
         raise XvoeError(f"{name!r} is not a device: give {DEVICES}") from None
+    if found.type not in ("cpu", "cuda", "mps"):
+        raise XvoeError(f"{name!r} is not a device: give {DEVICES}")
+    return found
+
+
+def resolve_device(name: str | torch.device = "cpu") -> torch.device:
+    """The device `name` names, or a one-line XvoeError when it is none or this machine lacks it."""
+    found = parse_device(name)
     if found.type == "cuda":
         count = torch.cuda.device_count() if torch.cuda.is_available() else 0
         if count == 0:
             raise XvoeError(f"this machine has no CUDA device for {name!r} (torch {torch.__version__})")
         if found.index is not None and found.index >= count:
             raise XvoeError(f"this machine has no {name!r}: {count} CUDA device(s), numbered from 0")
-    elif found.type == "mps":
-        if not torch.backends.mps.is_available():
-            raise XvoeError(f"this machine has no MPS device for {name!r}")
-    elif found.type != "cpu":
-        raise XvoeError(f"{name!r} is not a device: give {DEVICES}")
+    elif found.type == "mps" and not torch.backends.mps.is_available():
+        raise XvoeError(f"this machine has no MPS device for {name!r}")
     return found
 
 
-def device_of(module: torch.nn.Module) -> torch.device:
-    """The device a network's weights are on."""
-    return next(module.parameters()).device
+def device_of(module: Any) -> torch.device:
+    """The device a network's weights are on; the CPU for anything without weights (a stand-in)."""
+    weights = module.parameters() if isinstance(module, torch.nn.Module) else iter(())
+    return next((weight.device for weight in weights), torch.device("cpu"))
 
 
 def mixed_precision(device: torch.device) -> contextlib.AbstractContextManager:
