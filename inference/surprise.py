@@ -36,7 +36,8 @@ Seed = int | torch.Generator | None
 
 
 def generator_from(seed: Seed) -> torch.Generator:
-    """A generator of its own for a seed (None: 0); a generator is used as it is."""
+    """A generator of its own for a seed (None: 0); a generator is used as it is. On the CPU
+    whatever the device: its draws are moved there, so a seed gives the same draws on any."""
     if isinstance(seed, torch.Generator):
         return seed
     return torch.Generator().manual_seed(0 if seed is None else int(seed))

@@ -264,7 +264,7 @@ def seen_neighbours(visible: Tensor) -> tuple[Tensor, Tensor]:
     """(N, T, K) frame indices: the last frame <= t and the first frame >= t in which each slot
     is seen; where one side has none, the other side's; 0 for a slot seen in no frame."""
     count = visible.shape[1]
-    frames = torch.arange(count).view(1, -1, 1)
+    frames = torch.arange(count, device=visible.device).view(1, -1, 1)
     before = torch.where(visible, frames, -1).cummax(dim=1).values
     after = torch.where(visible, frames, count).flip(1).cummin(dim=1).values.flip(1)
     before, after = torch.where(before < 0, after, before), torch.where(after == count, before, after)
@@ -287,7 +287,7 @@ def bridge_hidden(mean: Tensor, visible: Tensor) -> Tensor:
     scored on seen frames alone, Transformer 2 proposes nothing in the frames a wall covers.
     A static object is held exactly; one moving behind a wall is bridged at constant speed."""
     before, after = seen_neighbours(visible)
-    frames = torch.arange(mean.shape[1]).view(1, -1, 1)
+    frames = torch.arange(mean.shape[1], device=mean.device).view(1, -1, 1)
     share = ((frames - before) / (after - before).clamp_min(1)).unsqueeze(-1).to(mean.dtype)
     bridged = take_frames(mean, before) * (1 - share) + take_frames(mean, after) * share
     seen = visible.any(dim=1, keepdim=True)                                           # the others keep theirs
@@ -387,7 +387,7 @@ def wall_stays(mean: Tensor, visible: Tensor, walls: Tensor) -> tuple[Tensor, Te
     ask Transformer 2 for an object it never saw. Without this, Transformer 2 answers with
     the wall's training timetable (a wall coming down, then going up)."""
     before, after = seen_neighbours(visible)
-    frames = torch.arange(mean.shape[1]).view(1, -1, 1)
+    frames = torch.arange(mean.shape[1], device=mean.device).view(1, -1, 1)
     nearest = torch.where(frames - before <= after - frames, before, after)    # the earlier on a tie
     stays = (walls & visible.any(dim=1)).unsqueeze(1)                           # (N, 1, K)
     return torch.where(stays.unsqueeze(-1), take_frames(mean, nearest), mean), visible | stays
