@@ -1,32 +1,35 @@
-"""The analysis-by-synthesis model of a video with possibly one fully hidden object.
+"""The analysis-by-synthesis model of a video with possibly one fully hidden object, written
+once, frame by frame, in Pyro.
 
 Generative story: the latents of the objects that are seen are given (they live inside the
 `Scene`); a hidden object exists with prior probability p (site `exists`); if it does, its
-latent trajectory starts from the latent prior and follows the scene's dynamics with
-Gaussian transitions (sites `z_0` ... `z_{T-1}`); every frame is rendered from all latents
-and observed under a Gaussian pixel likelihood (site `frames`), less a penalty for every pixel
-the hidden object shows in front of everything else (the encoder reported no object there) and
-for every pixel it draws short of an object's area (a latent that draws nothing is no object).
+latent starts from the latent prior (site `z_0`) and follows the scene's dynamics with
+Gaussian transitions (sites `z_1` ... `z_{T-1}`). Frame t is rendered from all latents and
+observed under a Gaussian pixel likelihood (site `x_t`), less a penalty for every pixel the
+hidden object shows in front of everything else (the encoder reported no object there) and
+for every pixel it draws short of an object's area (a latent that draws nothing is no
+object); the dynamics then predict frame t + 1, and the seen objects' latents there are
+observed under that prediction (site `motion_{t+1}`): a hidden object that explains a ball
+bouncing back raises the likelihood.
 
-The guide proposes `exists` from its own amortised probability and the trajectory from a
-per-frame Gaussian (in XPL: Transformer 2's mean and scale), by default fused with the
-model's own step: each z_t is drawn from the product of the dynamics' Gaussian given the
-particle's past and the per-frame Gaussian, as if the latter were a measurement of z_t (the
-locally optimal proposal of a Kalman filter), its scale widened (`proposal_widening`): it says
-where the object is on the whole, not anew each frame, and a proposal narrower than the
-posterior misses part of the evidence, where a wider one only costs variance. Drawn
-independently frame by frame, a trajectory jitters by the per-frame scale, far more than the
-dynamics' transition noise, and every particle holding an object pays hundreds of nats for it.
-The trajectory sites are masked by `exists` in both model and guide, so a particle without a
-hidden object is weighted by p(no object) p(x | no object) / q(no object) alone: an exact
-trans-dimensional importance sampler. Every site lives in a `particles` plate, for
-`inference.importance`.
+The model is written as Pyro's `SMCFilter` models are, an `init` and a `step` per frame, with
+every site in a `particles` plate that the caller opens; `model` runs them over the whole
+video. The guide (`guide_init`, `guide_step`, `guide`) proposes `exists` from its own
+amortised probability and each z_t from Transformer 2's per-frame Gaussian fused with the
+dynamics' step: the product of the two Gaussians, as if the former were a measurement of z_t
+(the locally optimal proposal of a Kalman filter), its scale widened, since it says where the
+object is on the whole, not anew each frame, and a proposal narrower than the posterior misses
+part of the evidence. The trajectory sites are masked by `exists` in both model and guide, so a
+particle without a hidden object is weighted by p(no object) p(x | no object) / q(no object)
+alone: an exact trans-dimensional importance sampler. Sequential Monte Carlo and importance
+sampling (`inference.smc`) both run these methods through Pyro's trace and replay; no density
+is written anywhere else.
 """
 from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import NamedTuple, Protocol
+from typing import Any, NamedTuple, Protocol
 
 import pyro
 import pyro.distributions as dist
@@ -36,13 +39,23 @@ from torch import Tensor, nn
 
 from xvoe.models.nll import InferenceConfig
 
+State = dict[str, Any]     # what a particle carries from frame to frame: exists, trajectory, the dynamics' memory
+
 
 class Drawing(NamedTuple):
-    """What a scene draws with a hidden object on trajectories (M, T, D)."""
+    """What a scene draws of a hidden object in one frame, for M particles."""
 
-    frames: Tensor      # (M, T, ...) the expected frames
-    exposure: Tensor    # (M, T) pixels the hidden object shows in front of everything else
-    area: Tensor        # (M, T) pixels it draws in front of the background, before any wall hides it
+    frames: Tensor      # (M, ...) the expected frame
+    exposure: Tensor    # (M,) pixels the hidden object shows in front of everything else
+    area: Tensor        # (M,) pixels it draws in front of the background, before any wall hides it
+
+
+class Step(NamedTuple):
+    """The dynamics after frame t, for every particle."""
+
+    loc: Tensor                 # (N, D) mean of the hidden object's next latent
+    memory: Any                 # the scene's state to carry on (the dynamics' memory), None if it has none
+    seen: Tensor | None         # (N, M, D) the predicted next latents of the seen moving objects, None if none
 
 
 class Scene(Protocol):
@@ -53,22 +66,27 @@ class Scene(Protocol):
     def initial(self, particles: int) -> tuple[Tensor, Tensor]:
         """Mean and scale (N, D) of the hidden object's first latent."""
 
-    def transition(self, history: Tensor) -> Tensor:
-        """Mean (N, D) of the next latent given the hidden object's latents so far (N, t, D)."""
+    def empty_frame(self, t: int) -> Tensor:
+        """The expected frame t without a hidden object."""
 
-    def empty(self) -> Tensor:
-        """Expected frames (T, ...) without a hidden object."""
+    def draw_frame(self, t: int, latents: Tensor) -> Drawing:
+        """Frame t with a hidden object at each of the latents (M, D)."""
 
-    def draw(self, trajectory: Tensor) -> Drawing:
-        """Expected frames (M, T, ...) with a hidden object on each trajectory (M, T, D), the
-        pixels where it would be in plain view (its exposure) and the pixels it draws at all."""
+    def advance(self, t: int, latents: Tensor, alive: Tensor, memory: Any) -> Step:
+        """The dynamics run on frame t, the hidden slot holding `latents` (N, D) where `alive`."""
+
+    def seen_motion(self, t: int) -> tuple[Tensor, Tensor] | None:
+        """The seen moving objects' latents (M, D) at frame t and which the encoder saw (M,)."""
+
+    def select(self, memory: Any, index: Tensor) -> Any:
+        """The memory of the particles `index` (resampling)."""
 
 
 def drawing_cost(config: InferenceConfig, drawing: Drawing) -> Tensor:
-    """Nats (M, T) float64 the hidden object's drawing costs besides its pixels' likelihood: each
-    pixel it shows in plain view, where the encoder saw nothing, and each pixel it falls short
-    of an object's area (a share of the drawn frames' H x W): the object must be there, hidden
-    behind a wall, not a shadow of one."""
+    """Nats float64 the hidden object's drawing costs besides its pixels' likelihood: each pixel
+    it shows in plain view, where the encoder saw nothing, and each pixel it falls short of an
+    object's area (a share of the drawn frame's H x W): the object must be there, hidden behind
+    a wall, not a shadow of one."""
     frame_pixels = drawing.frames.shape[-2] * drawing.frames.shape[-1]
     shortfall = (config.object_area * frame_pixels - drawing.area.to(torch.float64)).clamp_min(0.0)
     return config.exposure_penalty * drawing.exposure.to(torch.float64) + config.presence_penalty * shortfall
@@ -78,6 +96,14 @@ def pixel_log_normaliser(pixels: int, sigma: float) -> float:
     """log of the normaliser of an isotropic Gaussian over `pixels` values: the pixel
     likelihood's constant, also that of a reference drawing scored the same way."""
     return pixels * (math.log(sigma) + 0.5 * math.log(2 * math.pi))
+
+
+def pixel_log_density(expected: Tensor, observed: Tensor, sigma: float) -> Tensor:
+    """log N(observed | expected, sigma^2) of each leading entry of expected (n, ...) against one
+    observed frame, summed in float64: a frame's thousands of pixel terms would lose in float32
+    the digits that tell two videos apart."""
+    squares = ((expected - observed) / sigma).square().flatten(start_dim=1)
+    return -0.5 * squares.sum(dim=1, dtype=torch.float64) - pixel_log_normaliser(observed.numel(), sigma)
 
 
 @dataclass
@@ -93,80 +119,117 @@ class HiddenObjectModel(nn.Module):
     def __init__(self, scene: Scene, config: InferenceConfig):
         super().__init__()
         self.scene, self.config = scene, config
-        self._steps: dict[int, tuple[Tensor, Tensor, Tensor]] = {}   # the guide's dynamics steps, for the model
+        self.frames = scene.frames
+
+    @property
+    def device(self) -> torch.device:
+        """Where the scene's tensors are; the model's own follow them."""
+        return self.scene.empty_frame(0).device
+
+    # --- the model ------------------------------------------------------------------------------
+
+    def init(self, state: State, particles: int) -> None:
+        exists = pyro.sample("exists", dist.Bernoulli(torch.tensor(self.config.prior_hidden, device=self.device)))
+        state.update(exists=exists.bool(), trajectory=None, memory=None)
+        state["loc"], state["scale"] = self.scene.initial(particles)
+
+    def step(self, state: State, t: int, frame: Tensor) -> None:
+        alive = state["exists"]
+        with poutine.mask(mask=alive):
+            z = pyro.sample(f"z_{t}", dist.Normal(state["loc"], state["scale"]).to_event(1))
+        pyro.factor(f"x_{t}", self.frame_log_likelihood(t, z, alive, frame))
+        keep(state, z)
+        if t + 1 < self.frames:
+            predicted = self.advance(state, t, z)
+            motion = self.scene.seen_motion(t + 1)
+            if predicted is not None and motion is not None:
+                seen, observed = motion
+                pyro.sample(f"motion_{t + 1}", dist.Normal(predicted.double(), self.config.motion_sigma)
+                            .mask(observed[:, None]).to_event(2), obs=seen.double())
 
     def model(self, frames: Tensor, proposal: Proposal | None = None, particles: int = 1) -> Tensor:
+        """The whole video: `init`, then `step` for every frame."""
+        state: State = {}
         if isinstance(self.scene, nn.Module):
             pyro.module("scene", self.scene)
         with pyro.plate("particles", particles, dim=-1):
-            exists = pyro.sample("exists", dist.Bernoulli(torch.tensor(self.config.prior_hidden, device=frames.device)))
-            with poutine.mask(mask=exists.bool()):
-                loc, scale = self.scene.initial(particles)
-                trajectory = [pyro.sample("z_0", dist.Normal(loc, scale).to_event(1))]
-                for t in range(1, self.scene.frames):
-                    loc = self._transition(torch.stack(trajectory, dim=1), exists.bool())
-                    step = dist.Normal(loc, self.config.transition_sigma).to_event(1)
-                    trajectory.append(pyro.sample(f"z_{t}", step))
-            pyro.factor("frames", self.pixel_log_likelihood(torch.stack(trajectory, dim=1), exists.bool(), frames))
-            if hasattr(self.scene, "seen_motion"):
-                predicted, seen, observed = self.scene.seen_motion(torch.stack(trajectory, dim=1), exists)
-                motion = dist.Normal(predicted, self.config.motion_sigma).mask(observed[..., None]).to_event(3)
-                pyro.sample("seen_motion", motion, obs=seen.expand(particles, *seen.shape))
-        return exists
+            self.init(state, particles)
+            for t in range(self.frames):
+                self.step(state, t, frames[t])
+        return state["exists"]
 
-    def pixel_log_likelihood(self, trajectory: Tensor, alive: Tensor, frames: Tensor) -> Tensor:
-        """log N(frames | rendered frames, pixel_sigma^2) of each particle (N,), less the cost
-        of its hidden object's drawing (`drawing_cost`), summed in float64. Every particle
-        without a hidden object shows the same frames, so they are rendered and scored once; a
-        (N, T, 4, H, W) density of 64 particles cost a third of the scoring time."""
+    def frame_log_likelihood(self, t: int, latents: Tensor, alive: Tensor, frame: Tensor) -> Tensor:
+        """log N(frame t | rendered frame, pixel_sigma^2) of each particle (N,), less the cost of
+        its hidden object's drawing (`drawing_cost`), in float64. The particles without a hidden
+        object all show the same frame: it is scored once."""
         sigma = self.config.pixel_sigma
-        constant = pixel_log_normaliser(frames.numel(), sigma)
-
-        def log_density(expected: Tensor) -> Tensor:
-            squares = ((expected - frames) / sigma).square().flatten(start_dim=expected.dim() - frames.dim())
-            return -0.5 * squares.sum(dim=-1, dtype=torch.float64) - constant
-
-        result = torch.empty(len(alive), dtype=torch.float64, device=frames.device)
+        result = torch.empty(len(alive), dtype=torch.float64, device=frame.device)
         if not alive.all():
-            result[~alive] = log_density(self.scene.empty())
+            result[~alive] = pixel_log_density(self.scene.empty_frame(t)[None], frame, sigma)
         if alive.any():
-            drawing = self.scene.draw(trajectory[alive])
-            result[alive] = log_density(drawing.frames) - drawing_cost(self.config, drawing).sum(-1)
+            drawing = self.scene.draw_frame(t, latents[alive])
+            result[alive] = pixel_log_density(drawing.frames, frame, sigma) - drawing_cost(self.config, drawing)
         return result
 
-    def _transition(self, history: Tensor, alive: Tensor) -> Tensor:
-        """The dynamics' mean for the particles that hold an object (alive (N,) bool). The
-        others' trajectory sites are masked out, so their mean is never used: the dynamics,
-        the dearest step, skip them (they keep their last latent, a finite stand-in). The
-        model, replayed on the guide's draws, asks for the steps the guide computed: they are
-        kept and handed back when the history is the same."""
-        steps = history.shape[1]
-        kept = self._steps.get(steps)
-        if kept is not None and torch.equal(kept[0], history) and torch.equal(kept[1], alive):
-            return kept[2]
-        loc = history[:, -1].clone()
-        if alive.any():
-            loc[alive] = self.scene.transition(history[alive])
-        self._steps[steps] = (history, alive, loc)
-        return loc
+    def advance(self, state: State, t: int, latents: Tensor) -> Tensor | None:
+        """Step the scene's dynamics past frame t: the next latent's prior and the seen objects'
+        predicted motion (None where the scene has none). No site: the guide runs it too, where it
+        goes without the model (`guide`)."""
+        step = self.scene.advance(t, latents, state["exists"], state["memory"])
+        state["loc"], state["memory"] = step.loc, step.memory
+        state["scale"] = torch.full_like(step.loc, self.config.transition_sigma)
+        return step.seen
 
-    def guide(self, frames: Tensor, proposal: Proposal, particles: int = 1) -> Tensor:
+    # --- the guide ------------------------------------------------------------------------------
+
+    def guide_init(self, state: State, particles: int, proposal: Proposal | None) -> None:
+        p_exists = torch.tensor(self.config.prior_hidden, device=self.device) if proposal is None else proposal.p_exists
+        state["exists"] = pyro.sample("exists", dist.Bernoulli(p_exists)).bool()
+        if "loc" not in state:
+            state["loc"], state["scale"] = self.scene.initial(particles)
+
+    def guide_step(self, state: State, t: int, proposal: Proposal | None, widenings: tuple[float, ...]) -> Tensor:
+        with poutine.mask(mask=state["exists"]):
+            return pyro.sample(f"z_{t}", self.proposal_at(t, state, proposal, widenings))
+
+    def guide(self, frames: Tensor, proposal: Proposal | None = None, particles: int = 1,
+              widenings: tuple[float, ...] | None = None) -> Tensor:
+        """The whole video's proposal (for checks and for importance sampling by whole traces);
+        the dynamics are stepped on the guide's own draws."""
+        state: State = {}
+        widenings = widenings or (self.config.proposal_widening,)
         with pyro.plate("particles", particles, dim=-1):
-            exists = pyro.sample("exists", dist.Bernoulli(proposal.p_exists))
-            alive = exists.bool()
-            trajectory: list[Tensor] = []
-            with poutine.mask(mask=alive):
-                for t in range(self.scene.frames):
-                    loc, scale = proposal.loc[t], proposal.scale[t]
-                    if self.config.guide_follows_dynamics:
-                        if t == 0:
-                            step, spread = self.scene.initial(particles)
-                        else:
-                            step = self._transition(torch.stack(trajectory, dim=1), alive)
-                            spread = torch.full_like(step, self.config.transition_sigma)
-                        loc, scale = fuse(step, spread, loc, scale * self.config.proposal_widening)
-                    trajectory.append(pyro.sample(f"z_{t}", dist.Normal(loc, scale).to_event(1)))
-        return exists
+            self.guide_init(state, particles, proposal)
+            state.update(trajectory=None, memory=None)
+            for t in range(self.frames):
+                z = self.guide_step(state, t, proposal, widenings)
+                keep(state, z)
+                if t + 1 < self.frames:
+                    self.advance(state, t, z)
+        return state["exists"]
+
+    def proposal_at(self, t: int, state: State, proposal: Proposal | None,
+                    widenings: tuple[float, ...]) -> dist.TorchDistribution:
+        """z_t's proposal: the dynamics' step fused with Transformer 2's marginal widened by each
+        of `widenings`, an equal-weight mixture (each component is a function of the particle's
+        past, so the mixture's density is the one each draw came from); the dynamics' step alone
+        without a proposal (the bootstrap filter)."""
+        loc, scale = state["loc"], state["scale"]
+        if proposal is None:
+            return dist.Normal(loc, scale).to_event(1)
+        mean, spread = proposal.loc[t].expand_as(loc), proposal.scale[t].expand_as(loc)
+        fused = [fuse(loc, scale, mean, spread * widening) for widening in widenings]
+        if len(fused) == 1:
+            return dist.Normal(*fused[0]).to_event(1)
+        locs, scales = torch.stack([f[0] for f in fused], dim=-2), torch.stack([f[1] for f in fused], dim=-2)
+        choice = dist.Categorical(logits=torch.zeros(locs.shape[:-1], dtype=locs.dtype, device=locs.device))
+        return dist.MixtureSameFamily(choice, dist.Normal(locs, scales).to_event(1))
+
+
+def keep(state: State, latents: Tensor) -> None:
+    """Add a frame's latents (N, D) to the particles' trajectory (N, t, D)."""
+    trajectory = state["trajectory"]
+    state["trajectory"] = latents[:, None] if trajectory is None else torch.cat([trajectory, latents[:, None]], 1)
 
 
 def fuse(loc_a: Tensor, scale_a: Tensor, loc_b: Tensor, scale_b: Tensor) -> tuple[Tensor, Tensor]:
@@ -179,7 +242,7 @@ def fuse(loc_a: Tensor, scale_a: Tensor, loc_b: Tensor, scale_b: Tensor) -> tupl
 class LinearGaussianScene(nn.Module):
     """A scene whose hidden object moves linearly and is seen through a linear camera:
     z_0 ~ N(m0, s0), z_t = A z_{t-1} + N(0, q), frame_t = background + exists * H z_t.
-    Its evidence has a closed form (a Kalman filter), so it checks the estimator end to end."""
+    Its evidence has a closed form (a Kalman filter), so it checks the estimators end to end."""
 
     def __init__(self, frames: int, initial_mean: Tensor, initial_scale: float, transition: Tensor,
                  camera: Tensor, background: Tensor):
@@ -195,17 +258,21 @@ class LinearGaussianScene(nn.Module):
         mean = self.initial_mean.expand(particles, -1)
         return mean, torch.full_like(mean, self.initial_scale)
 
-    def transition(self, history: Tensor) -> Tensor:
-        return history[:, -1] @ self.A.T
+    def empty_frame(self, t: int) -> Tensor:
+        return self.background
 
-    def empty(self) -> Tensor:
-        return self.background.expand(self.frames, -1)
+    def draw_frame(self, t: int, latents: Tensor) -> Drawing:
+        """The frame, no exposure and no shortfall: this scene's object is seen through a linear
+        camera, nothing hides it and it need not draw itself."""
+        count = len(latents)
+        return Drawing(self.background + latents @ self.H.T, latents.new_zeros(count),
+                       latents.new_full((count,), math.inf))
 
-    def render(self, trajectory: Tensor) -> Tensor:
-        return self.background + trajectory @ self.H.T              # (M, T, obs)
+    def advance(self, t: int, latents: Tensor, alive: Tensor, memory: None) -> Step:
+        return Step(latents @ self.A.T, None, None)
 
-    def draw(self, trajectory: Tensor) -> Drawing:
-        """The frames, no exposure and no shortfall: this scene's object is seen through a
-        linear camera, nothing hides it and it need not draw itself."""
-        steps = trajectory.shape[:2]
-        return Drawing(self.render(trajectory), trajectory.new_zeros(steps), trajectory.new_full(steps, math.inf))
+    def seen_motion(self, t: int) -> None:
+        return None
+
+    def select(self, memory: None, index: Tensor) -> None:
+        return None

@@ -1,29 +1,37 @@
-"""Sequential Monte Carlo over frames for the hidden object's trajectory.
+"""Sequential Monte Carlo over frames, and importance sampling, of the hidden-object model.
 
-The existence of a hidden object is summed out exactly: without one, every frame is fixed and
-its likelihood is computed once; with one, N particles carry the trajectory frame by frame,
-each drawn from the guide's per-frame proposal (by default Transformer 2's Gaussian fused with
-the dynamics' step, as in `HiddenObjectModel.guide`), weighted by that frame's likelihood, and
-resampled (systematic resampling) when the effective sample size falls below a threshold.
+Both run `inference.model.HiddenObjectModel` and its guide frame by frame through Pyro's trace
+and replay (`ModelSteps`): frame t's draws come from the guide's step, their log-weights from
+the model's step replayed on them. The SMC sums the existence of a hidden object out exactly:
+without one, every latent is masked and one particle gives the exact branch; with one, N
+particles carry the trajectory, weighted frame by frame and resampled (systematic resampling)
+when the effective sample size falls below a threshold. Importance sampling is the same run
+never resampled, the guide proposing existence too.
 
-    log p^(x | object) = sum over resampling epochs of log mean w      (unbiased in p, not in log p)
-    log p^(x) = logsumexp(log p + log p^(x | object), log(1 - p) + log p(x | no object))
+    log p^(x, object) = sum over resampling epochs of log mean w      (unbiased in p, not in log p)
+    log p^(x) = logaddexp(log p^(x, object), log p(x, no object))
 
 Pyro's `SMCFilter` is not used: it keeps float32 weights, renormalises them every step (the
-evidence is lost), and draws from the global random state; here the weights are float64 and a
-`torch.Generator` makes a score reproducible from a seed. Runs may be batched (`runs`), so the
-tests measure the estimator's distribution with thousands of replicates in one pass.
+evidence is lost), and resamples from the global random state; here the weights are float64
+and a `torch.Generator` makes a score reproducible from a seed. Runs may be batched (`runs`),
+so the tests measure the estimator's distribution with thousands of replicates in one pass.
 """
 from __future__ import annotations
 
 import math
+import warnings
+from collections.abc import Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from typing import Any, Protocol
 
+import pyro
 import torch
+from pyro import poutine
+from pyro.util import check_model_guide_match
 from torch import Tensor
 
-from .model import InferenceConfig, LinearGaussianScene, Proposal, drawing_cost, fuse, pixel_log_normaliser
+from .model import HiddenObjectModel, InferenceConfig, Proposal, Scene, State
 
 
 class SequentialModel(Protocol):
@@ -116,241 +124,108 @@ def run_smc(model: SequentialModel, particles: int, runs: int = 1, threshold: fl
     return SMCRun(log_evidence, log_weights, state, torch.stack(ess, dim=1), torch.stack(resampled, dim=1), origin)
 
 
-# --- the hidden object's trajectory as a sequential model ---------------------------------
+# --- the Pyro model, frame by frame ---------------------------------------------------------
 
-@dataclass
-class Particles:
-    trajectory: Tensor                    # (n, t, D) the frames drawn so far
-    loc: Tensor | None = None             # (n, D) the dynamics' mean of the next frame
-    carried: Any = None                   # the scene's own state after the last frame (the dynamics' memory)
-    increment: Tensor | None = None       # (n,) float64 its log-weight: transition + likelihood - proposal
+class ModelSteps:
+    """`HiddenObjectModel` and its guide taken frame by frame, for `run_smc`: frame t's draws are
+    a trace of the guide's step, and their log-weights the model's step replayed on them (log p
+    less log q of every site, summed per particle in float64); the first frame runs `init` too.
+    `exists` fixes the existence of a hidden object (the SMC sums it out by running each value);
+    None lets the guide propose it (importance sampling)."""
 
+    def __init__(self, model: HiddenObjectModel, frames: Tensor, proposal: Proposal | None,
+                 widenings: tuple[float, ...], exists: bool | None):
+        self.model, self.observed, self.proposal, self.widenings = model, frames, proposal, widenings
+        self.frames, self.exists = model.frames, exists
 
-class HiddenTrajectory:
-    """The hidden object's trajectory given that it exists, for `run_smc`: frame t's draw
-    from the guide's proposal, weighted by the transition density over the proposal density,
-    the frame's pixel likelihood, and whatever else the scene observes from frames <= t (XPL:
-    the seen objects' motion at t + 1). `proposal` None draws from the dynamics alone (the
-    bootstrap filter)."""
+    def start(self, particles: int) -> State:
+        return {"particles": particles}
 
-    def __init__(self, steps: SceneSteps, config: InferenceConfig, proposal: Proposal | None):
-        self.steps, self.config, self.proposal = steps, config, proposal
-        self.frames = steps.frames
+    def step(self, t: int, state: State, generator: torch.Generator | None) -> tuple[State, Tensor]:
+        """Pyro draws from the global random state: the caller seeds it (`seeded`)."""
+        n = state["particles"]
 
-    def start(self, particles: int) -> Particles:
-        return Particles(self.steps.initial_trajectory(particles), None, self.steps.start(particles))
+        def guide() -> None:
+            with pyro.plate("particles", n, dim=-1):
+                if t == 0:
+                    self.model.guide_init(state, n, self.proposal)
+                self.model.guide_step(state, t, self.proposal, self.widenings)
 
-    def step(self, t: int, state: Particles, generator: torch.Generator | None) -> tuple[Particles, Tensor]:
-        n = len(state.trajectory)
-        if t == 0:
-            prior_loc, prior_scale = self.steps.initial(n)
-        else:
-            prior_loc, prior_scale = state.loc, torch.full_like(state.loc, self.config.transition_sigma)
-        locs, scales = self.proposal_at(t, prior_loc, prior_scale)
-        # drawn from the CPU generator and moved: one seed, the same draws on every device
-        chosen = torch.randint(locs.shape[1], (n,), generator=generator).to(locs.device)
-        rows = torch.arange(n, device=locs.device)
-        loc, scale = locs[rows, chosen], scales[rows, chosen]
-        z = loc + scale * torch.randn(loc.shape, generator=generator, dtype=loc.dtype).to(loc.device)
-        drawn = self.evaluate(t, z, (prior_loc, prior_scale), (locs, scales), state.carried)
-        drawn.trajectory = torch.cat([state.trajectory, z[:, None]], dim=1)
-        return drawn, drawn.increment
+        def model() -> None:
+            with pyro.plate("particles", n, dim=-1):
+                if t == 0:
+                    self.model.init(state, n)
+                self.model.step(state, t, self.observed[t])
 
-    def evaluate(self, t: int, z: Tensor, prior: tuple[Tensor, Tensor], guide: tuple[Tensor, Tensor],
-                 before: Any) -> Particles:
-        """Frame t's draws z (n, D) weighed: their log-weights and the scene's state after them.
-        guide: the proposal's components' means and scales (n, C, D), an equal-weight mixture."""
-        log_q = mixture_log_density(z, *guide)
-        increment = normal_log_density(z, *prior) - log_q + self.steps.frame_log_likelihood(t, z)
-        next_loc, carried = None, before
-        if t < self.frames - 1:
-            next_loc, carried, extra = self.steps.advance(t, z, before)
-            increment = increment + extra
-        return Particles(z[:, None], next_loc, carried, increment)
+        if self.exists is not None:
+            fixed = {"exists": torch.full((n,), float(self.exists), device=self.observed.device)}
+            guide, model = poutine.condition(guide, data=fixed), poutine.condition(model, data=fixed)
+        guide_trace = poutine.trace(guide).get_trace()
+        model_trace = poutine.trace(poutine.replay(model, trace=guide_trace)).get_trace()
+        return state, site_log_probs(model_trace, n) - site_log_probs(guide_trace, n, sampled_only=True)
 
-    def proposal_at(self, t: int, prior_loc: Tensor, prior_scale: Tensor) -> tuple[Tensor, Tensor]:
-        """Means and scales (n, C, D) of the proposal's C components for frame t: the
-        dynamics' step fused with Transformer 2's marginal widened by each of
-        `smc_proposal_widening` (an equal-weight mixture: every component is a function of the
-        particle's past, so the mixture's density is the one each draw came from)."""
-        if self.proposal is None:
-            return prior_loc[:, None], prior_scale[:, None]
-        loc, scale = self.proposal.loc[t].expand_as(prior_loc), self.proposal.scale[t].expand_as(prior_loc)
-        if not self.config.guide_follows_dynamics:
-            components = [(loc, scale)]
-        else:
-            widenings = self.config.smc_proposal_widening
-            if widenings is None:
-                widenings = (self.config.proposal_widening,)
-            elif isinstance(widenings, (int, float)):
-                widenings = (widenings,)
-            components = [fuse(prior_loc, prior_scale, loc, scale * widening) for widening in widenings]
-        return torch.stack([c[0] for c in components], dim=1), torch.stack([c[1] for c in components], dim=1)
-
-    def select(self, state: Particles, index: Tensor) -> Particles:
-        def pick(value):
-            return None if value is None else value[index]
-
-        return Particles(state.trajectory[index], pick(state.loc), self.steps.select(state.carried, index),
-                         pick(state.increment))
+    def select(self, state: State, index: Tensor) -> State:
+        chosen = {name: value[index] if isinstance(value, Tensor) else value for name, value in state.items()}
+        chosen["memory"] = self.model.scene.select(state["memory"], index)
+        return chosen
 
 
-def mixture_log_density(x: Tensor, locs: Tensor, scales: Tensor) -> Tensor:
-    """Log-density (n,) of x (n, D) under the equal-weight mixture of diagonal Gaussians (n, C, D)."""
-    components = normal_log_density(x[:, None], locs, scales)            # (n, C)
-    return torch.logsumexp(components, dim=1) - math.log(locs.shape[1])
+def site_log_probs(trace: poutine.Trace, particles: int, sampled_only: bool = False) -> Tensor:
+    """Per-particle sum (particles,) float64 of every sample site's log-density, masks applied;
+    `sampled_only`: without the observed sites (a guide's conditioned ones are no proposal)."""
+    trace.compute_log_prob()
+    sites = [node for node in trace.nodes.values()
+             if node["type"] == "sample" and not (sampled_only and node["is_observed"])]
+    total = torch.zeros(particles, dtype=torch.float64, device=sites[0]["log_prob"].device if sites else None)
+    for node in sites:
+        log_prob = node["log_prob"].to(torch.float64)
+        if log_prob.shape not in ((), (particles,)):
+            raise ValueError(f"site {node['name']!r} has log_prob shape {tuple(log_prob.shape)}; "
+                             f"put it inside the particles plate (expected ({particles},))")
+        total = total + log_prob
+    return total
 
 
-def normal_log_density(x: Tensor, loc: Tensor, scale: Tensor) -> Tensor:
-    """Diagonal Gaussian log-density (n,) of x (n, D), summed in float64."""
-    scale = scale.to(torch.float64)
-    z = (x.to(torch.float64) - loc.to(torch.float64)) / scale
-    return (-0.5 * z.square() - scale.log() - 0.5 * math.log(2 * math.pi)).sum(dim=-1)
+def require_match(model_trace: poutine.Trace, guide_trace: poutine.Trace) -> None:
+    """Refuse a guide that misses a latent of the model (replay would then draw it from the
+    prior and bias the estimate without a word) or samples one the model lacks."""
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        try:
+            check_model_guide_match(model_trace, guide_trace)
+        except (RuntimeWarning, UserWarning, ValueError) as problem:
+            raise ValueError(f"model and guide do not match: {problem}") from None
 
 
-class SceneSteps(Protocol):
-    """A scene taken frame by frame (the sequential face of `inference.model.Scene`)."""
-
-    frames: int
-
-    def initial(self, particles: int) -> tuple[Tensor, Tensor]: ...
-
-    def initial_trajectory(self, particles: int) -> Tensor: ...
-
-    def start(self, particles: int) -> Any: ...
-
-    def frame_log_likelihood(self, t: int, z: Tensor) -> Tensor: ...
-
-    def advance(self, t: int, z: Tensor, carried: Any) -> tuple[Tensor, Any, Tensor]: ...
-
-    def select(self, carried: Any, index: Tensor) -> Any: ...
-
-    def empty_log_likelihood(self) -> float: ...
-
-
-def pixel_frame_log_density(expected: Tensor, observed: Tensor, sigma: float) -> Tensor:
-    """log N(observed | expected, sigma^2) of each leading entry of expected (n, ...) against
-    one observed frame, summed in float64."""
-    squares = ((expected - observed) / sigma).square().flatten(start_dim=1)
-    return -0.5 * squares.sum(dim=1, dtype=torch.float64) - pixel_log_normaliser(observed.numel(), sigma)
-
-
-class LinearSteps:
-    """`LinearGaussianScene` frame by frame (the closed-form check)."""
-
-    def __init__(self, scene: LinearGaussianScene, frames: Tensor, config: InferenceConfig):
-        self.scene, self.observed, self.sigma = scene, frames, config.pixel_sigma
-        self.frames = scene.frames
-
-    def initial(self, particles: int) -> tuple[Tensor, Tensor]:
-        return self.scene.initial(particles)
-
-    def initial_trajectory(self, particles: int) -> Tensor:
-        return self.scene.initial_mean.new_zeros(particles, 0, len(self.scene.initial_mean))
-
-    def start(self, particles: int) -> None:
-        return None
-
-    def frame_log_likelihood(self, t: int, z: Tensor) -> Tensor:
-        return pixel_frame_log_density(self.scene.background + z @ self.scene.H.T, self.observed[t], self.sigma)
-
-    def advance(self, t: int, z: Tensor, carried: None) -> tuple[Tensor, None, Tensor]:
-        return z @ self.scene.A.T, None, torch.zeros(len(z), dtype=torch.float64, device=z.device)
-
-    def select(self, carried: None, index: Tensor) -> None:
-        return None
-
-    def empty_log_likelihood(self) -> float:
-        return float(pixel_frame_log_density(self.scene.empty()[None], self.observed, self.sigma)[0])
-
-
-class XPLSteps:
-    """An `XPLScene` frame by frame: the dynamics stepped once per frame on every particle's
-    scene (the hidden slot from the particle), its memory carried and resampled with the
-    particles; frame t's picture of the hidden object composited with the fixed layers; the
-    seen objects' motion at t + 1 observed once frame t is drawn."""
-
-    def __init__(self, scene, frames: Tensor, config: InferenceConfig):
-        self.scene, self.observed, self.config = scene, frames, config
-        self.frames = scene.frames
-        self.moving = scene.moving
-        self.seen = scene.refined[1:, self.moving]            # (T-1, M, D)
-
-    def initial(self, particles: int) -> tuple[Tensor, Tensor]:
-        return self.scene.initial(particles)
-
-    def initial_trajectory(self, particles: int) -> Tensor:
-        return self.scene.refined.new_zeros(particles, 0, self.scene.dim)
-
-    def start(self, particles: int) -> None:
-        return None
-
-    def frame_log_likelihood(self, t: int, z: Tensor) -> Tensor:
-        chosen = torch.full((len(z),), t, dtype=torch.long, device=z.device)
-        drawing = self.scene.draw_frames(z, chosen)
-        pixels = pixel_frame_log_density(drawing.frames, self.observed[t], self.config.pixel_sigma)
-        return pixels - drawing_cost(self.config, drawing)
-
-    def advance(self, t: int, z: Tensor, carried: Any) -> tuple[Tensor, Any, Tensor]:
-        scene = self.scene.refined[t].expand(len(z), *self.scene.refined.shape[1:]).clone()
-        scene[:, self.scene.hidden] = z
-        prediction, carried = self.scene.xpl.dynamics.step(scene, carried, self.scene.inert())
-        return prediction[:, self.scene.hidden], carried, self.motion_log_likelihood(t, prediction[:, self.moving])
-
-    def motion_log_likelihood(self, t: int, predicted: Tensor) -> Tensor:
-        """log N(seen latents at t + 1 | predicted (n, M, D), motion_sigma^2) where the encoder saw them."""
-        seen = self.observed_motion[t]
-        density = torch.distributions.Normal(predicted, self.config.motion_sigma).log_prob(self.seen[t])
-        return (density * seen[:, None]).sum(dim=(1, 2), dtype=torch.float64)
-
-    @property
-    def observed_motion(self) -> Tensor:
-        return self.scene.observed                           # (T-1, M) bool
-
-    def select(self, carried: Any, index: Tensor) -> Any:
-        if carried is None:
-            return None
-        slots = self.scene.slots
-
-        def pick(tensor: Tensor) -> Tensor:
-            shaped = tensor.reshape(-1, slots, *tensor.shape[1:])[index]
-            return shaped.reshape(-1, *tensor.shape[1:])
-
-        return type(carried)(*(pick(part) for part in carried))
-
-    def empty_log_likelihood(self) -> float:
-        """log p(frames, seen motion | no hidden object): the free slot holds what the encoder
-        made of its empty pixels, as in `XPLScene.seen_motion`."""
-        pixels = pixel_frame_log_density(self.scene.empty()[None], self.observed, self.config.pixel_sigma)[0]
-        predicted = self.scene.xpl.predict(self.scene.refined[None], self.scene.occluder)[0, :, self.moving]
-        density = torch.distributions.Normal(predicted, self.config.motion_sigma).log_prob(self.seen)
-        motion = (density * self.observed_motion[..., None]).sum(dtype=torch.float64)
-        return float(pixels + motion)
-
-
-def scene_steps(scene, frames: Tensor, config: InferenceConfig) -> SceneSteps:
-    if isinstance(scene, LinearGaussianScene):
-        return LinearSteps(scene, frames, config)
-    return XPLSteps(scene, frames, config)
+@contextmanager
+def seeded(generator: torch.Generator | None, device: torch.device | None = None) -> Iterator[None]:
+    """The global random state, which Pyro draws from, seeded from `generator` and put back
+    after: an estimate is a function of its seed, whatever was drawn before. On CUDA Pyro draws
+    from that device's state: seeded from the same seed, it is put back too."""
+    with torch.random.fork_rng(devices=[device] if device is not None and device.type == "cuda" else []):
+        torch.manual_seed(int(torch.randint(2 ** 62, (1,), generator=generator)))
+        yield
 
 
 # --- the evidence of a video ---------------------------------------------------------------
 
 @dataclass
-class SMCEstimate:
-    """The SMC estimate of one video (the existence of a hidden object summed out exactly)."""
+class Evidence:
+    """The NLL estimate of one video, by SMC (existence summed out exactly) or by importance
+    sampling (existence proposed by the guide)."""
 
     log_evidence: float           # log p^(x)
-    log_evidence_hidden: float    # log p^(x | a hidden object), -inf where none can be placed
-    log_evidence_empty: float     # log p(x | no hidden object), exact
+    log_evidence_hidden: float    # log p^(x, a hidden object) (SMC; nan by importance sampling), -inf where none fits
+    log_evidence_empty: float     # log p(x, no hidden object), exact (SMC; nan by importance sampling)
     p_hidden: float               # posterior probability of a hidden object
-    ess: float                    # ESS of the final weights (all particles hold an object)
+    ess: float                    # ESS of the final weights (SMC: all particles hold an object)
     min_ess: float                # the lowest ESS over frames, before resampling
     lineages: int                 # distinct first-frame ancestors of the final particles
     resamplings: int
     particles: int
     trajectories: Tensor | None   # (N, T, D) final particles, None where no object can be placed
     log_weights: Tensor | None    # (N,) float64 final log-weights
+    exists: Tensor | None = None  # (N,) bool: which final particles hold an object (None: all)
 
     @property
     def nll(self) -> float:
@@ -360,47 +235,72 @@ class SMCEstimate:
     def weights(self) -> Tensor:
         return torch.softmax(self.log_weights, dim=0)
 
+    def holding(self) -> tuple[Tensor, Tensor] | None:
+        """The trajectories (H, T, D) of the particles that hold an object and their log-weights
+        (H,); None where none does."""
+        if self.trajectories is None:
+            return None
+        if self.exists is None:
+            return self.trajectories, self.log_weights
+        return (self.trajectories[self.exists], self.log_weights[self.exists]) if self.exists.any() else None
 
-def mixture(prior_hidden: float, log_hidden: float, log_empty: float) -> tuple[float, float]:
-    """log p(x) and p(object | x) from the two branches' evidence."""
-    a = math.log(prior_hidden) + log_hidden if prior_hidden > 0 else -math.inf
-    b = math.log1p(-prior_hidden) + log_empty if prior_hidden < 1 else -math.inf
-    total = max(a, b) + math.log(math.exp(a - max(a, b)) + math.exp(b - max(a, b)))
-    return total, math.exp(a - total)
+
+def widenings_of(config: InferenceConfig) -> tuple[float, ...]:
+    """The SMC proposal's widenings (`smc_proposal_widening`; None: `proposal_widening`)."""
+    widenings = config.smc_proposal_widening
+    if widenings is None:
+        return (config.proposal_widening,)
+    return (widenings,) if isinstance(widenings, (int, float)) else tuple(widenings)
 
 
 @torch.no_grad()
-def smc_evidence(scene, frames: Tensor, config: InferenceConfig, proposal: Proposal | None,
-                 generator: torch.Generator | None = None, free: bool = True) -> SMCEstimate:
-    """One video's evidence by SMC over `config.particles` particles holding a hidden object,
-    plus the exact branch without one. `free` False: no slot is left for a hidden object, and
-    the evidence is that of the branch without one, weighted by its prior (as the importance
-    sampler's guide, which then never proposes an object, gives it)."""
-    steps = scene_steps(scene, frames, config)
-    log_empty = steps.empty_log_likelihood()
+def smc_evidence(scene: Scene, frames: Tensor, config: InferenceConfig, proposal: Proposal | None,
+                 generator: torch.Generator | None = None, free: bool = True) -> Evidence:
+    """One video's evidence: the model run once without a hidden object (one particle: every
+    latent is masked, so it is exact) and by SMC over `config.particles` particles with one.
+    `free` False: no slot is left for a hidden object, and the evidence is the first branch's."""
+    model = HiddenObjectModel(scene, config)
+    device = frames.device
+    with seeded(generator, device):
+        empty = float(run_smc(ModelSteps(model, frames, proposal, (1.0,), exists=False), 1,
+                              device=device).log_evidence[0])
+        particles = config.particles
+        if not free:
+            return Evidence(empty, -math.inf, empty, 0.0, float(particles), float(particles), 0, 0, particles,
+                            None, None)
+        steps = ModelSteps(model, frames, proposal, widenings_of(config), exists=True)
+        run = None
+        sure = proposal is not None and float(proposal.p_exists) > config.smc_pilot_skip_exists
+        for size in () if sure else pilot_sizes(config):
+            pilot = run_smc(steps, size, threshold=config.resample_threshold, generator=generator, device=device)
+            if empty - float(pilot.log_evidence[0]) > config.smc_pilot_margin:
+                run, particles = pilot, size
+                break
+        if run is None:
+            run = run_smc(steps, particles, threshold=config.resample_threshold, generator=generator, device=device)
+    hidden = float(run.log_evidence[0])
+    total = float(torch.logaddexp(torch.tensor(hidden, dtype=torch.float64), torch.tensor(empty, dtype=torch.float64)))
+    return Evidence(total, hidden, empty, math.exp(hidden - total), float(run.final_ess[0]), float(run.ess[0].min()),
+                    int(run.lineages[0]), int(run.resampled[0].sum()), particles, run.state["trajectory"],
+                    run.log_weights[0])
+
+
+@torch.no_grad()
+def importance_evidence(scene: Scene, frames: Tensor, config: InferenceConfig, proposal: Proposal,
+                        generator: torch.Generator | None = None) -> Evidence:
+    """One video's evidence by importance sampling: the same frame-by-frame model and guide,
+    never resampled, the guide proposing the existence of a hidden object too."""
+    model = HiddenObjectModel(scene, config)
     particles = config.particles
-    if not free:
-        return SMCEstimate(math.log1p(-config.prior_hidden) + log_empty, -math.inf, log_empty, 0.0,
-                           float(particles), float(particles), 0, 0, particles, None, None)
-    model = HiddenTrajectory(steps, config, proposal)
-    run = None
-    sure = proposal is not None and float(proposal.p_exists) > config.smc_pilot_skip_exists
-    for size in () if sure else pilot_sizes(config):
-        pilot = run_smc(model, size, threshold=config.resample_threshold, generator=generator, device=frames.device)
-        gap = ((math.log1p(-config.prior_hidden) + log_empty)
-               - (math.log(config.prior_hidden) + float(pilot.log_evidence[0])))
-        if gap > config.smc_pilot_margin:
-            run, particles = pilot, size
-            break
-    if run is None:
-        run = run_smc(model, particles, threshold=config.resample_threshold, generator=generator,
-                      device=frames.device)
-    log_hidden = float(run.log_evidence[0])
-    total, p_hidden = mixture(config.prior_hidden, log_hidden, log_empty)
-    return SMCEstimate(total, log_hidden, log_empty, p_hidden, float(run.final_ess[0]), float(run.ess[0].min()),
-                       int(run.lineages[0]), int(run.resampled[0].sum()), particles,
-                       run.state.trajectory,
-                       run.log_weights[0])
+    with seeded(generator, frames.device):
+        run = run_smc(ModelSteps(model, frames, proposal, (config.proposal_widening,), exists=None), particles,
+                      threshold=0.0, generator=generator, device=frames.device)
+    log_weights, exists = run.log_weights[0], run.state["exists"]
+    weights = torch.softmax(log_weights, dim=0)
+    p_hidden = float((weights * exists).sum().clamp(0.0, 1.0))      # a weighted sum can round past 1
+    return Evidence(float(run.log_evidence[0]), math.nan, math.nan, p_hidden, float(run.final_ess[0]),
+                    float(run.ess[0].min()), int(run.lineages[0]), 0, particles, run.state["trajectory"],
+                    log_weights, exists)
 
 
 def pilot_sizes(config: InferenceConfig) -> tuple[int, ...]:
@@ -425,19 +325,21 @@ class Hypotheses:
     disagree: list[int] = field(default_factory=list)   # frames where they differ most, most first
 
 
-def top_hypotheses(estimate: SMCEstimate, top: int = 4) -> Hypotheses | None:
+def top_hypotheses(estimate: Evidence, top: int = 4) -> Hypotheses | None:
     """The `top` heaviest distinct trajectories after resampling (copies of one particle are
     merged and their weights added), and where they disagree: the weighted spread between them
     per frame, and the frames in order of that spread. None where no object can be placed."""
-    if estimate.trajectories is None:
+    held = estimate.holding()
+    if held is None:
         return None
-    unique, inverse = torch.unique(estimate.trajectories.flatten(1), dim=0, return_inverse=True)
-    weights = torch.zeros(len(unique), dtype=torch.float64, device=unique.device).index_add_(0, inverse,
-                                                                                             estimate.weights)
+    held_trajectories, log_weights = held
+    unique, inverse = torch.unique(held_trajectories.flatten(1), dim=0, return_inverse=True)
+    weights = torch.zeros(len(unique), dtype=torch.float64, device=unique.device).index_add_(
+        0, inverse, torch.softmax(log_weights, 0))
     copies = torch.zeros(len(unique), dtype=torch.long, device=unique.device).index_add_(0, inverse,
                                                                                          torch.ones_like(inverse))
     order = weights.argsort(descending=True)[:top]
-    trajectories = unique[order].reshape(len(order), *estimate.trajectories.shape[1:])
+    trajectories = unique[order].reshape(len(order), *held_trajectories.shape[1:])
     chosen = weights[order]
     share = chosen / chosen.sum()
     mean = (share[:, None, None] * trajectories.double()).sum(0)

@@ -15,9 +15,8 @@ from xvoe.models.perception import ComponentVAE
 from xvoe.models.reasoning import never_seen
 from xvoe.models.xpl import XPL
 
-from .importance import Estimate, importance
-from .model import HiddenObjectModel, InferenceConfig, Proposal, drawing_cost
-from .smc import Hypotheses, SMCEstimate, smc_evidence, top_hypotheses
+from .model import InferenceConfig, Proposal, drawing_cost
+from .smc import Evidence, Hypotheses, importance_evidence, smc_evidence, top_hypotheses
 from .xpl_scene import XPLScene
 
 
@@ -27,7 +26,7 @@ class NLLSurprise:
     ess: float            # effective sample size of the weights (SMC: of the particles, all holding an object)
     p_hidden: float       # posterior probability that a hidden object exists
     hidden_slot: int      # the free slot the hidden object was given (-1: none was free)
-    estimate: Estimate | SMCEstimate
+    estimate: Evidence
     holding_ess: float = 0.0   # effective sample size among the particles that hold an object
     method: str = "importance"
 
@@ -37,7 +36,8 @@ Seed = int | torch.Generator | None
 
 def generator_from(seed: Seed) -> torch.Generator:
     """A generator of its own for a seed (None: 0); a generator is used as it is. On the CPU
-    whatever the device: its draws are moved there, so a seed gives the same draws on any."""
+    whatever the device: the resampling's uniforms are drawn there and moved, and Pyro's global
+    state (the CPU's, or the CUDA device's) is seeded from it."""
     if isinstance(seed, torch.Generator):
         return seed
     return torch.Generator().manual_seed(0 if seed is None else int(seed))
@@ -73,7 +73,6 @@ def nll_surprise(vae: ComponentVAE, xpl: XPL, frames: Tensor, mean: Tensor, visi
     generator = generator_from(seed)
     scene, loc, spread, free = hidden_object_scene(vae, xpl, mean, visible, background, occluder)
     hidden = scene.hidden
-    model = HiddenObjectModel(scene, config)
     p_exists = torch.sigmoid(xpl.existence_logit(loc[None], spread[None]))[0] if free else mean.new_zeros(())
     if free and config.refine_steps:
         loc = refine_out_of_sight(scene, loc, frames, config)
@@ -82,13 +81,10 @@ def nll_surprise(vae: ComponentVAE, xpl: XPL, frames: Tensor, mean: Tensor, visi
         found = smc_evidence(scene, frames, config, proposal, generator, free)
         return NLLSurprise(found.nll, found.ess, found.p_hidden, hidden if free else -1, found,
                            found.ess if free else 0.0, "smc")
-    with torch.random.fork_rng(devices=[]):     # Pyro draws from the global state: seed it, then put it back
-        torch.manual_seed(int(torch.randint(2 ** 62, (1,), generator=generator)))
-        estimate = importance(model.model, model.guide, frames, proposal=proposal, particles=config.particles)
-    p_hidden = float(estimate.posterior_mean("exists").clamp(0.0, 1.0))   # a weighted mean can round past 1
-    alive = estimate.guide_trace.nodes["exists"]["value"].bool()
-    holding = float(effective_sample_size(estimate.log_weights[alive])) if alive.any() else 0.0
-    return NLLSurprise(estimate.nll, estimate.ess, p_hidden, hidden if free else -1, estimate, holding, "importance")
+    found = importance_evidence(scene, frames, config, proposal, generator)
+    held = found.holding()
+    holding = float(effective_sample_size(held[1])) if held is not None else 0.0
+    return NLLSurprise(found.nll, found.ess, found.p_hidden, hidden if free else -1, found, holding, "importance")
 
 
 def hidden_object_scene(vae: ComponentVAE, xpl: XPL, mean: Tensor, visible: Tensor, background: Tensor,
@@ -187,15 +183,7 @@ def hidden_posterior(result: NLLSurprise) -> HiddenPosterior | None:
     Weights are renormalised over the particles that hold an object, from the float64
     log-weights: where p_hidden is tiny their plain normalised weights underflow to zero, yet
     what the model would believe if there were an object is still worth drawing."""
-    if isinstance(result.estimate, SMCEstimate):
-        found = result.estimate
-        if result.hidden_slot < 0 or found.trajectories is None:
-            return None
-        weights = found.weights
-        mean = (weights[:, None, None] * found.trajectories.to(torch.float64)).sum(0).to(found.trajectories.dtype)
-        best = int(weights.argmax())
-        return HiddenPosterior(mean, found.trajectories[best], float(weights[best]), found.particles, found.ess)
-    held = _held_trajectories(result)
+    held = result.estimate.holding() if result.hidden_slot >= 0 else None
     if held is None:
         return None
     trajectories, log_weights = held
@@ -228,30 +216,6 @@ def explain_surprise(vae: ComponentVAE, xpl: XPL, frames: Tensor, mean: Tensor, 
     object stand in for them, weighted among themselves."""
     config = config or InferenceConfig()
     result = nll_surprise(vae, xpl, frames, mean, visible, background, occluder, config, method, seed)
-    if result.method == "smc":
-        hypotheses = top_hypotheses(result.estimate, top)
-    else:
-        hypotheses = _importance_hypotheses(result, config, top)
+    hypotheses = top_hypotheses(result.estimate, top) if result.hidden_slot >= 0 else None
     return Surprise(result.nll, result.holding_ess, result.p_hidden, result.hidden_slot, result.method, hypotheses,
                     result)
-
-
-def _held_trajectories(result: NLLSurprise) -> tuple[Tensor, Tensor] | None:
-    """The importance sampler's trajectories (N, T, D) that hold an object, with their log
-    weights (N,); None where none does."""
-    nodes = result.estimate.guide_trace.nodes
-    alive = nodes["exists"]["value"].bool()
-    if result.hidden_slot < 0 or not alive.any():
-        return None
-    frames = sum(1 for name in nodes if name.startswith("z_"))
-    trajectories = torch.stack([nodes[f"z_{t}"]["value"] for t in range(frames)], dim=1)[alive]
-    return trajectories, result.estimate.log_weights[alive]
-
-
-def _importance_hypotheses(result: NLLSurprise, config: InferenceConfig, top: int) -> Hypotheses | None:
-    found = _held_trajectories(result)
-    if found is None:
-        return None
-    trajectories, log_weights = found
-    held = SMCEstimate(0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0, 0, len(trajectories), trajectories, log_weights)
-    return top_hypotheses(held, top)

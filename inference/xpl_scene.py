@@ -5,8 +5,8 @@ is left free for a hidden object. Rendering decodes the hidden object's latents 
 composites them with the fixed slots and the background; its dynamics are XPL's, run with
 the particle's trajectory in the free slot so the hidden object interacts with the others.
 The seen objects' own motion is evidence too: their latents in the frames the encoder saw them
-are observed under the dynamics' one-step prediction (site `seen_motion`), so a hidden object
-that explains a ball bouncing back raises the likelihood. Transformer 1's fills of the other
+are observed under the dynamics' one-step prediction (the model's `motion_t` sites), so a hidden
+object that explains a ball bouncing back raises the likelihood. Transformer 1's fills of the other
 frames feed the dynamics' history but are not observations: they are the model's guesses, made
 without the hidden object, and scoring them as data counted that guess against it.
 """
@@ -20,7 +20,7 @@ from xvoe.models.perception import ComponentVAE
 from xvoe.models.slots import push_behind, scene_layers
 from xvoe.models.xpl import XPL
 
-from .model import Drawing
+from .model import Drawing, Step
 
 
 class XPLScene(nn.Module):
@@ -44,49 +44,41 @@ class XPLScene(nn.Module):
             self.register_buffer("walls", walls[0, :, 0])   # (T, 1, H, W)
         self.register_buffer("moving", occupied & ~occluder)
         self.register_buffer("occluder", occluder[None])      # (1, K)
-        self.register_buffer("observed", visible[1:][:, self.moving])     # (T-1, M): seen_motion's data
+        self.register_buffer("visible", visible)
         with torch.no_grad():
             self._fixed = self._partial_composite()
             self._empty = self._composite(self.layers[None])[0]
-        # the last history of the hidden slot, the dynamics' state after it and its predictions
-        self._carried: tuple[Tensor, DynamicsState, list[Tensor]] | None = None
 
     def initial(self, particles: int) -> tuple[Tensor, Tensor]:
         """The latent prior of the perception module, N(0, I)."""
         zeros = self.refined.new_zeros(particles, self.dim)
         return zeros, torch.ones_like(zeros)
 
-    def with_hidden(self, trajectory: Tensor) -> Tensor:
-        """All slots' latents (N, t, K, D) with the hidden slot taken from the particles."""
-        particles, steps = trajectory.shape[:2]
-        scene = self.refined[:steps].expand(particles, steps, self.slots, self.dim).clone()
-        scene[:, :, self.hidden] = trajectory
-        return scene
+    def advance(self, t: int, latents: Tensor, alive: Tensor, memory: DynamicsState | None) -> Step:
+        """The dynamics run on frame t with the hidden slot holding each particle's latents (N, D)
+        where it holds an object, and elsewhere what the encoder made of that slot's empty
+        pixels, as during training: the next latent of the hidden slot and of the seen moving
+        ones. The dynamics' memory is the particles' own, carried and resampled with them."""
+        scene = self.refined[t].expand(len(latents), self.slots, self.dim).clone()
+        scene[alive, self.hidden] = latents[alive]
+        prediction, memory = self.xpl.dynamics.step(scene, memory, self.inert())
+        return Step(prediction[:, self.hidden], memory, prediction[:, self.moving])
 
-    def transition(self, history: Tensor) -> Tensor:
-        """The dynamics' next latent of the hidden slot. The model asks frame after frame for
-        the same particles' growing history, so the dynamics' state after the previous call
-        is kept and stepped once, instead of running it over the whole prefix again."""
-        return self._step(history)[-1][:, self.hidden]
+    def seen_motion(self, t: int) -> tuple[Tensor, Tensor]:
+        """The seen moving objects' refined latents (M, D) at frame t and which of them the
+        encoder saw (M,): the data. Transformer 1's fills of the other frames feed the dynamics'
+        history but are not observed."""
+        return self.refined[t, self.moving], self.visible[t, self.moving]
 
-    def _step(self, history: Tensor) -> list[Tensor]:
-        """The dynamics' predictions (N, K, D) after each frame of the history (N, t, D),
-        stepping on from the last call when it is that call's history and one frame more."""
-        steps = history.shape[1]
-        kept = self._carried
-        if kept is not None and kept[0].shape == history.shape and torch.equal(kept[0], history):
-            return kept[2]
-        if kept is not None and kept[0].shape[1] == steps - 1 and torch.equal(kept[0], history[:, :-1]):
-            _, state, predictions = kept
-            start = steps - 1
-        else:
-            state, predictions, start = None, [], 0
-        scene = self.with_hidden(history)
-        for t in range(start, steps):
-            prediction, state = self.xpl.dynamics.step(scene[:, t], state, self.inert())
-            predictions = [*predictions, prediction]
-        self._carried = (history, state, predictions)
-        return predictions
+    def select(self, memory: DynamicsState | None, index: Tensor) -> DynamicsState | None:
+        """The dynamics' memory of the particles `index`: its tensors hold one row per slot."""
+        if memory is None:
+            return None
+
+        def pick(tensor: Tensor) -> Tensor:
+            return tensor.reshape(-1, self.slots, *tensor.shape[1:])[index].reshape(-1, *tensor.shape[1:])
+
+        return type(memory)(*(pick(part) for part in memory))
 
     def inert(self) -> Tensor | None:
         """The slots whose effect the dynamics leave out (XPLConfig.inert_walls): the walls."""
@@ -96,26 +88,19 @@ class XPLScene(nn.Module):
         """Expected frames (T, 4, H, W) without a hidden object."""
         return self._empty
 
-    def render(self, trajectory: Tensor) -> Tensor:
-        """Expected frames (M, T, 4, H, W) with a hidden object on each trajectory (M, T, D)."""
-        return self.draw(trajectory).frames
+    def empty_frame(self, t: int) -> Tensor:
+        return self._empty[t]
 
-    def draw(self, trajectory: Tensor) -> Drawing:
-        """Expected frames (M, T, 4, H, W) with a hidden object on each trajectory (M, T, D),
-        its exposure (M, T): how many pixels it holds in front of everything else, where the
-        encoder would have seen it, and its area (M, T). Only the hidden latents are decoded,
-        and added to the softmax the fixed layers left (`_partial_composite`)."""
-        pictures = self.vae.decode(trajectory.reshape(-1, self.dim)).reshape(len(trajectory), self.frames,
-                                                                             *self.layers.shape[-3:])
-        return Drawing(*self._composite_hidden(push_behind(pictures, self.walls)), self.area(pictures))
-
-    def render_frames(self, latents: Tensor, frames: Tensor) -> Tensor:
-        """Expected frames (F, 4, H, W) at the frame indices `frames` (F,), with the hidden
-        object's latents there (F, D)."""
-        return self.draw_frames(latents, frames).frames
+    def draw_frame(self, t: int, latents: Tensor) -> Drawing:
+        """Frame t (M, 4, H, W) with the hidden object at each of the latents (M, D)."""
+        return self.draw_frames(latents, torch.full((len(latents),), t, dtype=torch.long, device=latents.device))
 
     def draw_frames(self, latents: Tensor, frames: Tensor) -> Drawing:
-        """`render_frames`, and the hidden object's exposure and area (F,) in each of those frames."""
+        """Expected frames (F, 4, H, W) at the frame indices `frames` (F,) with the hidden
+        object's latents there (F, D), its exposure (F,): how many pixels it holds in front of
+        everything else, where the encoder would have seen it, and its area (F,). Only the
+        hidden latents are decoded, and added to the softmax the fixed layers left
+        (`_partial_composite`)."""
         pictures = self.vae.decode(latents)
         return Drawing(*self._composite_hidden(push_behind(pictures, self.walls[frames]), frames),
                        self.area(pictures, frames))
@@ -157,17 +142,3 @@ class XPLScene(nn.Module):
         normaliser = total * fixed + own
         exposure = (own / normaliser).sum(dim=(-3, -2, -1))
         return (weighted * fixed + pictures * own) / normaliser, exposure
-
-    def seen_motion(self, trajectory: Tensor, exists: Tensor) -> tuple[Tensor, Tensor, Tensor]:
-        """The dynamics' prediction (N, T-1, M, D) of the moving seen slots, their refined
-        latents (T-1, M, D), and which of those the encoder saw (T-1, M): the data.
-
-        Without a hidden object the free slot holds what the encoder made of its (empty)
-        pixels, as during training; that scene is the same for every such particle, so the
-        dynamics run on it once."""
-        alive = exists.bool()
-        empty = self.xpl.predict(self.refined[None], self.occluder)[:, :, self.moving]
-        predicted = empty.expand(len(alive), *empty.shape[1:]).clone()
-        if alive.any():     # the transitions stepped through these frames already
-            predicted[alive] = torch.stack(self._step(trajectory[alive][:, :-1]), dim=1)[:, :, self.moving]
-        return predicted, self.refined[1:, self.moving], self.observed

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import csv
 import hashlib
+import json
 import os
 import shutil
 import subprocess
@@ -22,7 +23,7 @@ from hypothesis import strategies as st
 
 from xvoe.apps.cli import main
 from xvoe.benchmark import store
-from xvoe.benchmark.generate import GenerateConfig
+from xvoe.benchmark.generate import GenerateConfig, generate
 from xvoe.errors import XvoeError
 from xvoe.evaluation.metrics import read_scores, score_problem
 from xvoe.models.config import domain_of, field_type, override, parse_field
@@ -32,10 +33,12 @@ from xvoe.models.perception import PerceptionConfig
 from xvoe.models.phydnet import PhyDNetConfig
 from xvoe.models.reasoning import ReasoningConfig
 from xvoe.models.xpl import XPLConfig
-from xvoe.outputs import remove_stale_temporaries
+from xvoe.outputs import atomic_paths, remove_stale_temporaries
 from xvoe.training.checkpoints import shipped_path
 from xvoe.training.latents import Latents, write_latents
 from xvoe.training.loop import TrainConfig
+
+EXAMPLES = Path(__file__).resolve().parent.parent / "examples"
 
 
 def snapshot(root: Path) -> dict[str, str]:
@@ -74,6 +77,24 @@ MALFORMED = {
     "rgb-only": lambda f: _replace(f, "rgbd", f["rgbd"][..., :3]),
     "integer-scenario": lambda f: _replace(f, "scenario", np.zeros(f["scenario"].shape[0], np.int64)),
     "fewer-videos": lambda f: _replace(f, "rgbd", f["rgbd"][:10]),
+    "int16-rgbd": lambda f: _replace(f, "rgbd", np.linspace(-500, 9700, f["rgbd"].size).astype(np.int16)
+                                     .reshape(f["rgbd"].shape)),
+    "all-collision": lambda f: _replace(f, "scenario", np.array(["collision"] * len(f["scenario"]), object)),
+    "telekinesis": lambda f: _replace(f, "scenario", np.array(["telekinesis"] * len(f["scenario"]), object)),
+    "event-past-end": lambda f: f["event_frame"].__setitem__(0, f["rgbd"].shape[1] + 4),
+    "possible-swapped": lambda f: _replace(f, "possible", ~f["possible"][:]),
+    "lonely-member": lambda f: f["pair"].__setitem__(1, 999),
+    "ids-past-slots": lambda f: f["ids"].__setitem__((0, 0, 0, 0), 200),
+    "kind-past-names": lambda f: f["kind"].__setitem__((0, 0), 99),
+    "config-not-json": lambda f: f.attrs.__setitem__("config", "{size: 32"),
+}
+
+
+# training splits whose labels disagree with a training split's layout: (change, what the error says)
+MALFORMED_TRAIN = {
+    "unknown-group": (lambda f: _replace(f, "group", np.array(["juggling"] * len(f["group"]), object)),
+                      "group 'juggling'"),
+    "train-event-past-end": (lambda f: f["event_frame"].__setitem__(3, 99), "event_frame 99"),
 }
 
 
@@ -82,7 +103,10 @@ def files(test_file, train_file, tmp_path_factory):
     """The malformed splits, made once, in a folder of their own."""
     root = tmp_path_factory.mktemp("malformed")
     made = {name: mutate(test_file, root / f"{name}.h5", change) for name, change in MALFORMED.items()}
-    return made | {"test": test_file, "train": train_file}
+    made |= {name: mutate(train_file, root / f"{name}.h5", change) for name, (change, _) in MALFORMED_TRAIN.items()}
+    # the test split's layout and labels from another seed (small frames, for speed)
+    other = generate(GenerateConfig("test", pairs=8, size=16, seed=4), root / "other.h5", progress=False)
+    return made | {"test": test_file, "train": train_file, "other": other}
 
 
 def case_lines(files, tmp: Path) -> list[tuple[list[str], str]]:
@@ -96,6 +120,11 @@ def case_lines(files, tmp: Path) -> list[tuple[list[str], str]]:
             (["explain", "--model", "xpl", "--data", bad, "--out", str(tmp / "e.png")], bad),
             (["train", "perception", "--data", bad, "--out", str(tmp / "run"), "--steps", "1", "--quiet"], bad),
             (["encode", "--model", "xpl", "--data", bad, "--out", str(tmp / "run"), "--quiet"], bad),
+        ]
+    for name, (_, needle) in MALFORMED_TRAIN.items():
+        cases += [
+            (["train", "perception", "--data", str(files[name]), "--out", str(tmp / "run"), "--quiet"], needle),
+            (["train", "xpl", "--data", str(files[name]), "--out", str(tmp / "run"), "--quiet"], needle),
         ]
     test, train = str(files["test"]), str(files["train"])
     a_file = tmp / "a-file"
@@ -151,7 +180,7 @@ def case_lines(files, tmp: Path) -> list[tuple[list[str], str]]:
         (["ship", str(tmp / "corrupt"), "--out", str(tmp / "weights")], "not a readable xvoe checkpoint"),
         (["ship", str(tmp / "nowhere"), "--out", str(tmp / "weights")], "no such run directory"),
     ]
-    return cases + domain_cases(files, tmp) + path_cases(files, tmp) + kind_cases(files, tmp)
+    return cases + domain_cases(files, tmp) + path_cases(files, tmp) + kind_cases(files, tmp) + split_cases(files, tmp)
 
 
 HUGE = str(2**70)
@@ -184,6 +213,10 @@ def domain_cases(files, tmp: Path) -> list[tuple[list[str], str]]:
         (nll + ["--nll-set", "smc_proposal_widening=3,-inf"], "smc_proposal_widening must be"),
         (nll + ["--particles", "0"], "particles must be"),
         (["explain", "--model", "xpl", "--data", test, "--out", str(tmp / "e.png"), "--index", "-1"], "index must be"),
+        (["explain", "--model", "xpl", "--data", test, "--out", str(tmp / "e.png"), "--display-size", "8"],
+         "display-size must be"),
+        (["show", test, "--out", str(tmp / "s.png"), "--display-size", "1000"], "display-size must be"),
+        (["show", test, "--out", str(tmp / "s.gif"), "--display-size", "big"], "display-size: expected"),
         (["metrics", str(tmp / "taken.csv"), "--out", str(tmp / "r"), "--seed", "-5"], "seed must be"),
         (xpl + ["--focus-share", "2"], "focus_share must be"),
         (xpl + ["--focus-share", "-0.5"], "focus_share must be"),
@@ -201,6 +234,9 @@ def path_cases(files, tmp: Path) -> list[tuple[list[str], str]]:
     shutil.copy(files["test"], data)
     (tmp / "link.csv").symlink_to(data)
     (tmp / "alias.h5").symlink_to(data)
+    (tmp / "cached").mkdir()        # where encode and show write when no output is named: links to the input
+    (tmp / "cached" / "latents-input.h5").symlink_to(data)
+    (tmp / "input.0.png").symlink_to(data)
     score = ["score", "--model", "random", "--data", str(data), "--overwrite"]
     return [
         (score + ["--out", str(data)], "is the input"),
@@ -215,6 +251,9 @@ def path_cases(files, tmp: Path) -> list[tuple[list[str], str]]:
         (["explain", "--model", "xpl", "--data", str(data), "--out", str(tmp / "e.jpg")], "--out must end in .png"),
         (["encode", "--model", "xpl", "--data", str(data), "--out", str(tmp / "run"), "--cache", str(data),
           "--overwrite"], "--cache"),
+        (["encode", "--model", "xpl", "--data", str(data), "--out", str(tmp / "cached"), "--overwrite"],
+         "the default --cache"),
+        (["show", str(data), "--overwrite"], "the default --out"),
     ]
 
 
@@ -243,6 +282,38 @@ def kind_cases(files, tmp: Path) -> list[tuple[list[str], str]]:
     ]
 
 
+def _rewrite_header(curves: Path, change) -> None:
+    with np.load(curves) as saved:
+        arrays = dict(saved)
+    header = json.loads(str(arrays["header"]))
+    change(header)
+    np.savez_compressed(curves, **arrays | {"header": np.array(json.dumps(header))})
+
+
+def split_cases(files, tmp: Path) -> list[tuple[list[str], str]]:
+    """Scores of another split than the one named, or than each other; files verify cannot rescore."""
+    test, other = str(files["test"]), str(files["other"])
+    ours, theirs = tmp / "ours.csv", tmp / "theirs.csv"
+    main(["score", "--model", "random", "--data", test, "--out", str(ours), "--quiet"])
+    main(["score", "--model", str(EXAMPLES / "frame_change.py:FrameChange"), "--data", other, "--out", str(theirs),
+          "--quiet"])
+    old, foreign = tmp / "old.csv", tmp / "foreign.csv"
+    for copy in (old, foreign):
+        shutil.copy(ours, copy)
+        shutil.copy(ours.with_suffix(".curves.npz"), copy.with_suffix(".curves.npz"))
+    _rewrite_header(old.with_suffix(".curves.npz"), lambda h: (h.pop("split"), h.pop("model_identity")))
+    _rewrite_header(foreign.with_suffix(".curves.npz"), lambda h: h["model_identity"].update(seed=1))
+    return [
+        (["metrics", str(ours), str(theirs), "--out", str(tmp / "r")], "scored on different splits"),
+        (["metrics", str(theirs), "--data", test, "--out", str(tmp / "r")], "scored on another split"),
+        (["show", test, "--out", str(tmp / "s.mp4"), "--scores", str(theirs)], "scored on another split"),
+        (["verify", str(old)], "rescore it with this xvoe"),
+        (["verify", str(foreign)], "is not the one that scored"),
+        (["verify", str(tmp)], "holds no headers.json"),
+        (["verify", str(ours), "--rows", "0"], "expected a number >= 1"),
+    ]
+
+
 def test_every_bad_input_gets_one_line_exit_2_and_changes_nothing(files, tmp_path, capsys, monkeypatch):
     monkeypatch.chdir(tmp_path)
     tried = 0
@@ -254,7 +325,7 @@ def test_every_bad_input_gets_one_line_exit_2_and_changes_nothing(files, tmp_pat
         assert "Traceback" not in err
         assert snapshot(tmp_path) == before, args
         tried += 1
-    assert tried == 5 * len(MALFORMED) + 31 + 28 + 10 + 6
+    assert tried == 5 * len(MALFORMED) + 2 * len(MALFORMED_TRAIN) + 31 + 31 + 12 + 6 + 7
 
 
 CONFIGS = (TrainConfig, PerceptionConfig, XPLConfig, ReasoningConfig, DynamicsConfig, PhyDNetConfig, InferenceConfig,
@@ -306,29 +377,101 @@ def test_a_link_at_the_output_is_replaced_not_its_target(files, tmp_path):
 
 
 UNPRIVILEGED = ["setpriv", "--reuid=65534", "--regid=65534", "--clear-groups"]
+NOBODY = 65534
+needs_setpriv = pytest.mark.skipif(shutil.which("setpriv") is None or os.geteuid() != 0,
+                                   reason="needs setpriv, run as root")
 
 
-@pytest.mark.skipif(shutil.which("setpriv") is None or os.geteuid() != 0, reason="needs setpriv, run as root")
-def test_a_directory_the_user_may_not_write_to_gets_one_line(files, tmp_path_factory):
-    root = Path(tempfile.mkdtemp(prefix="xvoe-unwritable-"))     # outside pytest's root-only folder
-    root.chmod(0o755)
-    data = root / "test.h5"
-    shutil.copy(files["test"], data)
-    data.chmod(0o644)
-    (root / "locked").mkdir(mode=0o555)
+def home_of_nobody(root: Path) -> Path:
+    return root.with_name(root.name + "-home")
+
+
+def run_unprivileged(root: Path, args: list[str]) -> subprocess.CompletedProcess:
+    """`xvoe ARGS` as the user nobody, in `root`: root passes every permission check."""
     xvoe = str(Path(sys.executable).with_name("xvoe"))
-    try:
-        for args in (["score", "--model", "random", "--data", str(data), "--out", str(root / "locked" / "s.csv")],
-                     ["generate", "--split", "test", "--pairs", "1", "--out", str(root / "locked" / "g.h5")],
-                     ["train", "perception", "--data", str(data), "--out", str(root / "locked" / "run")]):
-            before = snapshot(root)
-            done = subprocess.run(UNPRIVILEGED + [xvoe, *args], capture_output=True, text=True, cwd=root,
-                                  env=os.environ | {"OMP_NUM_THREADS": "1"}, timeout=300)
-            assert done.returncode == 2 and len(done.stderr.strip().splitlines()) == 1, (args, done.stderr)
-            assert "permission denied" in done.stderr and "Traceback" not in done.stderr
-            assert snapshot(root) == before
-    finally:
-        shutil.rmtree(root)
+    return subprocess.run(UNPRIVILEGED + [xvoe, *args], capture_output=True, text=True, cwd=root, timeout=300,
+                          env=os.environ | {"OMP_NUM_THREADS": "1", "HOME": str(home_of_nobody(root))})
+
+
+@pytest.fixture
+def shared_folder(files):
+    """A folder outside pytest's root-only one, holding a test split everyone may read, and
+    a home of its own for the user nobody (matplotlib keeps its cache there)."""
+    root = Path(tempfile.mkdtemp(prefix="xvoe-unwritable-"))
+    root.chmod(0o755)
+    home_of_nobody(root).mkdir(mode=0o777)
+    os.chown(home_of_nobody(root), NOBODY, NOBODY)
+    shutil.copy(files["test"], root / "test.h5")
+    (root / "test.h5").chmod(0o644)
+    yield root
+    shutil.rmtree(root)
+    shutil.rmtree(home_of_nobody(root))
+
+
+@needs_setpriv
+def test_a_directory_the_user_may_not_write_to_gets_one_line(shared_folder):
+    root, data = shared_folder, str(shared_folder / "test.h5")
+    (root / "locked").mkdir(mode=0o555)
+    for args in (["score", "--model", "random", "--data", data, "--out", str(root / "locked" / "s.csv")],
+                 ["generate", "--split", "test", "--pairs", "1", "--out", str(root / "locked" / "g.h5")],
+                 ["train", "perception", "--data", data, "--out", str(root / "locked" / "run")],
+                 ["show", data, "--out", str(root / "locked" / "s.png")]):
+        before = snapshot(root)
+        done = run_unprivileged(root, args)
+        assert done.returncode == 2 and len(done.stderr.strip().splitlines()) == 1, (args, done.stderr)
+        assert "permission denied" in done.stderr and "Traceback" not in done.stderr
+        assert snapshot(root) == before
+
+
+@needs_setpriv
+def test_a_scores_file_the_user_may_not_replace_is_refused_before_the_work(shared_folder):
+    # in a sticky folder (as /tmp) a user may replace their own curves but not another user's CSV;
+    # should the folder refuse at the end all the same, both stay (test_a_set_of_files_is_replaced_...)
+    folder = shared_folder / "sticky"
+    folder.mkdir()
+    folder.chmod(0o1777)
+    (folder / "s.csv").write_text("root's scores")
+    (folder / "s.curves.npz").write_text("nobody's curves")
+    os.chown(folder / "s.curves.npz", NOBODY, NOBODY)
+    before = snapshot(shared_folder)
+    done = run_unprivileged(shared_folder, ["score", "--model", "random", "--data", "test.h5", "--out",
+                                            str(folder / "s.csv"), "--overwrite", "--quiet"])
+    assert done.returncode == 2 and len(done.stderr.strip().splitlines()) == 1, done.stderr
+    assert f"cannot replace {folder / 's.csv'}: it is another user's" in done.stderr
+    assert "Traceback" not in done.stderr
+    assert snapshot(shared_folder) == before
+
+
+def test_a_set_of_files_is_replaced_whole_or_not_at_all(tmp_path, monkeypatch):
+    old = [tmp_path / "r.curves.npz", tmp_path / "r.csv"]
+    for path in old:
+        path.write_text(f"old {path.name}")
+    replace = os.replace
+
+    def refuse_the_csv(source, target):
+        if Path(source) == old[1]:
+            raise PermissionError(1, "Operation not permitted")
+        replace(source, target)
+
+    monkeypatch.setattr(os, "replace", refuse_the_csv)
+    before = snapshot(tmp_path)
+    with pytest.raises(XvoeError, match="cannot replace .*r.csv: Operation not permitted"):
+        with atomic_paths(*old) as temporaries:
+            for temporary in temporaries:
+                temporary.write_text("new")
+    assert snapshot(tmp_path) == before
+    monkeypatch.setattr(os, "replace", replace)
+    with atomic_paths(*old) as temporaries:
+        for temporary in temporaries:
+            temporary.write_text("new")
+    assert [path.read_text() for path in old] == ["new", "new"] and len(list(tmp_path.iterdir())) == 2
+
+
+def test_an_old_file_moved_aside_by_a_killed_process_goes_back(tmp_path):
+    target = tmp_path / "r.csv"
+    (tmp_path / ".r.csv.old-999999999").write_text("the old scores")
+    remove_stale_temporaries(target)
+    assert target.read_text() == "the old scores" and len(list(tmp_path.iterdir())) == 1
 
 
 def test_a_stale_latent_cache_of_another_split_is_refused(files, tmp_path, capsys):
@@ -390,6 +533,33 @@ def test_any_broken_dataset_is_named_on_opening(files, tmp_path, drop, how):
     path = mutate(files["test"], tmp_path / f"{drop}-{how}.h5", change)
     with pytest.raises(XvoeError, match=drop):
         store.open_dataset(path).close()
+
+
+LABEL_EDITS = {"scenario": ["collision", "permanence", "telekinesis", ""], "setting": ["S1", "S2", "S3", "S4"],
+               "pair": [-1, 0, 1, 999], "member": [0, 1, 2], "possible": [True, False],
+               "event_frame": [-2, -1, 0, 14, 15]}
+
+
+@hypothesis_settings(max_examples=80, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(edits=st.lists(st.tuples(st.integers(0, 200), st.sampled_from(sorted(LABEL_EDITS)), st.integers(0, 4)),
+                      max_size=3))
+def test_labels_a_split_may_hold_are_labels_the_metrics_can_read(files, edits):
+    """Whatever test labels opening a split lets through, the metrics take as they are: every
+    pair whole, every scenario and setting known."""
+    with store.open_dataset(files["test"]) as file:
+        found, frames = store.labels(file, store.TEST_LABELS), file["rgbd"].shape[1]
+    for row, name, choice in edits:
+        found[name][row % len(found[name])] = LABEL_EDITS[name][choice % len(LABEL_EDITS[name])]
+    problem = store.pair_labels_problem(found, frames)
+    if problem is not None:
+        assert problem.startswith("labels video") and "\n" not in problem
+        return
+    count = len(found["pair"])
+    table = {"index": np.arange(count, dtype=float), "score": np.zeros(count), "possible": found["possible"],
+             "scenario": found["scenario"], "setting": found["setting"], "pair": found["pair"].astype(float),
+             "member": found["member"].astype(float)}
+    assert score_problem(table) is None
+    assert np.all((found["event_frame"] >= -1) & (found["event_frame"] < frames))
 
 
 # --- score files from anywhere ----------------------------------------------------------

@@ -1,4 +1,5 @@
-"""The importance-sampling estimator against closed-form evidence."""
+"""Importance sampling of the hidden-object model (`inference.smc.importance_evidence`: the
+frame-by-frame model and guide, never resampled) against closed-form evidence."""
 import math
 import warnings
 
@@ -6,65 +7,13 @@ import pyro
 import pyro.distributions as dist
 import pytest
 import torch
+from pyro import poutine
 from pyro.util import check_model_guide_match
 
-from inference.importance import importance
 from inference.model import HiddenObjectModel, InferenceConfig, LinearGaussianScene, Proposal, fuse
+from inference.smc import importance_evidence
 
 pytestmark = pytest.mark.usefixtures("double_precision")     # these checks compare to 1e-4
-
-
-# --- a conjugate Gaussian: theta ~ N(m0, s0^2), x_i ~ N(theta, s^2) -----------------------
-M0, S0, S = 0.5, 2.0, 0.7
-X = torch.tensor([1.2, 0.4, 2.1, 1.7, 0.9], dtype=torch.float64)
-
-
-def conjugate_model(x, particles):
-    with pyro.plate("particles", particles, dim=-1):
-        theta = pyro.sample("theta", dist.Normal(torch.tensor(M0), S0))
-        pyro.sample("x", dist.Normal(theta[:, None], S).to_event(1), obs=x.expand(particles, -1))
-
-
-def exact_evidence(x):
-    n = len(x)
-    covariance = S ** 2 * torch.eye(n) + S0 ** 2 * torch.ones(n, n)
-    return float(dist.MultivariateNormal(torch.full((n,), M0), covariance).log_prob(x))
-
-
-def posterior_guide(x, particles):
-    precision = 1 / S0 ** 2 + len(x) / S ** 2
-    mean = (M0 / S0 ** 2 + x.sum() / S ** 2) / precision
-    with pyro.plate("particles", particles, dim=-1):
-        pyro.sample("theta", dist.Normal(mean, precision ** -0.5))
-
-
-def poor_guide(x, particles):
-    with pyro.plate("particles", particles, dim=-1):
-        pyro.sample("theta", dist.Normal(torch.tensor(-1.0), 3.0))
-
-
-def test_exact_proposal_gives_the_evidence_and_full_ess():
-    pyro.set_rng_seed(0)
-    estimate = importance(conjugate_model, posterior_guide, X, particles=256)
-    assert estimate.log_evidence == pytest.approx(exact_evidence(X), abs=1e-4)
-    assert estimate.ess == pytest.approx(256, rel=1e-6)
-    assert estimate.log_weights.dtype == torch.float64
-
-
-def test_poor_proposal_is_within_three_standard_errors():
-    pyro.set_rng_seed(1)
-    estimate = importance(conjugate_model, poor_guide, X, particles=20_000)
-    error = abs(estimate.log_evidence - exact_evidence(X))
-    assert error < 3 * estimate.standard_error()
-    assert estimate.ess < 0.5 * 20_000          # a poor proposal does lose particles
-
-
-def test_a_guide_missing_a_latent_is_refused():
-    def incomplete_guide(x, particles):
-        pass
-
-    with pytest.raises(ValueError, match="do not match"):
-        importance(conjugate_model, incomplete_guide, X, particles=4)
 
 
 # --- a hidden object with linear-Gaussian dynamics, through the real model's code path ----
@@ -76,11 +25,17 @@ S_0, Q, SIGMA, P = 0.8, 0.3, 0.4, 0.3
 BACKGROUND = torch.tensor([0.1, 0.2, -0.1], dtype=torch.float64)
 
 
-def linear_model(follow_dynamics: bool = True, widening: float = 1.0):
-    scene = LinearGaussianScene(T, M_0, S_0, A, H, BACKGROUND)
-    return HiddenObjectModel(scene, InferenceConfig(prior_hidden=P, pixel_sigma=SIGMA, transition_sigma=Q,
-                                                    guide_follows_dynamics=follow_dynamics,
-                                                    proposal_widening=widening))
+def settings(widening: float = 1.0, particles: int = 64) -> InferenceConfig:
+    return InferenceConfig(prior_hidden=P, pixel_sigma=SIGMA, transition_sigma=Q, proposal_widening=widening,
+                           particles=particles)
+
+
+def linear_scene():
+    return LinearGaussianScene(T, M_0, S_0, A, H, BACKGROUND)
+
+
+def linear_model(widening: float = 1.0):
+    return HiddenObjectModel(linear_scene(), settings(widening))
 
 
 def kalman_log_evidence(frames):
@@ -126,24 +81,6 @@ def trajectory_posterior(frames):
     return mean, torch.linalg.cholesky(cov)
 
 
-def exact_guide(frames, proposal=None, particles=1):
-    """Draws from the exact posterior, as a chain of conditionals on the same sites."""
-    with_object, without = kalman_log_evidence(frames), empty_log_evidence(frames)
-    p_post = 1 / (1 + (1 - P) / P * math.exp(without - with_object))
-    mean, chol = trajectory_posterior(frames)
-    with pyro.plate("particles", particles, dim=-1):
-        exists = pyro.sample("exists", dist.Bernoulli(torch.tensor(p_post)))
-        noise = []
-        with pyro.poutine.mask(mask=exists.bool()):
-            for t in range(T):
-                rows = slice(t * D, (t + 1) * D)
-                loc = mean[rows] + (torch.stack(noise, 1).reshape(particles, -1) @ chol[rows, :t * D].T
-                                    if noise else 0.0)
-                z = pyro.sample(f"z_{t}", dist.MultivariateNormal(loc, scale_tril=chol[rows, rows]))
-                noise.append(torch.linalg.solve_triangular(chol[rows, rows], (z - loc).T, upper=False).T)
-    return exists
-
-
 def simulate_frames(seed):
     torch.manual_seed(seed)
     z, frames = M_0 + S_0 * torch.randn(D), []
@@ -154,34 +91,37 @@ def simulate_frames(seed):
     return torch.stack(frames)
 
 
-def test_linear_gaussian_exact_proposal_matches_the_kalman_evidence():
-    frames, model = simulate_frames(0), linear_model()
-    pyro.set_rng_seed(2)
-    estimate = importance(model.model, exact_guide, frames, particles=512)
-    assert estimate.log_evidence == pytest.approx(exact_mixture_evidence(frames), abs=1e-4)
-    assert estimate.ess == pytest.approx(512, rel=1e-6)
-
-
-@pytest.mark.parametrize("follow_dynamics, widening", [(True, 1.0), (True, 3.0), (False, 1.0)])
-def test_linear_gaussian_amortised_style_proposal_and_posterior_of_existence(follow_dynamics, widening):
-    """The real guide (Gaussians per frame, fused with the dynamics' step or not, widened or
-    not, and its own existence probability) stays within three standard errors; the weighted
-    share of particles with an object is the exact posterior probability that a hidden object
-    exists."""
-    frames, model = simulate_frames(2), linear_model(follow_dynamics, widening)
+@pytest.mark.parametrize("widening", [1.0, 3.0])
+def test_importance_sampling_matches_the_kalman_evidence_and_the_posterior_of_existence(widening):
+    """The real guide (Gaussians per frame fused with the dynamics' step, widened or not, and its
+    own existence probability) stays within three standard errors of the exact evidence; the
+    weighted share of particles with an object is the exact posterior probability that a
+    hidden object exists."""
+    frames = simulate_frames(2)
     mean, chol = trajectory_posterior(frames)
     marginal_sd = torch.sqrt((chol ** 2).sum(1)).reshape(T, D)
     proposal = Proposal(torch.tensor(0.5), mean.reshape(T, D), 1.2 * marginal_sd)
-    pyro.set_rng_seed(3)
-    estimate = importance(model.model, model.guide, frames, proposal=proposal, particles=20_000)
-    assert abs(estimate.log_evidence - exact_mixture_evidence(frames)) < 3 * estimate.standard_error()
+    found = importance_evidence(linear_scene(), frames, settings(widening, particles=20_000), proposal,
+                                torch.Generator().manual_seed(3))
+    weights = torch.exp(found.log_weights - found.log_weights.max())
+    standard_error = float(weights.std() / (weights.mean() * math.sqrt(len(weights))))
+    assert abs(found.log_evidence - exact_mixture_evidence(frames)) < 3 * standard_error
     with_object, without = kalman_log_evidence(frames), empty_log_evidence(frames)
     p_post = 1 / (1 + (1 - P) / P * math.exp(without - with_object))
     assert 0.15 < p_post < 0.85                    # a case where the answer is not trivially 0 or 1
-    assert float(estimate.posterior_mean("exists")) == pytest.approx(p_post, abs=0.02)
+    assert found.p_hidden == pytest.approx(p_post, abs=0.02)
+    assert found.log_weights.dtype == torch.float64 and found.exists.dtype == torch.bool
+
+
+def test_the_models_guide_matches_the_model():
+    frames, model = simulate_frames(2), linear_model()
+    proposal = Proposal(torch.tensor(0.5), torch.zeros(T, D), torch.ones(T, D))
+    pyro.set_rng_seed(0)
+    guide_trace = poutine.trace(model.guide).get_trace(frames, proposal, particles=8)
+    model_trace = poutine.trace(poutine.replay(model.model, trace=guide_trace)).get_trace(frames, proposal, 8)
     with warnings.catch_warnings():
         warnings.simplefilter("error")
-        check_model_guide_match(estimate.model_trace, estimate.guide_trace)
+        check_model_guide_match(model_trace, guide_trace)
 
 
 def test_a_widened_proposal_becomes_the_models_own_prior():
@@ -195,8 +135,10 @@ def test_a_widened_proposal_becomes_the_models_own_prior():
     for widening in (1.0, 1e6):
         model = linear_model(widening=widening)
         pyro.set_rng_seed(4)
-        estimate = importance(model.model, model.guide, frames, proposal=proposal, particles=64)
-        model_trace, guide_trace = estimate.model_trace, estimate.guide_trace
+        guide_trace = poutine.trace(model.guide).get_trace(frames, proposal, particles=64)
+        model_trace = poutine.trace(poutine.replay(model.model, trace=guide_trace)).get_trace(frames, proposal, 64)
+        model_trace.compute_log_prob()
+        guide_trace.compute_log_prob()
         alive = guide_trace.nodes["exists"]["value"].bool()
         assert alive.sum() > 10
         gap = sum(model_trace.nodes[f"z_{t}"]["log_prob"] - guide_trace.nodes[f"z_{t}"]["log_prob"] for t in range(T))

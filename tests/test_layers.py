@@ -15,6 +15,7 @@ LAYERS = {
     "xvoe.allocator": 0,
     "xvoe.outputs": 0,
     "xvoe.domains": 0,
+    "xvoe.identity": 0,
     "xvoe.benchmark": 1,
     "xvoe.models": 2,
     "xvoe.training": 3,

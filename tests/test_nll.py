@@ -7,11 +7,11 @@ import pyro
 import pytest
 import torch
 from conftest import randomise_dynamics_head
+from pyro import poutine
 from pyro.util import check_model_guide_match
 
 import xvoe
 from inference.explain import nll_explanation
-from inference.importance import importance
 from inference.model import Drawing, HiddenObjectModel, InferenceConfig, Proposal, drawing_cost
 from inference.score import reference_nll
 from inference.surprise import BRANCH_SAMPLES, AdamSteps, defensive, hidden_posterior, nll_surprise, refine_out_of_sight
@@ -54,16 +54,21 @@ def video(hidden_free=True):
 
 def test_real_model_and_guide_match_and_estimates_are_sane():
     vae, xpl = tiny_models()
-    pyro.set_rng_seed(0)
     result = nll_surprise(vae, xpl, *video(), InferenceConfig(particles=16, method="importance"))
-    with warnings.catch_warnings():
-        warnings.simplefilter("error")
-        check_model_guide_match(result.estimate.model_trace, result.estimate.guide_trace)
     assert result.hidden_slot == 3
     assert 1.0 <= result.ess <= 16.0 + 1e-9 and 0.0 <= result.p_hidden <= 1.0
     assert torch.isfinite(torch.tensor(result.nll))
-    sites = {name for name, node in result.estimate.model_trace.nodes.items() if node["type"] == "sample"}
-    assert {"exists", "z_0", f"z_{T - 1}", "frames", "seen_motion"} <= sites
+    scene, frames = tiny_scene()
+    model = HiddenObjectModel(scene, InferenceConfig())
+    proposal = Proposal(torch.tensor(0.5), torch.zeros(T, D), torch.ones(T, D))
+    with torch.no_grad():
+        guide_trace = poutine.trace(model.guide).get_trace(frames, proposal, particles=16)
+        model_trace = poutine.trace(poutine.replay(model.model, trace=guide_trace)).get_trace(frames, proposal, 16)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        check_model_guide_match(model_trace, guide_trace)
+    sites = {name for name, node in model_trace.nodes.items() if node["type"] == "sample"}
+    assert {"exists", "z_0", f"z_{T - 1}", "x_0", f"x_{T - 1}", "motion_1", f"motion_{T - 1}"} <= sites
 
 
 def test_without_a_free_slot_no_hidden_object_is_proposed():
@@ -118,14 +123,12 @@ def test_nll_explanation_shapes_and_probabilities(hidden_free):
 
 def test_hidden_posterior_weights_the_particles_that_hold_an_object():
     vae, xpl = tiny_models()
-    pyro.set_rng_seed(0)
     result = nll_surprise(vae, xpl, *video(), InferenceConfig(particles=32, method="importance"))
     posterior = hidden_posterior(result)
-    nodes = result.estimate.guide_trace.nodes
-    alive = nodes["exists"]["value"].bool()
+    alive, trajectories = result.estimate.exists, result.estimate.trajectories
     assert posterior.holding == int(alive.sum()) and posterior.mean.shape == (T, D)
     weights = torch.softmax(result.estimate.log_weights[alive], 0)
-    expected = sum(w * nodes["z_2"]["value"][alive][i].double() for i, w in enumerate(weights))
+    expected = sum(w * trajectories[alive][i, 2].double() for i, w in enumerate(weights))
     torch.testing.assert_close(posterior.mean[2].double(), expected, rtol=1e-5, atol=1e-5)
     assert 0.0 < posterior.best_weight <= 1.0
 
@@ -206,26 +209,25 @@ def test_the_nll_settings_reach_every_video_and_its_excess(tmp_path):
     assert xvoe.nll_settings(["pixel_sigma=1", "smc_pilot=8"]) == {"pixel_sigma": 1.0, "smc_pilot": 8}
 
 
-def test_the_scene_steps_the_dynamics_once_per_frame_and_matches_a_full_run():
-    """The hidden slot's transition carries the dynamics' state from one call to the next
-    (the model asks frame by frame); it must equal running the dynamics over the whole prefix,
-    also when the history is not a continuation of the last call."""
+def test_the_scene_steps_the_dynamics_frame_by_frame_as_a_full_run_does():
+    """Stepped frame by frame with each particle's memory, the dynamics predict what one run over
+    the whole video predicts, the hidden slot holding the particle's latents where it holds an
+    object and the encoder's empty slot elsewhere."""
     vae, xpl = tiny_models()
     randomise_dynamics_head(xpl.dynamics)
     _, mean, visible, background, _ = video()
     with torch.no_grad():
         scene = XPLScene(vae, xpl, mean, vae.decode(background), visible, torch.zeros(K, dtype=torch.bool), 3)
-        trajectory = torch.randn(6, T, D)
-        for steps in [*range(1, T + 1), 3, 2]:
-            full = xpl.dynamics(scene.with_hidden(trajectory[:, :steps]))[:, -1, 3]
-            torch.testing.assert_close(scene.transition(trajectory[:, :steps]), full, atol=1e-5, rtol=1e-5)
-        for steps in range(1, T):                # as the model asks, then the seen objects' motion
-            scene.transition(trajectory[:, :steps])
-        alive = torch.tensor([True, False, True, True, False, True])
-        predicted, _, _ = scene.seen_motion(trajectory, alive)
-        moving = visible.any(0)
-        expected = xpl.dynamics(scene.with_hidden(trajectory[alive])[:, :-1])[:, :, moving]
-        torch.testing.assert_close(predicted[alive], expected, atol=1e-5, rtol=1e-5)
+        trajectory, alive = torch.randn(6, T, D), torch.tensor([True, False, True, True, False, True])
+        scenes = mean.expand(6, T, K, D).clone()
+        scenes[alive, :, 3] = trajectory[alive]
+        full = xpl.dynamics(scenes)                                     # (6, T, K, D)
+        memory = None
+        for t in range(T):
+            step = scene.advance(t, trajectory[:, t], alive, memory)
+            memory = step.memory
+            torch.testing.assert_close(step.loc, full[:, t, 3], atol=1e-5, rtol=1e-5)
+            torch.testing.assert_close(step.seen, full[:, t][:, visible.any(0)], atol=1e-5, rtol=1e-5)
 
 
 def test_the_scene_composites_a_hidden_picture_as_the_full_softmax_does():
@@ -237,6 +239,19 @@ def test_the_scene_composites_a_hidden_picture_as_the_full_softmax_does():
         layers = scene.layers.expand(2, *scene.layers.shape).clone()
         layers[:, :, 3] = pictures
         torch.testing.assert_close(scene._composite_hidden(pictures)[0], scene._composite(layers), atol=1e-5, rtol=1e-4)
+
+
+def draw_all(scene, trajectory):
+    """Every frame of each trajectory (M, T, D) drawn: frames (M, T, ...), exposure and area (M, T)."""
+    count = len(trajectory)
+    drawing = scene.draw_frames(trajectory.reshape(-1, D), torch.arange(T).repeat(count))
+    return Drawing(drawing.frames.reshape(count, T, *drawing.frames.shape[1:]), drawing.exposure.reshape(count, T),
+                   drawing.area.reshape(count, T))
+
+
+def pixel_log_likelihood(model, trajectory, alive, frames):
+    """The pixel factors x_0 ... x_{T-1} of each particle, summed."""
+    return sum(model.frame_log_likelihood(t, trajectory[:, t], alive, frames[t]) for t in range(T))
 
 
 def tiny_scene():
@@ -255,8 +270,8 @@ def test_the_pixel_likelihood_is_the_gaussian_density_of_every_particles_frames(
     model = HiddenObjectModel(scene, InferenceConfig(pixel_sigma=0.3, exposure_penalty=0.0, presence_penalty=0.0))
     trajectory, alive = torch.randn(5, T, D), torch.tensor([True, False, True, False, False])
     with torch.no_grad():
-        found = model.pixel_log_likelihood(trajectory, alive, frames)
-        rendered = torch.where(alive[:, None, None, None, None], scene.render(trajectory), scene.empty())
+        found = pixel_log_likelihood(model, trajectory, alive, frames)
+        rendered = torch.where(alive[:, None, None, None, None], draw_all(scene, trajectory).frames, scene.empty())
         expected = torch.distributions.Normal(rendered.double(), 0.3).log_prob(frames.double()).sum((1, 2, 3, 4))
     assert found.dtype == torch.float64
     torch.testing.assert_close(found, expected, atol=0.0, rtol=1e-6)      # float32 squares, float64 sums
@@ -264,28 +279,30 @@ def test_the_pixel_likelihood_is_the_gaussian_density_of_every_particles_frames(
 
 
 def test_the_seen_objects_motion_is_observed_only_where_the_encoder_saw_them():
-    """Transformer 1's fills feed the dynamics but are not data: the seen_motion site's density
-    is the Gaussian one summed over the (frame, slot) entries the encoder saw, and nothing else."""
+    """Transformer 1's fills feed the dynamics but are not data: each motion site's density is
+    the Gaussian one summed over the slots the encoder saw in that frame, and nothing else."""
     vae, xpl = tiny_models()
     randomise_dynamics_head(xpl.dynamics)
     frames, mean, visible, background, occluder = video()
     visible[2:4, 1] = False                     # slot 1 behind a wall for two frames: filled, not seen
     config = InferenceConfig()
+    trajectory = torch.randn(1, T, D)
     with torch.no_grad():
         scene = XPLScene(vae, xpl, mean, vae.decode(background), visible, occluder, 3)
-        model = HiddenObjectModel(scene, config)
-        proposal = Proposal(torch.tensor(0.5), torch.zeros(T, D), torch.ones(T, D))
-        pyro.set_rng_seed(0)
-        estimate = importance(model.model, model.guide, frames, proposal=proposal, particles=6)
-        guide_trace = estimate.guide_trace
-        trajectory = torch.stack([guide_trace.nodes[f"z_{t}"]["value"] for t in range(T)], dim=1)
-        predicted, seen, observed = scene.seen_motion(trajectory, guide_trace.nodes["exists"]["value"])
-    moving = visible.any(0) & ~occluder
-    assert observed.tolist() == visible[1:][:, moving].tolist() and not observed.all()
-    density = torch.distributions.Normal(predicted, config.motion_sigma).log_prob(seen)    # (N, T-1, M, D)
-    expected = (density * observed[..., None]).sum(dim=(1, 2, 3))
-    torch.testing.assert_close(estimate.model_trace.nodes["seen_motion"]["log_prob"], expected)
-    assert (density.sum(dim=(1, 2, 3)) - expected).abs().min() > 1e-3      # the fills would have counted
+        values = {"exists": torch.ones(1)} | {f"z_{t}": trajectory[:, t] for t in range(T)}
+        trace = poutine.trace(poutine.condition(HiddenObjectModel(scene, config).model, data=values)).get_trace(frames)
+        trace.compute_log_prob()
+        scenes = scene.refined.clone()[None]
+        scenes[:, :, 3] = trajectory
+        moving = visible.any(0) & ~occluder
+        predicted = xpl.dynamics(scenes, scene.inert())[0, :-1][:, moving]          # frames 1 .. T-1
+    density = torch.distributions.Normal(predicted.double(), config.motion_sigma).log_prob(mean[1:, moving].double())
+    observed = visible[1:, moving]
+    assert not observed.all()
+    for t in range(1, T):
+        expected = (density[t - 1] * observed[t - 1, :, None]).sum()
+        torch.testing.assert_close(trace.nodes[f"motion_{t}"]["log_prob"][0], expected, atol=1e-4, rtol=1e-5)
+    assert (density.sum() - (density * observed[..., None]).sum()).abs() > 1e-3      # the fills would have counted
 
 
 def hand_made_scene():
@@ -318,11 +335,11 @@ def test_the_exposure_penalty_costs_its_nats_per_exposed_pixel():
     scene, frames = tiny_scene()
     trajectory, alive = torch.randn(5, T, D), torch.tensor([True, False, True, False, True])
     with torch.no_grad():
-        plain = HiddenObjectModel(scene, InferenceConfig(exposure_penalty=0.0)).pixel_log_likelihood(
-            trajectory, alive, frames)
-        penalised = HiddenObjectModel(scene, InferenceConfig(exposure_penalty=2.0)).pixel_log_likelihood(
-            trajectory, alive, frames)
-        exposure = scene.draw(trajectory).exposure
+        plain = pixel_log_likelihood(HiddenObjectModel(scene, InferenceConfig(exposure_penalty=0.0)), trajectory,
+                                     alive, frames)
+        penalised = pixel_log_likelihood(HiddenObjectModel(scene, InferenceConfig(exposure_penalty=2.0)), trajectory,
+                                         alive, frames)
+        exposure = draw_all(scene, trajectory).exposure
     assert (exposure > 0).all()
     expected = plain - 2.0 * exposure.double().sum(-1) * alive
     torch.testing.assert_close(penalised, expected, atol=1e-6, rtol=1e-9)
@@ -357,11 +374,11 @@ def test_the_presence_penalty_costs_its_nats_per_pixel_short_of_an_objects_area(
     scene, frames = tiny_scene()
     trajectory, alive = torch.randn(5, T, D), torch.tensor([True, False, True, False, True])
     with torch.no_grad():
-        plain = HiddenObjectModel(scene, InferenceConfig(presence_penalty=0.0)).pixel_log_likelihood(
-            trajectory, alive, frames)
-        penalised = HiddenObjectModel(scene, InferenceConfig(presence_penalty=2.0, object_area=0.5)
-                                      ).pixel_log_likelihood(trajectory, alive, frames)
-        area = scene.draw(trajectory).area.double()
+        plain = pixel_log_likelihood(HiddenObjectModel(scene, InferenceConfig(presence_penalty=0.0)), trajectory,
+                                     alive, frames)
+        wanting = HiddenObjectModel(scene, InferenceConfig(presence_penalty=2.0, object_area=0.5))
+        penalised = pixel_log_likelihood(wanting, trajectory, alive, frames)
+        area = draw_all(scene, trajectory).area.double()
     shortfall = (0.5 * 256 - area).clamp_min(0.0).sum(-1)
     assert (shortfall > 0).all()
     torch.testing.assert_close(penalised, plain - 2.0 * shortfall * alive, atol=1e-6, rtol=1e-9)
@@ -387,9 +404,9 @@ def test_moving_the_proposal_out_of_sight_hides_it_behind_the_wall():
     config = InferenceConfig(pixel_sigma=100.0, refine_steps=30, refine_rate=0.1, refine_tolerance=0.0,
                              exposure_penalty=1.0)
     with torch.no_grad():
-        before = scene.draw(loc[None]).exposure[0]
+        before = draw_all(scene, loc[None]).exposure[0]
         moved = refine_out_of_sight(scene, loc, frames, config)
-        after = scene.draw(moved[None]).exposure[0]
+        after = draw_all(scene, moved[None]).exposure[0]
     assert (before > 5.0).all()
     assert (after < 0.2 * before).all() and (moved[:, 0] < loc[:, 0]).all()
 
@@ -413,27 +430,30 @@ def test_moving_the_proposal_out_of_sight_keeps_it_an_object():
     common = dict(pixel_sigma=100.0, refine_steps=60, refine_rate=0.1, refine_tolerance=0.0, exposure_penalty=1.0,
                   object_area=0.06)
     with torch.no_grad():
-        whole = scene.draw(loc[None]).area[0]
-        kept = scene.draw(refine_out_of_sight(scene, loc, frames, InferenceConfig(**common))[None])
+        whole = draw_all(scene, loc[None]).area[0]
+        kept = draw_all(scene, refine_out_of_sight(scene, loc, frames, InferenceConfig(**common))[None])
         faded = refine_out_of_sight(scene, loc, frames, InferenceConfig(**common, presence_penalty=0.0))
-        faded = scene.draw(faded[None])
+        faded = draw_all(scene, faded[None])
     assert (whole > 0.06 * 256).all()
     assert (kept.area[0] > 0.9 * 0.06 * 256).all() and (kept.exposure[0] < 1.0).all()
     assert (faded.area[0] < 0.5 * whole).all()
 
 
-def test_render_frames_is_the_render_at_those_frames():
+def test_a_frame_drawn_alone_is_that_frame_of_the_whole_drawing():
     scene, _ = tiny_scene()
-    trajectory, chosen = torch.randn(1, T, D), torch.tensor([0, 2, 3])
+    trajectory = torch.randn(3, T, D)
     with torch.no_grad():
-        torch.testing.assert_close(scene.render_frames(trajectory[0, chosen], chosen),
-                                   scene.render(trajectory)[0, chosen])
+        whole = draw_all(scene, trajectory)
+        for t in (0, 2, 3):
+            alone = scene.draw_frame(t, trajectory[:, t])
+            torch.testing.assert_close(alone.frames, whole.frames[:, t])
+            torch.testing.assert_close(alone.exposure, whole.exposure[:, t])
 
 
 def extra_nats(scene, loc, frames, sigma):
     """Per frame, the nats the hidden object's pictures add where they spoil the frames."""
     with torch.no_grad():
-        extra = (scene.render(loc[None])[0] - frames).square() - (scene.empty() - frames).square()
+        extra = (draw_all(scene, loc[None]).frames[0] - frames).square() - (scene.empty() - frames).square()
     return extra.clamp_min(0).sum((1, 2, 3)) / (2 * sigma ** 2)
 
 

@@ -40,6 +40,7 @@ def test_tiny_pipeline_runs_end_to_end_and_skips_done_stages(tmp_path, tiny_cpu_
     assert all(load_checkpoint(run / f"{stage}.pt")["world"] == 2 for stage in ("xpl", "proposal", "plato"))
     assert load_checkpoint(run / "perception.pt")["world"] == 1
     assert "Holistic" in text and "| collision |" in text and "continuity S3" in text
+    assert text.count("- split: seed") == 3 and "checkpoint_hash" in text     # each score file's header
     for model in ("xpl", "plato", "random"):
         assert (run / "scores" / f"{model}.csv").exists()
     for figure in ("holistic.png", "comparative.png", "components-plato.png", "explanation-blocking-S2.png"):

@@ -8,14 +8,13 @@ from pyro import poutine
 
 from inference.model import HiddenObjectModel, InferenceConfig, LinearGaussianScene, Proposal
 from inference.smc import (
-    HiddenTrajectory,
-    LinearSteps,
-    SMCEstimate,
-    XPLSteps,
+    Evidence,
+    ModelSteps,
     run_smc,
     smc_evidence,
     systematic_resample,
     top_hypotheses,
+    widenings_of,
 )
 
 pytestmark = pytest.mark.usefixtures("double_precision")
@@ -129,6 +128,13 @@ def config(**changes):
     return InferenceConfig(prior_hidden=P, pixel_sigma=SIGMA, transition_sigma=Q, **changes)
 
 
+def object_branch(frames, proposal=None):
+    """The model, an object held in every particle, frame by frame through Pyro: its evidence is
+    log P + the Kalman filter's."""
+    model = HiddenObjectModel(linear_scene(), config())
+    return ModelSteps(model, frames, proposal, widenings_of(config()), exists=True)
+
+
 def rough_proposal():
     """A per-frame guess that is off: the guide's fused proposal must still be exact in expectation."""
     return Proposal(torch.tensor(0.5), torch.full((T, D), 0.5), torch.full((T, D), 0.6))
@@ -141,10 +147,10 @@ def test_smc_evidence_matches_the_kalman_filter(particles, proposal):
     mean log p^ within three standard errors of its own spread around log p (the downward bias
     of a log is second order). The bootstrap filter and the guide's fused proposal."""
     frames, runs = simulated_frames(), 2000
-    steps = LinearSteps(linear_scene(), frames, config())
-    model = HiddenTrajectory(steps, config(), rough_proposal() if proposal else None)
-    found = run_smc(model, particles, runs=runs, generator=torch.Generator().manual_seed(2))
-    exact = kalman(frames)
+    torch.manual_seed(0)
+    found = run_smc(object_branch(frames, rough_proposal() if proposal else None), particles, runs=runs,
+                    generator=torch.Generator().manual_seed(2))
+    exact = math.log(P) + kalman(frames)
     ratio = torch.exp(found.log_evidence - exact)
     assert abs(float(ratio.mean()) - 1) < 3 * float(ratio.std()) / math.sqrt(runs)
     logs = found.log_evidence
@@ -154,7 +160,8 @@ def test_smc_evidence_matches_the_kalman_filter(particles, proposal):
 
 def test_more_particles_narrow_the_estimate():
     frames, runs = simulated_frames(), 500
-    model = HiddenTrajectory(LinearSteps(linear_scene(), frames, config()), config(), None)
+    torch.manual_seed(0)
+    model = object_branch(frames)
     spreads = [float(run_smc(model, n, runs=runs, generator=torch.Generator().manual_seed(3)).log_evidence.std())
                for n in (4, 64)]
     assert spreads[1] < 0.5 * spreads[0]
@@ -167,7 +174,7 @@ def test_the_mixture_over_existence_matches_the_closed_form():
     with_object = kalman(frames)
     without = float(torch.distributions.Normal(BACKGROUND, SIGMA).log_prob(frames).sum())
     exact = float(torch.logsumexp(torch.tensor([math.log(P) + with_object, math.log(1 - P) + without]), 0))
-    assert found.log_evidence_empty == pytest.approx(without, abs=1e-9)
+    assert found.log_evidence_empty == pytest.approx(math.log(1 - P) + without, abs=1e-9)
     assert found.log_evidence == pytest.approx(exact, abs=0.4)     # 3 sd of log p^ at 4,096 particles here
     assert found.p_hidden == pytest.approx(math.exp(math.log(P) + with_object - exact), abs=0.1)
     assert found.trajectories.shape == (4096, T, D) and found.log_weights.dtype == torch.float64
@@ -230,7 +237,7 @@ def test_top_hypotheses_merge_copies_and_say_where_they_differ():
     trajectories[1:3, 2] = 1.0                   # particles 1 and 2 are copies; they differ from 0 at frame 2
     trajectories[3:, 1:] = -1.0                  # 3 and 4 are copies; they differ from 0 at frames 1 and 2
     log_weights = torch.tensor([0.1, 0.2, 0.2, 0.25, 0.25]).log()
-    estimate = SMCEstimate(0.0, 0.0, 0.0, 1.0, 4.0, 4.0, 3, 0, 5, trajectories, log_weights)
+    estimate = Evidence(0.0, 0.0, 0.0, 1.0, 4.0, 4.0, 3, 0, 5, trajectories, log_weights)
     found = top_hypotheses(estimate, top=2)
     assert found.trajectories.shape == (2, 3, 2)
     torch.testing.assert_close(found.weights, torch.tensor([0.5, 0.4]))
@@ -248,11 +255,11 @@ def tiny_xpl_scene():
     return tiny_scene()
 
 
-def test_the_frame_by_frame_factors_add_up_to_the_pyro_models_joint_density():
-    """For one trajectory, the SMC's transitions, pixel (with the exposure and presence penalties) and
-    seen-motion terms summed over the frames equal the log-density of the Pyro model
-    (`HiddenObjectModel.model`) with the object, and its branch without one the model's density
-    without one: both estimators target the same model."""
+@pytest.mark.parametrize("exists", [True, False, None])
+def test_the_frame_by_frame_weights_are_the_whole_videos_model_over_guide(exists):
+    """Taken frame by frame through trace and replay (never resampled), a particle's log-weight is
+    log p(x, z) - log q(z) of the whole-video model and guide at its draws: with an object, without
+    one (exact: every latent masked) and with existence proposed by the guide."""
     from conftest import randomise_dynamics_head
 
     scene, frames = tiny_xpl_scene()
@@ -260,26 +267,21 @@ def test_the_frame_by_frame_factors_add_up_to_the_pyro_models_joint_density():
     settings = InferenceConfig(pixel_sigma=0.3, motion_sigma=0.2, transition_sigma=0.1, exposure_penalty=1.5,
                                presence_penalty=1.5, object_area=0.9)
     model = HiddenObjectModel(scene, settings)
-    steps = XPLSteps(scene, frames, settings)
-    trajectory = torch.randn(1, scene.frames, scene.dim)
+    proposal = Proposal(torch.tensor(0.5), torch.randn(scene.frames, scene.dim), torch.ones(scene.frames, scene.dim))
+    steps = ModelSteps(model, frames, proposal, (settings.proposal_widening,), exists)
+    torch.manual_seed(0)
     with torch.no_grad():
-        total, carried = 0.0, None
-        loc, scale = steps.initial(1)
-        for t in range(scene.frames):
-            z = trajectory[:, t]
-            from inference.smc import normal_log_density
-            total += float(normal_log_density(z, loc, scale) + steps.frame_log_likelihood(t, z))
-            if t < scene.frames - 1:
-                loc, carried, motion = steps.advance(t, z, carried)
-                scale = torch.full_like(loc, settings.transition_sigma)
-                total += float(motion)
-        for exists, expected in ((1.0, total), (0.0, steps.empty_log_likelihood())):
-            values = {"exists": torch.tensor([exists])} | {f"z_{t}": trajectory[:, t] for t in range(scene.frames)}
-            trace = poutine.trace(poutine.condition(model.model, data=values)).get_trace(frames, particles=1)
-            trace.compute_log_prob()
-            joint = sum(float(node["log_prob"].sum()) for node in trace.nodes.values() if node["type"] == "sample")
-            prior = math.log(settings.prior_hidden) if exists else math.log(1 - settings.prior_hidden)
-            assert joint - prior == pytest.approx(expected, rel=1e-5, abs=1e-2)
+        run = run_smc(steps, 4, threshold=0.0)
+        values = {"exists": run.state["exists"].double()} | {
+            f"z_{t}": run.state["trajectory"][:, t] for t in range(scene.frames)}
+        joint = poutine.trace(poutine.condition(model.model, data=values)).get_trace(frames, proposal, 4)
+        proposed = poutine.trace(poutine.condition(model.guide, data=values)).get_trace(frames, proposal, 4)
+    from inference.smc import site_log_probs
+    proposed.compute_log_prob()         # conditioned, every guide site is observed: pick the proposed ones
+    drawn = [name for name in proposed.nodes if name.startswith("z_") or (name == "exists" and exists is None)]
+    expected = site_log_probs(joint, 4) - sum(proposed.nodes[name]["log_prob"].double() for name in drawn)
+    torch.testing.assert_close(run.log_weights[0], expected, rtol=1e-5, atol=1e-3)
+    assert exists is not False or torch.allclose(run.log_weights[0], run.log_weights[0, :1].expand(4))
 
 
 def test_smc_runs_on_the_xpl_scene_and_resamples_the_dynamics_memory():

@@ -77,5 +77,5 @@ def test_scores_without_curves_or_from_other_data_are_refused(scored, test_file,
         xvoe.plot_surprise_curves(scored, test_file, "collision", "S1", 0, frame=15)
     other = custom.make_pair([custom.ball(4, vx=50), custom.ball(34)], custom.pass_through(0, 1))
     mine = other.save(tmp_path / "mine.h5", size=32)
-    with pytest.raises(XvoeError, match="does not match"):
+    with pytest.raises(XvoeError, match="scored on another split"):
         xvoe.plot_surprise_curves(scored, mine, "collision", "S1", 0)

@@ -41,6 +41,7 @@ NON_NEGATIVE = Domain(0)
 COUNT = Domain(1)
 SHARE = Domain(0, 1)
 SEED = Domain(0, 2**63 - 1)     # what numpy's and torch's generators take, with room for seed + 1
+PICTURE_SIZE = Domain(16, 512)  # pixels a side of a rendered or displayed frame
 
 
 def within(default: Any, domain: Domain) -> Any:

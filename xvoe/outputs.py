@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import os
 import re
+import stat
 from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
@@ -27,7 +28,18 @@ def claim_file(path: str | os.PathLike, overwrite: bool = False, *, what: str = 
     if path.exists() and not overwrite:
         raise XvoeError(f"{path} exists; pass --overwrite to replace it")
     _writable_directory(path.parent)
+    if os.path.lexists(path):
+        _replaceable(path)
     return path
+
+
+def _replaceable(path: Path) -> None:
+    """Refuse before the work a file whose replacement the folder will refuse at the end: in a
+    sticky folder (as /tmp) only the file's owner, the folder's or root may replace it."""
+    folder = path.parent.stat()
+    if folder.st_mode & stat.S_ISVTX and os.geteuid() not in (0, folder.st_uid, path.lstat().st_uid):
+        raise XvoeError(f"cannot replace {path}: it is another user's, in a folder where only its owner may "
+                        "replace it")
 
 
 def refuse_overlap(inputs: list[str | os.PathLike], output: str | os.PathLike, suffixes: tuple[str, ...],
@@ -82,12 +94,22 @@ def temporary_name(path: Path) -> Path:
     return path.with_name(f".{path.name}.tmp-{os.getpid()}")
 
 
+def _aside_name(path: Path) -> Path:
+    """The name the old file at `path` is moved to while the new one takes its place."""
+    return path.with_name(f".{path.name}.old-{os.getpid()}")
+
+
 def remove_stale_temporaries(path: Path) -> None:
-    """Delete the temporary files of `path` left by processes that are gone (killed with -9)."""
-    pattern = re.compile(rf"^\.{re.escape(path.name)}\.tmp-(\d+)$")
-    for candidate in path.parent.glob(f".{path.name}.tmp-*"):
+    """Delete the temporary files of `path` left by processes that are gone (killed with -9);
+    an old file such a process had moved aside goes back where nothing took its place."""
+    pattern = re.compile(rf"^\.{re.escape(path.name)}\.(tmp|old)-(\d+)$")
+    for candidate in path.parent.glob(f".{path.name}.*-*"):
         match = pattern.match(candidate.name)
-        if match and not _alive(int(match.group(1))):
+        if not match or _alive(int(match.group(2))):
+            continue
+        if match.group(1) == "old" and not os.path.lexists(path):
+            os.replace(candidate, path)
+        else:
             candidate.unlink(missing_ok=True)
 
 
@@ -103,15 +125,44 @@ def _alive(pid: int) -> bool:
 
 @contextmanager
 def atomic_paths(*paths: Path) -> Iterator[list[Path]]:
-    """Temporary names for `paths`, renamed over them in order when the block succeeds and
-    removed when it fails. Put the file that readers look for first last: it is the commit."""
+    """Temporary names for `paths`, renamed over them together when the block succeeds
+    (`replace_together`) and removed when it fails. Put the file that readers look for first
+    last: it is the commit."""
     for path in paths:
         remove_stale_temporaries(path)
     temporaries = [temporary_name(path) for path in paths]
     try:
         yield temporaries
-        for temporary, path in zip(temporaries, paths):
-            os.replace(temporary, path)
+        replace_together(temporaries, list(paths))
     finally:
         for temporary in temporaries:
             temporary.unlink(missing_ok=True)
+
+
+def replace_together(temporaries: list[Path], paths: list[Path]) -> None:
+    """Rename each temporary over its path, in order, all or none. The old files are moved
+    aside first, which a directory refuses exactly where it refuses replacing them (a file of
+    another user in a sticky directory), so a refusal puts every old file back, removes every
+    new one and costs a one-line error: a result of several files stays a consistent set."""
+    aside: list[tuple[Path, Path]] = []
+    placed: list[Path] = []
+    current = paths[0] if paths else None
+    try:
+        for current in paths:
+            if os.path.lexists(current):
+                os.replace(current, _aside_name(current))
+                aside.append((current, _aside_name(current)))
+        for temporary, current in zip(temporaries, paths):
+            os.replace(temporary, current)
+            placed.append(current)
+    except BaseException as error:
+        for path in placed:
+            path.unlink(missing_ok=True)
+        for path, old in aside:
+            os.replace(old, path)
+        if isinstance(error, OSError):
+            raise XvoeError(f"cannot replace {current}: {error.strerror or error}; "
+                            "the files there were left as they were") from None
+        raise
+    for _, old in aside:
+        old.unlink()

@@ -6,13 +6,15 @@ import os
 import re
 import signal
 import sys
+import warnings
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
 import xvoe
 
-from ..domains import NON_NEGATIVE, POSITIVE, SEED, Domain, check_number
+from ..benchmark.display import DISPLAY_SIZE
+from ..domains import NON_NEGATIVE, PICTURE_SIZE, POSITIVE, SEED, Domain, check_number
 from ..errors import XvoeError
 from ..models.config import parse_field, parse_value
 from ..models.devices import DEVICES, parse_device, resolve_device
@@ -20,6 +22,7 @@ from ..models.nll import InferenceConfig
 from ..outputs import claim_directory, claim_file, refuse_overlap
 from ..training.data import check_focus
 from ..training.loop import TrainConfig
+from ..training.xpl import default_cache
 
 
 class _Parser(argparse.ArgumentParser):
@@ -110,8 +113,8 @@ def cmd_import(args: argparse.Namespace) -> None:
 
 
 def cmd_show(args: argparse.Namespace) -> None:
-    out = args.out or Path(args.file).with_suffix(f".{args.index}.png").name
-    print(xvoe.show(args.file, args.index, out, overwrite=args.overwrite, scores=args.scores))
+    print(xvoe.show(args.file, args.index, output_of(args), overwrite=args.overwrite, scores=args.scores,
+                    display_size=args.display_size))
 
 
 def cmd_score(args: argparse.Namespace) -> None:
@@ -132,7 +135,8 @@ def cmd_score(args: argparse.Namespace) -> None:
 def cmd_explain(args: argparse.Namespace) -> None:
     claim_file(args.out, args.overwrite)
     explanation = xvoe.explain(args.model, args.data, args.index, surprise=args.surprise, particles=args.particles,
-                               seed=args.seed, explanation=args.explanation, device=args.device)
+                               seed=args.seed, explanation=args.explanation, display_size=args.display_size,
+                               device=args.device)
     print(xvoe.save_figure(xvoe.plot_explanation(explanation), args.out))
 
 
@@ -147,6 +151,13 @@ def cmd_metrics(args: argparse.Namespace) -> None:
     for path in xvoe.report(args.scores, args.out, rounds=args.rounds, seed=args.seed, data=args.data,
                             overwrite=args.overwrite):
         print(path)
+
+
+def cmd_verify(args: argparse.Namespace) -> int:
+    found = xvoe.verify(args.scores, rows=args.rows, data=args.data, seed=args.seed)
+    print("\n".join(found.lines))
+    print("every row scored again matches the file" if found.matches else "some rows do not match the file")
+    return 0 if found.matches else 1
 
 
 def cmd_ship(args: argparse.Namespace) -> None:
@@ -200,8 +211,7 @@ def cmd_train(args: argparse.Namespace) -> None:
 
 
 def cmd_encode(args: argparse.Namespace) -> None:
-    cache = args.cache or Path(args.out) / f"latents-{Path(args.data).stem}.h5"
-    print(xvoe.encode_split(args.model or args.out, args.data, cache, overwrite=args.overwrite,
+    print(xvoe.encode_split(args.model or args.out, args.data, output_of(args), overwrite=args.overwrite,
                             progress=not args.quiet, device=args.device))
 
 
@@ -309,13 +319,16 @@ def build_parser() -> argparse.ArgumentParser:
     imp.set_defaults(run=cmd_import)
 
     show = verbs.add_parser("show", help="contact sheet (PNG), animation (GIF) or video (MP4) of a video or pair",
-                            description="Frames in a row: RGB, depth and slot ids; a test pair's members "
-                                        "one above the other with the event frame outlined.")
+                            description="Frames in a row: the scene at --display-size above what the model "
+                                        "sees, its RGB, depth and slot ids; a test pair's members one above the "
+                                        "other with the event frame outlined.")
     show.add_argument("file", help="an xvoe HDF5 file")
     show.add_argument("--index", type=_flag(int, NON_NEGATIVE, "index"), default=0,
                       help="video index (a test video shows its pair)")
     show.add_argument("--out", help="fig.png, anim.gif or pair.mp4 (default: FILE.INDEX.png here)")
     show.add_argument("--scores", help="mp4: a scores CSV of xvoe score, whose surprise curves play under the pair")
+    show.add_argument("--display-size", type=_flag(int, PICTURE_SIZE, "display-size"), default=DISPLAY_SIZE,
+                      help=f"pixels a side of the scene drawn above the model's frames (default {DISPLAY_SIZE})")
     show.add_argument("--overwrite", action="store_true", help="replace --out if it exists")
     show.set_defaults(run=cmd_show)
 
@@ -324,9 +337,11 @@ def build_parser() -> argparse.ArgumentParser:
     score = verbs.add_parser("score", help="score test videos with a trained model (surprise per video)",
                              description="One CSV row per test video (index, scenario, setting, pair, member, "
                                          "possible, score, s_img, s_dyn) and the per-frame surprise curves in "
-                                         "OUT.curves.npz. The MSE surprise is the paper's (Eq. 2-4): its score "
-                                         "column takes the better of Transformer 2's proposal and nothing hidden, "
-                                         "paper_score always the proposal, as the paper does.")
+                                         "OUT.curves.npz, with the header: the package version, the model's and "
+                                         "the split's identities, the surprise settings. The MSE surprise is "
+                                         "the paper's (Eq. 2-4): its score column takes the better of "
+                                         "Transformer 2's proposal and nothing hidden, paper_score always the "
+                                         "proposal, as the paper does.")
     score.add_argument("--model",
                        help="a run directory, a stage checkpoint (xpl.pt, plato.pt, xpl-noresidual.pt, "
                             "phydnet.pt) or random")
@@ -358,7 +373,8 @@ def build_parser() -> argparse.ArgumentParser:
     explain = verbs.add_parser("explain", help="draw the model's explanation of what is behind the wall",
                                description="Rows of observed frames, the decoded scene with the occluder left "
                                            "out (what the model believes is behind the wall), and the decoded "
-                                           "explanation object alone. With --surprise nll the explanation is the "
+                                           "explanation object alone, under the scene at --display-size with the "
+                                           "explanation drawn onto it. With --surprise nll the explanation is the "
                                            "posterior mean of the particles that hold a hidden object, and "
                                            "its heaviest distinct hypotheses, each with its weight.")
     explain.add_argument("--model", required=True, help="a run directory or a stage checkpoint (xpl.pt, ...)")
@@ -375,6 +391,9 @@ def build_parser() -> argparse.ArgumentParser:
                          help="mse: draw Transformer 2's proposal only where it explains the video better than "
                               "nothing hidden (better, the default verdict), or always (proposal, the paper's)")
     explain.add_argument("--seed", type=_flag(int, SEED, "seed"), default=0, help="seed of the particles (nll)")
+    explain.add_argument("--display-size", type=_flag(int, PICTURE_SIZE, "display-size"), default=DISPLAY_SIZE,
+                         help=f"pixels a side of the scene the explanation is drawn onto (default {DISPLAY_SIZE}); "
+                              "the model reads its own frames")
     explain.add_argument("--overwrite", action="store_true", help="replace --out if it exists")
     _add_device(explain, "the model")
     explain.set_defaults(run=cmd_explain)
@@ -394,6 +413,17 @@ def build_parser() -> argparse.ArgumentParser:
                                         "(xvoe score --surprise both), draws pairs they judge differently")
     metrics.add_argument("--overwrite", action="store_true", help="replace a report already in --out")
     metrics.set_defaults(run=cmd_metrics)
+
+    verify = verbs.add_parser("verify", help="score a sample of a scores file's rows again and compare",
+                              description="Score again a seeded sample of the rows of a scores file (or of every "
+                                          "scores file a report of xvoe metrics names), with the model and on the "
+                                          "split its header records, and say whether they match the file within "
+                                          "float tolerance: exit 0 when every one does, 1 when not.")
+    verify.add_argument("scores", help="a scores CSV of xvoe score, or a report directory of xvoe metrics")
+    verify.add_argument("--rows", type=_positive, default=5, help="rows to score again (default 5)")
+    verify.add_argument("--data", help="the scored split, where it is not at the path the header records")
+    verify.add_argument("--seed", type=_flag(int, SEED, "seed"), default=0, help="seed of the rows drawn")
+    verify.set_defaults(run=cmd_verify)
 
     pipeline = verbs.add_parser("pipeline", help="generate, train, score and report, end to end",
                                 description="Generate the benchmark, train every stage, score the test split, "
@@ -440,20 +470,34 @@ WRITES = {
     "encode": (("data", "model"), "cache", (".h5",)),
 }
 
+# what a verb writes when its output argument is left out
+DEFAULT_OUTPUTS: dict[str, Callable[[argparse.Namespace], Path]] = {
+    "show": lambda args: Path(Path(args.file).with_suffix(f".{args.index}.png").name),
+    "encode": lambda args: default_cache(args.data, args.out),
+}
+
+
+def output_of(args: argparse.Namespace) -> str | Path | None:
+    """The file a verb writes: its output argument, or where the verb writes without one."""
+    output = getattr(args, WRITES[args.verb][1])
+    return output if output is not None or args.verb not in DEFAULT_OUTPUTS else DEFAULT_OUTPUTS[args.verb](args)
+
 
 def check_paths(args: argparse.Namespace) -> None:
-    """The one check of a command's paths before any work: no output may be one of its inputs."""
+    """The one check of a command's paths before any work: no output, given or by default, may
+    be one of its inputs."""
     if args.verb not in WRITES:
         return
     reads, writes, suffixes = WRITES[args.verb]
-    output = getattr(args, writes)
+    output = output_of(args)
     if output is None:
         return
     inputs = []
     for name in reads:
         value = getattr(args, name)
         inputs += value if isinstance(value, list) else [value] if value else []
-    refuse_overlap(inputs, output, suffixes, what=f"--{writes}")
+    given = getattr(args, writes) is not None
+    refuse_overlap(inputs, output, suffixes, what=f"--{writes}" if given else f"the default --{writes}")
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -463,7 +507,9 @@ def main(argv: list[str] | None = None) -> int:
     try:
         resolve_device(getattr(args, "device", "cpu"))      # a device this machine lacks, before any work
         check_paths(args)
-        args.run(args)
+        with warnings.catch_warnings():     # a warning is one line, as an error is
+            warnings.showwarning = lambda message, *_: print(f"xvoe {args.verb}: warning: {message}", file=sys.stderr)
+            code = args.run(args)
     except XvoeError as error:
         print(f"xvoe {args.verb}: error: {error}", file=sys.stderr)
         return 2
@@ -473,7 +519,7 @@ def main(argv: list[str] | None = None) -> int:
         return 130
     finally:
         signal.signal(signal.SIGTERM, previous)
-    return 0
+    return code or 0
 
 
 def _interrupt(number: int, frame) -> None:

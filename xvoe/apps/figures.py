@@ -1,7 +1,10 @@
 """Figures: contact sheets and animations of benchmark videos.
 
 Everything here takes arrays or an open split file and returns a matplotlib Figure (or
-writes a GIF), so notebooks, the command line and the tests draw the same pictures.
+writes a GIF), so notebooks, the command line and the tests draw the same pictures. Pictures of
+videos draw the scene at a display size (`display_size`, 128 by default; None: the stored
+frames alone) above what the model sees, its own frames enlarged without blur
+(xvoe.benchmark.display).
 """
 from __future__ import annotations
 
@@ -16,9 +19,14 @@ from matplotlib.patches import Rectangle
 from PIL import Image
 
 from ..benchmark import store
-from ..benchmark.videos import _labels_of, _pair_rows, check_index, describe, video_indices, wall_lowered
+from ..benchmark.display import DISPLAY_SIZE, check_display_size, display_video, enlarge, outline
+from ..benchmark.scenes import SCENARIOS
+from ..benchmark.videos import _labels_of, _pair_rows, check_index, describe, find_pair, video_indices, wall_lowered
 from ..errors import XvoeError
+from ..evaluation.explain import OBJECT_DEPTH_LIMIT, Explanation
 from ..evaluation.metrics import excess, read_scores
+from ..evaluation.score import check_same_split, warn_unchecked
+from ..identity import split_identity
 from ..models.devices import device_of
 from ..models.perception import normalise, to_uint8
 from ..outputs import atomic_paths, claim_file
@@ -27,6 +35,7 @@ from ..training.phydnet import load_phydnet
 
 ID_COLORS = (np.array(plt.get_cmap("tab10").colors) * 255).astype(np.uint8)
 ID_PALETTE = np.vstack([[[0, 0, 0]], ID_COLORS[:9]]).astype(np.uint8)   # 0 = background
+EXPLAINED_COLOR = np.array([255, 0, 255], np.uint8)    # the outline of the model's hidden object
 
 
 def save_figure(figure: plt.Figure, out: str | Path, dpi: int = 100) -> Path:
@@ -53,62 +62,90 @@ def depth_to_rgb(depth: np.ndarray) -> np.ndarray:
 
 
 def contact_sheet(rgbd: np.ndarray, ids: np.ndarray, titles: list[str],
-                  event_frames: list[int] | None = None) -> plt.Figure:
+                  event_frames: list[int] | None = None, display: np.ndarray | None = None) -> plt.Figure:
     """Frames in a row, RGB / depth / ids rows for each video, videos one above the other.
 
-    rgbd: (M, T, H, W, 4), ids: (M, T, H, W). The event frame, where given, is outlined.
+    rgbd: (M, T, H, W, 4), ids: (M, T, H, W). The event frame, where given, is outlined. With
+    `display` (M, T, S, S, >= 3), the scene at a display size: a row of it above each video's
+    rows, which are enlarged to its size.
     """
-    videos, frames, height, width, _ = rgbd.shape
-    rows = []
-    for m in range(videos):
-        rows += [rgbd[m, ..., :3], depth_to_rgb(rgbd[m, ..., 3]), ids_to_rgb(ids[m])]
+    videos, frames = rgbd.shape[:2]
+    sheets = [sheet_rows(rgbd[m], ids[m], None if display is None else display[m]) for m in range(videos)]
+    names = [name for name, _ in sheets[0]]
+    rows = [row for sheet in sheets for _, row in sheet]
+    per_video, height, width = len(names), rows[0].shape[1], rows[0].shape[2]
     gap = max(1, width // 16)
-    title_gap = 12 * gap                       # room for each video's title
-    row_top = [m * title_gap + (3 * m + k) * (height + gap) for m in range(videos) for k in range(3)]
+    title_gap = int(12 * gap * min(1.0, 64 / width))     # room for each video's title
+    row_top = [m * title_gap + (per_video * m + k) * (height + gap) for m in range(videos) for k in range(per_video)]
     mosaic = np.full((videos * title_gap + len(rows) * (height + gap), frames * (width + gap), 3), 255, np.uint8)
     for r, row in enumerate(rows):
         for t in range(frames):
             y, x = row_top[r] + title_gap, t * (width + gap)
             mosaic[y:y + height, x:x + width] = row[t]
-    scale = 0.9 / 64
+    scale = min(0.9 / 64, 1.1 / width)         # inches per pixel: a display frame about an inch wide
     fig, ax = plt.subplots(figsize=(max(4.0, mosaic.shape[1] * scale), mosaic.shape[0] * scale + 0.5 * videos))
     ax.imshow(mosaic, interpolation="nearest")
     ax.set_xticks([t * (width + gap) + width / 2 for t in range(frames)], [str(t) for t in range(frames)])
-    ax.set_yticks([top + title_gap + height / 2 for top in row_top],
-                  ["RGB", "depth", "ids"] * videos)
+    ax.set_yticks([top + title_gap + height / 2 for top in row_top], names * videos)
     ax.tick_params(length=0, labelsize=7)
     for spine in ax.spines.values():
         spine.set_visible(False)
     for m in range(videos):
-        y0 = row_top[3 * m] + title_gap
+        y0 = row_top[per_video * m] + title_gap
         ax.text(0, y0 - 2 * gap, titles[m], fontsize=8, va="bottom")
         event = (event_frames or [-1] * videos)[m]
         if event >= 0:
-            ax.add_patch(Rectangle((event * (width + gap) - 0.5, y0 - 0.5), width, 3 * height + 2 * gap,
+            ax.add_patch(Rectangle((event * (width + gap) - 0.5, y0 - 0.5), width,
+                                   per_video * height + (per_video - 1) * gap,
                                    fill=False, edgecolor="red", linewidth=1.5))
     fig.tight_layout()
     return fig
 
 
-def show_video(file: h5py.File, index: int) -> plt.Figure:
-    """Contact sheet of video `index` (and its pair partner in a test file)."""
+def sheet_rows(rgbd: np.ndarray, ids: np.ndarray, display: np.ndarray | None = None) -> list[tuple[str, np.ndarray]]:
+    """A video's named rows of (T, S, S, 3) pictures: RGB, depth and ids; with `display`, the
+    scene at that size first and the model's rows enlarged to it."""
+    height, width = rgbd.shape[1:3]
+    rows = [("RGB", rgbd[..., :3]), ("depth", depth_to_rgb(rgbd[..., 3])), ("ids", ids_to_rgb(ids))]
+    if display is None:
+        return rows
+    size = display.shape[1]
+    return [(f"scene {size}x{size}", display[..., :3]), (f"model's {height}x{width}", enlarge(rows[0][1], size)),
+            *((name, enlarge(row, size)) for name, row in rows[1:])]
+
+
+def display_rows(file: h5py.File, indices: list[int], display_size: int | None) -> np.ndarray | None:
+    """The scene of videos `indices` at `display_size` (M, T, S, S, 4), or None without one."""
+    if display_size is None:
+        return None
+    return np.stack([display_video(file, i, display_size).rgbd for i in indices])
+
+
+def show_video(file: h5py.File, index: int, display_size: int | None = DISPLAY_SIZE) -> plt.Figure:
+    """Contact sheet of video `index` (and its pair partner in a test file), the scene at
+    `display_size` above the model's frames (None: the model's frames alone)."""
     indices = video_indices(file, index)
     rgbd = np.stack([file["rgbd"][i] for i in indices])
     ids = np.stack([file["ids"][i] for i in indices])
     events = [int(file["event_frame"][i]) for i in indices]
     titles = [describe(file, i) + (f", event frame {e}" if e >= 0 else "") for i, e in zip(indices, events)]
-    return contact_sheet(rgbd, ids, titles, events)
+    return contact_sheet(rgbd, ids, titles, events, display_rows(file, indices, display_size))
 
 
-def save_gif(file: h5py.File, index: int, out: str | Path, zoom: int = 3, frame_ms: int = 150) -> Path:
-    """An animated GIF: RGB, depth and ids side by side, pair members one above the other."""
+def save_gif(file: h5py.File, index: int, out: str | Path, zoom: int = 3, frame_ms: int = 150,
+             display_size: int | None = DISPLAY_SIZE) -> Path:
+    """An animated GIF: RGB, depth and ids side by side, pair members one above the other; with
+    `display_size`, the scene at that size first and the model's frames enlarged to it (else
+    `zoom` times)."""
     indices = video_indices(file, index)
+    display = display_rows(file, indices, display_size)
     strips = []
-    for i in indices:
-        rgbd, ids = file["rgbd"][i], file["ids"][i]
-        strips.append(np.concatenate([rgbd[..., :3], depth_to_rgb(rgbd[..., 3]), ids_to_rgb(ids)], axis=2))
+    for m, i in enumerate(indices):
+        rows = sheet_rows(file["rgbd"][i], file["ids"][i], None if display is None else display[m])
+        strips.append(np.concatenate([row for _, row in rows], axis=2))
     movie = np.concatenate(strips, axis=1)
-    movie = movie.repeat(zoom, axis=1).repeat(zoom, axis=2)
+    if display is None:
+        movie = movie.repeat(zoom, axis=1).repeat(zoom, axis=2)
     images = [Image.fromarray(frame) for frame in movie]
     with atomic_paths(Path(out)) as (tmp,):
         images[0].save(tmp, format="GIF", save_all=True, append_images=images[1:], duration=frame_ms, loop=0)
@@ -116,24 +153,34 @@ def save_gif(file: h5py.File, index: int, out: str | Path, zoom: int = 3, frame_
 
 
 def save_video(file: h5py.File, index: int, out: str | Path, scores: str | Path | None = None,
-               fps: int = 3) -> Path:
-    """An MP4 for slides and a class: the video's pair side by side, and, given the `scores`
-    CSV of `xvoe score` (its curves beside it), each member's per-frame surprise under them
-    with the frame marked as it plays."""
+               fps: int = 3, display_size: int | None = DISPLAY_SIZE) -> Path:
+    """An MP4 for slides and a class: the video's pair side by side (each member the scene at
+    `display_size` with the model's frame beside it), and, given the `scores` CSV of `xvoe
+    score` (its curves beside it), each member's per-frame surprise under them with the frame
+    marked as it plays."""
     indices = video_indices(file, index)
     videos = [file["rgbd"][i][..., :3] for i in indices]
+    display = display_rows(file, indices, display_size)
     titles = [describe(file, i) for i in indices]
-    curves = _video_curves(scores, indices) if scores is not None else None
+    curves = _video_curves(scores, file, indices) if scores is not None else None
     event = int(file["event_frame"][indices[-1]]) if "event_frame" in file else -1
+    panels = [(video, display[m, ..., :3] if display is not None else None, title)
+              for m, (video, title) in enumerate(zip(videos, titles))]
     pictures = []
     for t in range(videos[0].shape[0]):
         fig = plt.figure(figsize=(6.4, 4.8 if curves is not None else 3.2), dpi=100)
-        grid = fig.add_gridspec(2 if curves is not None else 1, len(videos))
-        for column, (video, title) in enumerate(zip(videos, titles)):
-            ax = fig.add_subplot(grid[0, column])
-            ax.imshow(video[t], interpolation="nearest")
+        grid = fig.add_gridspec(2 if curves is not None else 1, 2 * len(videos),
+                                width_ratios=[3, 1] * len(videos) if display is not None else None)
+        for column, (video, scene, title) in enumerate(panels):
+            ax = fig.add_subplot(grid[0, 2 * column:2 * column + (1 if scene is not None else 2)])
+            ax.imshow(video[t] if scene is None else scene[t], interpolation="nearest")
             ax.set_title(title.replace(" member", "\nmember"), fontsize=7, color="red" if t == event else "black")
             ax.set_axis_off()
+            if scene is not None:
+                beside = fig.add_subplot(grid[0, 2 * column + 1])
+                beside.imshow(video[t], interpolation="nearest")
+                beside.set_title(f"model's\n{video.shape[1]}x{video.shape[2]}", fontsize=6)
+                beside.set_axis_off()
         if curves is not None:
             ax = fig.add_subplot(grid[1, :])
             for column, curve in enumerate(curves):
@@ -159,9 +206,12 @@ def save_video(file: h5py.File, index: int, out: str | Path, scores: str | Path 
     return Path(out)
 
 
-def _video_curves(scores: str | Path, indices: list[int]) -> list[np.ndarray]:
-    """Per-frame surprise (s_img + s_dyn) of videos `indices` from a scores CSV and its curves."""
+def _video_curves(scores: str | Path, file: h5py.File, indices: list[int]) -> list[np.ndarray]:
+    """Per-frame surprise (s_img + s_dyn) of videos `indices` of an open split from a scores CSV
+    and its curves; scores of another split are refused."""
+    check_same_split(scores, split_identity(file), file.filename)
     table = read_scores(scores)
+    warn_unchecked(scores)
     curves = Path(scores).with_suffix(".curves.npz")
     if not curves.is_file():
         raise XvoeError(f"{curves}: no such file; xvoe score writes the curves beside the CSV")
@@ -174,9 +224,12 @@ def _video_curves(scores: str | Path, indices: list[int]) -> list[np.ndarray]:
 
 
 def show(path: str | Path, index: int, out: str | Path | None = None, overwrite: bool = False,
-         scores: str | Path | None = None) -> Path | plt.Figure:
+         scores: str | Path | None = None, display_size: int | None = DISPLAY_SIZE) -> Path | plt.Figure:
     """What `xvoe show` does: a PNG contact sheet, a GIF, or an MP4 (with `scores`, the
-    surprise curves under the pair), chosen by the suffix of `out` (no `out`: the figure)."""
+    surprise curves under the pair), chosen by the suffix of `out` (no `out`: the figure); the
+    scene drawn at `display_size` beside the model's frames (None: those alone)."""
+    if display_size is not None:
+        check_display_size(display_size)
     suffix = Path(out).suffix.lower() if out is not None else None
     if suffix not in (None, ".png", ".gif", ".mp4"):
         raise XvoeError(f"--out must end in .png, .gif or .mp4, not {suffix or 'nothing'}")
@@ -187,10 +240,10 @@ def show(path: str | Path, index: int, out: str | Path | None = None, overwrite:
         if out is not None:
             claim_file(out, overwrite)
         if suffix == ".gif":
-            return save_gif(file, index, out)
+            return save_gif(file, index, out, display_size=display_size)
         if suffix == ".mp4":
-            return save_video(file, index, out, scores)
-        fig = show_video(file, index)
+            return save_video(file, index, out, scores, display_size=display_size)
+        fig = show_video(file, index, display_size)
     return fig if out is None else save_figure(fig, out)
 
 
@@ -346,9 +399,13 @@ def plot_components(rows: list[dict], model: str, metric: str = "comparative") -
 
 # --- rows of frames: explanations, disagreeing pairs ---------------------------------------
 
-def draw_frame_rows(ax, videos: list[np.ndarray], labels: list[str], title: str) -> None:
-    """Videos (T, H, W, >=3) uint8 as rows of frames on one axis, each row labelled."""
+def draw_frame_rows(ax, videos: list[np.ndarray], labels: list[str], title: str,
+                    numbers: list[int] | None = None, marked: int = -1) -> None:
+    """Videos (T, H, W, >=3) uint8 as rows of frames on one axis, each row labelled; the
+    frames numbered by `numbers` (default 0, 1, ...), the column of frame number `marked`
+    outlined in red."""
     frames, height, width = videos[0].shape[:3]
+    numbers = list(range(frames)) if numbers is None else numbers
     gap = max(1, width // 16)
     mosaic = np.full((len(videos) * (height + gap), frames * (width + gap), 3), 255, np.uint8)
     for r, video in enumerate(videos):
@@ -356,11 +413,14 @@ def draw_frame_rows(ax, videos: list[np.ndarray], labels: list[str], title: str)
             y, x = r * (height + gap), t * (width + gap)
             mosaic[y:y + height, x:x + width] = video[t, ..., :3]
     ax.imshow(mosaic, interpolation="nearest")
-    ax.set_xticks([t * (width + gap) + width / 2 for t in range(frames)], [str(t) for t in range(frames)])
+    ax.set_xticks([t * (width + gap) + width / 2 for t in range(frames)], [str(n) for n in numbers])
     ax.set_yticks([r * (height + gap) + height / 2 for r in range(len(videos))], labels)
     ax.tick_params(length=0, labelsize=7)
     for spine in ax.spines.values():
         spine.set_visible(False)
+    if marked in numbers:
+        ax.add_patch(Rectangle((numbers.index(marked) * (width + gap) - 0.5, -0.5), width,
+                               len(videos) * (height + gap) - gap, fill=False, edgecolor="red", linewidth=1.5))
     ax.set_title(title, fontsize=8)
 
 
@@ -387,17 +447,58 @@ def plot_onset(pairs: dict[str, list[dict]]) -> plt.Figure:
     return fig
 
 
-def plot_explanation(explanation) -> plt.Figure:
+def plot_explanation(explanation: Explanation) -> plt.Figure:
     """The paper's Fig. 7/8: observed frames, the scene behind the wall as the model believes
     it (occluder left out), and the explanation object alone; the rows an explanation gives
-    (`Explanation.rows`), so the MSE and the NLL explanations draw alike."""
+    (`Explanation.rows`), so the MSE and the NLL explanations draw alike. With the scene at a
+    display size (`xvoe.apps.verbs.with_display`), it comes first with the explanation drawn onto it
+    (`explanation_overlay`), and the model's rows are enlarged to its size."""
     rows = explanation.rows()
+    if explanation.display is not None:
+        size = explanation.display.shape[1]
+        rows = [(f"scene {size}x{size}:\nmagenta the model's\nhidden object,\ndashed the true one",
+                 explanation_overlay(explanation)), *((name, enlarge(video, size)) for name, video in rows)]
     frames = explanation.observed.shape[0]
     title_lines = explanation.title.count("\n") + 1
-    fig, ax = plt.subplots(figsize=(max(4.0, frames * 0.8), len(rows) * 0.8 + 0.2 + 0.2 * title_lines))
+    cell = _cell_inches(rows[0][1].shape[1])
+    fig, ax = plt.subplots(figsize=(max(4.0, frames * cell), len(rows) * cell + 0.2 + 0.2 * title_lines))
     draw_frame_rows(ax, [video for _, video in rows], [name for name, _ in rows], explanation.title)
     fig.tight_layout()
     return fig
+
+
+def _cell_inches(size: int) -> float:
+    """Inches a frame of `size` pixels takes in a figure of frame rows: a display frame near
+    its own size at the figures' dpi, the model's small frames as before."""
+    return max(0.8, min(1.1, size / 100))
+
+
+def explanation_overlay(explanation: Explanation) -> np.ndarray:
+    """The scene at its display size (T, S, S, 3) with the model's explanation drawn onto it:
+    the decoded hidden object enlarged (bilinear), half-blended where it stands and outlined in
+    magenta inside its edge, and the true never-seen objects outlined just outside theirs,
+    dashed black and white, so that the two lines stay apart where they agree; both are seen
+    through the wall, as the model sees the object."""
+    scene = explanation.display[..., :3].copy()
+    size = scene.shape[1]
+    if explanation.slot >= 0:
+        depth = _resized(explanation.hidden_object[..., 3], size)
+        colour = np.stack([_resized(explanation.hidden_object[..., c], size) for c in range(3)], axis=-1)
+        drawn = depth < (OBJECT_DEPTH_LIMIT + 1.0) * 127.5       # normalised units to uint8
+        scene[drawn] = (scene[drawn].astype(np.uint16) + colour[drawn]) // 2
+        scene[outline(drawn)] = EXPLAINED_COLOR
+    if explanation.true_hidden is not None:
+        edge = outline(~explanation.true_hidden)        # the ring just outside it
+        rows, columns = np.indices((size, size))
+        light = ((rows + columns) // 4) % 2 == 0                  # dashes of four pixels
+        scene[edge & light] = 255
+        scene[edge & ~light] = 0
+    return scene
+
+
+def _resized(channel: np.ndarray, size: int) -> np.ndarray:
+    """One uint8 channel of frames (T, H, W) resized to (T, size, size), bilinear."""
+    return np.stack([np.asarray(Image.fromarray(frame).resize((size, size), Image.BILINEAR)) for frame in channel])
 
 
 def pick_examples(rows: list[dict], count: int) -> list[dict]:
@@ -413,25 +514,65 @@ def pick_examples(rows: list[dict], count: int) -> list[dict]:
     return chosen[:count]
 
 
-def plot_disagreements(file: h5py.File, rows: list[dict], examples: int = 4) -> plt.Figure:
+def plot_disagreements(file: h5py.File, rows: list[dict], examples: int = 4,
+                       display_size: int | None = DISPLAY_SIZE) -> plt.Figure:
     """Pairs that the MSE score and the NLL judge differently (rows of
-    `metrics.disagreements`): both members' frames, each with both scores."""
+    `metrics.disagreements`): both members' frames, each with both scores; with
+    `display_size`, each member's scene at that size above the model's frames."""
     chosen = pick_examples(rows, examples)
     if not chosen:
         raise XvoeError("no pair is judged differently by the two surprise definitions: nothing to draw")
     frames = file["rgbd"].shape[1]
-    fig, axes = plt.subplots(len(chosen), 1, figsize=(max(4.0, frames * 0.8), 2.3 * len(chosen)), squeeze=False)
+    cell = _cell_inches(display_size or file["rgbd"].shape[2])
+    per_member = 1 if display_size is None else 2
+    fig, axes = plt.subplots(len(chosen), 1, figsize=(max(4.0, frames * cell), (2 * per_member * cell + 0.7)
+                                                      * len(chosen)), squeeze=False)
     for ax, row in zip(axes[:, 0], chosen):
-        labels = []
+        videos, labels = [], []
         for member in (0, 1):
             index = row[f"index_{member}"]
             label = "possible" if file["possible"][index] else "impossible"
             labels.append(f"member {member} ({label})\nscore {row[f'score_{member}']:.4g}\n"
                           f"nll {row[f'nll_{member}']:.4g}")
+            stored = file["rgbd"][index]
+            if display_size is None:
+                videos.append(stored)
+            else:
+                videos += [display_video(file, index, display_size).rgbd, enlarge(stored, display_size)]
+                labels.append("the model's frames")
         right = f"; right: {row['right']}" if row["right"] else ""
         title = (f"{row['scenario']} {row['setting']} pair {row['pair']}: the score says {row['score_says']}, "
                  f"the NLL says {row['nll_says']}{right}")
-        draw_frame_rows(ax, [file["rgbd"][row["index_0"]], file["rgbd"][row["index_1"]]], labels, title)
+        draw_frame_rows(ax, videos, labels, title)
+    fig.tight_layout()
+    return fig
+
+
+def plot_settings(file: h5py.File, scenario: str, pair: int, display_size: int = DISPLAY_SIZE,
+                  frames: list[int] | None = None) -> plt.Figure:
+    """One scene in each setting of its scenario, for a class: per setting, each member's scene
+    at `display_size` with the model's frames under it, the event frame outlined in red;
+    `frames`: the frame numbers to show (default all)."""
+    check_display_size(display_size)
+    if scenario not in SCENARIOS:
+        raise XvoeError(f"{scenario!r} is not a scenario of the benchmark; its scenarios: {', '.join(SCENARIOS)}")
+    found = [(setting, find_pair(file, scenario, setting, pair)) for setting in SCENARIOS[scenario].SETTINGS]
+    count = file["rgbd"].shape[1]
+    frames = list(range(count)) if frames is None else frames
+    if not frames or not all(0 <= t < count for t in frames):
+        raise XvoeError(f"frames must be frame numbers of 0..{count - 1}, not {frames}")
+    cell = _cell_inches(display_size)
+    fig, axes = plt.subplots(len(found), 1, figsize=(max(4.0, len(frames) * cell), len(found) * (4 * cell + 0.4)),
+                             squeeze=False)
+    for ax, (setting, members) in zip(axes[:, 0], found):
+        videos, labels = [], []
+        for member, index in enumerate(members):
+            stored = file["rgbd"][index][frames]
+            videos += [display_video(file, index, display_size).rgbd[frames], enlarge(stored, display_size)]
+            labels += [f"member {member}\n({'possible' if file['possible'][index] else 'impossible'})",
+                       f"the model's\n{stored.shape[1]}x{stored.shape[2]}"]
+        draw_frame_rows(ax, videos, labels, f"{scenario} {setting}, pair {pair}", frames,
+                        int(file["event_frame"][members[1]]))
     fig.tight_layout()
     return fig
 
@@ -466,6 +607,8 @@ def plot_surprise_curves(scores: str | Path, data: str | Path | None, scenario: 
     events, lowered = [-1, -1], np.zeros(frames)
     if data is not None:
         with store.open_dataset(data) as file:
+            check_same_split(scores, split_identity(file), data)
+            warn_unchecked(scores)
             for video in videos:
                 if not 0 <= video < file["rgbd"].shape[0] or _labels_of(file, video) != (scenario, setting, pair):
                     raise XvoeError(f"{scores} does not match {data}: its video {video} is not {scenario} "

@@ -14,6 +14,7 @@ checkpoint, so an interrupted pipeline loses at most a few minutes of work.
 from __future__ import annotations
 
 import csv
+import json
 import multiprocessing
 import os
 import time
@@ -43,7 +44,8 @@ from ..training.recipes import DEFAULT_RECIPE, RECIPES, Recipe, recipe
 from ..training.stages import SCORED, STAGES
 from ..training.xpl import TRAINED_ON_LATENTS, train_proposal, train_xpl
 from .figures import plot_explanation
-from .report import report
+from .report import header_lines, report
+from .verbs import with_display
 
 MODELS = (*SCORED, "random")
 DEFAULT_MODELS = ("xpl", "random")
@@ -276,7 +278,7 @@ def _explanations(run_dir: Path, test_data: Path, models: tuple[str, ...], devic
         member = file["member"][:]
     for name, want in (("blocking-S2", ("blocking", "S2")), ("collision-S3", ("collision", "S3"))):
         index = next(i for i in range(len(member)) if (scenario[i], setting[i]) == want and member[i] == 0)
-        figure = plot_explanation(explain(scorer, str(test_data), index))
+        figure = plot_explanation(with_display(explain(scorer, str(test_data), index), test_data, index))
         figure.savefig(run_dir / "report" / f"explanation-{name}.png", dpi=90, bbox_inches="tight")
         plt.close(figure)
 
@@ -346,6 +348,10 @@ def write_report(run_dir: Path, config: PipelineConfig) -> Path:
     lines += ["", *compare_models(total), ""]
     for figure in sorted((run_dir / "report").glob("*.png")):
         lines += [f"![{figure.stem}](report/{figure.name})", ""]
+    headers = run_dir / "report" / "headers.json"      # absent from a report made before score files had one
+    lines += ["## Score files: what each was made with", ""] if headers.is_file() else []
+    for entry in json.loads(headers.read_text()) if headers.is_file() else []:
+        lines += [f"`{Path(entry['scores']).name}`:", "", *header_lines(entry["header"]), ""]
     lines += ["## Stage times", "", "| stage | time |", "|---|---|"]
     lines += [f"| {name} | {seconds:.1f} s |" for name, seconds in stage_times(run_dir).items()]
     out = run_dir / "report.md"

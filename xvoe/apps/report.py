@@ -24,11 +24,13 @@ from ..evaluation.metrics import (
     read_scores,
     side_by_side,
 )
+from ..evaluation.score import check_same_split, score_header, scored_split, warn_unchecked
+from ..identity import describe_split, split_identity
 from ..outputs import claim_directory
 from . import figures
 
 # what a report writes, so that a rerun into the same directory leaves nothing of the last one
-REPORT_FILES = ("metrics.csv", "metrics.json", "holistic.png", "comparative.png", "components-*.png",
+REPORT_FILES = ("metrics.csv", "metrics.json", "headers.json", "holistic.png", "comparative.png", "components-*.png",
                 "disagreements-*.png", "surprise-*.csv", "disagreements-*.csv", "verdicts-*.csv", "onset.csv",
                 "onset.png")
 
@@ -42,7 +44,10 @@ def report(paths: list[str | Path], out_dir: str | Path, rounds: int = 1000, see
     differ gets the same for those two (verdicts-MODEL.csv, verdicts-disagreements-MODEL.csv);
     with `data`, the test split the scores
     came from, a figure of a few of those pairs too, and for every model whose per-frame
-    curves lie beside its scores, the violation onset (onset.csv, onset.png)."""
+    curves lie beside its scores, the violation onset (onset.csv, onset.png). Scores of another
+    split than `data`, or than each other, are refused; headers.json repeats every scores
+    file's header (`score_header`)."""
+    check_one_split(paths, data)
     rows = []
     names = []
     compared, verdicts = {}, {}
@@ -50,6 +55,7 @@ def report(paths: list[str | Path], out_dir: str | Path, rounds: int = 1000, see
     events = _event_frames(data) if data is not None else None
     for path in paths:
         scores = read_scores(path, data)
+        warn_unchecked(path)
         name = model_name(path, scores)
         if name in names:
             raise XvoeError(f"two scores files name the model {name!r}; give each model its own name")
@@ -73,6 +79,7 @@ def report(paths: list[str | Path], out_dir: str | Path, rounds: int = 1000, see
     for path in earlier:
         path.unlink()
     written = list(write_table(rows, out_dir))
+    written.append(write_headers(paths, names, out_dir / "headers.json"))
     drawn = {"holistic.png": figures.plot_holistic(rows), "comparative.png": figures.plot_comparative(rows)}
     for name in names:
         if any(r["model"] == name and r["column"] != "score" for r in rows):
@@ -90,6 +97,52 @@ def report(paths: list[str | Path], out_dir: str | Path, rounds: int = 1000, see
     for filename, figure in drawn.items():
         written.append(figures.save_figure(figure, out_dir / filename, dpi=90))
     return written
+
+
+def check_one_split(paths: list[str | Path], data: str | Path | None) -> None:
+    """Refuse, before any work, scores made on another split than `data` (with `data`) or than
+    the first scores file that records its split."""
+    if data is not None:
+        with store.open_dataset(data, split="test") as file:
+            identity = split_identity(file)
+        for path in paths:
+            check_same_split(path, identity, data)
+        return
+    first = None
+    for path in paths:
+        found = scored_split(path)
+        if found is None:
+            continue
+        if first is not None and found != first[1]:
+            raise XvoeError(f"{path} and {first[0]} were scored on different splits ({describe_split(found)}; "
+                            f"{describe_split(first[1])}); score both on one split")
+        first = first or (path, found)
+
+
+def write_headers(paths: list[str | Path], names: list[str], out: Path) -> Path:
+    """headers.json: for each model, its scores file (an absolute path, for `xvoe verify`) and
+    what the file says it was made with ({} for a file that records nothing)."""
+    headers = [{"model": name, "scores": str(Path(path).resolve()),
+                "header": score_header(path) if Path(path).with_suffix(".curves.npz").is_file() else {}}
+               for name, path in zip(names, paths)]
+    out.write_text(json.dumps(headers, indent=1, sort_keys=True))
+    return out
+
+
+def header_lines(header: dict) -> list[str]:
+    """A score file's header in a few lines of Markdown, for a report page."""
+    if not header:
+        return ["- records nothing of how it was made (scored elsewhere, or by an older xvoe)"]
+    model = header.get("model_identity", {})
+    made_by = ", ".join(f"{key} {value}" for key, value in sorted(model.items()) if key != "source")
+    lines = [f"- xvoe {header.get('xvoe')}; model {header.get('model')} ({made_by or 'no identity recorded'})"]
+    if "split" in header:
+        lines.append(f"- split: {describe_split(header['split'])}")
+    lines.append(f"- surprise: {json.dumps(header.get('surprise', {}), sort_keys=True)}; score column "
+                 f"`{header.get('score')}`, {header.get('aggregate')} over frames")
+    if "nll" in header:
+        lines.append(f"- NLL settings (seed {header.get('nll_seed')}): {json.dumps(header['nll'], sort_keys=True)}")
+    return lines
 
 
 def write_comparison(scores: dict[str, np.ndarray], rows: list[dict], name: str, columns: tuple[str, str],

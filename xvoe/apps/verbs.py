@@ -19,6 +19,8 @@ import torch
 from inference.explain import explain_nll
 from inference.score import NLLColumns
 
+from ..benchmark import store
+from ..benchmark.display import DISPLAY_SIZE, check_display_size, display_video, hidden_silhouettes
 from ..errors import XvoeError
 from ..evaluation.explain import Explanation, explain_drawn
 from ..evaluation.explain import explain as explain_mse
@@ -100,14 +102,25 @@ def _worker_threads(threads: int) -> None:
 
 def explain(model: str | Scorer, data: str | Path, index: int, *, surprise: str = "mse",
             particles: int | None = None, seed: int = 0, explanation: str = "better",
-            device: str = "cpu") -> Explanation:
+            display_size: int | None = DISPLAY_SIZE, device: str = "cpu") -> Explanation:
     """What the model believes is behind the wall in video `index`: Transformer 2's proposal
     (surprise "mse"; with explanation "better", the default verdict's, only where it explains the
     video better than nothing hidden; "proposal", always, as the paper) or the Pyro model's
     posterior (surprise "nll", from `particles` importance samples drawn from `seed`; None: the
-    model's setting). device: where a model given by name runs."""
+    model's setting). With the video's scene at `display_size` for `plot_explanation` to draw
+    the explanation onto (None: the model's frames alone); the model reads its own frames.
+    device: where a model given by name runs."""
     check_explanation(explanation)
+    if display_size is not None:
+        check_display_size(display_size)
     scorer = load_model(model, device) if isinstance(model, str) else model
+    return with_display(_explain(scorer, data, index, surprise, particles, seed, explanation), data, index,
+                        display_size)
+
+
+def _explain(scorer: Scorer, data: str | Path, index: int, surprise: str, particles: int | None, seed: int,
+             explanation: str) -> Explanation:
+    """The explanation `explain` asked for, of the model's own frames."""
     scorer = replace(scorer, explanation=explanation) if scorer.custom is None else scorer
     if scorer.is_random:
         raise XvoeError("the random agent explains nothing; give a trained model")
@@ -124,3 +137,15 @@ def explain(model: str | Scorer, data: str | Path, index: int, *, surprise: str 
     if surprise != "mse":
         raise XvoeError(f"--surprise must be mse or nll, not {surprise!r}")
     return explain_mse(scorer, str(data), index)
+
+
+def with_display(explanation: Explanation, data: str | Path, index: int,
+                 display_size: int | None = DISPLAY_SIZE) -> Explanation:
+    """The explanation of video `index` of split `data` with that video's scene at
+    `display_size` and where its never-seen objects stand there, for `plot_explanation`
+    (None: the explanation as it is)."""
+    if display_size is None:
+        return explanation
+    with store.open_dataset(data) as file:
+        display = display_video(file, index, display_size)
+        return replace(explanation, display=display.rgbd, true_hidden=hidden_silhouettes(file, index, display))

@@ -23,7 +23,7 @@ from tqdm.auto import tqdm
 from ..domains import COUNT, SEED, Domain, check_config, within
 from ..errors import XvoeError
 from . import store
-from .render import render
+from .render import Video, render
 from .scenes import SCENARIOS, TEST_SETTINGS, TRAINING_GROUPS
 
 TRAINING_VARIANTS = tuple((group, with_wall) for group in TRAINING_GROUPS for with_wall in (True, False))
@@ -69,18 +69,24 @@ def unit_rng(config: GenerateConfig, unit: int) -> np.random.Generator:
 
 def make_unit(config: GenerateConfig, unit: int) -> list[store.EncodedVideo]:
     """Simulate, render and compress the video(s) of one unit."""
+    return [store.encode(video, labels) for video, labels in render_unit(config, unit)]
+
+
+def render_unit(config: GenerateConfig, unit: int) -> list[tuple[Video, dict]]:
+    """Simulate and render the video(s) of one unit, each with its labels: at another
+    `config.size`, the same scene (xvoe.benchmark.display draws figures so)."""
     rng = unit_rng(config, unit)
     if config.split == "train":
         group, with_wall = TRAINING_VARIANTS[rng.integers(len(TRAINING_VARIANTS))]
         take = TRAINING_GROUPS[group](rng, with_wall, config.frames)
         labels = {"group": group, "has_wall": with_wall, "event_frame": take.event_frame}
-        return [store.encode(render(take.scene, take.trajectory, config.size), labels)]
+        return [(render(take.scene, take.trajectory, config.size), labels)]
     setting_index, pair = divmod(unit, config.pairs)
     scenario, setting = TEST_SETTINGS[setting_index]
     takes = SCENARIOS[scenario].test_pair(rng, setting, config.frames)
-    return [store.encode(render(take.scene, take.trajectory, config.size),
-                         {"scenario": scenario, "setting": setting, "pair": pair, "member": member,
-                          "possible": take.possible, "event_frame": take.event_frame})
+    return [(render(take.scene, take.trajectory, config.size),
+             {"scenario": scenario, "setting": setting, "pair": pair, "member": member,
+              "possible": take.possible, "event_frame": take.event_frame})
             for member, take in enumerate(takes)]
 
 

@@ -23,6 +23,7 @@ import numpy as np
 from ..errors import XvoeError
 from ..outputs import atomic_paths, claim_file
 from .render import DEPTH_FAR, STATE_COLUMNS, Video
+from .scenes import SCENARIOS, TRAINING_GROUPS
 from .world import KIND_NAMES, MAX_SLOTS, WALL_KINDS
 
 SCHEMA_VERSION = 1
@@ -141,7 +142,7 @@ def open_dataset(path: str | os.PathLike, split: str | None = None) -> h5py.File
     elif int(version) != SCHEMA_VERSION:
         problem = f"has xvoe schema version {int(version)}; this xvoe reads version {SCHEMA_VERSION}"
     else:
-        problem = schema_problem(file)
+        problem = schema_problem(file) or value_problem(file)
     if problem is None and split is not None and file.attrs["split"] != split:
         problem = (f"is a {file.attrs['split']} split; this needs a {split} split"
                    + (" (training on impossible events is refused)" if split == "train" else ""))
@@ -151,8 +152,10 @@ def open_dataset(path: str | os.PathLike, split: str | None = None) -> h5py.File
     return file
 
 
-# the datasets of every split: (dims, numpy kind) per dataset
+# the datasets of every split: (dims, numpy kind) per dataset; the uint8 ones exactly so, since
+# their type is what bounds their values (value_problem reads none of those pixels)
 ARRAYS = {"rgbd": (5, "u"), "ids": (4, "u"), "states": (4, "f"), "kind": (2, "i"), "color": (3, "u")}
+UINT8 = ("rgbd", "ids", "color")
 LABEL_KINDS = {"scenario": "O", "setting": "O", "group": "O", "possible": "b", "has_wall": "b",
                "pair": "i", "member": "i", "event_frame": "i"}
 
@@ -167,20 +170,30 @@ def schema_problem(file: h5py.File) -> str | None:
     for name in ("kind_names", "config"):
         if name not in file.attrs:
             return f"has no {name} attribute"
+    try:
+        config = config_of(file)
+    except (TypeError, ValueError):
+        config = None
+    if not isinstance(config, dict):
+        return "has a config attribute that is not a JSON object"
     labels = TEST_LABELS if split == "test" else TRAIN_LABELS
     for name, (dims, kind) in ARRAYS.items():
         if name not in file or not isinstance(file[name], h5py.Dataset):
             return f"has no {name} dataset"
-        if file[name].ndim != dims or file[name].dtype.kind not in (kind, "i" if kind == "u" else kind):
+        if name in UINT8 and file[name].dtype != np.uint8:
+            return f"has a {name} dataset of type {file[name].dtype}; xvoe stores {name} as uint8 (0..255)"
+        if file[name].ndim != dims or file[name].dtype.kind != kind:
             return f"has a {name} dataset of shape {file[name].shape} and type {file[name].dtype}, not {dims}-D {kind}"
     count, frames, height, width, channels = file["rgbd"].shape
     if channels != 4 or height != width:
         return f"holds {height}x{width} frames of {channels} channels; xvoe frames are square RGBD (4)"
-    expected = {"ids": (count, frames, height, width), "states": (count, frames), "kind": (count,),
-                "color": (count,)}
+    slots = file["kind"].shape[1]
+    expected = {"ids": (count, frames, height, width), "states": (count, frames, slots), "kind": (count, slots),
+                "color": (count, slots, 3)}
     for name, shape in expected.items():
         if file[name].shape[:len(shape)] != shape:
-            return f"has a {name} dataset of shape {file[name].shape}, which does not match rgbd {file['rgbd'].shape}"
+            return (f"has a {name} dataset of shape {file[name].shape}, which does not match rgbd "
+                    f"{file['rgbd'].shape} and kind {file['kind'].shape}")
     for name in labels:
         if name not in file or not isinstance(file[name], h5py.Dataset):
             return f"has no {name} label (a {split} split has {', '.join(labels)})"
@@ -189,6 +202,90 @@ def schema_problem(file: h5py.File) -> str | None:
             return (f"has a {name} label of shape {file[name].shape} and type {file[name].dtype}; "
                     f"expected one per video ({count}) of kind {LABEL_KINDS[name]}")
     return None
+
+
+def value_problem(file: h5py.File) -> str | None:
+    """What makes the values of a split of the right schema wrong, in a few words, or None.
+
+    Fast on a split of 10,000 videos (under 0.1 s on one core), since every command opens its split
+    and each data-loading worker opens it again: the labels and the kind map are read whole (a
+    few bytes a video), the pixels are bounded by their type (uint8, `schema_problem`) and only
+    the slot ids of the first and last video are read, a cheap pass that finds ids written by
+    another program without decompressing the whole split.
+    """
+    kinds, names = file["kind"][:], len(file.attrs["kind_names"])
+    if kinds.size and (kinds.min() < 0 or kinds.max() >= names):
+        return f"has kind values {kinds.min()}..{kinds.max()}; they index kind_names (0..{names - 1})"
+    slots, count = kinds.shape[1], kinds.shape[0]
+    for i in sorted({0, count - 1}) if count else ():
+        if file["ids"][i].max() > slots:
+            return f"has slot ids up to {file['ids'][i].max()} in video {i}; they run 0..{slots} (0 = background)"
+    columns = list(file["states"].attrs.get("state_columns", []))
+    if len(columns) != file["states"].shape[3] or not {"x", "y", "present", "visible"} <= set(columns):
+        return f"has states columns {columns}; expected one name per column, x, y, present and visible among them"
+    if file.attrs["split"] == "train":
+        return training_labels_problem(labels(file, TRAIN_LABELS), file["rgbd"].shape[1])
+    return pair_labels_problem(labels(file, TEST_LABELS), file["rgbd"].shape[1], bool(config_of(file).get("custom")))
+
+
+def _event_problem(event_frame: np.ndarray, frames: int) -> str | None:
+    outside = np.flatnonzero((event_frame < -1) | (event_frame >= frames))
+    if outside.size:
+        return (f"labels video {outside[0]} with event_frame {event_frame[outside[0]]}, outside its frames "
+                f"(0..{frames - 1}, or -1 for none)")
+    return None
+
+
+def training_labels_problem(found: dict[str, np.ndarray], frames: int) -> str | None:
+    """What is wrong with a training split's labels, or None: known groups (`released` for
+    the paper's imported videos), event frames within the frames."""
+    groups = (*TRAINING_GROUPS, "released")
+    unknown = np.flatnonzero(~np.isin(found["group"], groups))
+    if unknown.size:
+        i = unknown[0]
+        return f"labels video {i} with group {found['group'][i]!r}; the groups are {', '.join(groups)}"
+    return _event_problem(found["event_frame"], frames)
+
+
+def pair_labels_problem(found: dict[str, np.ndarray], frames: int, custom: bool = False) -> str | None:
+    """What is wrong with a test split's labels, or None: every scenario and setting known (a
+    hand-made split of `xvoe.custom` names its scenario freely), members 0 and 1 of every pair
+    exactly once, member 0 possible and member 1 impossible except in S2, where both are
+    possible (in a hand-made split member 1 is the edited, impossible video), event frames
+    within the frames."""
+    scenario, setting, member = found["scenario"], found["setting"], found["member"]
+    # one integer per (scenario, setting) and per pair, so that 10,000 videos cost one Python pass
+    codes = {key: code for code, key in enumerate(dict.fromkeys(zip(scenario, setting)))}
+    setting_code = np.fromiter((codes[key] for key in zip(scenario, setting)), np.int64, len(scenario))
+    for (name, label), code in codes.items():
+        i = int(np.argmax(setting_code == code))
+        settings = ("S1", "S2", "S3") if custom else SCENARIOS[name].SETTINGS if name in SCENARIOS else None
+        if settings is None or not name:
+            return f"labels video {i} with scenario {name!r}; the scenarios are {', '.join(SCENARIOS)}"
+        if label not in settings:
+            return f"labels video {i} {name} {label!r}; {name}'s settings are {', '.join(settings)}"
+    odd = np.flatnonzero(~np.isin(member, (0, 1)) | (found["pair"] < 0))
+    if odd.size:
+        i = odd[0]
+        return f"labels video {i} pair {found['pair'][i]} member {member[i]}; pairs count from 0, members are 0 and 1"
+    pair_key = setting_code * (int(found["pair"].max(initial=0)) + 1) + found["pair"]
+    videos, times = np.unique(pair_key * 2 + member, return_counts=True)
+    if np.any(times > 1):
+        i, j = np.flatnonzero(pair_key * 2 + member == videos[times > 1][0])[:2]
+        return f"labels videos {i} and {j} both {scenario[i]} {setting[i]} pair {found['pair'][i]} member {member[i]}"
+    pairs, members = np.unique(pair_key, return_counts=True)
+    if np.any(members != 2):
+        alone = np.flatnonzero(pair_key == pairs[members != 2][0])[0]
+        return (f"labels video {alone} {scenario[alone]} {setting[alone]} pair {found['pair'][alone]}, "
+                "which has no other member")
+    expected = (member == 0) | ((setting == "S2") & (not custom))
+    wrong = np.flatnonzero(found["possible"] != expected)
+    if wrong.size:
+        i = wrong[0]
+        return (f"labels video {i} ({scenario[i]} {setting[i]} member {member[i]}) "
+                f"{'possible' if found['possible'][i] else 'impossible'}; member 0 is possible, member 1 is "
+                + ("impossible in a hand-made pair" if custom else "possible in S2 only"))
+    return _event_problem(found["event_frame"], frames)
 
 
 def config_of(file: h5py.File) -> dict:

@@ -9,7 +9,7 @@ The NLL's explanation, the Pyro model's posterior, is inference.explain.
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 import torch
@@ -31,6 +31,11 @@ class Explanation:
     hidden_object: np.ndarray   # (T, H, W, 4) uint8: the explanation alone, on the blank
     slot: int                   # the explained slot, -1 if every slot was seen
     title: str
+    # the scene at a display size for a figure (T, S, S, 4) uint8, and where the objects no frame
+    # shows stand in it (T, S, S) bool (xvoe.apps.verbs.with_display); keyword-only, so that the
+    # subclasses' fields keep their places
+    display: np.ndarray | None = field(default=None, kw_only=True)
+    true_hidden: np.ndarray | None = field(default=None, kw_only=True)
 
     def rows(self) -> list[tuple[str, np.ndarray]]:
         """What a figure draws, one labelled row of frames each."""

@@ -14,6 +14,9 @@ import importlib
 import importlib.metadata
 import importlib.util
 import json
+import sys
+import warnings
+import zipfile
 from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Protocol
@@ -25,6 +28,8 @@ from tqdm.auto import tqdm
 
 from ..benchmark import store
 from ..errors import XvoeError
+from ..identity import arrays_hash, describe_split, file_hash, split_identity
+from ..models.config import to_dict
 from ..models.devices import device_of, mixed_precision, resolve_device
 from ..models.nll import InferenceConfig
 from ..models.perception import ComponentVAE, normalise
@@ -119,6 +124,9 @@ class Scorer:
     explanation: str = "better"
     # the NLL surprise's settings the model was made with (its recipe's; XPL only)
     nll: InferenceConfig | None = None
+    # what `load_model` was given (a shipped name, an absolute path, package.module:name), for
+    # `xvoe verify` to load the model again; None for a model made in memory
+    source: str | None = None
 
     @property
     def is_random(self) -> bool:
@@ -161,10 +169,10 @@ def load_model(model: str, device: str | torch.device = "cpu") -> Scorer:
     run (cpu, cuda, cuda:N, mps; refused in one line where this machine has none such)."""
     device = resolve_device(device)
     if model == "random":
-        return Scorer("random", None, None, custom=RandomAgent())
+        return Scorer("random", None, None, custom=RandomAgent(), source="random")
     if ":" in model and not Path(model).exists():
         custom = load_surprise_model(model)
-        return Scorer(str(custom.name), None, None, custom=custom)
+        return Scorer(str(custom.name), None, None, custom=custom, source=_absolute_reference(model))
 
     path = Path(model)
     if model in SHIPPED and not path.exists():
@@ -183,10 +191,57 @@ def load_model(model: str, device: str | torch.device = "cpu") -> Scorer:
                         f"{', '.join(s + '.pt' for s in SHIPPED)}, or 'random'")
     if stage == "phydnet":
         net = load_phydnet(run_dir / "phydnet.pt", device)[0]
-        return Scorer(stage, None, None, phydnet=net, custom=PhyDNetSurprise(net))
+        return Scorer(stage, None, None, phydnet=net, custom=PhyDNetSurprise(net), source=_absolute_reference(model))
     vae, _ = load_perception(run_dir, device)
     xpl, state = load_xpl(run_dir, stage, device)
-    return Scorer(stage, vae, xpl, nll=nll_settings_of(state["config"]) if xpl.config.use_reasoning else None)
+    return Scorer(stage, vae, xpl, nll=nll_settings_of(state["config"]) if xpl.config.use_reasoning else None,
+                  source=_absolute_reference(model))
+
+
+def _absolute_reference(model: str) -> str:
+    """`model` as `load_model` takes it from any directory: a path (or a file.py of file.py:name) made
+    absolute; a shipped name or package.module:name as it is."""
+    where, colon, name = model.rpartition(":")
+    if colon and where.endswith(".py") and Path(where).is_file():
+        return f"{Path(where).resolve()}:{name}"
+    return str(Path(model).resolve()) if Path(model).exists() else model
+
+
+def model_identity(scorer: Scorer) -> dict:
+    """What a score file records of its model: a hash of its weights and configs (stable across
+    machines, paths and what else the checkpoint holds: the run's xpl.pt and the shipped xpl hash
+    alike), or for a model of your own its `module:name` and the hash of its source file."""
+    found = {"source": scorer.source}
+    if scorer.is_random:
+        return found | {"seed": scorer.custom.seed}
+    if scorer.custom is not None and scorer.phydnet is None:
+        return found | _module_identity(scorer)
+    modules = {"perception": scorer.vae, "dynamics": scorer.xpl, "phydnet": scorer.phydnet}
+    arrays = {f"{part}.{name}": tensor.detach().cpu().numpy() for part, module in modules.items() if module is not None
+              for name, tensor in module.state_dict().items()}
+    configs = {part: to_dict(module.config) for part, module in modules.items() if module is not None}
+    return found | {"checkpoint_hash": arrays_hash(arrays, configs)}
+
+
+def _module_identity(scorer: Scorer) -> dict:
+    """A model of your own as `module:name` and the hash of the file that defines it."""
+    if scorer.source is None:       # made in memory: its class names it
+        kind = type(scorer.custom)
+        where, name = kind.__module__, kind.__qualname__
+        origin = getattr(sys.modules.get(where), "__file__", None)
+    else:
+        where, _, name = scorer.source.rpartition(":")
+        origin = where if where.endswith(".py") else getattr(importlib.util.find_spec(where), "origin", None)
+        where = Path(where).stem if where.endswith(".py") else where
+    return {"module": f"{where}:{name}", "file_hash": file_hash(origin) if origin and Path(origin).is_file() else None}
+
+
+def surprise_definitions(scorer: Scorer, how: str) -> dict:
+    """The surprise definitions behind a score file's columns, with their settings (the NLL's are
+    added beside them by its `ExtraColumns`)."""
+    if scorer.custom is not None:
+        return {"own": f"the model's per-frame surprise (in s_dyn), {how} over frames"}
+    return {"mse": {"score": "better", "paper_score": "proposal", "aggregate": how}}
 
 
 def load_surprise_model(reference: str) -> SurpriseModel:
@@ -254,12 +309,12 @@ def score_split(model: str | Scorer, data: str, out: str, *, how: str = "sum", v
                 extra: ExtraColumns | None = None, score_column: str = "score", shard: tuple[int, int] = (0, 1),
                 overwrite: bool = False, progress: bool = True, device: str | torch.device = "cpu") -> Path:
     """One CSV row per test video, and the per-frame surprise curves (s_img, s_dyn: (N, T);
-    s_rec too for a model with a perception module) in an .npz beside it. Models with a
-    perception module also get the columns s_rec and excess (xvoe.evaluation.surprise).
-    `extra` adds columns after these; `score_column` names one of them to be the score
-    instead of the MSE score. `shard` (I, N) scores part I of N, whole batches of it, so that
-    `merge_scores` of the parts writes the bytes one run would have. `device`: where a model
-    given by name runs (a `Scorer` runs where it was loaded)."""
+    s_rec too for a model with a perception module) in an .npz beside it, with the header
+    (`score_header`). Models with a perception module also get the columns s_rec and excess
+    (xvoe.evaluation.surprise). `extra` adds columns after these; `score_column` names one of
+    them to be the score instead of the MSE score. `shard` (I, N) scores part I of N, whole
+    batches of it, so that `merge_scores` of the parts writes the bytes one run would have.
+    `device`: where a model given by name runs (a `Scorer` runs where it was loaded)."""
     if how not in ("sum", "max"):
         raise XvoeError(f"--aggregate must be sum or max, not {how!r}")
     if score_column != "score" and (extra is None or score_column not in extra.names):
@@ -273,58 +328,109 @@ def score_split(model: str | Scorer, data: str, out: str, *, how: str = "sum", v
         # after every check of the input: a refused run leaves nothing behind
         out = claim_file(out, overwrite)
         curves_path = claim_file(out.with_suffix(".curves.npz"), overwrite, what="the curves beside --out")
-        count, frames_count, size = file["rgbd"].shape[:3]
-        first, last = shard_rows(count, videos_per_batch, shard)
+        first, last = shard_rows(file["rgbd"].shape[0], videos_per_batch, shard)
         labels = store.labels(file, ("scenario", "setting", "pair", "member", "possible"))
-        curves = np.zeros((len(CURVES), count, frames_count))
-        values = [] if extra is not None else None
-        for start in tqdm(range(first, last, videos_per_batch), desc=f"score {scorer.name}", unit="batch",
-                          disable=not progress):
-            stop = min(last, start + videos_per_batch)
-            if scorer.custom is not None:     # one term, in the s_dyn columns
-                curves[[1, 4], start:stop] = custom_surprise(scorer, file, start, stop)
-                continue
-            batch = encode_videos(scorer, file, start, stop)     # once, for every column
-            curves[:, start:stop] = torch.stack(list(_xpl_curves(scorer, batch).values())).cpu().numpy()
-            if values is not None:
-                values.append(extra.batch(scorer, batch))
-    with_rec = scorer.vae is not None
-    curves = curves[:, first:last]
-    added = extra.finish(np.concatenate(values), curves, size) if extra is not None else np.zeros((last - first, 0))
-    s_img, s_dyn, s_rec = (aggregate(torch.from_numpy(c), how).numpy() for c in curves[:3])
-    paper = aggregate(torch.from_numpy(curves[3:].sum(0)), how).numpy()
-    if score_column == "score":
-        total = aggregate(torch.from_numpy(curves[:2].sum(0)), how).numpy()
-    else:
-        total = added[:, extra.names.index(score_column)]
-    if with_rec:
-        excess_score = aggregate(torch.from_numpy(excess(*curves[:3])), how).numpy()
-    header = {"xvoe": package_version(), "model": scorer.name, "score": score_column, "aggregate": how,
-              **(extra.settings() if extra is not None else {})}
+        header = {"xvoe": package_version(), "model": scorer.name, "model_identity": model_identity(scorer),
+                  "split": split_identity(file), "data": str(Path(data).resolve()), "score": score_column,
+                  "aggregate": how, "surprise": surprise_definitions(scorer, how),
+                  **(extra.settings() if extra is not None else {})}
+        curves, added = score_rows(scorer, file, first, last, videos_per_batch, extra, progress)
+    columns = row_columns(scorer, curves, added, how, extra, score_column)
     # the CSV and its curves are one result: the CSV, which names the curves, is renamed last
     with atomic_paths(curves_path, out) as (curves_tmp, tmp), open(tmp, "w", newline="") as handle:
-        named = {name: curve for name, curve in zip(CURVES, curves) if with_rec or name != "s_rec"}
+        named = {name: curve for name, curve in zip(CURVES, curves) if scorer.vae is not None or name != "s_rec"}
         with open(curves_tmp, "wb") as curves_file:
             np.savez_compressed(curves_file, header=np.array(json.dumps(header, sort_keys=True)), **named)
         writer = csv.writer(handle)
-        writer.writerow(SCORE_COLUMNS + (EXCESS_COLUMNS if with_rec else ()) + (extra.names if extra else ()))
+        writer.writerow(SCORE_COLUMNS[:7] + tuple(columns))
         for row, i in enumerate(range(first, last)):
-            row_extra = [float(s_rec[row]), float(excess_score[row])] if with_rec else []
-            row_extra += list(map(float, added[row]))
             writer.writerow([i, scorer.name, labels["scenario"][i], labels["setting"][i], int(labels["pair"][i]),
-                             int(labels["member"][i]), bool(labels["possible"][i]), float(total[row]),
-                             float(s_img[row]), float(s_dyn[row]), float(paper[row])] + row_extra)
+                             int(labels["member"][i]), bool(labels["possible"][i])]
+                            + [float(values[row]) for values in columns.values()])
     return out
 
 
+def score_rows(scorer: Scorer, file, first: int, last: int, videos_per_batch: int, extra: ExtraColumns | None,
+               progress: bool = False) -> tuple[np.ndarray, np.ndarray]:
+    """The `CURVES` (5, N, T) of videos [first, last) of an open test split, batch by batch, and
+    the `extra` columns (N, C), finished (C = 0 without)."""
+    curves = np.zeros((len(CURVES), last - first, file["rgbd"].shape[1]))
+    values = []
+    for start in tqdm(range(first, last, videos_per_batch), desc=f"score {scorer.name}", unit="batch",
+                      disable=not progress):
+        stop = min(last, start + videos_per_batch)
+        rows = slice(start - first, stop - first)
+        if scorer.custom is not None:     # one term, in the s_dyn columns
+            curves[[1, 4], rows] = custom_surprise(scorer, file, start, stop)
+            continue
+        batch = encode_videos(scorer, file, start, stop)     # once, for every column
+        curves[:, rows] = torch.stack(list(_xpl_curves(scorer, batch).values())).cpu().numpy()
+        if extra is not None:
+            values.append(extra.batch(scorer, batch))
+    if extra is None:
+        return curves, np.zeros((last - first, 0))
+    return curves, extra.finish(np.concatenate(values), curves, file["rgbd"].shape[2])
+
+
+def row_columns(scorer: Scorer, curves: np.ndarray, added: np.ndarray, how: str, extra: ExtraColumns | None,
+                score_column: str = "score") -> dict[str, np.ndarray]:
+    """The numeric columns of a score file after its labels (score, s_img, s_dyn, paper_score,
+    then s_rec and excess for a model with a perception module, then `extra`'s), per video,
+    from the curves and the extra columns of `score_rows`."""
+    s_img, s_dyn, s_rec = (aggregate(torch.from_numpy(c), how).numpy() for c in curves[:3])
+    paper = aggregate(torch.from_numpy(curves[3:].sum(0)), how).numpy()
+    total = aggregate(torch.from_numpy(curves[:2].sum(0)), how).numpy()
+    columns = {"score": total, "s_img": s_img, "s_dyn": s_dyn, "paper_score": paper}
+    if scorer.vae is not None:
+        columns |= {"s_rec": s_rec, "excess": aggregate(torch.from_numpy(excess(*curves[:3])), how).numpy()}
+    if extra is not None:
+        columns |= dict(zip(extra.names, added.T))
+        columns["score"] = columns[score_column]
+    return columns
+
+
 def score_header(path: str | Path) -> dict:
-    """What a score file was made with: the package version, the model, the score column, the
-    aggregation over frames and, for the NLL, its settings and seed (kept in its curves file)."""
+    """What a score file was made with, kept in its curves file: the package version (`xvoe`),
+    the model's name and identity (`model_identity`), the split's identity (`split`,
+    `xvoe.identity.split_identity`) and the path it was read from (`data`), the score column,
+    the aggregation over frames, the surprise definitions (`surprise`) and, for the NLL, its
+    settings and seed (`nll`, `nll_seed`)."""
     curves = Path(path).with_suffix(".curves.npz")
     if not curves.is_file():
         raise XvoeError(f"{path} has no curves file beside it ({curves.name}), which holds its header")
-    with np.load(curves) as found:
-        return json.loads(str(found["header"])) if "header" in found.files else {}
+    try:
+        with np.load(curves) as found:
+            return json.loads(str(found["header"])) if "header" in found.files else {}
+    except (OSError, ValueError, zipfile.BadZipFile):
+        raise XvoeError(f"{curves} is not a curves file of xvoe score") from None
+
+
+class UncheckedScores(UserWarning):
+    """A score file that records no split (made by hand, elsewhere, or by an older xvoe): it is
+    read, but whether it belongs to the split cannot be checked (docs/decisions.md, "Score files
+    that say what they are")."""
+
+
+def scored_split(path: str | Path) -> dict | None:
+    """The identity of the split a score file was scored on (`xvoe.identity.split_identity`), or
+    None for a file that records none (`warn_unchecked` says so, once the file has been read)."""
+    header = score_header(path) if Path(path).with_suffix(".curves.npz").is_file() else {}
+    return header.get("split")
+
+
+def warn_unchecked(path: str | Path) -> None:
+    """A warning for a score file that records no split, after it was read without a problem."""
+    if scored_split(path) is None:
+        warnings.warn(f"{path} does not record the split it was scored on, so it is not checked against one; "
+                      "rescore it with this xvoe to have it checked", UncheckedScores, stacklevel=2)
+
+
+def check_same_split(path: str | Path, identity: dict, data: str | Path) -> None:
+    """Refuse scores made on another split than `data`, whose identity is `identity`."""
+    found = scored_split(path)
+    if found is not None and found != identity:
+        raise XvoeError(f"{path} was scored on another split ({describe_split(found)}) than {data} "
+                        f"({describe_split(identity)}); score {data} instead")
 
 
 def package_version() -> str:

@@ -55,7 +55,7 @@ RETIRED: dict[str, dict[str, Any]] = {
                   "fill_from_neighbours": False, "line_between_only": False},
     "PhyDNetConfig": {"lstm_chrono_frames": 0},
     "InferenceConfig": {"smc_moves": 0, "smc_max_levels": 40, "smc_first": 0, "trajectory_proposal": False,
-                        "trajectory_scale_floor": 1.0},
+                        "trajectory_scale_floor": 1.0, "guide_follows_dynamics": True},
 }
 
 

@@ -41,13 +41,12 @@ class InferenceConfig:
     refine_rate: float = within(0.1, NON_NEGATIVE)        # their Adam learning rate
     # nats a frame of the proposal's mean may cost before it is moved
     refine_tolerance: float = within(1.0, NON_NEGATIVE)
-    guide_follows_dynamics: bool = True   # fuse each frame's proposal with the dynamics' step
     # Transformer 2's scales are multiplied by this before the fusion: they are each frame's
     # marginal uncertainty, not fresh evidence about that frame, and too narrow for what a video
     # leaves open (docs/decisions.md, "NLL proposal widening")
     proposal_widening: float = within(3.0, POSITIVE)
     # "smc": sequential Monte Carlo over frames with existence summed out (inference.smc);
-    # "importance": one vectorised importance-sampling pass of the Pyro model and guide
+    # "importance": the same model and guide never resampled, the guide proposing existence too
     method: str = "smc"
     # SMC resamples when the ESS falls below this share of the particles
     resample_threshold: float = within(0.5, SHARE)

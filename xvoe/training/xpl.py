@@ -207,7 +207,7 @@ def latent_cache_for(data: str | os.PathLike, run_dir: str | os.PathLike, percep
         return data
     except XvoeError:
         pass
-    cache = Path(run_dir) / f"latents-{data.stem}.h5"
+    cache = default_cache(data, run_dir)
     if cache.exists():
         check_cache_source(cache, data)
     else:
@@ -215,6 +215,11 @@ def latent_cache_for(data: str | os.PathLike, run_dir: str | os.PathLike, percep
             pass
         encode_split(perception or run_dir, data, cache, progress=progress, device=device)
     return cache
+
+
+def default_cache(data: str | os.PathLike, run_dir: str | os.PathLike) -> Path:
+    """Where a run keeps the latent cache of the split `data`: RUN_DIR/latents-NAME.h5."""
+    return Path(run_dir) / f"latents-{Path(data).stem}.h5"
 
 
 def check_cache_source(cache: str | os.PathLike, data: str | os.PathLike) -> None:
