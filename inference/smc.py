@@ -197,6 +197,28 @@ def require_match(model_trace: poutine.Trace, guide_trace: poutine.Trace) -> Non
             raise ValueError(f"model and guide do not match: {problem}") from None
 
 
+def empty_branch(model: HiddenObjectModel, frames: Tensor) -> Tensor:
+    """log p(x, no hidden object) frame by frame (T,) float64, exact: the whole-video model traced
+    once with `exists` fixed to 0 and one particle, every latent masked. Frame t holds the terms
+    its step adds (x_t and motion_{t+1}; `exists` at frame 0), as the SMC's weights do."""
+    trace = poutine.trace(poutine.condition(model.model, data={"exists": torch.zeros(1, device=frames.device)})).get_trace(frames)
+    trace.compute_log_prob()
+    per_frame = torch.zeros(model.frames, dtype=torch.float64, device=frames.device)
+    for name, node in trace.nodes.items():
+        if node["type"] == "sample" and name != "particles":
+            per_frame[site_frame(name)] += node["log_prob"].to(torch.float64).sum()
+    return per_frame
+
+
+def site_frame(name: str) -> int:
+    """The frame whose step holds a site of `HiddenObjectModel`: exists at 0, z_t and x_t at t,
+    motion_t at t - 1 (observed once frame t - 1 is drawn)."""
+    if name == "exists":
+        return 0
+    kind, frame = name.rsplit("_", 1)
+    return int(frame) - (kind == "motion")
+
+
 @contextmanager
 def seeded(generator: torch.Generator | None, device: torch.device | None = None) -> Iterator[None]:
     """The global random state, which Pyro draws from, seeded from `generator` and put back
@@ -262,8 +284,7 @@ def smc_evidence(scene: Scene, frames: Tensor, config: InferenceConfig, proposal
     model = HiddenObjectModel(scene, config)
     device = frames.device
     with seeded(generator, device):
-        empty = float(run_smc(ModelSteps(model, frames, proposal, (1.0,), exists=False), 1,
-                              device=device).log_evidence[0])
+        empty = float(empty_branch(model, frames).sum())
         particles = config.particles
         if not free:
             return Evidence(empty, -math.inf, empty, 0.0, float(particles), float(particles), 0, 0, particles,

@@ -48,6 +48,8 @@ class XPLScene(nn.Module):
         with torch.no_grad():
             self._fixed = self._partial_composite()
             self._empty = self._composite(self.layers[None])[0]
+            # every particle without a hidden object sees the encoder's scene: its dynamics run once, fused
+            self._empty_steps = xpl.predict(refined[None], self.occluder)[0]          # (T-1, K, D)
 
     def initial(self, particles: int) -> tuple[Tensor, Tensor]:
         """The latent prior of the perception module, N(0, I)."""
@@ -58,10 +60,13 @@ class XPLScene(nn.Module):
         """The dynamics run on frame t with the hidden slot holding each particle's latents (N, D)
         where it holds an object, and elsewhere what the encoder made of that slot's empty
         pixels, as during training: the next latent of the hidden slot and of the seen moving
-        ones. The dynamics' memory is the particles' own, carried and resampled with them."""
-        scene = self.refined[t].expand(len(latents), self.slots, self.dim).clone()
-        scene[alive, self.hidden] = latents[alive]
-        prediction, memory = self.xpl.dynamics.step(scene, memory, self.inert())
+        ones. The dynamics' memory is that of the particles holding an object, in their order,
+        carried and resampled with them; the others share the scene's one run."""
+        prediction = self._empty_steps[t].expand(len(latents), self.slots, self.dim).clone()
+        if alive.any():
+            scene = self.refined[t].expand(int(alive.sum()), self.slots, self.dim).clone()
+            scene[:, self.hidden] = latents[alive]
+            prediction[alive], memory = self.xpl.dynamics.step(scene, memory, self.inert())
         return Step(prediction[:, self.hidden], memory, prediction[:, self.moving])
 
     def seen_motion(self, t: int) -> tuple[Tensor, Tensor]:

@@ -38,7 +38,7 @@ def _flip_pixel(file) -> None:
 
 
 def _flip_label(file) -> None:
-    file["possible"][5] = not file["possible"][5]
+    file["event_frame"][5] = 2 if file["event_frame"][5] != 2 else 3      # still a valid split
 
 
 def _nudge_state(file) -> None:
