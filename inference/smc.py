@@ -201,7 +201,8 @@ def empty_branch(model: HiddenObjectModel, frames: Tensor) -> Tensor:
     """log p(x, no hidden object) frame by frame (T,) float64, exact: the whole-video model traced
     once with `exists` fixed to 0 and one particle, every latent masked. Frame t holds the terms
     its step adds (x_t and motion_{t+1}; `exists` at frame 0), as the SMC's weights do."""
-    trace = poutine.trace(poutine.condition(model.model, data={"exists": torch.zeros(1, device=frames.device)})).get_trace(frames)
+    absent = {"exists": torch.zeros(1, device=frames.device)}
+    trace = poutine.trace(poutine.condition(model.model, data=absent)).get_trace(frames)
     trace.compute_log_prob()
     per_frame = torch.zeros(model.frames, dtype=torch.float64, device=frames.device)
     for name, node in trace.nodes.items():
