@@ -2,8 +2,10 @@
 and mixed precision where the device gains from it.
 
 Networks, batches and encoded videos go to the chosen device; checkpoints hold CPU tensors,
-so that one trained anywhere loads anywhere; random draws come from CPU generators, so that a
-seed gives the same draws on every device.
+so that one trained anywhere loads anywhere. Networks are initialised and batches drawn on the
+CPU before they move, and the SMC's resampling draws from a CPU generator; Pyro's draws (the
+NLL's particles) come from the device's own state, seeded from the same seed: a run repeats on
+one device, not across devices.
 """
 from __future__ import annotations
 
