@@ -52,6 +52,7 @@ from inference.surprise import nll_surprise
 from xvoe import allocator
 from xvoe.evaluation.operations import Operations, count_operations
 from xvoe.evaluation.surprise import mse_surprise
+from xvoe.models.devices import mixed_precision
 from xvoe.models.nll import InferenceConfig
 from xvoe.models.perception import ComponentVAE, normalise
 from xvoe.models.phydnet import PhyDNet, PhyDNetObjective
@@ -78,28 +79,32 @@ def random_frames(rng: np.random.Generator, count: int, size: int) -> tuple[np.n
     return rgbd, ids
 
 
-def training_step(model, optimiser, batch):
-    """One optimiser step on a fixed batch, as the training loop takes it."""
+def training_step(model, optimiser, batch, device: str = "cpu"):
+    """One optimiser step on a fixed batch, as the training loop takes it (its forward pass
+    under the device's mixed precision)."""
+    precision = mixed_precision(torch.device(device))
+
     def step() -> None:
-        loss = model(batch)["loss"]
+        with precision:
+            loss = model(batch)["loss"]
         optimiser.zero_grad(set_to_none=True)
         loss.backward()
         optimiser.step()
     return step
 
 
-def perception_step(config, frames: int, rng: np.random.Generator):
-    model = ComponentVAE(config).train()
+def perception_step(config, frames: int, rng: np.random.Generator, device: str = "cpu"):
+    model = ComponentVAE(config).to(device).train()
     optimiser = torch.optim.Adam(model.parameters(), lr=1e-4)
     rgbd, ids = random_frames(rng, frames, config.image_size)
     noise = rng.standard_normal((frames, SLOTS + 1, config.latent_dim), dtype=np.float32)
-    batch = perception_batch(rgbd, ids, SLOTS, noise, noise[:1, 0])
+    batch = perception_batch(rgbd, ids, SLOTS, noise, noise[:1, 0]).to(device)
 
-    return training_step(model, optimiser, batch)
+    return training_step(model, optimiser, batch, device)
 
 
-def xpl_step(config, videos: int, rng: np.random.Generator):
-    model = XPL(config).train()
+def xpl_step(config, videos: int, rng: np.random.Generator, device: str = "cpu"):
+    model = XPL(config).to(device).train()
     optimiser = torch.optim.Adam(model.parameters(), lr=1e-4)
     dim, shape = config.dynamics.latent_dim, (videos, FRAMES, SLOTS)
     walls = torch.zeros(videos, SLOTS, dtype=torch.bool)
@@ -108,49 +113,51 @@ def xpl_step(config, videos: int, rng: np.random.Generator):
                         visible=torch.from_numpy(rng.random(shape) < 0.8),
                         order=torch.from_numpy(np.argsort(rng.random((videos, SLOTS)), axis=1)),
                         hidden=torch.from_numpy(rng.integers(0, SLOTS, videos)),
-                        refill=torch.from_numpy(rng.random(shape) < 0.2), walls=walls)
+                        refill=torch.from_numpy(rng.random(shape) < 0.2), walls=walls).to(device)
 
-    return training_step(model, optimiser, batch)
+    return training_step(model, optimiser, batch, device)
 
 
-def phydnet_step(config, videos: int, rng: np.random.Generator):
+def phydnet_step(config, videos: int, rng: np.random.Generator, device: str = "cpu"):
     """What the PhyDNet stage's loop does per batch of uint8 videos (B, T, H, W, 4)."""
-    model = PhyDNetObjective(PhyDNet(config)).train()
+    model = PhyDNetObjective(PhyDNet(config)).to(device).train()
     optimiser = torch.optim.Adam(model.parameters(), lr=1e-4)
     size = config.image_size
-    batch = torch.from_numpy(rng.integers(0, 256, (videos, FRAMES, size, size, 4), dtype=np.uint8))
-    return training_step(model, optimiser, batch)
+    batch = torch.from_numpy(rng.integers(0, 256, (videos, FRAMES, size, size, 4), dtype=np.uint8)).to(device)
+    return training_step(model, optimiser, batch, device)
 
 
-def score_step(perception, xpl_config, videos: int, rng: np.random.Generator):
-    vae, xpl = ComponentVAE(perception).eval(), XPL(xpl_config).eval()
+def score_step(perception, xpl_config, videos: int, rng: np.random.Generator, device: str = "cpu"):
+    vae, xpl = ComponentVAE(perception).to(device).eval(), XPL(xpl_config).to(device).eval()
     size = perception.image_size
     rgbd, ids = random_frames(rng, videos * FRAMES, size)
-    occluder = torch.zeros(videos, SLOTS, dtype=torch.bool)
+    occluder = torch.zeros(videos, SLOTS, dtype=torch.bool, device=device)
     occluder[:, 0] = True
+    precision = mixed_precision(torch.device(device))
 
     def step() -> None:       # what score.score_split does per batch of videos (encode_videos, _xpl_curves)
         encoded = encode_frames(vae, rgbd, ids, SLOTS)
-        shaped = {k: torch.from_numpy(v).reshape(videos, FRAMES, *v.shape[1:]) for k, v in encoded.items()}
-        frames = normalise(torch.from_numpy(rgbd.reshape(videos, FRAMES, size, size, 4)))
-        mse_surprise(vae, xpl, frames, shaped["mean"], shaped["pixels"] > visible_threshold(size),
-                     shaped["background_mean"], occluder)
+        shaped = {k: torch.from_numpy(v).reshape(videos, FRAMES, *v.shape[1:]).to(device) for k, v in encoded.items()}
+        frames = normalise(torch.from_numpy(rgbd.reshape(videos, FRAMES, size, size, 4))).to(device)
+        with precision:
+            mse_surprise(vae, xpl, frames, shaped["mean"], shaped["pixels"] > visible_threshold(size),
+                         shaped["background_mean"], occluder)
     return step
 
 
-def nll_step(perception, xpl_config, settings, rng: np.random.Generator):
+def nll_step(perception, xpl_config, settings, rng: np.random.Generator, device: str = "cpu"):
     """One video encoded and scored by the NLL, as xvoe score --surprise nll does per video. Its
     last slot is never drawn: a slot free for a hidden object, without which the NLL samples nothing."""
-    vae, xpl = ComponentVAE(perception).eval(), XPL(xpl_config).eval()
+    vae, xpl = ComponentVAE(perception).to(device).eval(), XPL(xpl_config).to(device).eval()
     size = perception.image_size
     rgbd, ids = random_frames(rng, FRAMES, size)
     ids[ids == SLOTS] = 0
-    occluder = torch.zeros(SLOTS, dtype=torch.bool)
+    occluder = torch.zeros(SLOTS, dtype=torch.bool, device=device)
     occluder[0] = True
 
     def step() -> None:
-        encoded = {k: torch.from_numpy(v) for k, v in encode_frames(vae, rgbd, ids, SLOTS).items()}
-        frames = normalise(torch.from_numpy(rgbd))
+        encoded = {k: torch.from_numpy(v).to(device) for k, v in encode_frames(vae, rgbd, ids, SLOTS).items()}
+        frames = normalise(torch.from_numpy(rgbd)).to(device)
         nll_surprise(vae, xpl, frames, encoded["mean"], encoded["pixels"] > visible_threshold(size),
                      encoded["background_mean"], occluder, settings, seed=0)
     return step

@@ -121,6 +121,11 @@ class HiddenObjectModel(nn.Module):
         self.scene, self.config = scene, config
         self.frames = scene.frames
 
+    @property
+    def device(self) -> torch.device:
+        """Where the scene's tensors are; the model's own follow them."""
+        return self.scene.empty_frame(0).device
+
     # --- the model ------------------------------------------------------------------------------
 
     def init(self, state: State, particles: int) -> None:
@@ -132,7 +137,7 @@ class HiddenObjectModel(nn.Module):
         """log p - log(1 - p) of a hidden object, in float64: a probability held in float32 is
         clamped to its epsilon, and a prior under 1e-7 would lose its nats."""
         p = self.config.prior_hidden
-        return torch.tensor(math.log(p) - math.log1p(-p), dtype=torch.float64)
+        return torch.tensor(math.log(p) - math.log1p(-p), dtype=torch.float64, device=self.device)
 
     def step(self, state: State, t: int, frame: Tensor) -> None:
         alive = state["exists"]
@@ -164,7 +169,7 @@ class HiddenObjectModel(nn.Module):
         its hidden object's drawing (`drawing_cost`), in float64. The particles without a hidden
         object all show the same frame: it is scored once."""
         sigma = self.config.pixel_sigma
-        result = torch.empty(len(alive), dtype=torch.float64)
+        result = torch.empty(len(alive), dtype=torch.float64, device=frame.device)
         if not alive.all():
             result[~alive] = pixel_log_density(self.scene.empty_frame(t)[None], frame, sigma)
         if alive.any():
@@ -223,7 +228,7 @@ class HiddenObjectModel(nn.Module):
         if len(fused) == 1:
             return dist.Normal(*fused[0]).to_event(1)
         locs, scales = torch.stack([f[0] for f in fused], dim=-2), torch.stack([f[1] for f in fused], dim=-2)
-        choice = dist.Categorical(logits=torch.zeros(locs.shape[:-1], dtype=locs.dtype))
+        choice = dist.Categorical(logits=torch.zeros(locs.shape[:-1], dtype=locs.dtype, device=locs.device))
         return dist.MixtureSameFamily(choice, dist.Normal(locs, scales).to_event(1))
 
 

@@ -59,8 +59,9 @@ def systematic_resample(weights: Tensor, generator: torch.Generator | None = Non
     multinomial draws."""
     runs, particles = weights.shape
     count = particles if count is None else count
-    offset = torch.rand(runs, 1, generator=generator, dtype=torch.float64)
-    points = (offset + torch.arange(count, dtype=torch.float64)) / count
+    # drawn from the CPU generator and moved: one seed, the same draws on every device
+    offset = torch.rand(runs, 1, generator=generator, dtype=torch.float64).to(weights.device)
+    points = (offset + torch.arange(count, dtype=torch.float64, device=weights.device)) / count
     cumulative = weights.to(torch.float64).cumsum(dim=1)
     cumulative = cumulative / cumulative[:, -1:]           # a sum of 1 - 1e-16 must not leave a point past the end
     return torch.searchsorted(cumulative, points).clamp_max(particles - 1)
@@ -93,8 +94,9 @@ class SMCRun:
 
 
 def run_smc(model: SequentialModel, particles: int, runs: int = 1, threshold: float = 0.5,
-            generator: torch.Generator | None = None) -> SMCRun:
-    """`runs` independent particle filters of `particles` particles each, stepped together.
+            generator: torch.Generator | None = None, device: torch.device | str = "cpu") -> SMCRun:
+    """`runs` independent particle filters of `particles` particles each, stepped together, their
+    weights on `device` (the model's).
 
     After frame t, a run whose ESS is under threshold * particles is resampled and its mean
     weight moved into its evidence; the last frame's weights are never resampled (nothing
@@ -103,11 +105,11 @@ def run_smc(model: SequentialModel, particles: int, runs: int = 1, threshold: fl
     mean (frame t adds log sum_i W_i w_t,i): the last frame's is the whole video's."""
     n = runs * particles
     state = model.start(n)
-    log_weights = torch.zeros(runs, particles, dtype=torch.float64)
-    log_evidence = torch.zeros(runs, dtype=torch.float64)
-    origin = torch.arange(particles).expand(runs, particles).clone()
+    log_weights = torch.zeros(runs, particles, dtype=torch.float64, device=device)
+    log_evidence = torch.zeros(runs, dtype=torch.float64, device=device)
+    origin = torch.arange(particles, device=device).expand(runs, particles).clone()
     ess, resampled, so_far = [], [], []
-    base = (torch.arange(runs) * particles)[:, None]
+    base = (torch.arange(runs, device=device) * particles)[:, None]
     target = threshold * particles
 
     for t in range(model.frames):
@@ -116,11 +118,11 @@ def run_smc(model: SequentialModel, particles: int, runs: int = 1, threshold: fl
         so_far.append(log_evidence + (torch.logsumexp(log_weights, dim=1) - math.log(particles)))
         current = effective_sample_size(log_weights)
         ess.append(current)
-        due = current < target if t < model.frames - 1 else torch.zeros(runs, dtype=torch.bool)
+        due = current < target if t < model.frames - 1 else torch.zeros(runs, dtype=torch.bool, device=device)
         resampled.append(due)
         if due.any():
             log_evidence[due] += torch.logsumexp(log_weights[due], dim=1) - math.log(particles)
-            ancestors = torch.arange(particles).expand(runs, particles).clone()
+            ancestors = torch.arange(particles, device=device).expand(runs, particles).clone()
             ancestors[due] = systematic_resample(torch.softmax(log_weights[due], dim=1), generator)
             state = model.select(state, (base + ancestors).reshape(-1))
             log_weights = log_weights.clone()
@@ -165,7 +167,7 @@ class ModelSteps:
                 self.model.step(state, t, self.observed[t])
 
         if self.exists is not None:
-            fixed = {"exists": torch.full((n,), float(self.exists))}
+            fixed = {"exists": torch.full((n,), float(self.exists), device=self.observed.device)}
             guide, model = poutine.condition(guide, data=fixed), poutine.condition(model, data=fixed)
         guide_trace = poutine.trace(guide).get_trace()
         model_trace = poutine.trace(poutine.replay(model, trace=guide_trace)).get_trace()
@@ -181,10 +183,10 @@ def site_log_probs(trace: poutine.Trace, particles: int, sampled_only: bool = Fa
     """Per-particle sum (particles,) float64 of every sample site's log-density, masks applied;
     `sampled_only`: without the observed sites (a guide's conditioned ones are no proposal)."""
     trace.compute_log_prob()
-    total = torch.zeros(particles, dtype=torch.float64)
-    for node in trace.nodes.values():
-        if node["type"] != "sample" or (sampled_only and node["is_observed"]):
-            continue
+    sites = [node for node in trace.nodes.values()
+             if node["type"] == "sample" and not (sampled_only and node["is_observed"])]
+    total = torch.zeros(particles, dtype=torch.float64, device=sites[0]["log_prob"].device if sites else None)
+    for node in sites:
         log_prob = node["log_prob"].to(torch.float64)
         if log_prob.shape not in ((), (particles,)):
             raise ValueError(f"site {node['name']!r} has log_prob shape {tuple(log_prob.shape)}; "
@@ -208,9 +210,10 @@ def empty_branch(model: HiddenObjectModel, frames: Tensor) -> Tensor:
     """log p(x, no hidden object) frame by frame (T,) float64, exact: the whole-video model traced
     once with `exists` fixed to 0 and one particle, every latent masked. Frame t holds the terms
     its step adds (x_t and motion_{t+1}; `exists` at frame 0), as the SMC's weights do."""
-    trace = poutine.trace(poutine.condition(model.model, data={"exists": torch.zeros(1)})).get_trace(frames)
+    absent = {"exists": torch.zeros(1, device=frames.device)}
+    trace = poutine.trace(poutine.condition(model.model, data=absent)).get_trace(frames)
     trace.compute_log_prob()
-    per_frame = torch.zeros(model.frames, dtype=torch.float64)
+    per_frame = torch.zeros(model.frames, dtype=torch.float64, device=frames.device)
     for name, node in trace.nodes.items():
         if node["type"] == "sample" and name != "particles":
             per_frame[site_frame(name)] += node["log_prob"].to(torch.float64).sum()
@@ -227,10 +230,11 @@ def site_frame(name: str) -> int:
 
 
 @contextmanager
-def seeded(generator: torch.Generator | None) -> Iterator[None]:
+def seeded(generator: torch.Generator | None, device: torch.device | None = None) -> Iterator[None]:
     """The global random state, which Pyro draws from, seeded from `generator` and put back
-    after: an estimate is a function of its seed, whatever was drawn before."""
-    with torch.random.fork_rng(devices=[]):
+    after: an estimate is a function of its seed, whatever was drawn before. On CUDA Pyro draws
+    from that device's state: seeded from the same seed, it is put back too."""
+    with torch.random.fork_rng(devices=[device] if device is not None and device.type == "cuda" else []):
         torch.manual_seed(int(torch.randint(2 ** 62, (1,), generator=generator)))
         yield
 
@@ -296,7 +300,8 @@ def smc_evidence(scene: Scene, frames: Tensor, config: InferenceConfig, proposal
     latent is masked, so it is exact) and by SMC over `config.particles` particles with one.
     `free` False: no slot is left for a hidden object, and the evidence is the first branch's."""
     model = HiddenObjectModel(scene, config)
-    with seeded(generator):
+    device = frames.device
+    with seeded(generator, device):
         empty_so_far = empty_branch(model, frames).cumsum(0)
         empty, particles = float(empty_so_far[-1]), config.particles
         if not free:
@@ -306,12 +311,12 @@ def smc_evidence(scene: Scene, frames: Tensor, config: InferenceConfig, proposal
         run = None
         sure = proposal is not None and float(proposal.p_exists) > config.smc_pilot_skip_exists
         for size in () if sure else pilot_sizes(config):
-            pilot = run_smc(steps, size, threshold=config.resample_threshold, generator=generator)
+            pilot = run_smc(steps, size, threshold=config.resample_threshold, generator=generator, device=device)
             if empty - float(pilot.log_evidence[0]) > config.smc_pilot_margin:
                 run, particles = pilot, size
                 break
         if run is None:
-            run = run_smc(steps, particles, threshold=config.resample_threshold, generator=generator)
+            run = run_smc(steps, particles, threshold=config.resample_threshold, generator=generator, device=device)
     hidden = float(run.log_evidence[0])
     total = float(torch.logaddexp(torch.tensor(hidden, dtype=torch.float64), torch.tensor(empty, dtype=torch.float64)))
     return Evidence(total, hidden, empty, math.exp(hidden - total), float(run.final_ess[0]), float(run.ess[0].min()),
@@ -326,9 +331,9 @@ def importance_evidence(scene: Scene, frames: Tensor, config: InferenceConfig, p
     never resampled, the guide proposing the existence of a hidden object too."""
     model = HiddenObjectModel(scene, config)
     particles = config.particles
-    with seeded(generator):
+    with seeded(generator, frames.device):
         run = run_smc(ModelSteps(model, frames, proposal, (config.proposal_widening,), exists=None), particles,
-                      threshold=0.0, generator=generator)
+                      threshold=0.0, generator=generator, device=frames.device)
     log_weights, exists = run.log_weights[0], run.state["exists"]
     weights = torch.softmax(log_weights, dim=0)
     p_hidden = float((weights * exists).sum().clamp(0.0, 1.0))      # a weighted sum can round past 1
@@ -368,8 +373,10 @@ def top_hypotheses(estimate: Evidence, top: int = 4) -> Hypotheses | None:
         return None
     held_trajectories, log_weights = held
     unique, inverse = torch.unique(held_trajectories.flatten(1), dim=0, return_inverse=True)
-    weights = torch.zeros(len(unique), dtype=torch.float64).index_add_(0, inverse, torch.softmax(log_weights, 0))
-    copies = torch.zeros(len(unique), dtype=torch.long).index_add_(0, inverse, torch.ones_like(inverse))
+    weights = torch.zeros(len(unique), dtype=torch.float64, device=unique.device).index_add_(
+        0, inverse, torch.softmax(log_weights, 0))
+    copies = torch.zeros(len(unique), dtype=torch.long, device=unique.device).index_add_(0, inverse,
+                                                                                         torch.ones_like(inverse))
     order = weights.argsort(descending=True)[:top]
     trajectories = unique[order].reshape(len(order), *held_trajectories.shape[1:])
     chosen = weights[order]

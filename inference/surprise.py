@@ -40,7 +40,9 @@ Seed = int | torch.Generator | None
 
 
 def generator_from(seed: Seed) -> torch.Generator:
-    """A generator of its own for a seed (None: 0); a generator is used as it is."""
+    """A generator of its own for a seed (None: 0); a generator is used as it is. On the CPU
+    whatever the device: the resampling's uniforms are drawn there and moved, and Pyro's global
+    state (the CPU's, or the CUDA device's) is seeded from it."""
     if isinstance(seed, torch.Generator):
         return seed
     return torch.Generator().manual_seed(0 if seed is None else int(seed))
@@ -76,7 +78,7 @@ def nll_surprise(vae: ComponentVAE, xpl: XPL, frames: Tensor, mean: Tensor, visi
     generator = generator_from(seed)
     scene, loc, spread, free = hidden_object_scene(vae, xpl, mean, visible, background, occluder)
     hidden = scene.hidden
-    p_exists = torch.sigmoid(xpl.existence_logit(loc[None], spread[None]))[0] if free else torch.tensor(0.0)
+    p_exists = torch.sigmoid(xpl.existence_logit(loc[None], spread[None]))[0] if free else mean.new_zeros(())
     if free and config.refine_steps:
         loc = refine_out_of_sight(scene, loc, frames, config)
     proposal = Proposal(defensive(p_exists, config.particles) if free else p_exists, loc, spread)
@@ -120,7 +122,7 @@ def refine_out_of_sight(scene: XPLScene, loc: Tensor, frames: Tensor, config: In
     `refine_tolerance` nats are left as they are. A deterministic function of the video: the
     guide stays a proper proposal."""
     without = (scene.empty() - frames).square()
-    every = torch.arange(len(loc))
+    every = torch.arange(len(loc), device=loc.device)
 
     def extra_cost(latents: Tensor, chosen: Tensor) -> Tensor:
         """Nats (F,) the hidden object's pictures and its drawing (`drawing_cost`) add in the

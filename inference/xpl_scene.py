@@ -98,7 +98,7 @@ class XPLScene(nn.Module):
 
     def draw_frame(self, t: int, latents: Tensor) -> Drawing:
         """Frame t (M, 4, H, W) with the hidden object at each of the latents (M, D)."""
-        return self.draw_frames(latents, torch.full((len(latents),), t, dtype=torch.long))
+        return self.draw_frames(latents, torch.full((len(latents),), t, dtype=torch.long, device=latents.device))
 
     def draw_frames(self, latents: Tensor, frames: Tensor) -> Drawing:
         """Expected frames (F, 4, H, W) at the frame indices `frames` (F,) with the hidden

@@ -176,6 +176,12 @@ def case_lines(files, tmp: Path) -> list[tuple[list[str], str]]:
         (["pipeline", "--out", str(tmp / "p"), "--train-processes", "-1"], "--train-processes must be"),
         (["pipeline", "--out", str(a_file), "--models", "random", "--train-videos", "2", "--pairs", "1"],
          "is a file"),
+        # a device this machine lacks (no machine has a hundredth GPU), or none at all
+        (["score", "--model", "xpl", "--data", test, "--out", str(tmp / "d.csv"), "--device", "cuda:99"], "'cuda:99'"),
+        (["explain", "--model", "xpl", "--data", test, "--out", str(tmp / "d.png"), "--device", "cuda:99"],
+         "'cuda:99'"),
+        (["train", "perception", "--data", train, "--out", str(tmp / "run"), "--device", "tpu"], "is not a device"),
+        (["pipeline", "--out", str(tmp / "p"), "--device", "cuda:99"], "'cuda:99'"),
         (["ship", str(tmp / "corrupt"), "--out", str(tmp / "weights")], "not a readable xvoe checkpoint"),
         (["ship", str(tmp / "nowhere"), "--out", str(tmp / "weights")], "no such run directory"),
     ]
@@ -324,7 +330,7 @@ def test_every_bad_input_gets_one_line_exit_2_and_changes_nothing(files, tmp_pat
         assert "Traceback" not in err
         assert snapshot(tmp_path) == before, args
         tried += 1
-    assert tried == 5 * len(MALFORMED) + 2 * len(MALFORMED_TRAIN) + 28 + 31 + 12 + 6 + 7
+    assert tried == 5 * len(MALFORMED) + 2 * len(MALFORMED_TRAIN) + 32 + 31 + 12 + 6 + 7
 
 
 CONFIGS = (TrainConfig, PerceptionConfig, XPLConfig, ReasoningConfig, DynamicsConfig, PhyDNetConfig, InferenceConfig,

@@ -17,6 +17,7 @@ from ..benchmark.display import DISPLAY_SIZE
 from ..domains import NON_NEGATIVE, PICTURE_SIZE, POSITIVE, SEED, Domain, check_number
 from ..errors import XvoeError
 from ..models.config import parse_field, parse_value
+from ..models.devices import DEVICES, parse_device, resolve_device
 from ..models.nll import InferenceConfig
 from ..outputs import claim_directory, claim_file, refuse_overlap
 from ..training.data import check_focus
@@ -82,6 +83,12 @@ def _field(cls: type, name: str) -> Callable[[str], Any]:
     return _argument(lambda text: parse_field(cls, name, text))
 
 
+def _add_device(parser: argparse.ArgumentParser, what: str) -> None:
+    # a device name is checked here; whether this machine has it, first thing in `main`
+    parser.add_argument("--device", type=_argument(lambda text: str(parse_device(text))), default="cpu",
+                        help=f"where {what} runs: {DEVICES} (default cpu)")
+
+
 def _default_workers() -> int:
     return max(1, min(8, len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1))
 
@@ -122,20 +129,23 @@ def cmd_score(args: argparse.Namespace) -> None:
     print(xvoe.score(args.model, args.data, args.out, surprise=args.surprise, particles=args.particles,
                      seed=args.seed, nll_settings=xvoe.nll_settings(args.nll_set), how=args.aggregate,
                      shard=args.shard, videos_per_batch=args.batch, workers=args.workers,
-                     checks=not args.no_checks, overwrite=args.overwrite, progress=not args.quiet))
+                     checks=not args.no_checks, overwrite=args.overwrite, progress=not args.quiet,
+                     device=args.device))
 
 
 def cmd_explain(args: argparse.Namespace) -> None:
     claim_file(args.out, args.overwrite)
     explanation = xvoe.explain(args.model, args.data, args.index, surprise=args.surprise, particles=args.particles,
-                               seed=args.seed, explanation=args.explanation, display_size=args.display_size)
+                               seed=args.seed, explanation=args.explanation, display_size=args.display_size,
+                               device=args.device)
     print(xvoe.save_figure(xvoe.plot_explanation(explanation), args.out))
 
 
 def cmd_pipeline(args: argparse.Namespace) -> None:
     models = tuple(m.strip() for m in args.models.split(",") if m.strip())
     print(xvoe.run_pipeline(xvoe.PipelineConfig(args.out, args.recipe, args.train_videos, args.pairs, models, args.seed,
-                                      args.workers, not args.quiet, args.jobs, args.train_processes)))
+                                      args.workers, not args.quiet, args.jobs, args.train_processes,
+                                      args.device)))
 
 
 def cmd_metrics(args: argparse.Namespace) -> None:
@@ -179,7 +189,7 @@ def cmd_train(args: argparse.Namespace) -> None:
     stage = args.stage
     claim_directory(args.out, make=False)       # a bad --out is found before any data is read
     train, model = _train_overrides(args, stage)
-    common = {"resume": args.resume, "overwrite": args.overwrite, "progress": not args.quiet}
+    common = {"resume": args.resume, "overwrite": args.overwrite, "progress": not args.quiet, "device": args.device}
     reads = xvoe.STAGES[stage].reads
     if reads != "xpl" and args.data is None and not args.resume:
         raise XvoeError("--data is required to start a run (the training split, or for xpl and plato its latent "
@@ -195,14 +205,15 @@ def cmd_train(args: argparse.Namespace) -> None:
     else:
         cache = None
         if args.data:
-            cache = xvoe.latent_cache_for(args.data, args.out, args.perception, progress=not args.quiet)
+            cache = xvoe.latent_cache_for(args.data, args.out, args.perception, progress=not args.quiet,
+                                          device=args.device)
         print(xvoe.train_xpl(cache, args.out, stage=stage, stop_gradient=not args.no_stop_gradient, **common,
                              **train))
 
 
 def cmd_encode(args: argparse.Namespace) -> None:
     print(xvoe.encode_split(args.model or args.out, args.data, output_of(args), overwrite=args.overwrite,
-                            progress=not args.quiet))
+                            progress=not args.quiet, device=args.device))
 
 
 def add_train_parser(verbs) -> None:
@@ -252,6 +263,7 @@ def add_train_parser(verbs) -> None:
         parser.add_argument("--resume", action="store_true", help="continue the run in --out where it stopped")
         parser.add_argument("--overwrite", action="store_true", help="start again over an existing run")
         parser.add_argument("--quiet", action="store_true", help="no progress bar")
+        _add_device(parser, "it trains")
         parser.set_defaults(run=cmd_train)
 
     encode = verbs.add_parser("encode", help="encode a split into a latent cache with a trained perception module",
@@ -263,6 +275,7 @@ def add_train_parser(verbs) -> None:
     encode.add_argument("--cache", help="the latent cache to write (default: OUT/latents-DATA.h5)")
     encode.add_argument("--overwrite", action="store_true", help="replace the cache if it exists")
     encode.add_argument("--quiet", action="store_true", help="no progress bar")
+    _add_device(encode, "the perception module")
     encode.set_defaults(run=cmd_encode)
 
 
@@ -359,6 +372,7 @@ def build_parser() -> argparse.ArgumentParser:
     score.add_argument("--shard", type=_shard, default=(0, 1), metavar="I/N",
                        help="score only part I of N (counted from 0); join the parts with --merge")
     score.add_argument("--merge", nargs="+", metavar="PART", help="join the score files of --shard runs into --out")
+    _add_device(score, "the model")
     score.set_defaults(run=cmd_score)
 
     explain = verbs.add_parser("explain", help="draw the model's explanation of what is behind the wall",
@@ -386,6 +400,7 @@ def build_parser() -> argparse.ArgumentParser:
                          help=f"pixels a side of the scene the explanation is drawn onto (default {DISPLAY_SIZE}); "
                               "the model reads its own frames")
     explain.add_argument("--overwrite", action="store_true", help="replace --out if it exists")
+    _add_device(explain, "the model")
     explain.set_defaults(run=cmd_explain)
 
     metrics = verbs.add_parser("metrics", help="comparative, holistic and relative metrics with figures",
@@ -437,6 +452,7 @@ def build_parser() -> argparse.ArgumentParser:
                                "(default 0: one per core), at most as many as a stage has data shards and a "
                                "divisor of them, so that the batches are the same on any machine")
     pipeline.add_argument("--quiet", action="store_true", help="no progress bars")
+    _add_device(pipeline, "every stage (training, encoding, scoring)")
     pipeline.set_defaults(run=cmd_pipeline)
 
     ship = verbs.add_parser("ship", help="make a run's models the shipped ones (xpl, plato, ...)",
@@ -494,6 +510,7 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     previous = signal.signal(signal.SIGTERM, _interrupt)   # so that a kill cleans up as Ctrl-C does
     try:
+        resolve_device(getattr(args, "device", "cpu"))      # a device this machine lacks, before any work
         check_paths(args)
         with warnings.catch_warnings():     # a warning is one line, as an error is
             warnings.showwarning = lambda message, *_: print(f"xvoe {args.verb}: warning: {message}", file=sys.stderr)

@@ -28,6 +28,7 @@ from ..evaluation.explain import OBJECT_DEPTH_LIMIT, Explanation
 from ..evaluation.metrics import excess, read_scores
 from ..evaluation.score import MSE_LABEL, check_same_split, read_curves, warn_unchecked
 from ..identity import split_identity
+from ..models.devices import device_of
 from ..models.perception import normalise, to_uint8
 from ..outputs import atomic_paths, claim_file
 from ..training.data import perception_batch
@@ -287,7 +288,7 @@ def save_reconstructions(model, rgbd: np.ndarray, ids: np.ndarray, out: str | Pa
     chosen = np.sort(rng.choice(most, rows, replace=False) if len(most) >= rows
                      else np.argsort(-objects, kind="stable")[:rows])
     noise = np.zeros((len(chosen), slots + 1, model.config.latent_dim), np.float32)
-    batch = perception_batch(flat_rgbd[chosen], flat_ids[chosen], slots, noise, noise[:1, 0])
+    batch = perception_batch(flat_rgbd[chosen], flat_ids[chosen], slots, noise, noise[:1, 0]).to(device_of(model))
     with torch.no_grad():
         result = model.forward_batch(batch, sample=False)
     shown = int(objects[chosen].max()) + 1
@@ -747,7 +748,8 @@ def predicted_frames(net, rgbd: np.ndarray) -> np.ndarray:
     it, as uint8 of the same shape; frame 0, which nothing predicts, is blank (255)."""
 
     with torch.no_grad():
-        predicted = to_uint8(net(normalise(torch.from_numpy(np.ascontiguousarray(rgbd))[None]))[0]).numpy()
+        frames = normalise(torch.from_numpy(np.ascontiguousarray(rgbd))[None]).to(device_of(net))
+        predicted = to_uint8(net(frames)[0]).numpy()
     return np.concatenate([np.full_like(rgbd[:1], 255), predicted])
 
 
@@ -761,7 +763,7 @@ def plot_predictions(model, data: str | Path, index: int) -> plt.Figure:
     with store.open_dataset(data) as file:
         check_index(file, index)
         rgbd = file["rgbd"][index]
-    surprise = net.surprise(normalise(torch.from_numpy(rgbd))[None])[0, 1:]
+    surprise = net.surprise(normalise(torch.from_numpy(rgbd))[None].to(device_of(net)))[0, 1:]
     per_frame = " ".join(f"{value:.0f}" for value in surprise.tolist())
     return frame_rows([("observed", rgbd), ("predicted", predicted_frames(net, rgbd))],
                       f"video {index}: surprise of frames 1-{len(rgbd) - 1}: {per_frame}")

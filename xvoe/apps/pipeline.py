@@ -32,6 +32,7 @@ from ..errors import XvoeError
 from ..evaluation.explain import explain
 from ..evaluation.score import load_model, score_split
 from ..models.config import to_dict
+from ..models.devices import resolve_device
 from ..outputs import claim_directory
 from ..training.data import process_counts
 from ..training.latents import encode_split
@@ -68,8 +69,10 @@ class PipelineConfig:
     train_processes: int = 0    # one-thread processes that train the XPL, proposal and PLATO stages together (0:
                                 # one per core; with --jobs above 1, each lane trains in one process); fewer
                                 # where a stage's data shards do not split among them (`stage_processes`)
+    device: str = "cpu"         # where every stage trains, encodes and scores (cpu, cuda, cuda:N, mps)
 
     def __post_init__(self) -> None:
+        resolve_device(self.device)
         if not self.models:
             raise XvoeError(f"--models names no model; choose from {', '.join(MODELS)}")
         unknown = [m for m in self.models if m not in MODELS]
@@ -134,17 +137,20 @@ def run_pipeline(config: PipelineConfig) -> Path:
         workers=config.workers, overwrite=True, progress=config.progress))
     cores = len(os.sched_getaffinity(0))
     processes = config.train_processes or cores
+    on_device = resolve_device(config.device).type != "cpu"
+    if on_device:       # lanes and one-thread processes share out CPU cores; one process drives a device
+        processes = 1
     if any(model in TRAINED_ON_LATENTS for model in config.models):     # PhyDNet and random need no perception
         # one process with every core's thread: its convolutions use them (docs/decisions.md, "Training
         # stages on every core")
         stages.run("perception", lambda: train_perception(
             train_data, run_dir, recipe_name=config.recipe, progress=config.progress,
-            resume=checkpoint_path(run_dir, "perception").exists(), seed=config.seed))
+            resume=checkpoint_path(run_dir, "perception").exists(), seed=config.seed, device=config.device))
         stages.run("encode-train", lambda: encode_split(run_dir, train_data, latents, overwrite=True,
-                                                        progress=config.progress))
+                                                        progress=config.progress, device=config.device))
     (run_dir / "scores").mkdir(exist_ok=True)
     heavy = sorted((m for m in config.models if m != "random"), key=LANE_ORDER.index)
-    lanes = min(config.jobs or cores, len(heavy))
+    lanes = 1 if on_device else min(config.jobs or cores, len(heavy))
     if lanes > 1:       # one model's training per lane, the cores shared out: two 1-thread runs beat one 2-thread run
         threads = max(1, cores // lanes)
         context = multiprocessing.get_context("spawn")
@@ -162,7 +168,7 @@ def run_pipeline(config: PipelineConfig) -> Path:
         report(scores, run_dir / "report", seed=config.seed, overwrite=True)
 
     stages.run("metrics", metrics, key=models)
-    stages.run("explanations", lambda: _explanations(run_dir, test_data, config.models), key=models)
+    stages.run("explanations", lambda: _explanations(run_dir, test_data, config.models, config.device), key=models)
     return write_report(run_dir, config)
 
 
@@ -189,23 +195,25 @@ def _model_stages(config: PipelineConfig, model: str, stages: Stages, bars: bool
         def train(phase: dict) -> object:
             return on_cores(train_xpl, stage_processes(processes, chosen.training(model)), chosen, latents=latents,
                             run_dir=run_dir, stage=model, recipe_name=config.recipe, progress=bars,
-                            resume=checkpoint_path(run_dir, model).exists(), **phase)
+                            resume=checkpoint_path(run_dir, model).exists(), device=config.device, **phase)
         _train_phases(stages, model, train, phases, config.seed)
         if model == "xpl":
             stages.run("train-proposal", lambda: on_cores(
                 train_proposal, stage_processes(processes, chosen.proposal_train), chosen, run_dir=run_dir,
-                latents=latents, progress=bars,
+                latents=latents, progress=bars, device=config.device,
                 resume=checkpoint_path(run_dir, "proposal").exists(), seed=config.seed))
     if model == "phydnet":
         def train(phase: dict) -> object:
             return train_phydnet(train_data, run_dir, recipe_name=config.recipe, progress=bars,
-                                 resume=checkpoint_path(run_dir, "phydnet").exists(), **phase)
+                                 resume=checkpoint_path(run_dir, "phydnet").exists(), device=config.device,
+                                 **phase)
         _train_phases(stages, model, train, phases, config.seed)
     if not score:
         return
     reference = "random" if model == "random" else str(checkpoint_path(run_dir, model))
     stages.run(f"score-{model}", lambda: score_split(
-        reference, str(test_data), str(run_dir / "scores" / f"{model}.csv"), overwrite=True, progress=bars),
+        reference, str(test_data), str(run_dir / "scores" / f"{model}.csv"), overwrite=True, progress=bars,
+        device=config.device),
         key=scored_steps(chosen, model))
 
 
@@ -258,13 +266,13 @@ def _remove(directory: Path, *patterns: str) -> None:
             path.unlink()
 
 
-def _explanations(run_dir: Path, test_data: Path, models: tuple[str, ...]) -> None:
+def _explanations(run_dir: Path, test_data: Path, models: tuple[str, ...], device: str = "cpu") -> None:
     """The paper's Fig. 7/8 for the first pair of blocking S2 and collision S3, member 0."""
 
     _remove(run_dir / "report", "explanation-*.png")
     if "xpl" not in models:
         return
-    scorer = load_model(str(run_dir / "xpl.pt"))
+    scorer = load_model(str(run_dir / "xpl.pt"), device)
     with store.open_dataset(test_data) as file:
         scenario, setting = store.strings(file, "scenario"), store.strings(file, "setting")
         member = file["member"][:]

@@ -26,6 +26,7 @@ from ..evaluation.explain import Explanation, explain_drawn
 from ..evaluation.explain import explain as explain_mse
 from ..evaluation.score import Scorer, load_model, merge_scores, score_split
 from ..evaluation.surprise import EXPLANATIONS
+from ..models.devices import resolve_device
 from ..outputs import claim_file
 
 SURPRISES = ("mse", "nll", "both")
@@ -34,7 +35,7 @@ SURPRISES = ("mse", "nll", "both")
 def score(model: str | Scorer, data: str | Path, out: str | Path, *, surprise: str = "mse",
           particles: int | None = None, seed: int = 0, nll_settings: dict[str, Any] | None = None, how: str = "sum",
           videos_per_batch: int = 16, shard: tuple[int, int] = (0, 1), workers: int = 1, checks: bool = True,
-          overwrite: bool = False, progress: bool = True) -> Path:
+          overwrite: bool = False, progress: bool = True, device: str = "cpu") -> Path:
     """Score every video of a test split into a CSV (and the per-frame curves beside it).
 
     surprise: "mse", the MSE score (the columns score, s_img and s_dyn hold the default verdict,
@@ -54,19 +55,21 @@ def score(model: str | Scorer, data: str | Path, out: str | Path, *, surprise: s
     processes").
     checks: a model answering `surprise(videos)` (a model of your own, PhyDNet, random) passes
     the harness of xvoe.evaluation.checks before its scores are written; False skips all but
-    the finite check (docs/evaluate-your-model.md, "4. The checks")."""
+    the finite check (docs/evaluate-your-model.md, "4. The checks"). device: where a model given
+    by name runs (cpu, cuda, cuda:N, mps; a loaded `Scorer` runs where it was loaded)."""
     if surprise not in SURPRISES:
         raise XvoeError(f"--surprise must be mse, nll or both, not {surprise!r}")
     if workers < 1:
         raise XvoeError(f"--workers must be at least 1, not {workers}")
     extra = NLLColumns(particles, seed, nll_settings) if surprise != "mse" else None   # bad settings fail here
+    resolve_device(device)      # an absent device too, before any work
     if workers > 1:
         if shard != (0, 1):
             raise XvoeError("--workers shards the split itself; leave out --shard")
         return _score_in_workers(model, data, out, workers, overwrite, progress, surprise=surprise,
                                  particles=particles, seed=seed, nll_settings=nll_settings, how=how,
-                                 videos_per_batch=videos_per_batch, checks=checks)
-    scorer = load_model(model) if isinstance(model, str) else model
+                                 videos_per_batch=videos_per_batch, checks=checks, device=device)
+    scorer = load_model(model, device) if isinstance(model, str) else model
     return score_split(scorer, str(data), str(out), how=how, videos_per_batch=videos_per_batch, extra=extra,
                        score_column="nll" if surprise == "nll" else "score", shard=shard, checks=checks,
                        overwrite=overwrite, progress=progress)
@@ -102,24 +105,25 @@ def _worker_threads(threads: int) -> None:
 
 def explain(model: str | Scorer, data: str | Path, index: int, *, surprise: str = "mse",
             particles: int | None = None, seed: int = 0, explanation: str = "better",
-            display_size: int | None = DISPLAY_SIZE) -> Explanation:
+            display_size: int | None = DISPLAY_SIZE, device: str = "cpu") -> Explanation:
     """What the model believes is behind the wall in video `index`: Transformer 2's proposal
     (surprise "mse"; with explanation "better", the default verdict's, only where it explains the
     video better than nothing hidden; "proposal", always, as the paper) or the Pyro model's
     posterior (surprise "nll", from `particles` importance samples drawn from `seed`; None: the
     model's setting). With the video's scene at `display_size` for `plot_explanation` to draw
-    the explanation onto (None: the model's frames alone); the model reads its own frames."""
+    the explanation onto (None: the model's frames alone); the model reads its own frames.
+    device: where a model given by name runs."""
     check_explanation(explanation)
     if display_size is not None:
         check_display_size(display_size)
-    return with_display(_explain(model, data, index, surprise, particles, seed, explanation), data, index,
+    scorer = load_model(model, device) if isinstance(model, str) else model
+    return with_display(_explain(scorer, data, index, surprise, particles, seed, explanation), data, index,
                         display_size)
 
 
-def _explain(model: str | Scorer, data: str | Path, index: int, surprise: str, particles: int | None, seed: int,
+def _explain(scorer: Scorer, data: str | Path, index: int, surprise: str, particles: int | None, seed: int,
              explanation: str) -> Explanation:
     """The explanation `explain` asked for, of the model's own frames."""
-    scorer = load_model(model) if isinstance(model, str) else model
     scorer = replace(scorer, explanation=explanation) if scorer.custom is None else scorer
     if scorer.is_random:
         raise XvoeError("the random agent explains nothing; give a trained model")

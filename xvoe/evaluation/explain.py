@@ -107,7 +107,7 @@ OBJECT_DEPTH_LIMIT = 0.75   # normalised depth: decoded objects lie near 0, the 
 def decoded_mask(pictures: np.ndarray | torch.Tensor) -> np.ndarray:
     """Where a decoded object (..., 4, H, W), in normalised units, draws something."""
     depth = torch.as_tensor(pictures)[..., 3, :, :]
-    return (depth < OBJECT_DEPTH_LIMIT).numpy()
+    return (depth < OBJECT_DEPTH_LIMIT).cpu().numpy()
 
 
 def iou(a: np.ndarray, b: np.ndarray) -> float:

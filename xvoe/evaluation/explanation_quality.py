@@ -111,7 +111,7 @@ def hidden_explanations(scorer: Scorer, file: h5py.File, videos: list[int]) -> d
             ball = balls[0]
             drawn = decoded_mask(scorer.vae.decode(refined[0, :, ball]))
             present = states[:, ball, columns.index("present")] > 0
-            for t in np.flatnonzero(~video["visible"][0, :, ball].numpy() & present):
+            for t in np.flatnonzero(~video["visible"][0, :, ball].cpu().numpy() & present):
                 if drawn[t].any():     # the centre's x in pixels; states hold x in pixels too
                     ball_fill.append(-(np.argwhere(drawn[t]).mean(0)[1] + 0.5 - states[t, ball, x]) * side)
     return {"iou": float(np.mean(scores)) if scores else float("nan"), "per_video": scores,
@@ -140,7 +140,7 @@ def hidden_fills(scorer: Scorer, file: h5py.File, videos: list[int]) -> dict:
         video = _encode(scorer, file, index)
         refined = scorer.xpl.refine(video["mean"], video["visible"], video["occluder"])
         for k, kind in enumerate(kinds):
-            seen = video["visible"][0, :, k].numpy()
+            seen = video["visible"][0, :, k].cpu().numpy()
             hidden = ~seen & (states[:, k, columns.index("present")] > 0)
             if kind != "cube" or not seen.any():
                 continue
@@ -208,7 +208,7 @@ def mae_iou(scorer: Scorer, file: h5py.File, videos: list[int]) -> list[float]:
             visible[0, :, slot] = False
             mean[0, :, slot] = empty
             refined = scorer.xpl.refine(mean, visible, video["occluder"])
-            keep = hide_slot(visible.shape, torch.tensor([slot]))      # every entry but the dropped slot
+            keep = hide_slot(visible.shape, torch.tensor([slot], device=visible.device))  # all but the dropped slot
             rebuilt, _ = scorer.xpl.transformer2(refined, keep)
             masks = decoded_mask(scorer.vae.decode(rebuilt[0, :, slot]))
             truth = silhouette(states[:, slot], columns, kind, masks.shape[-1])
@@ -229,9 +229,9 @@ def dynamics_error(scorer: Scorer, file: h5py.File, videos: list[int]) -> tuple[
         background = scorer.vae.decode(video["background"][0])[None]
         expected = composite(scorer.vae, background[:, 1:], decode_slots(scorer.vae, predicted, occupied), occupied)
         errors.append(float((expected - video["frames"][:, 1:]).pow(2).mean()))
-        latent_errors.append((predicted - refined[:, 1:])[0][:, occupied[0]].pow(2).flatten().numpy())
-        present = occupied[0].numpy()
-        z = refined[0][:, present].numpy()                       # (T, objects, D)
+        latent_errors.append((predicted - refined[:, 1:])[0][:, occupied[0]].pow(2).flatten().cpu().numpy())
+        present = occupied[0].cpu().numpy()
+        z = refined[0][:, present].cpu().numpy()                       # (T, objects, D)
         residual_targets.append((z[1:] - z[:-1]).reshape(-1, z.shape[-1]))
         direct_targets.append(z[1:].reshape(-1, z.shape[-1]))
     latent_rms = float(np.sqrt(np.concatenate(latent_errors).mean()))

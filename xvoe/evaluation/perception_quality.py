@@ -18,6 +18,7 @@ import numpy as np
 import torch
 
 from ..benchmark import store
+from ..models.devices import device_of
 from ..models.perception import ComponentVAE, to_uint8
 from ..training.data import check_size, perception_batch, visible_threshold
 from ..training.latents import encode_means
@@ -67,7 +68,7 @@ def squared_errors(model: ComponentVAE, held: HeldOut, batch: int = 256) -> dict
     for start in range(0, len(rgbd), batch):
         chunk, maps = rgbd[start:start + batch], ids[start:start + batch]
         noise = np.zeros((len(chunk), slots + 1, model.config.latent_dim), np.float32)
-        parts = perception_batch(chunk, maps, slots, noise, noise[:1, 0])
+        parts = perception_batch(chunk, maps, slots, noise, noise[:1, 0]).to(device_of(model))
         with torch.no_grad():
             drawn = to_uint8(model.forward_batch(parts, sample=False)["composite"]).numpy()
         error = (drawn.astype(np.float64) - chunk) ** 2

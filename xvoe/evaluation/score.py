@@ -36,6 +36,7 @@ from ..benchmark import store
 from ..errors import XvoeError
 from ..identity import arrays_hash, describe_split, file_hash, split_identity
 from ..models.config import to_dict
+from ..models.devices import device_of, mixed_precision, resolve_device
 from ..models.nll import InferenceConfig
 from ..models.perception import ComponentVAE, normalise
 from ..models.phydnet import PhyDNet
@@ -112,7 +113,9 @@ class PhyDNetSurprise:
         self.net, self.image_size = net, net.config.image_size
 
     def surprise(self, videos: Videos) -> Tensor:
-        return self.net.surprise(normalise(torch.from_numpy(videos.rgbd)))
+        device = device_of(self.net)
+        with mixed_precision(device):
+            return self.net.surprise(normalise(torch.from_numpy(videos.rgbd).to(device))).float()
 
 
 @dataclass
@@ -149,6 +152,12 @@ class Scorer:
         return curves[f"{prefix}s_img"] + curves[f"{prefix}s_dyn"]
 
     @property
+    def device(self) -> torch.device:
+        """Where its networks are (a model of your own places its tensors itself: the CPU here)."""
+        network = self.phydnet or self.vae
+        return device_of(network) if network is not None else torch.device("cpu")
+
+    @property
     def image_size(self) -> int | None:
         if self.custom is not None:
             return getattr(self.custom, "image_size", None)
@@ -161,13 +170,15 @@ class Scorer:
             raise XvoeError(f"{self.name} has no XPL model to take the reasoning out of")
         bare = XPL(replace(self.xpl.config, use_reasoning=False))
         bare.dynamics.load_state_dict(self.xpl.dynamics.state_dict())
-        return Scorer(f"{self.name} without reasoning", self.vae, bare.eval())
+        return Scorer(f"{self.name} without reasoning", self.vae, bare.to(self.device).eval())
 
 
-def load_model(model: str, device: str = "cpu") -> Scorer:
+def load_model(model: str, device: str | torch.device = "cpu") -> Scorer:
     """`random`, a shipped model's name (`SHIPPED`), a run directory (its xpl.pt), a stage checkpoint (xpl.pt, plato.pt,
     xpl-noresidual.pt with perception.pt beside it; phydnet.pt), RUN_DIR/STAGE, or a model of your own,
-    `package.module:name` or `path/to/file.py:name` (`SurpriseModel`)."""
+    `package.module:name` or `path/to/file.py:name` (`SurpriseModel`). `device`: where its networks
+    run (cpu, cuda, cuda:N, mps; refused in one line where this machine has none such)."""
+    device = resolve_device(device)
     if model == "random":
         return Scorer("random", None, None, custom=RandomAgent(), source="random")
     if ":" in model and not Path(model).exists():
@@ -342,7 +353,8 @@ class ExtraColumns(Protocol):
 
 def score_split(model: str | Scorer, data: str, out: str, *, how: str = "sum", videos_per_batch: int = 16,
                 extra: ExtraColumns | None = None, score_column: str = "score", shard: tuple[int, int] = (0, 1),
-                checks: bool = True, overwrite: bool = False, progress: bool = True) -> Path:
+                checks: bool = True, overwrite: bool = False, progress: bool = True,
+                device: str | torch.device = "cpu") -> Path:
     """One CSV row per test video, and the per-frame surprise curves (s_img, s_dyn: (N, T);
     s_rec too for a model with a perception module) in an .npz beside it, with the header
     (`score_header`). Models with a perception module also get the columns s_rec and excess
@@ -351,12 +363,13 @@ def score_split(model: str | Scorer, data: str, out: str, *, how: str = "sum", v
     (I, N) scores part I of N, whole batches of it, so that `merge_scores` of the parts writes
     the bytes one run would have. `checks`: a model answering `surprise(videos)` passes the
     harness of xvoe.evaluation.checks (on the shard's videos) before anything is written; False
-    skips all but the finite check."""
+    skips all but the finite check. `device`: where a model given by name runs (a `Scorer` runs
+    where it was loaded)."""
     if how not in ("sum", "max"):
         raise XvoeError(f"--aggregate must be sum or max, not {how!r}")
     if score_column != "score" and (extra is None or score_column not in extra.names):
         raise XvoeError(f"the score column must be 'score' or one of the extra columns, not {score_column!r}")
-    scorer = load_model(model) if isinstance(model, str) else model
+    scorer = load_model(model, device) if isinstance(model, str) else model
     if extra is not None:
         extra.check(scorer)
     with store.open_dataset(data, split="test") as file:
@@ -410,7 +423,7 @@ def score_rows(scorer: Scorer, file, first: int, last: int, videos_per_batch: in
             curves[[1, 4], rows] = custom_surprise(scorer, file, start, stop)
             continue
         batch = encode_videos(scorer, file, start, stop)     # once, for every column
-        curves[:, rows] = torch.stack(list(_xpl_curves(scorer, batch).values())).numpy()
+        curves[:, rows] = torch.stack(list(_xpl_curves(scorer, batch).values())).cpu().numpy()
         if extra is not None:
             found, found_curves = extra.batch(scorer, batch)
             values.append(found)
@@ -588,21 +601,25 @@ def encode_videos(scorer: Scorer, file, start: int, stop: int) -> dict[str, Tens
 
 
 def encode(scorer: Scorer, videos: Videos) -> dict[str, Tensor]:
-    """A batch of videos encoded by the scorer's perception module: frames, latents, visibility, walls."""
+    """A batch of videos encoded by the scorer's perception module: frames, latents, visibility,
+    walls, on the scorer's device."""
     count, frames_count, size = videos.rgbd.shape[:3]
     encoded = encode_frames(scorer.vae, videos.rgbd.reshape(-1, size, size, 4), videos.ids.reshape(-1, size, size),
                             videos.walls.shape[1])
     shaped = {k: torch.from_numpy(v).reshape(count, frames_count, *v.shape[1:]) for k, v in encoded.items()}
-    return {"frames": normalise(torch.from_numpy(videos.rgbd)), "mean": shaped["mean"],
-            "visible": shaped["pixels"] > visible_threshold(size), "background": shaped["background_mean"],
-            "occluder": torch.from_numpy(videos.walls)}
+    batch = {"frames": normalise(torch.from_numpy(videos.rgbd)), "mean": shaped["mean"],
+             "visible": shaped["pixels"] > visible_threshold(size), "background": shaped["background_mean"],
+             "occluder": torch.from_numpy(videos.walls)}
+    return {name: value.to(scorer.device) for name, value in batch.items()}
 
 
 def _xpl_curves(scorer: Scorer, batch: dict[str, Tensor]) -> dict[str, Tensor]:
     """The `CURVES` (B, T) of encoded videos (`encode_videos`) under XPL or PLATO, both
     explanations from one set of decodes (s_rec is the same under both: it draws the seen slots)."""
-    found = every_explanation(scorer.vae, scorer.xpl, batch["frames"], batch["mean"], batch["visible"],
-                              batch["background"], batch["occluder"])
+    with mixed_precision(scorer.device):
+        found = every_explanation(scorer.vae, scorer.xpl, batch["frames"], batch["mean"], batch["visible"],
+                                  batch["background"], batch["occluder"])
     default, paper = found["better"], found["proposal"]
-    return {"s_img": default.s_img, "s_dyn": default.s_dyn, "s_rec": default.s_rec,
-            "paper_s_img": paper.s_img, "paper_s_dyn": paper.s_dyn}
+    curves = {"s_img": default.s_img, "s_dyn": default.s_dyn, "s_rec": default.s_rec,
+              "paper_s_img": paper.s_img, "paper_s_dyn": paper.s_dyn}
+    return {name: curve.float() for name, curve in curves.items()}

@@ -70,7 +70,7 @@ def explained_latents(xpl: XPL, mean: Tensor, visible: Tensor, occluder: Tensor,
 def occupied_slots(visible: Tensor, slot: Tensor) -> Tensor:
     """The slots (B, K) seen at some frame, and the explained one (-1: none)."""
     occupied = visible.any(dim=1)
-    occupied[torch.arange(len(slot))[slot >= 0], slot[slot >= 0]] = True
+    occupied[torch.arange(len(slot), device=slot.device)[slot >= 0], slot[slot >= 0]] = True
     return occupied
 
 

@@ -84,8 +84,9 @@ def normalise(rgbd: Tensor) -> Tensor:
 
 
 def to_uint8(images: Tensor) -> Tensor:
-    """Float (..., 4, H, W) in [-1, 1] back to uint8 (..., H, W, 4); blank depth clips to far."""
-    return ((images.clamp(-1, 1) + 1.0) * 127.5).round().to(torch.uint8).movedim(-3, -1)
+    """Float (..., 4, H, W) in [-1, 1] back to uint8 (..., H, W, 4) on the CPU, to draw or save;
+    blank depth clips to far."""
+    return ((images.clamp(-1, 1) + 1.0) * 127.5).round().to(torch.uint8).movedim(-3, -1).cpu()
 
 
 class CNNEncoder(nn.Module):

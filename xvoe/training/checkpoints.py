@@ -12,6 +12,7 @@ from pathlib import Path
 import torch
 
 from ..errors import XvoeError
+from ..models.devices import on_cpu
 from .stages import SCORED
 
 CHECKPOINT_FORMAT = 1
@@ -20,24 +21,26 @@ SHIPPED = SCORED         # every model a checkpoint holds ships under its stage'
 
 
 def save_checkpoint(path: Path, state: dict) -> None:
-    """Write to a temporary name and rename: an interrupted save never leaves a broken checkpoint."""
+    """Write to a temporary name and rename: an interrupted save never leaves a broken checkpoint.
+    Its tensors are saved from the CPU, so that a checkpoint names no device and loads on any."""
     tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
     try:
-        torch.save(state, tmp)
+        torch.save(on_cpu(state), tmp)
         os.replace(tmp, path)
     finally:
         if tmp.exists():
             tmp.unlink()
 
 
-def load_checkpoint(path: str | os.PathLike, stage: str | None = None) -> dict:
-    """A checkpoint written by this loop (of `stage`, if given), or a one-line error. A checkpoint
-    of one kind under another's name would be used as the kind it holds and labelled as the one named."""
+def load_checkpoint(path: str | os.PathLike, stage: str | None = None, device: str | torch.device = "cpu") -> dict:
+    """A checkpoint written by this loop (of `stage`, if given), its tensors on `device`, or a
+    one-line error. A checkpoint of one kind under another's name would be used as the kind it
+    holds and labelled as the one named."""
     path = Path(path)
     if not path.is_file():
         raise XvoeError(f"{path}: no such checkpoint")
     try:
-        state = torch.load(path, map_location="cpu", weights_only=False)
+        state = torch.load(path, map_location=device, weights_only=False)
     except Exception as error:  # noqa: BLE001 - any unreadable file gets the same one-line message
         raise XvoeError(f"{path} is not a readable xvoe checkpoint ({type(error).__name__})") from None
     if not isinstance(state, dict) or state.get("format") != CHECKPOINT_FORMAT:

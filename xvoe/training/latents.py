@@ -28,6 +28,7 @@ from tqdm.auto import tqdm
 
 from ..benchmark import store
 from ..errors import XvoeError
+from ..models.devices import mixed_precision, resolve_device
 from ..models.perception import normalise
 from ..outputs import claim_file
 from .data import check_size, masked_inputs, visible_threshold
@@ -105,7 +106,9 @@ def encode_frames(model, rgbd: np.ndarray, ids: np.ndarray, slots: int) -> dict[
     parts = masked_inputs(frames, torch.as_tensor(ids).to(device), slots)
     count, objects = len(frames), len(parts["objects"])
     inputs = torch.cat([parts["objects"], parts["background"], model.blank()])
-    mean, std = map(torch.cat, zip(*(model.posterior(part) for part in inputs.split(ENCODE_CHUNK))))
+    with mixed_precision(device):
+        posteriors = [model.posterior(part) for part in inputs.split(ENCODE_CHUNK)]
+    mean, std = (torch.cat(found).float() for found in zip(*posteriors))
     slot_mean = mean[-1:].expand(count, slots, -1).clone()
     slot_std = std[-1:].expand(count, slots, -1).clone()
     slot_mean[parts["object_frame"], parts["object_slot"]] = mean[:objects]
@@ -125,10 +128,9 @@ def encode_means(model, rgbd: np.ndarray, ids: np.ndarray, slots: int) -> tuple[
 
 def encode_split(model_ref: str | os.PathLike, data: str | os.PathLike, out: str | os.PathLike, *,
                  videos_per_batch: int = 16, overwrite: bool = False, progress: bool = True,
-                 device: str | torch.device | None = None) -> Path:
-    """What `xvoe encode` does: encode every frame of a split into a latent cache."""
-    device = device or ("cuda" if torch.cuda.is_available() else "cpu")
-    model, state = load_perception(model_ref, device)
+                 device: str | torch.device = "cpu") -> Path:
+    """What `xvoe encode` does: encode every frame of a split into a latent cache, on `device`."""
+    model, state = load_perception(model_ref, resolve_device(device))
     with store.open_dataset(data) as file:
         check_size(file, model.config.image_size, f"the checkpoint {state['path']}")
         claim_file(out, overwrite)      # after every check of the input: a refused run leaves nothing behind

@@ -33,6 +33,7 @@ from tqdm.auto import tqdm
 from ..domains import COUNT, NON_NEGATIVE, POSITIVE, SEED, SHARE, Domain, check_config, within
 from ..errors import XvoeError
 from ..models.config import override, to_dict
+from ..models.devices import mixed_precision, resolve_device
 from ..outputs import claim_directory
 from .checkpoints import CHECKPOINT_FORMAT, load_checkpoint, save_checkpoint
 
@@ -99,17 +100,19 @@ class Dist:
         return self.rank == 0
 
 
-def setup_distributed() -> Dist:
-    """Join the process group torchrun set up, if any; pick the device (CUDA when present)."""
+def setup_distributed(device: str | torch.device = "cpu") -> Dist:
+    """Join the process group torchrun set up, if any, on `device`; "cuda" without a number is
+    each process's own GPU (its local rank's)."""
     world = int(os.environ.get("WORLD_SIZE", "1"))
     rank, local_rank = int(os.environ.get("RANK", "0")), int(os.environ.get("LOCAL_RANK", "0"))
-    cuda = torch.cuda.is_available()
-    device = torch.device(f"cuda:{local_rank}" if cuda else "cpu")
+    chosen = resolve_device(device)
+    cuda = chosen.type == "cuda"
     if cuda:
-        torch.cuda.set_device(device)
+        chosen = torch.device("cuda", local_rank if chosen.index is None else chosen.index)
+        torch.cuda.set_device(chosen)
     if world > 1 and not dist.is_initialized():
         dist.init_process_group("nccl" if cuda else "gloo")
-    return Dist(rank, world, local_rank, device)
+    return Dist(rank, world, local_rank, chosen)
 
 
 def set_threads(config: TrainConfig, local_world: int) -> None:
@@ -142,9 +145,10 @@ def rng_state() -> dict:
 def set_rng_state(state: dict) -> None:
     random.setstate(state["python"])
     np.random.set_state(state["numpy"])
-    torch.set_rng_state(state["torch"])
+    # generator states are CPU byte tensors, wherever the checkpoint was mapped to
+    torch.set_rng_state(state["torch"].cpu())
     if state.get("cuda") and torch.cuda.is_available():
-        torch.cuda.set_rng_state_all(state["cuda"])
+        torch.cuda.set_rng_state_all([part.cpu() for part in state["cuda"]])
 
 
 def seed_everything(seed: int) -> None:
@@ -263,7 +267,7 @@ def fit(job: Job, config: TrainConfig, run_dir: str | os.PathLike, *, place: Dis
     start, elapsed, meter = 0, 0.0, _Meter()
     average = WeightAverage(model, config.average_decay) if config.average_decay else None
     if resume and ckpt.exists():
-        state = load_checkpoint(ckpt, job.stage)
+        state = load_checkpoint(ckpt, job.stage, place.device)
         model.load_state_dict(state.get("trained", state["model"]))
         if average:
             average.load(state["model"])
@@ -305,6 +309,7 @@ def fit(job: Job, config: TrainConfig, run_dir: str | os.PathLike, *, place: Dis
                                    "meter": {"sums": meter.sums, "count": meter.count}})
 
     table = None
+    precision = mixed_precision(place.device)
     bar = tqdm(total=config.steps, initial=start, desc=job.stage, disable=not (progress and place.main),
                dynamic_ncols=True)
     session = last_save = time.monotonic()
@@ -318,7 +323,8 @@ def fit(job: Job, config: TrainConfig, run_dir: str | os.PathLike, *, place: Dis
             batch = job.batches(step)
             items += job.items(batch)
             batch = batch.to(place.device) if hasattr(batch, "to") else batch
-            terms = wrapped(batch)
+            with precision:
+                terms = wrapped(batch)
             optimiser.zero_grad(set_to_none=True)
             terms["loss"].backward()
             if config.grad_clip:

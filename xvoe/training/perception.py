@@ -19,7 +19,7 @@ from .recipes import DEFAULT_RECIPE, recipe, recipe_of
 def load_perception(model: str | os.PathLike, device: str | torch.device = "cpu"):
     """The trained ComponentVAE of a checkpoint (in eval mode) and the checkpoint's contents."""
     path = resolve_run(model)
-    state = load_checkpoint(path, "perception")
+    state = load_checkpoint(path, "perception", device)
     vae = ComponentVAE(from_dict(PerceptionConfig, state["config"]["perception"]))
     vae.load_state_dict(state["model"])
     state["path"] = str(path)
@@ -41,10 +41,11 @@ def perception_configs(recipe_name: str, run_dir: Path, resume: bool, **train_ov
 
 def train_perception(data: str | os.PathLike | None, run_dir: str | os.PathLike, *, recipe_name: str = DEFAULT_RECIPE,
                      resume: bool = False, overwrite: bool = False, progress: bool = True,
-                     model_overrides: dict | None = None, **train_overrides: Any) -> Path:
+                     model_overrides: dict | None = None, device: str = "cpu", **train_overrides: Any) -> Path:
     """What `xvoe train perception` does; also works under torchrun. A resumed run may leave
-    out `data`: it trains on the split it started on."""
-    place = setup_distributed()
+    out `data`: it trains on the split it started on. `device`: where it trains (cpu, cuda,
+    cuda:N, mps)."""
+    place = setup_distributed(device)
     run_dir = Path(run_dir)
     if data is None:
         if not (resume and checkpoint_path(run_dir, "perception").exists()):

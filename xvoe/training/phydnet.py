@@ -72,9 +72,9 @@ def phydnet_configs(recipe_name: str, run_dir: Path, resume: bool, data: str | o
 
 def train_phydnet(data: str | os.PathLike | None, run_dir: str | os.PathLike, *, recipe_name: str = DEFAULT_RECIPE,
                   resume: bool = False, overwrite: bool = False, progress: bool = True,
-                  model_overrides: dict | None = None, **train_overrides: Any) -> Path:
-    """What `xvoe train phydnet` does (also under torchrun); returns RUN_DIR/phydnet.pt."""
-    place = setup_distributed()
+                  model_overrides: dict | None = None, device: str = "cpu", **train_overrides: Any) -> Path:
+    """What `xvoe train phydnet` does (also under torchrun) on `device`; returns RUN_DIR/phydnet.pt."""
+    place = setup_distributed(device)
     run_dir = Path(run_dir)
     recipe_name, model_config, config, data = phydnet_configs(recipe_name, run_dir, resume, data)
     ckpt = checkpoint_path(run_dir, STAGE)
@@ -125,7 +125,7 @@ def widen_checkpoint(path: Path, kernel: int, place: Dist) -> None:
 def load_phydnet(model: str | os.PathLike, device: str | torch.device = "cpu") -> tuple[PhyDNet, dict]:
     """A trained PhyDNet (in eval mode) from a checkpoint or run directory, and the checkpoint's contents."""
     path = resolve_run(model, STAGE)
-    state = load_checkpoint(path, STAGE)
+    state = load_checkpoint(path, STAGE, device)
     objective = PhyDNetObjective(PhyDNet(from_dict(PhyDNetConfig, state["config"]["phydnet"])))
     objective.load_state_dict(state["model"])
     state["path"] = str(path)

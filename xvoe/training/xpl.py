@@ -146,13 +146,13 @@ def stage_config(base: XPLConfig, name: str, stop_gradient: bool, shape: tuple) 
 def train_xpl(latents: str | os.PathLike | None, run_dir: str | os.PathLike, *, stage: str = "xpl",
               recipe_name: str = DEFAULT_RECIPE, stop_gradient: bool = True,
               resume: bool = False, overwrite: bool = False, progress: bool = True, model_overrides: dict | None = None,
-              **train_overrides: Any) -> Path:
-    """What `xvoe train xpl|plato|xpl-noresidual` does (also under torchrun), into RUN_DIR/STAGE.pt.
+              device: str = "cpu", **train_overrides: Any) -> Path:
+    """What `xvoe train xpl|plato|xpl-noresidual` does (also under torchrun, on `device`), into RUN_DIR/STAGE.pt.
     `model_overrides` change XPLConfig fields of a fresh run (dotted names reach nested
     configs); a resumed run keeps its network."""
     if stage not in TRAINED_ON_LATENTS:
         raise XvoeError(f"stage must be one of {', '.join(TRAINED_ON_LATENTS)}, not {stage!r}")
-    place = setup_distributed()
+    place = setup_distributed(device)
     run_dir = Path(run_dir)
     ckpt = checkpoint_path(run_dir, stage)
     if resume and ckpt.exists():
@@ -198,9 +198,9 @@ def nll_settings_of(config: dict) -> InferenceConfig:
 
 
 def latent_cache_for(data: str | os.PathLike, run_dir: str | os.PathLike, perception: str | None = None,
-                     progress: bool = True) -> Path:
+                     progress: bool = True, device: str = "cpu") -> Path:
     """The latent cache to train on: `data` itself if it is one; for a split file, the cache
-    RUN_DIR/latents-NAME.h5, encoded first with the run's perception module if missing."""
+    RUN_DIR/latents-NAME.h5, encoded first (on `device`) with the run's perception module if missing."""
     data = Path(data)
     try:
         open_latents(data).close()
@@ -213,7 +213,7 @@ def latent_cache_for(data: str | os.PathLike, run_dir: str | os.PathLike, percep
     else:
         with store.open_dataset(data, split="train"):
             pass
-        encode_split(perception or run_dir, data, cache, progress=progress)
+        encode_split(perception or run_dir, data, cache, progress=progress, device=device)
     return cache
 
 
@@ -269,7 +269,7 @@ def seen_neighbours(visible: Tensor) -> tuple[Tensor, Tensor]:
     """(N, T, K) frame indices: the last frame <= t and the first frame >= t in which each slot
     is seen; where one side has none, the other side's; 0 for a slot seen in no frame."""
     count = visible.shape[1]
-    frames = torch.arange(count).view(1, -1, 1)
+    frames = torch.arange(count, device=visible.device).view(1, -1, 1)
     before = torch.where(visible, frames, -1).cummax(dim=1).values
     after = torch.where(visible, frames, count).flip(1).cummin(dim=1).values.flip(1)
     before, after = torch.where(before < 0, after, before), torch.where(after == count, before, after)
@@ -292,7 +292,7 @@ def bridge_hidden(mean: Tensor, visible: Tensor) -> Tensor:
     scored on seen frames alone, Transformer 2 proposes nothing in the frames a wall covers.
     A static object is held exactly; one moving behind a wall is bridged at constant speed."""
     before, after = seen_neighbours(visible)
-    frames = torch.arange(mean.shape[1]).view(1, -1, 1)
+    frames = torch.arange(mean.shape[1], device=mean.device).view(1, -1, 1)
     share = ((frames - before) / (after - before).clamp_min(1)).unsqueeze(-1).to(mean.dtype)
     bridged = take_frames(mean, before) * (1 - share) + take_frames(mean, after) * share
     seen = visible.any(dim=1, keepdim=True)                                           # the others keep theirs
@@ -392,7 +392,7 @@ def wall_stays(mean: Tensor, visible: Tensor, walls: Tensor) -> tuple[Tensor, Te
     ask Transformer 2 for an object it never saw. Without this, Transformer 2 answers with
     the wall's training timetable (a wall coming down, then going up)."""
     before, after = seen_neighbours(visible)
-    frames = torch.arange(mean.shape[1]).view(1, -1, 1)
+    frames = torch.arange(mean.shape[1], device=mean.device).view(1, -1, 1)
     nearest = torch.where(frames - before <= after - frames, before, after)    # the earlier on a tie
     stays = (walls & visible.any(dim=1)).unsqueeze(1)                           # (N, 1, K)
     return torch.where(stays.unsqueeze(-1), take_frames(mean, nearest), mean), visible | stays
@@ -410,16 +410,16 @@ def fingerprint(state: dict[str, Tensor], prefixes: tuple[str, ...] = ("transfor
 
 def train_proposal(run_dir: str | os.PathLike, latents: str | os.PathLike | None = None, *, resume: bool = False,
                    overwrite: bool = False, progress: bool = True, model_overrides: dict | None = None,
-                   **train_overrides: Any) -> Path:
+                   device: str = "cpu", **train_overrides: Any) -> Path:
     """What `xvoe train proposal` does: train Transformer 2 and the existence head of
     RUN_DIR/xpl.pt further on -log q(hidden object | the rest), on objects hidden in every
     frame of the training videos (the simulator's trajectories, encoded), into
     RUN_DIR/proposal.pt. In the joint stage they get one step in each of the XPL's few steps
     and a hidden object is a rare draw; the explanation and the NLL's proposal need more.
     The network is the xpl.pt's: `model_overrides` that change it are refused.
-    Also under torchrun (or `launch.on_cores`), as the XPL stage."""
+    Also under torchrun (or `launch.on_cores`), as the XPL stage, on `device`."""
     run_dir = Path(run_dir)
-    place = setup_distributed()
+    place = setup_distributed(device)
     xpl_path, xpl, xpl_state = run_xpl(run_dir, "the xpl stage", proposal=False)
     ckpt = checkpoint_path(run_dir, "proposal")
     recipe_name = recipe_of(xpl_state["config"])
@@ -457,12 +457,12 @@ def load_xpl(model: str | os.PathLike, stage: str = "xpl", device: str | torch.d
     with a proposal.pt beside it (the proposal stage ran) gets that checkpoint's Transformer 2
     and existence head, unless `proposal` is False."""
     path = resolve_run(model, stage)
-    state = load_checkpoint(path, stage)
+    state = load_checkpoint(path, stage, device)
     xpl = XPL(from_dict(XPLConfig, state["config"]["xpl"]))
     xpl.load_state_dict(state["model"])
     tuned = path.parent / "proposal.pt"
     if proposal and state["stage"] == "xpl" and tuned.is_file():
-        extra = load_checkpoint(tuned, "proposal")
+        extra = load_checkpoint(tuned, "proposal", device)
         if extra["meta"].get("xpl_fingerprint") != fingerprint(state["model"]):
             raise XvoeError(f"{tuned} was trained on another xpl.pt than {path}; retrain it "
                             "(xvoe train proposal --overwrite) or move it away")
