@@ -141,8 +141,8 @@ class HiddenObjectModel(nn.Module):
 
     def step(self, state: State, t: int, frame: Tensor) -> None:
         alive = state["exists"]
-        with poutine.mask(mask=alive):
-            z = pyro.sample(f"z_{t}", dist.Normal(state["loc"], state["scale"]).to_event(1))
+        with poutine.mask(mask=alive):     # no argument checks: the model made the parameters, each frame
+            z = pyro.sample(f"z_{t}", dist.Normal(state["loc"], state["scale"], validate_args=False).to_event(1))
         pyro.factor(f"x_{t}", self.frame_log_likelihood(t, z, alive, frame))
         keep(state, z)
         if t + 1 < self.frames:
@@ -150,14 +150,12 @@ class HiddenObjectModel(nn.Module):
             motion = self.scene.seen_motion(t + 1)
             if predicted is not None and motion is not None:
                 seen, observed = motion
-                pyro.sample(f"motion_{t + 1}", dist.Normal(predicted.double(), self.config.motion_sigma)
-                            .mask(observed[:, None]).to_event(2), obs=seen.double())
+                motion = dist.Normal(predicted.double(), self.config.motion_sigma, validate_args=False)
+                pyro.sample(f"motion_{t + 1}", motion.mask(observed[:, None]).to_event(2), obs=seen.double())
 
     def model(self, frames: Tensor, proposal: Proposal | None = None, particles: int = 1) -> Tensor:
         """The whole video: `init`, then `step` for every frame."""
         state: State = {}
-        if isinstance(self.scene, nn.Module):
-            pyro.module("scene", self.scene)
         with pyro.plate("particles", particles, dim=-1):
             self.init(state, particles)
             for t in range(self.frames):
@@ -222,14 +220,16 @@ class HiddenObjectModel(nn.Module):
         without a proposal (the bootstrap filter)."""
         loc, scale = state["loc"], state["scale"]
         if proposal is None:
-            return dist.Normal(loc, scale).to_event(1)
+            return dist.Normal(loc, scale, validate_args=False).to_event(1)
         mean, spread = proposal.loc[t].expand_as(loc), proposal.scale[t].expand_as(loc)
         fused = [fuse(loc, scale, mean, spread * widening) for widening in widenings]
         if len(fused) == 1:
-            return dist.Normal(*fused[0]).to_event(1)
+            return dist.Normal(*fused[0], validate_args=False).to_event(1)
         locs, scales = torch.stack([f[0] for f in fused], dim=-2), torch.stack([f[1] for f in fused], dim=-2)
-        choice = dist.Categorical(logits=torch.zeros(locs.shape[:-1], dtype=locs.dtype, device=locs.device))
-        return dist.MixtureSameFamily(choice, dist.Normal(locs, scales).to_event(1))
+        choice = dist.Categorical(logits=torch.zeros(locs.shape[:-1], dtype=locs.dtype, device=locs.device),
+                                  validate_args=False)
+        return dist.MixtureSameFamily(choice, dist.Normal(locs, scales, validate_args=False).to_event(1),
+                                      validate_args=False)
 
 
 def keep(state: State, latents: Tensor) -> None:

@@ -166,7 +166,7 @@ class ModelSteps:
                     self.model.init(state, n)
                 self.model.step(state, t, self.observed[t])
 
-        if self.exists is not None:
+        if self.exists is not None and t == 0:     # the only frame with an `exists` site
             fixed = {"exists": torch.full((n,), float(self.exists), device=self.observed.device)}
             guide, model = poutine.condition(guide, data=fixed), poutine.condition(model, data=fixed)
         guide_trace = poutine.trace(guide).get_trace()
