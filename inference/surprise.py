@@ -154,8 +154,8 @@ def refine_out_of_sight(scene: XPLScene, loc: Tensor, frames: Tensor, config: In
 class AdamSteps:
     """Adam's update (torch.optim.Adam's defaults) of one tensor. Written out because the first
     torch.optim optimiser of a process imports torch._dynamo, which the first NLL score or
-    explanation of a notebook would wait for, for five small steps (docs/decisions.md, "The
-    NLL's pilot stays at 16 particles")."""
+    explanation of a notebook would wait for, for five small steps (measured in
+    docs/log/decisions-2026-11.md, "The NLL's pilot stays at 16 particles")."""
 
     def __init__(self, rate: float, betas: tuple[float, float] = (0.9, 0.999), eps: float = 1e-8):
         self.rate, self.betas, self.eps = rate, betas, eps

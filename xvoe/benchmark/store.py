@@ -28,7 +28,7 @@ from .world import KIND_NAMES, MAX_SLOTS, WALL_KINDS
 
 SCHEMA_VERSION = 1
 GENERATOR_VERSION = "1.0"
-DEFLATE_LEVEL = 2            # higher levels cost far more time for little (docs/decisions.md, "HDF5 compression level")
+DEFLATE_LEVEL = 2            # higher levels cost far more time for little (docs/decisions.md, "Speed and memory")
 TEST_LABELS = ("scenario", "setting", "pair", "member", "possible", "event_frame")
 TRAIN_LABELS = ("group", "has_wall", "event_frame")
 SPLITS = ("train", "test")

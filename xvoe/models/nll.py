@@ -18,22 +18,22 @@ class InferenceConfig:
     prior_hidden: float = within(0.5, Domain(0, 1, open_low=True, open_high=True))
     # standard deviation of the pixel likelihood: wider than the reconstruction's RMS error, whose
     # errors come in blobs, so that the pixel terms do not drown the seen objects' motion
-    # (docs/decisions.md, "NLL pixel sigma")
+    # (docs/decisions.md, "The NLL's settings")
     pixel_sigma: float = within(0.5, POSITIVE)
     transition_sigma: float = within(0.1, POSITIVE)   # standard deviation of the hidden object's dynamics
     # nats per pixel of the hidden object's exposure (what it shows in front of everything else):
     # the encoder reported no object in its slot, and that silence is evidence against one in the
     # open; without it a never-seen object is drawn in plain view to patch what the seen slots
-    # reconstruct badly (docs/decisions.md, "NLL exposure penalty")
+    # reconstruct badly (docs/decisions.md, "The NLL's settings")
     exposure_penalty: float = within(12.0, NON_NEGATIVE)
     # nats per pixel the hidden object draws short of `object_area` (a share of the frame's pixels)
     # in front of the background, before any wall hides it: a latent that draws nothing is no
     # object, yet the dynamics let it push the seen ones, and it explained impossible events in
-    # plain view at the price of no exposure (docs/decisions.md, "NLL presence penalty")
+    # plain view at the price of no exposure (docs/decisions.md, "The NLL's settings")
     presence_penalty: float = within(12.0, NON_NEGATIVE)
     object_area: float = within(0.008, SHARE)
     # standard deviation of the seen objects' latents around the dynamics: the dynamics' own RMS
-    # one-step error per latent (docs/decisions.md, "NLL motion sigma")
+    # one-step error per latent (docs/decisions.md, "The NLL's settings")
     motion_sigma: float = within(0.2, POSITIVE)
     particles: int = within(64, COUNT)
     # gradient steps on the proposal's mean (surprise.refine_out_of_sight)
@@ -43,7 +43,7 @@ class InferenceConfig:
     refine_tolerance: float = within(1.0, NON_NEGATIVE)
     # Transformer 2's scales are multiplied by this before the fusion: they are each frame's
     # marginal uncertainty, not fresh evidence about that frame, and too narrow for what a video
-    # leaves open (docs/decisions.md, "NLL proposal widening")
+    # leaves open (docs/decisions.md, "The NLL's settings")
     proposal_widening: float = within(3.0, POSITIVE)
     # "smc": sequential Monte Carlo over frames with existence summed out (inference.smc);
     # "importance": the same model and guide never resampled, the guide proposing existence too
@@ -59,7 +59,7 @@ class InferenceConfig:
     # no pilot where the guide's existence probability is above this (1.0: pilots everywhere):
     # a small pilot can miss a hidden object that XPL's existence head is sure of, and the
     # video's NLL then swings by hundreds of nats between seeds (docs/decisions.md, "The
-    # existence head gates the SMC pilot")
+    # NLL's settings")
     smc_pilot_skip_exists: float = within(0.5, SHARE)
     # proposal_widening for the SMC (None: the same); several: an equal-weight mixture of the
     # proposals with each. The SMC reweights every frame, so a pull towards Transformer 2's

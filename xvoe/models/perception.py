@@ -231,7 +231,7 @@ class ComponentVAE(nn.Module):
 
         Without gradients the latents go through in chunks: a thousand at once make
         feature maps of half a gigabyte that fall out of the CPU caches (docs/decisions.md,
-        "Decoding in chunks")."""
+        "Speed and memory")."""
         if torch.is_grad_enabled() or len(z) <= self.DECODE_CHUNK:
             return self.decoder(z)
         return torch.cat([self.decoder(chunk) for chunk in z.split(self.DECODE_CHUNK)])

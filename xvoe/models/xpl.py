@@ -50,8 +50,8 @@ class XPLConfig:
     inert_walls: bool = False
     # Transformer 1 reads no wall entry (and rebuilds none): a wall touches nothing (see
     # inert_walls), so no fill needs it, and a fill that attends to it can take on the wall's
-    # latent, which draws a wall where a hidden cube stands (docs/decisions.md, "Transformer 1
-    # blind to the walls")
+    # latent, which draws a wall where a hidden cube stands (docs/decisions.md, "The XPL
+    # stage: walls and fills")
     refill_ignores_walls: bool = False
     # Transformer 2 and the existence head train in the joint stage too; off, in the proposal
     # stage alone, and the joint step costs a third less, since nothing else in it reads them

@@ -138,7 +138,7 @@ def encode_split(model_ref: str | os.PathLike, data: str | os.PathLike, out: str
         slots = int(file["states"].shape[2])
         present_column = list(file["states"].attrs["state_columns"]).index("present")
         # filled in place: small outputs kept in lists among each batch's large temporaries
-        # fragment the heap (docs/decisions.md, "The encode stage fills arrays made before its loop")
+        # fragment the heap (docs/decisions.md, "Speed and memory")
         arrays: dict[str, np.ndarray] = {}
         for start in tqdm(range(0, count, videos_per_batch), desc="encode", disable=not progress,
                           unit_scale=videos_per_batch, unit="video"):

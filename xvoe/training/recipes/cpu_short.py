@@ -43,7 +43,7 @@ RECIPE = Recipe(
                                average_decay=0.999, focus_group="blocking", focus_share=0.5, data_shards=SHARDS),
     plato_train=PLATO,
     # changing pixels weigh more in the training loss; 3x3 gates, widened to 5x5 in a later phase
-    # (docs/decisions.md, "PhyDNet's loss weight on changing pixels", "PhyDNet's ConvLSTM kernel")
+    # (docs/decisions.md, "PhyDNet's network and loss")
     phydnet=PhyDNetConfig(change_weight=20.0, lstm_kernel=3),
     phydnet_train=PHYDNET,
     # the scenarios each baseline was weakest in, a share of every batch (docs/decisions.md,
