@@ -140,9 +140,10 @@ class HiddenObjectModel(nn.Module):
         return torch.tensor(math.log(p) - math.log1p(-p), dtype=torch.float64, device=self.device)
 
     def step(self, state: State, t: int, frame: Tensor) -> None:
-        alive = state["exists"]
-        with poutine.mask(mask=alive):     # no argument checks: the model made the parameters, each frame
-            z = pyro.sample(f"z_{t}", dist.Normal(state["loc"], state["scale"], validate_args=False).to_event(1))
+        alive, z = state["exists"], state["loc"]
+        if alive.any():     # a trajectory site only where a particle holds an object; no argument checks
+            with poutine.mask(mask=alive):
+                z = pyro.sample(f"z_{t}", dist.Normal(state["loc"], state["scale"], validate_args=False).to_event(1))
         pyro.factor(f"x_{t}", self.frame_log_likelihood(t, z, alive, frame))
         keep(state, z)
         if t + 1 < self.frames:
@@ -193,6 +194,8 @@ class HiddenObjectModel(nn.Module):
             state["loc"], state["scale"] = self.scene.initial(particles)
 
     def guide_step(self, state: State, t: int, proposal: Proposal | None, widenings: tuple[float, ...]) -> Tensor:
+        if not state["exists"].any():
+            return state["loc"]
         with poutine.mask(mask=state["exists"]):
             return pyro.sample(f"z_{t}", self.proposal_at(t, state, proposal, widenings))
 
