@@ -23,7 +23,6 @@ so the tests measure the estimator's distribution with thousands of replicates i
 from __future__ import annotations
 
 import math
-import warnings
 from collections.abc import Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass, field
@@ -32,7 +31,6 @@ from typing import Any, Protocol
 import pyro
 import torch
 from pyro import poutine
-from pyro.util import check_model_guide_match
 from torch import Tensor
 
 from .model import HiddenObjectModel, InferenceConfig, Proposal, Scene, State
@@ -193,17 +191,6 @@ def site_log_probs(trace: poutine.Trace, particles: int, sampled_only: bool = Fa
                              f"put it inside the particles plate (expected ({particles},))")
         total = total + log_prob
     return total
-
-
-def require_match(model_trace: poutine.Trace, guide_trace: poutine.Trace) -> None:
-    """Refuse a guide that misses a latent of the model (replay would then draw it from the
-    prior and bias the estimate without a word) or samples one the model lacks."""
-    with warnings.catch_warnings():
-        warnings.simplefilter("error")
-        try:
-            check_model_guide_match(model_trace, guide_trace)
-        except (RuntimeWarning, UserWarning, ValueError) as problem:
-            raise ValueError(f"model and guide do not match: {problem}") from None
 
 
 def empty_branch(model: HiddenObjectModel, frames: Tensor) -> Tensor:

@@ -16,7 +16,7 @@ from xvoe.models.reasoning import never_seen
 from xvoe.models.xpl import XPL
 
 from .model import InferenceConfig, Proposal, drawing_cost
-from .smc import Evidence, Hypotheses, importance_evidence, smc_evidence, top_hypotheses
+from .smc import Evidence, Hypotheses, effective_sample_size, importance_evidence, smc_evidence, top_hypotheses
 from .xpl_scene import XPLScene
 
 
@@ -106,11 +106,6 @@ def hidden_object_scene(vae: ComponentVAE, xpl: XPL, mean: Tensor, visible: Tens
     return scene, loc, spread, bool(unseen.any())
 
 
-def effective_sample_size(log_weights: Tensor) -> Tensor:
-    normalised = torch.softmax(log_weights, dim=0)
-    return 1.0 / normalised.square().sum()
-
-
 def refine_out_of_sight(scene: XPLScene, loc: Tensor, frames: Tensor, config: InferenceConfig) -> Tensor:
     """Transformer 2's mean trajectory (T, D), moved by a few gradient steps that take its
     pictures out of sight where they spoil the frames. Transformer 2 learned the latents of
@@ -196,7 +191,7 @@ def hidden_posterior(result: NLLSurprise) -> HiddenPosterior | None:
     mean = (weights[:, None, None] * trajectories.to(torch.float64)).sum(0).to(trajectories.dtype)
     best = int(weights.argmax())
     return HiddenPosterior(mean, trajectories[best], float(weights[best]), len(trajectories),
-                           float(1.0 / (weights ** 2).sum()))
+                           float(effective_sample_size(log_weights)))
 
 
 @dataclass
