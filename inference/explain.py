@@ -1,5 +1,7 @@
 """What the Pyro model believes is behind the wall: the importance-weighted hidden object,
-with the posterior probability that it exists and the effective sample size of the weights."""
+with the posterior probability that it exists and the effective sample size of the weights,
+and, where a seen object went out of sight and came back, the two identical objects that may
+explain it, with their probability."""
 from __future__ import annotations
 
 from dataclasses import dataclass, field, replace
@@ -12,6 +14,7 @@ from xvoe.evaluation.explain import Explanation, _pictures, _read_video
 from xvoe.evaluation.score import Scorer
 from xvoe.models.perception import to_uint8
 
+from .identity import two_objects
 from .model import InferenceConfig
 from .surprise import explain_surprise, hidden_posterior
 
@@ -19,6 +22,7 @@ from .surprise import explain_surprise, hidden_posterior
 @dataclass
 class NLLExplanation(Explanation):
     p_hidden: float = 0.0       # posterior probability that a hidden object exists
+    p_two: float = 0.0          # posterior probability that a seen object is two identical ones
     ess: float = 0.0            # effective sample size of the importance weights
     nll: float = 0.0            # the video's surprise, -log p(video), nats
     particles: int = 0          # importance samples drawn
@@ -68,6 +72,7 @@ def nll_explanation(vae, xpl, video: dict, particles: int, title: str = "", obse
     result = found.result
     posterior = hidden_posterior(result)
     refined = xpl.refine(video["mean"], video["visible"], video["occluder"])
+    drawn = [] if result.identity is None else [two_object_row(vae, refined, video, result)]
     occupied = video["visible"].any(dim=1)
     slot = result.hidden_slot if posterior is not None else -1
     if posterior is not None:
@@ -78,14 +83,26 @@ def nll_explanation(vae, xpl, video: dict, particles: int, title: str = "", obse
     heading = f"{title}\n" if title else ""
     heading += (f"NLL {result.nll:.0f} nats, p(hidden object) = {result.p_hidden:.2f}, "
                 f"ESS {result.ess:.1f} of {particles}")
+    if result.identity is not None:
+        heading += f", p(two objects) = {result.p_two:.2f}"
     holding = (posterior.holding, posterior.ess) if posterior is not None else (0, 0.0)
-    drawn = []
     if posterior is not None and found.hypotheses is not None:
         options = found.hypotheses
-        for rank, (trajectory, weight) in enumerate(zip(options.trajectories, options.weights)):
+        for rank, (trajectory, weight, version) in enumerate(zip(options.trajectories, options.weights,
+                                                                 options.version)):
             picture = to_uint8(vae.decode(trajectory.to(video["mean"].dtype))).numpy()
-            drawn.append((f"hypothesis {rank + 1}:\nweight {float(weight):.2f}", picture))
+            seen = "\nwith two objects" if int(version) else ""
+            drawn.append((f"hypothesis {rank + 1}:\nweight {float(weight):.2f}{seen}", picture))
         if options.disagree:
             heading += f"\nthe hypotheses differ most at frames {', '.join(map(str, options.disagree[:3]))}"
-    return NLLExplanation(observed, behind, alone, result.hidden_slot, heading, result.p_hidden, result.ess,
-                          result.nll, particles, *holding, drawn)
+    return NLLExplanation(observed, behind, alone, result.hidden_slot, heading, result.p_hidden, result.p_two,
+                          result.ess, result.nll, particles, *holding, drawn)
+
+
+def two_object_row(vae, refined: torch.Tensor, video: dict, result) -> tuple[str, np.ndarray]:
+    """The scene behind the wall under the two-object explanation (`inference.identity`): the
+    seen object's first self staying where it went out of sight, its twin waiting where it came
+    back, with the explanation's posterior probability."""
+    latents, seen = two_objects(refined[0], video["visible"][0], result.identity)
+    both, _ = _pictures(vae, latents[None], seen.any(0)[None], video, -1)
+    return f"two identical objects:\np = {result.p_two:.2f}", both

@@ -2,7 +2,9 @@
 once, frame by frame, in Pyro.
 
 Generative story: the latents of the objects that are seen are given (they live inside the
-`Scene`); a hidden object exists with prior probability p (site `exists`); if it does, its
+`Scene`), up to which explanation of them holds: where a seen object goes out of sight and is
+seen again, it is one object, or with prior probability p2 two identical ones (site `two`;
+`inference.identity`); a hidden object exists with prior probability p (site `exists`); if it does, its
 latent starts from the latent prior (site `z_0`) and follows the scene's dynamics with
 Gaussian transitions (sites `z_1` ... `z_{T-1}`). Frame t is rendered from all latents and
 observed under a Gaussian pixel likelihood (site `x_t`), less a penalty for every pixel the
@@ -14,8 +16,8 @@ bouncing back raises the likelihood.
 
 The model is written as Pyro's `SMCFilter` models are, an `init` and a `step` per frame, with
 every site in a `particles` plate that the caller opens; `model` runs them over the whole
-video. The guide (`guide_init`, `guide_step`, `guide`) proposes `exists` from its own
-amortised probability and each z_t from Transformer 2's per-frame Gaussian fused with the
+video. Each particle carries its explanation of the seen objects as the scene's `version`. The guide (`guide_init`, `guide_step`, `guide`) proposes `exists` from its own
+amortised probability, `two` from its prior, and each z_t from Transformer 2's per-frame Gaussian fused with the
 dynamics' step: the product of the two Gaussians, as if the former were a measurement of z_t
 (the locally optimal proposal of a Kalman filter), its scale widened, since it says where the
 object is on the whole, not anew each frame, and a proposal narrower than the posterior misses
@@ -63,20 +65,24 @@ class Scene(Protocol):
 
     frames: int
 
+    frames: int
+    versions: int       # explanations of the seen objects: 1, or 2 where one may be two identical ones
+
     def initial(self, particles: int) -> tuple[Tensor, Tensor]:
         """Mean and scale (N, D) of the hidden object's first latent."""
 
     def empty_frame(self, t: int) -> Tensor:
-        """The expected frame t without a hidden object."""
+        """The expected frame t of every version (V, ...) without a hidden object."""
 
-    def draw_frame(self, t: int, latents: Tensor) -> Drawing:
-        """Frame t with a hidden object at each of the latents (M, D)."""
+    def draw_frame(self, t: int, latents: Tensor, version: Tensor) -> Drawing:
+        """Frame t of the versions `version` (M,) with a hidden object at each of the latents (M, D)."""
 
-    def advance(self, t: int, latents: Tensor, alive: Tensor, memory: Any) -> Step:
-        """The dynamics run on frame t, the hidden slot holding `latents` (N, D) where `alive`."""
+    def advance(self, t: int, latents: Tensor, alive: Tensor, version: Tensor, memory: Any) -> Step:
+        """The dynamics run on frame t of each particle's version, the hidden slot holding
+        `latents` (N, D) where `alive`."""
 
     def seen_motion(self, t: int) -> tuple[Tensor, Tensor] | None:
-        """The seen moving objects' latents (M, D) at frame t and which the encoder saw (M,)."""
+        """The seen moving objects' latents (V, M, D) at frame t and which the encoder saw (V, M)."""
 
     def select(self, memory: Any, index: Tensor) -> Any:
         """The memory of the particles `index` (resampling)."""
@@ -130,13 +136,20 @@ class HiddenObjectModel(nn.Module):
 
     def init(self, state: State, particles: int) -> None:
         exists = pyro.sample("exists", dist.Bernoulli(logits=self.prior_logit()))
-        state.update(exists=exists.bool(), trajectory=None, memory=None)
+        state.update(exists=exists.bool(), version=self.identity(particles), trajectory=None, memory=None)
         state["loc"], state["scale"] = self.scene.initial(particles)
 
-    def prior_logit(self) -> Tensor:
-        """log p - log(1 - p) of a hidden object, in float64: a probability held in float32 is
-        clamped to its epsilon, and a prior under 1e-7 would lose its nats."""
-        p = self.config.prior_hidden
+    def identity(self, particles: int) -> Tensor:
+        """Each particle's explanation of the seen objects (N,) long: 1 where one seen object is
+        two identical ones (site `two`, only where the scene has that version)."""
+        if self.scene.versions == 1:
+            return torch.zeros(particles, dtype=torch.long, device=self.device)
+        return pyro.sample("two", dist.Bernoulli(logits=self.prior_logit(self.config.prior_two))).long()
+
+    def prior_logit(self, p: float | None = None) -> Tensor:
+        """log p - log(1 - p) of a hidden object (or of `p`), in float64: a probability held in
+        float32 is clamped to its epsilon, and a prior under 1e-7 would lose its nats."""
+        p = self.config.prior_hidden if p is None else p
         return torch.tensor(math.log(p) - math.log1p(-p), dtype=torch.float64, device=self.device)
 
     def step(self, state: State, t: int, frame: Tensor) -> None:
@@ -144,15 +157,16 @@ class HiddenObjectModel(nn.Module):
         if alive.any():     # a trajectory site only where a particle holds an object; no argument checks
             with poutine.mask(mask=alive):
                 z = pyro.sample(f"z_{t}", dist.Normal(state["loc"], state["scale"], validate_args=False).to_event(1))
-        pyro.factor(f"x_{t}", self.frame_log_likelihood(t, z, alive, frame))
+        version = state["version"]
+        pyro.factor(f"x_{t}", self.frame_log_likelihood(t, z, alive, version, frame))
         keep(state, z)
         if t + 1 < self.frames:
             predicted = self.advance(state, t, z)
             motion = self.scene.seen_motion(t + 1)
             if predicted is not None and motion is not None:
-                seen, observed = motion
+                seen, observed = (part[version] for part in motion)
                 motion = dist.Normal(predicted.double(), self.config.motion_sigma, validate_args=False)
-                pyro.sample(f"motion_{t + 1}", motion.mask(observed[:, None]).to_event(2), obs=seen.double())
+                pyro.sample(f"motion_{t + 1}", motion.mask(observed[..., None]).to_event(2), obs=seen.double())
 
     def model(self, frames: Tensor, proposal: Proposal | None = None, particles: int = 1) -> Tensor:
         """The whole video: `init`, then `step` for every frame."""
@@ -163,16 +177,16 @@ class HiddenObjectModel(nn.Module):
                 self.step(state, t, frames[t])
         return state["exists"]
 
-    def frame_log_likelihood(self, t: int, latents: Tensor, alive: Tensor, frame: Tensor) -> Tensor:
+    def frame_log_likelihood(self, t: int, latents: Tensor, alive: Tensor, version: Tensor, frame: Tensor) -> Tensor:
         """log N(frame t | rendered frame, pixel_sigma^2) of each particle (N,), less the cost of
         its hidden object's drawing (`drawing_cost`), in float64. The particles without a hidden
-        object all show the same frame: it is scored once."""
+        object show their version's one frame: each version's is scored once."""
         sigma = self.config.pixel_sigma
         result = torch.empty(len(alive), dtype=torch.float64, device=frame.device)
         if not alive.all():
-            result[~alive] = pixel_log_density(self.scene.empty_frame(t)[None], frame, sigma)
+            result[~alive] = pixel_log_density(self.scene.empty_frame(t), frame, sigma)[version[~alive]]
         if alive.any():
-            drawing = self.scene.draw_frame(t, latents[alive])
+            drawing = self.scene.draw_frame(t, latents[alive], version[alive])
             result[alive] = pixel_log_density(drawing.frames, frame, sigma) - drawing_cost(self.config, drawing)
         return result
 
@@ -180,7 +194,7 @@ class HiddenObjectModel(nn.Module):
         """Step the scene's dynamics past frame t: the next latent's prior and the seen objects'
         predicted motion (None where the scene has none). No site: the guide runs it too, where it
         goes without the model (`guide`)."""
-        step = self.scene.advance(t, latents, state["exists"], state["memory"])
+        step = self.scene.advance(t, latents, state["exists"], state["version"], state["memory"])
         state["loc"], state["memory"] = step.loc, step.memory
         state["scale"] = torch.full_like(step.loc, self.config.transition_sigma)
         return step.seen
@@ -190,6 +204,7 @@ class HiddenObjectModel(nn.Module):
     def guide_init(self, state: State, particles: int, proposal: Proposal | None) -> None:
         existence = dist.Bernoulli(logits=self.prior_logit()) if proposal is None else dist.Bernoulli(proposal.p_exists)
         state["exists"] = pyro.sample("exists", existence).bool()
+        state["version"] = self.identity(particles)
         if "loc" not in state:
             state["loc"], state["scale"] = self.scene.initial(particles)
 
@@ -250,8 +265,9 @@ def fuse(loc_a: Tensor, scale_a: Tensor, loc_b: Tensor, scale_b: Tensor) -> tupl
 
 class LinearGaussianScene(nn.Module):
     """A scene whose hidden object moves linearly and is seen through a linear camera:
-    z_0 ~ N(m0, s0), z_t = A z_{t-1} + N(0, q), frame_t = background + exists * H z_t.
-    Its evidence has a closed form (a Kalman filter), so it checks the estimators end to end."""
+    z_0 ~ N(m0, s0), z_t = A z_{t-1} + N(0, q), frame_t = background_v + exists * H z_t, with
+    one background per version (V, P). Its evidence has a closed form (a Kalman filter per
+    version), so it checks the estimators end to end."""
 
     def __init__(self, frames: int, initial_mean: Tensor, initial_scale: float, transition: Tensor,
                  camera: Tensor, background: Tensor):
@@ -261,7 +277,8 @@ class LinearGaussianScene(nn.Module):
         self.initial_scale = initial_scale
         self.register_buffer("A", transition)
         self.register_buffer("H", camera)
-        self.register_buffer("background", background)
+        self.register_buffer("background", background if background.dim() == 2 else background[None])
+        self.versions = len(self.background)
 
     def initial(self, particles: int) -> tuple[Tensor, Tensor]:
         mean = self.initial_mean.expand(particles, -1)
@@ -270,14 +287,14 @@ class LinearGaussianScene(nn.Module):
     def empty_frame(self, t: int) -> Tensor:
         return self.background
 
-    def draw_frame(self, t: int, latents: Tensor) -> Drawing:
+    def draw_frame(self, t: int, latents: Tensor, version: Tensor) -> Drawing:
         """The frame, no exposure and no shortfall: this scene's object is seen through a linear
         camera, nothing hides it and it need not draw itself."""
         count = len(latents)
-        return Drawing(self.background + latents @ self.H.T, latents.new_zeros(count),
+        return Drawing(self.background[version] + latents @ self.H.T, latents.new_zeros(count),
                        latents.new_full((count,), math.inf))
 
-    def advance(self, t: int, latents: Tensor, alive: Tensor, memory: None) -> Step:
+    def advance(self, t: int, latents: Tensor, alive: Tensor, version: Tensor, memory: None) -> Step:
         return Step(latents @ self.A.T, None, None)
 
     def seen_motion(self, t: int) -> None:

@@ -1,5 +1,6 @@
 """The NLL columns of a score file: -log p(video) under the Pyro model, its ESS, p(hidden
-object), and the NLL less that of a reference drawing only what was seen."""
+object), p(two identical objects), and the NLL less that of a reference drawing only what was
+seen."""
 from __future__ import annotations
 
 from dataclasses import replace
@@ -56,11 +57,11 @@ def xpl_nll(scorer: Scorer, batch: dict[str, Tensor], config: InferenceConfig, s
 
 
 class NLLColumns:
-    """The columns nll, ess, p_hidden and nll_excess of a score file (xvoe.evaluation.score's
+    """The columns nll, ess, p_hidden, p_two and nll_excess of a score file (xvoe.evaluation.score's
     ExtraColumns), and the curve nll, -log p(x_t | x_<t) (the SMC's; importance sampling keeps
     none): one Pyro estimate per video, from the batch the MSE score encoded."""
 
-    names = ("nll", "ess", "p_hidden", "nll_excess")
+    names = ("nll", "ess", "p_hidden", "p_two", "nll_excess")
 
     def __init__(self, particles: int | None = None, seed: int = 0, settings: dict[str, Any] | None = None):
         self.particles, self.changes, self.seed = particles, settings, seed
@@ -81,7 +82,7 @@ class NLLColumns:
 
     def batch(self, scorer: Scorer, videos: dict[str, Tensor]) -> tuple[np.ndarray, np.ndarray]:
         found = xpl_nll(scorer, videos, self.config, self.seed)
-        values = np.array([(f.nll, f.ess, f.p_hidden) for f in found], dtype=float).reshape(-1, 3)
+        values = np.array([(f.nll, f.ess, f.p_hidden, f.p_two) for f in found], dtype=float).reshape(-1, 4)
         if not self.curve_names:
             return values, np.zeros((0, len(found), videos["frames"].shape[1]))
         return values, np.stack([f.frame_nll.numpy() for f in found])[None]

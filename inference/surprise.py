@@ -15,6 +15,7 @@ from xvoe.models.perception import ComponentVAE
 from xvoe.models.reasoning import never_seen
 from xvoe.models.xpl import XPL
 
+from .identity import Identity, identity_gap, two_objects
 from .model import InferenceConfig, Proposal, drawing_cost
 from .smc import Evidence, Hypotheses, effective_sample_size, importance_evidence, smc_evidence, top_hypotheses
 from .xpl_scene import XPLScene
@@ -29,6 +30,12 @@ class NLLSurprise:
     estimate: Evidence
     holding_ess: float = 0.0   # effective sample size among the particles that hold an object
     method: str = "importance"
+    identity: Identity | None = None    # the seen object that may be two identical ones, None where none may
+
+    @property
+    def p_two(self) -> float:
+        """Posterior probability that the seen object of `identity` is two identical ones."""
+        return self.estimate.p_two
 
     @property
     def frame_nll(self) -> Tensor | None:
@@ -76,7 +83,7 @@ def nll_surprise(vae: ComponentVAE, xpl: XPL, frames: Tensor, mean: Tensor, visi
     if method not in ("smc", "importance"):
         raise ValueError(f"method must be smc or importance, not {method!r}")
     generator = generator_from(seed)
-    scene, loc, spread, free = hidden_object_scene(vae, xpl, mean, visible, background, occluder)
+    scene, loc, spread, free = hidden_object_scene(vae, xpl, mean, visible, background, occluder, config)
     hidden = scene.hidden
     p_exists = torch.sigmoid(xpl.existence_logit(loc[None], spread[None]))[0] if free else mean.new_zeros(())
     if free and config.refine_steps:
@@ -85,23 +92,31 @@ def nll_surprise(vae: ComponentVAE, xpl: XPL, frames: Tensor, mean: Tensor, visi
     if method == "smc":
         found = smc_evidence(scene, frames, config, proposal, generator, free)
         return NLLSurprise(found.nll, found.ess, found.p_hidden, hidden if free else -1, found,
-                           found.ess if free else 0.0, "smc")
+                           found.ess if free else 0.0, "smc", scene.identity)
     found = importance_evidence(scene, frames, config, proposal, generator)
     held = found.holding()
     holding = float(effective_sample_size(held[1])) if held is not None else 0.0
-    return NLLSurprise(found.nll, found.ess, found.p_hidden, hidden if free else -1, found, holding, "importance")
+    return NLLSurprise(found.nll, found.ess, found.p_hidden, hidden if free else -1, found, holding, "importance",
+                       scene.identity)
 
 
 def hidden_object_scene(vae: ComponentVAE, xpl: XPL, mean: Tensor, visible: Tensor, background: Tensor,
-                        occluder: Tensor) -> tuple[XPLScene, Tensor, Tensor, bool]:
-    """One video's scene for the Pyro model (arguments as `nll_surprise`'s), Transformer 2's
-    mean and scale (T, D) for the hidden slot (the one it explained, else the first never-seen
-    one), and whether any slot is free for a hidden object."""
+                        occluder: Tensor, config: InferenceConfig) -> tuple[XPLScene, Tensor, Tensor, bool]:
+    """One video's scene for the Pyro model (arguments as `nll_surprise`'s), with the
+    two-object explanation as its second version where a seen object goes out of sight and comes
+    back (and config.prior_two > 0); Transformer 2's mean and scale (T, D) for the hidden slot
+    (the one it explained, else the first never-seen one), and whether any slot is free for a
+    hidden object."""
     refined = xpl.refine(mean[None], visible[None], occluder[None])
     explained, scale, slot = xpl.explain(refined, visible[None])
     unseen = never_seen(visible[None])[0]
     hidden = int(slot[0]) if slot[0] >= 0 else int(unseen.float().argmax())
-    scene = XPLScene(vae, xpl, refined[0], vae.decode(background), visible, occluder, hidden)
+    identity = identity_gap(visible, occluder, hidden) if config.prior_two > 0 else None
+    latents, seen = refined[0][None], visible[None]
+    if identity is not None:
+        two, two_seen = two_objects(refined[0], visible, identity)
+        latents, seen = torch.stack([refined[0], two]), torch.stack([visible, two_seen])
+    scene = XPLScene(vae, xpl, latents, vae.decode(background), seen, occluder, hidden, identity)
     loc, spread = explained[0, :, hidden], scale[0, :, hidden].clamp_min(xpl.config.reasoning.min_scale)
     return scene, loc, spread, bool(unseen.any())
 

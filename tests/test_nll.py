@@ -234,14 +234,14 @@ def test_the_scene_steps_the_dynamics_frame_by_frame_as_a_full_run_does():
     randomise_dynamics_head(xpl.dynamics)
     _, mean, visible, background, _ = video()
     with torch.no_grad():
-        scene = XPLScene(vae, xpl, mean, vae.decode(background), visible, torch.zeros(K, dtype=torch.bool), 3)
+        scene = XPLScene(vae, xpl, mean[None], vae.decode(background), visible[None], torch.zeros(K, dtype=torch.bool), 3)
         trajectory, alive = torch.randn(6, T, D), torch.tensor([True, False, True, True, False, True])
         scenes = mean.expand(6, T, K, D).clone()
         scenes[alive, :, 3] = trajectory[alive]
         full = xpl.dynamics(scenes)                                     # (6, T, K, D)
         memory = None
         for t in range(T - 1):
-            step = scene.advance(t, trajectory[:, t], alive, memory)
+            step = scene.advance(t, trajectory[:, t], alive, torch.zeros(6, dtype=torch.long), memory)
             memory = step.memory
             torch.testing.assert_close(step.loc, full[:, t, 3], atol=1e-5, rtol=1e-5)
             torch.testing.assert_close(step.seen, full[:, t][:, visible.any(0)], atol=1e-5, rtol=1e-5)
@@ -251,11 +251,13 @@ def test_the_scene_composites_a_hidden_picture_as_the_full_softmax_does():
     vae, xpl = tiny_models()
     _, mean, visible, background, _ = video()
     with torch.no_grad():
-        scene = XPLScene(vae, xpl, mean, vae.decode(background), visible, torch.zeros(K, dtype=torch.bool), 3)
+        scene = XPLScene(vae, xpl, mean[None], vae.decode(background), visible[None], torch.zeros(K, dtype=torch.bool), 3)
         pictures = vae.decode(torch.randn(2 * T, D)).reshape(2, T, 4, 16, 16)
-        layers = scene.layers.expand(2, *scene.layers.shape).clone()
+        layers = scene.layers.expand(2, *scene.layers.shape[1:]).clone()
         layers[:, :, 3] = pictures
-        torch.testing.assert_close(scene._composite_hidden(pictures)[0], scene._composite(layers), atol=1e-5, rtol=1e-4)
+        frames, version = torch.arange(T).repeat(2), torch.zeros(2 * T, dtype=torch.long)
+        drawn = scene._composite_hidden(pictures.reshape(2 * T, 4, 16, 16), frames, version)[0]
+        torch.testing.assert_close(drawn.reshape(2, T, 4, 16, 16), scene._composite(layers), atol=1e-5, rtol=1e-4)
 
 
 def draw_all(scene, trajectory):
@@ -268,7 +270,8 @@ def draw_all(scene, trajectory):
 
 def pixel_log_likelihood(model, trajectory, alive, frames):
     """The pixel factors x_0 ... x_{T-1} of each particle, summed."""
-    return sum(model.frame_log_likelihood(t, trajectory[:, t], alive, frames[t]) for t in range(T))
+    version = torch.zeros(len(alive), dtype=torch.long)
+    return sum(model.frame_log_likelihood(t, trajectory[:, t], alive, version, frames[t]) for t in range(T))
 
 
 def tiny_scene():
@@ -276,7 +279,7 @@ def tiny_scene():
     vae, xpl = tiny_models()
     frames, mean, visible, background, occluder = video()
     with torch.no_grad():
-        scene = XPLScene(vae, xpl, mean, vae.decode(background), visible, occluder, 3)
+        scene = XPLScene(vae, xpl, mean[None], vae.decode(background), visible[None], occluder, 3)
     return scene, frames
 
 
@@ -305,11 +308,11 @@ def test_the_seen_objects_motion_is_observed_only_where_the_encoder_saw_them():
     config = InferenceConfig()
     trajectory = torch.randn(1, T, D)
     with torch.no_grad():
-        scene = XPLScene(vae, xpl, mean, vae.decode(background), visible, occluder, 3)
+        scene = XPLScene(vae, xpl, mean[None], vae.decode(background), visible[None], occluder, 3)
         values = {"exists": torch.ones(1)} | {f"z_{t}": trajectory[:, t] for t in range(T)}
         trace = poutine.trace(poutine.condition(HiddenObjectModel(scene, config).model, data=values)).get_trace(frames)
         trace.compute_log_prob()
-        scenes = scene.refined.clone()[None]
+        scenes = scene.refined.clone()
         scenes[:, :, 3] = trajectory
         moving = visible.any(0) & ~occluder
         predicted = xpl.dynamics(scenes, scene.inert())[0, :-1][:, moving]          # frames 1 .. T-1
@@ -329,7 +332,7 @@ def hand_made_scene():
     far, blank = 1.0, 1.5
     scene.background[:, 3] = far
     scene.layers[..., 3, :, :] = blank
-    scene.layers[:, 0, 3, :, :8] = -0.5
+    scene.layers[:, :, 0, 3, :, :8] = -0.5
     scene.walls[:] = blank
     scene.walls[..., :8] = -0.5
     scene._fixed = scene._partial_composite()
@@ -339,12 +342,13 @@ def hand_made_scene():
 def test_the_exposure_counts_the_pixels_a_hidden_object_shows_in_front_of_everything():
     """A 3x3 object in the open shows 9 pixels; one behind the wall shows none."""
     scene, _ = hand_made_scene()
-    pictures = torch.full((1, T, 4, 16, 16), 1.5)
+    pictures = torch.full((T, 4, 16, 16), 1.5)
     pictures[..., 3, 2:5, 10:13] = 0.0      # in the open, nearer than the background
     pictures[..., 3, 8:11, 2:5] = 0.0       # behind the wall: pushed back, the wall stays in front
     with torch.no_grad():
-        drawn, exposure = scene._composite_hidden(push_behind(pictures, scene.walls))
-    torch.testing.assert_close(exposure, torch.full((1, T), 9.0), atol=1e-3, rtol=0)
+        drawn, exposure = scene._composite_hidden(push_behind(pictures, scene.walls), torch.arange(T),
+                                                  torch.zeros(T, dtype=torch.long))
+    torch.testing.assert_close(exposure, torch.full((T,), 9.0), atol=1e-3, rtol=0)
     assert (drawn[..., 3, 8:11, 2:5] == -0.5).all()       # the wall is what the frames show there
 
 
@@ -462,7 +466,7 @@ def test_a_frame_drawn_alone_is_that_frame_of_the_whole_drawing():
     with torch.no_grad():
         whole = draw_all(scene, trajectory)
         for t in (0, 2, 3):
-            alone = scene.draw_frame(t, trajectory[:, t])
+            alone = scene.draw_frame(t, trajectory[:, t], torch.zeros(3, dtype=torch.long))
             torch.testing.assert_close(alone.frames, whole.frames[:, t])
             torch.testing.assert_close(alone.exposure, whole.exposure[:, t])
 

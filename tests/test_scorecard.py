@@ -3,9 +3,12 @@ import numpy as np
 import pytest
 
 from xvoe.evaluation.scorecard import (
+    TWO_DENIED,
+    TWO_SAID,
     Line,
     compare,
     format_line,
+    identity_lines,
     lead_lines,
     read_card,
     role_of,
@@ -131,3 +134,18 @@ def test_a_card_round_trips_and_prints(tmp_path):
     assert "NOT MET" in text and "WORSE BEYOND ITS INTERVAL" in text
     assert (role_of("plato"), role_of("random"), role_of("runs/s0"), role_of("xpl")) == (
         "baseline", "random", "xpl", "xpl")
+
+
+def test_the_identity_lines_count_the_videos_only_two_objects_explain_and_those_a_wall_shows_one():
+    rows = [("continuity", "S2", 0, 1, True, 0.0), ("continuity", "S2", 1, 1, True, 0.0),
+            ("continuity", "S2", 2, 1, True, 0.0), ("continuity", "S2", 3, 1, True, 0.0),
+            ("continuity", "S2", 0, 0, True, 0.0),                                        # seen in the window
+            ("collision", "S1", 0, 0, True, 0.0), ("continuity", "S3", 0, 0, True, 0.0),
+            ("blocking", "S3", 0, 0, True, 0.0), ("permanence", "S1", 0, 0, True, 0.0),
+            ("collision", "S1", 0, 1, False, 0.0), ("collision", "S2", 0, 0, True, 0.0)]  # neither
+    scores = table(rows)
+    scores["p_two"] = np.array([0.9, 0.8, 0.2, 0.7, 0.9, 0.1, 0.2, 0.6, 0.0, 0.9, 0.9])
+    said, denied = identity_lines(scores, rounds=200)
+    assert said.value == pytest.approx(75.0) and said.target == TWO_SAID and not said.met
+    assert denied.value == pytest.approx(75.0) and denied.target == TWO_DENIED
+    assert said.low <= said.value <= said.high

@@ -111,14 +111,14 @@ def simulated_frames(seed=0):
     return torch.stack(frames)
 
 
-def kalman_frames(frames):
+def kalman_frames(frames, background=BACKGROUND):
     """log p(frame t | frames < t, object) (T,), the predictive densities of the Kalman filter."""
     mean, cov, found = M_0, S_0 ** 2 * torch.eye(D), []
     for t in range(T):
         if t:
             mean, cov = A @ mean, A @ cov @ A.T + Q ** 2 * torch.eye(D)
         innovation = H @ cov @ H.T + SIGMA ** 2 * torch.eye(OBS)
-        predicted = BACKGROUND + H @ mean
+        predicted = background + H @ mean
         found.append(torch.distributions.MultivariateNormal(predicted, innovation).log_prob(frames[t]))
         gain = cov @ H.T @ torch.linalg.inv(innovation)
         mean, cov = mean + gain @ (frames[t] - predicted), (torch.eye(D) - gain @ H) @ cov
@@ -138,7 +138,7 @@ def object_branch(frames, proposal=None):
     """The model, an object held in every particle, frame by frame through Pyro: its evidence is
     log P + the Kalman filter's."""
     model = HiddenObjectModel(linear_scene(), config())
-    return ModelSteps(model, frames, proposal, widenings_of(config()), exists=True)
+    return ModelSteps(model, frames, proposal, widenings_of(config()), {"exists": 1.0})
 
 
 def rough_proposal():
@@ -207,6 +207,27 @@ def test_the_mixture_over_existence_matches_the_closed_form():
     exact_frames = -torch.diff(so_far, prepend=so_far.new_zeros(1))
     torch.testing.assert_close(found.frame_nll, exact_frames, rtol=0, atol=0.4)
     assert 1 <= found.ess <= 4096 and 1 <= found.lineages <= 4096
+
+
+def test_the_sum_over_two_explanations_of_what_was_seen_matches_the_closed_form():
+    """Two versions of the scene (two backgrounds, the second with prior P2): the SMC sums them
+    and existence out exactly; log p(x), p(two) and the per-frame curve are the closed form's."""
+    other, p_two = BACKGROUND + torch.tensor([0.5, -0.4, 0.3], dtype=F64), 0.4
+    scene = LinearGaussianScene(T, M_0, S_0, A, H, torch.stack([BACKGROUND, other]))
+    frames = simulated_frames(1)
+    found = smc_evidence(scene, frames, config(particles=4096, smc_pilot=0, prior_two=p_two), None,
+                         torch.Generator().manual_seed(4))
+    branches = []
+    for prior, background in ((1 - p_two, BACKGROUND), (p_two, other)):
+        empty = torch.distributions.Normal(background, SIGMA).log_prob(frames).sum(1).cumsum(0)
+        branches += [math.log(prior * (1 - P)) + empty, math.log(prior * P) + kalman_frames(frames, background).cumsum(0)]
+    so_far = torch.logsumexp(torch.stack(branches), 0)
+    exact_two = float(torch.logsumexp(torch.stack([branches[2][-1], branches[3][-1]]), 0) - so_far[-1])
+    assert 0.05 < math.exp(exact_two) < 0.95                # neither explanation is a foregone one
+    assert found.log_evidence == pytest.approx(float(so_far[-1]), abs=0.4)
+    assert found.p_two == pytest.approx(math.exp(exact_two), abs=0.05)
+    torch.testing.assert_close(found.frame_nll, -torch.diff(so_far, prepend=so_far.new_zeros(1)), rtol=0, atol=0.4)
+    assert found.version.tolist() == [0] * 4096 + [1] * 4096 and found.trajectories.shape == (8192, T, D)
 
 
 def test_without_a_free_slot_the_estimate_is_the_empty_branch_and_exact():
@@ -285,30 +306,36 @@ def tiny_xpl_scene():
     return tiny_scene()
 
 
+@pytest.mark.parametrize("versions", [1, 2])
 @pytest.mark.parametrize("exists", [True, False, None])
-def test_the_frame_by_frame_weights_are_the_whole_videos_model_over_guide(exists):
+def test_the_frame_by_frame_weights_are_the_whole_videos_model_over_guide(exists, versions):
     """Taken frame by frame through trace and replay (never resampled), a particle's log-weight is
     log p(x, z) - log q(z) of the whole-video model and guide at its draws: with an object, without
-    one (exact: every latent masked) and with existence proposed by the guide."""
+    one (exact: every latent masked) and with existence proposed by the guide; with one
+    explanation of the seen objects, or two (`two` proposed by the guide)."""
     from conftest import randomise_dynamics_head
+    from test_two_objects import tiny_two_scene
 
-    scene, frames = tiny_xpl_scene()
+    torch.set_default_dtype(torch.float32)
+    scene, frames = tiny_xpl_scene() if versions == 1 else tiny_two_scene()
     randomise_dynamics_head(scene.xpl.dynamics)
     settings = InferenceConfig(pixel_sigma=0.3, motion_sigma=0.2, transition_sigma=0.1, exposure_penalty=1.5,
                                presence_penalty=1.5, object_area=0.9)
     model = HiddenObjectModel(scene, settings)
     proposal = Proposal(torch.tensor(0.5), torch.randn(scene.frames, scene.dim), torch.ones(scene.frames, scene.dim))
-    steps = ModelSteps(model, frames, proposal, (settings.proposal_widening,), exists)
+    steps = ModelSteps(model, frames, proposal, (settings.proposal_widening,),
+                       None if exists is None else {"exists": float(exists)})
     torch.manual_seed(0)
     with torch.no_grad():
         run = run_smc(steps, 4, threshold=0.0)
-        values = {"exists": run.state["exists"].double()} | {
+        values = {"exists": run.state["exists"].double(), "two": run.state["version"].double()} | {
             f"z_{t}": run.state["trajectory"][:, t] for t in range(scene.frames)}
         joint = poutine.trace(poutine.condition(model.model, data=values)).get_trace(frames, proposal, 4)
         proposed = poutine.trace(poutine.condition(model.guide, data=values)).get_trace(frames, proposal, 4)
     from inference.smc import site_log_probs
     proposed.compute_log_prob()         # conditioned, every guide site is observed: pick the proposed ones
-    drawn = [name for name in proposed.nodes if name.startswith("z_") or (name == "exists" and exists is None)]
+    drawn = [name for name in proposed.nodes
+             if name.startswith("z_") or name == "two" or (name == "exists" and exists is None)]
     expected = site_log_probs(joint, 4) - sum(proposed.nodes[name]["log_prob"].double() for name in drawn)
     torch.testing.assert_close(run.log_weights[0], expected, rtol=1e-5, atol=1e-3)
     assert exists is not False or torch.allclose(run.log_weights[0], run.log_weights[0, :1].expand(4))

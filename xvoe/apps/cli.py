@@ -350,7 +350,7 @@ def build_parser() -> argparse.ArgumentParser:
     score.add_argument("--out", required=True, help="the scores CSV to write")
     score.add_argument("--surprise", choices=("mse", "nll", "both"), default="mse",
                        help="mse: the MSE score; nll: -log p(video) under the Pyro model (adds nll, ess, "
-                            "p_hidden, nll_excess); both: the MSE score with the NLL columns beside it")
+                            "p_hidden, p_two, nll_excess); both: the MSE score with the NLL columns beside it")
     score.add_argument("--particles", type=_field(InferenceConfig, "particles"),
                        help="particles per video (nll; default: the model's recipe's, 64 for the shipped one)")
     score.add_argument("--seed", type=_flag(int, SEED, "seed"), default=0,

@@ -41,7 +41,7 @@ def score(model: str | Scorer, data: str | Path, out: str | Path, *, surprise: s
     surprise: "mse", the MSE score (the columns score, s_img and s_dyn hold the default verdict,
     the better of Transformer 2's proposal and nothing hidden; paper_score the paper's, always
     the proposal); "nll", -log p(video) under the Pyro model (the score
-    column is the NLL; the columns nll, ess, p_hidden and nll_excess are added); "both", the
+    column is the NLL; the columns nll, ess, p_hidden, p_two and nll_excess are added); "both", the
     MSE score with the NLL's columns beside it. shard: (I, N) scores part I of N, for
     `merge_scores` to join (xvoe score --shard / --merge). model: a name (`xpl`, `random`, ...), a run
     directory, a checkpoint, or a loaded `Scorer`. seed: the NLL's random draws (each video's

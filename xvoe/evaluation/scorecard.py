@@ -41,6 +41,7 @@ LEAD_SCENARIOS = ("collision", "blocking")
 NLL_EXCESS_AUC, HIDDEN_IOU, PSNR, PROBE_R2 = 0.9, 0.6, 26.0, 0.95
 MSE_SPEED, NLL_SPEED = 10.0, 8.0        # videos per second
 REPEAT_MEDIAN, REPEAT_P99 = 0.5, 5.0    # nats
+TWO_SAID, TWO_DENIED = 90.0, 95.0       # percent: p(two objects) > 0.5 where only two explain, < 0.5 where one must
 
 
 @dataclass
@@ -171,7 +172,8 @@ def lead_lines(xpl: dict[str, np.ndarray], baselines: dict[str, dict[str, np.nda
 def nll_lines(scores: dict[str, np.ndarray], file: h5py.File, repeat: dict[str, np.ndarray] | None = None,
               rounds: int = 1000, seed: int = 0) -> list[Line]:
     """The NLL's own lines from a file scored with `--surprise both`: p_hidden on videos with a
-    never-seen object and on all-seen ones, the ESS on the former, and, with the same split
+    never-seen object and on all-seen ones, the ESS on the former, p_two where only two objects
+    explain the video and where a wall shows one (`identity_lines`), and, with the same split
     scored with another seed (`repeat`), |NLL difference| per video (median, 99th percentile)."""
     kinds = np.array([ground_truth(file, int(i)) for i in scores["index"]])
     hidden, seen = kinds == "hidden", kinds == "seen"
@@ -187,12 +189,33 @@ def nll_lines(scores: dict[str, np.ndarray], file: h5py.File, repeat: dict[str, 
         denied = scores["p_hidden"][seen] < 0.5
         lines.append(Line("p_hidden < 0.5 on all-seen videos (%)", 100 * denied.mean(),
                           *(100 * np.array(values_interval(denied, rounds=rounds, seed=seed)))))
+    if "p_two" in scores:
+        lines += identity_lines(scores, rounds, seed)
     if repeat is not None:
         difference = np.abs(scores["nll"] - repeat["nll"])
         lines.append(Line("NLL repeatability, two seeds, median (nats)", float(np.median(difference)),
                           *values_interval(difference, np.median, rounds, seed), REPEAT_MEDIAN, "<="))
         lines.append(Line("NLL repeatability, two seeds, 99th percentile (nats)", float(_p99(difference)),
                           *values_interval(difference, _p99, rounds, seed), REPEAT_P99, "<="))
+    return lines
+
+
+def identity_lines(scores: dict[str, np.ndarray], rounds: int = 1000, seed: int = 0) -> list[Line]:
+    """p_two > 0.5 on continuity S2's not-seen-in-window videos (the generator moved one ball:
+    only two identical ones explain them), and p_two < 0.5 on the possible videos of S1 and S3,
+    whose lifted walls show one ball."""
+    scenario, setting = scores["scenario"].astype(str), scores["setting"].astype(str)
+    lines = []
+    unseen = (scenario == "continuity") & (setting == "S2") & (scores["member"] == 1)
+    if unseen.any():
+        said = scores["p_two"][unseen] > 0.5
+        lines.append(Line("p_two > 0.5 on continuity S2 not-seen-in-window videos (%)", 100 * said.mean(),
+                          *(100 * np.array(values_interval(said, rounds=rounds, seed=seed))), TWO_SAID))
+    one = np.isin(setting, ("S1", "S3")) & scores["possible"].astype(bool)
+    if one.any():
+        denied = scores["p_two"][one] < 0.5
+        lines.append(Line("p_two < 0.5 on S1 and S3 possible videos (%)", 100 * denied.mean(),
+                          *(100 * np.array(values_interval(denied, rounds=rounds, seed=seed))), TWO_DENIED))
     return lines
 
 

@@ -16,6 +16,10 @@ class InferenceConfig:
 
     # p: prior probability that a hidden object exists
     prior_hidden: float = within(0.5, Domain(0, 1, open_low=True, open_high=True))
+    # p2: prior probability that a seen object that goes out of sight and is seen again is two
+    # identical ones (0: never; inference.identity). Chosen on the validation split
+    # (docs/decisions.md, "Two identical objects")
+    prior_two: float = within(0.1, Domain(0, 1, open_high=True))
     # standard deviation of the pixel likelihood: wider than the reconstruction's RMS error, whose
     # errors come in blobs, so that the pixel terms do not drown the seen objects' motion
     # (docs/decisions.md, "The NLL's settings")
