@@ -432,6 +432,25 @@ def test_a_directory_the_user_may_not_write_to_gets_one_line(shared_folder):
 
 
 @needs_setpriv
+def test_a_latent_cache_the_split_folder_refuses_is_named_before_the_work(shared_folder):
+    """xvoe score makes a split's latent cache beside the split: a folder the user may not write
+    to is named before the work, and --cache puts the cache elsewhere."""
+    locked, home = shared_folder / "locked", home_of_nobody(shared_folder)
+    locked.mkdir()
+    generate(GenerateConfig("test", pairs=1, seed=2), locked / "t.h5", workers=1, progress=False)
+    (locked / "t.h5").chmod(0o644)
+    locked.chmod(0o555)
+    score = ["score", "--model", "xpl", "--data", str(locked / "t.h5"), "--out", str(home / "s.csv"), "--quiet"]
+    before = snapshot(shared_folder)
+    done = run_unprivileged(shared_folder, score)
+    assert done.returncode == 2 and len(done.stderr.strip().splitlines()) == 1, done.stderr
+    assert f"cannot write to {locked}: permission denied" in done.stderr and "Traceback" not in done.stderr
+    assert snapshot(shared_folder) == before and not list(home.glob("s.*"))
+    done = run_unprivileged(shared_folder, score + ["--cache", str(home / "t.latents.h5")])
+    assert done.returncode == 0 and (home / "t.latents.h5").is_file(), done.stderr
+
+
+@needs_setpriv
 def test_a_scores_file_the_user_may_not_replace_is_refused_before_the_work(shared_folder):
     # in a sticky folder (as /tmp) a user may replace their own curves but not another user's CSV;
     # should the folder refuse at the end all the same, both stay (test_a_set_of_files_is_replaced_...)
