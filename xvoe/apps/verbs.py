@@ -68,13 +68,15 @@ def score(model: str | Scorer, data: str | Path, out: str | Path, *, surprise: s
         raise XvoeError(f"--workers must be at least 1, not {workers}")
     extra = NLLColumns(particles, seed, nll_settings) if surprise != "mse" else None   # bad settings fail here
     resolve_device(device)      # an absent device too, before any work
+    if workers > 1 and shard != (0, 1):
+        raise XvoeError("--workers shards the split itself; leave out --shard")
+    scorer = load_model(model, device) if isinstance(model, str) else model
     if workers > 1:
-        if shard != (0, 1):
-            raise XvoeError("--workers shards the split itself; leave out --shard")
-        return _score_in_workers(model, data, out, workers, overwrite, progress, surprise=surprise,
+        if extra is not None:
+            extra.check(scorer)     # before the cache is made for the workers
+        return _score_in_workers(model, scorer, data, out, workers, overwrite, progress, surprise=surprise,
                                  particles=particles, seed=seed, nll_settings=nll_settings, how=how,
                                  videos_per_batch=videos_per_batch, checks=checks, device=device, cache=cache)
-    scorer = load_model(model, device) if isinstance(model, str) else model
     return score_split(scorer, str(data), str(out), how=how, videos_per_batch=videos_per_batch, extra=extra,
                        score_column="nll" if surprise == "nll" else "score", shard=shard, checks=checks,
                        overwrite=overwrite, progress=progress, cache=cache)
@@ -86,14 +88,13 @@ def check_explanation(explanation: str) -> None:
         raise XvoeError(f"--explanation must be {' or '.join(EXPLANATIONS)}, not {explanation!r}")
 
 
-def _score_in_workers(model: str | Scorer, data: str | Path, out: str | Path, workers: int, overwrite: bool,
-                      progress: bool, **settings) -> Path:
-    """`score` in `workers` spawned processes, shard I in process I, merged into `out`. The
-    first process draws its progress bar (the shards are of one size); the split's latent cache
-    is made here first, for all of them to read."""
+def _score_in_workers(model: str | Scorer, scorer: Scorer, data: str | Path, out: str | Path, workers: int,
+                      overwrite: bool, progress: bool, **settings) -> Path:
+    """`score` of `model` (loaded here as `scorer`) in `workers` spawned processes, shard I in
+    process I, merged into `out`. The first process draws its progress bar (the shards are of
+    one size); the split's latent cache is made here first, for all of them to read."""
     claim_file(out, overwrite)      # refused before any work, as one run would be
-    settings["cache"] = prepare_latents(model, data, settings["cache"], progress=progress,
-                                        device=settings["device"]) or False
+    settings["cache"] = prepare_latents(scorer, data, settings["cache"], progress=progress) or False
     threads = max(1, len(os.sched_getaffinity(0)) // workers)
     with tempfile.TemporaryDirectory(dir=Path(out).parent, prefix=".score-parts-") as parts_dir:
         parts = [Path(parts_dir) / f"part{index}.csv" for index in range(workers)]

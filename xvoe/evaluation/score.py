@@ -637,11 +637,10 @@ def latent_cache(scorer: Scorer, data: str | os.PathLike, cache: str | os.PathLi
     return encode_with(scorer.vae, data, path, overwrite=True, progress=progress)
 
 
-def prepare_latents(model: str | Scorer, data: str | os.PathLike, cache: str | os.PathLike | bool = True, *,
-                    progress: bool = False, device: str | torch.device = "cpu") -> Path | None:
-    """The test split's latent cache for a model (`latent_cache`), made now if missing: what the
+def prepare_latents(scorer: Scorer, data: str | os.PathLike, cache: str | os.PathLike | bool = True, *,
+                    progress: bool = False) -> Path | None:
+    """The test split's latent cache for a scorer (`latent_cache`), made now if missing: what the
     processes of a run in parts read, made once before them."""
-    scorer = load_model(model, device) if isinstance(model, str) else model
     with open_test_split(scorer, data):
         return latent_cache(scorer, data, cache, progress=progress)
 
