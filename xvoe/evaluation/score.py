@@ -420,7 +420,8 @@ def score_split(model: str | Scorer, data: str, out: str, *, how: str = "sum", v
 
 
 def score_rows(scorer: Scorer, file, first: int, last: int, videos_per_batch: int, extra: ExtraColumns | None,
-               progress: bool = False, latents=None) -> tuple[np.ndarray, np.ndarray, dict[str, np.ndarray]]:
+               progress: bool = False,
+               latents: h5py.File | None = None) -> tuple[np.ndarray, np.ndarray, dict[str, np.ndarray]]:
     """The `CURVES` (5, N, T) of videos [first, last) of an open test split, batch by batch, the
     `extra` columns (N, C), finished (C = 0 without), and the extra curves (N, T) by name.
     `latents`: the split's open latent cache, read instead of encoding (`encode_videos`)."""
@@ -633,7 +634,7 @@ def latent_cache(scorer: Scorer, data: str | os.PathLike, cache: str | os.PathLi
     if not make:
         return None
     claim_file(path, what="the latent cache")
-    # a rival process that made it meanwhile wrote the same bytes: replacing it changes nothing
+    # a rival process may have made it meanwhile, from the same split and perception: replacing it is harmless
     return encode_with(scorer.vae, data, path, overwrite=True, progress=progress)
 
 
@@ -645,7 +646,7 @@ def prepare_latents(scorer: Scorer, data: str | os.PathLike, cache: str | os.Pat
         return latent_cache(scorer, data, cache, progress=progress)
 
 
-def encode_videos(scorer: Scorer, file, start: int, stop: int, latents=None) -> dict[str, Tensor]:
+def encode_videos(scorer: Scorer, file, start: int, stop: int, latents: h5py.File | None = None) -> dict[str, Tensor]:
     """Videos [start, stop) of an open test split, encoded: frames, latents, visibility, walls;
     read from `latents`, the split's open latent cache (`latent_cache`), where given."""
     videos = read_videos(file, start, stop)
