@@ -235,12 +235,13 @@ def domain_cases(files, tmp: Path) -> list[tuple[list[str], str]]:
 
 def path_cases(files, tmp: Path) -> list[tuple[list[str], str]]:
     """Outputs that are an input of the same command (by any name), or of a suffix not written."""
-    data = tmp / "input.h5"
+    data, train = tmp / "input.h5", tmp / "train-input.h5"
     shutil.copy(files["test"], data)
+    shutil.copy(files["train"], train)
     (tmp / "link.csv").symlink_to(data)
     (tmp / "alias.h5").symlink_to(data)
     (tmp / "cached").mkdir()        # where encode and show write when no output is named: links to the input
-    (tmp / "cached" / "latents-input.h5").symlink_to(data)
+    (tmp / "cached" / "latents-train-input.h5").symlink_to(train)
     (tmp / "input.0.png").symlink_to(data)
     score = ["score", "--model", "random", "--data", str(data), "--overwrite"]
     return [
@@ -256,8 +257,10 @@ def path_cases(files, tmp: Path) -> list[tuple[list[str], str]]:
         (["explain", "--model", "xpl", "--data", str(data), "--out", str(tmp / "e.jpg")], "--out must end in .png"),
         (["encode", "--model", "xpl", "--data", str(data), "--out", str(tmp / "run"), "--cache", str(data),
           "--overwrite"], "--cache"),
-        (["encode", "--model", "xpl", "--data", str(data), "--out", str(tmp / "cached"), "--overwrite"],
+        (["encode", "--model", "xpl", "--data", str(train), "--out", str(tmp / "cached"), "--overwrite"],
          "the default --cache"),
+        (score + ["--out", str(tmp / "s.csv"), "--cache", str(tmp / "alias.h5")], "--cache"),
+        (score + ["--out", str(tmp / "s.csv"), "--cache", str(tmp / "s.npz")], "--cache must end in .h5"),
         (["show", str(data), "--overwrite"], "the default --out"),
     ]
 
@@ -330,7 +333,7 @@ def test_every_bad_input_gets_one_line_exit_2_and_changes_nothing(files, tmp_pat
         assert "Traceback" not in err
         assert snapshot(tmp_path) == before, args
         tried += 1
-    assert tried == 5 * len(MALFORMED) + 2 * len(MALFORMED_TRAIN) + 32 + 31 + 12 + 6 + 7
+    assert tried == 5 * len(MALFORMED) + 2 * len(MALFORMED_TRAIN) + 32 + 31 + 14 + 6 + 7
 
 
 CONFIGS = (TrainConfig, PerceptionConfig, XPLConfig, ReasoningConfig, DynamicsConfig, PhyDNetConfig, InferenceConfig,
@@ -426,6 +429,25 @@ def test_a_directory_the_user_may_not_write_to_gets_one_line(shared_folder):
         assert done.returncode == 2 and len(done.stderr.strip().splitlines()) == 1, (args, done.stderr)
         assert "permission denied" in done.stderr and "Traceback" not in done.stderr
         assert snapshot(root) == before
+
+
+@needs_setpriv
+def test_a_latent_cache_the_split_folder_refuses_is_named_before_the_work(shared_folder):
+    """xvoe score makes a split's latent cache beside the split: a folder the user may not write
+    to is named before the work, and --cache puts the cache elsewhere."""
+    locked, home = shared_folder / "locked", home_of_nobody(shared_folder)
+    locked.mkdir()
+    generate(GenerateConfig("test", pairs=1, seed=2), locked / "t.h5", workers=1, progress=False)
+    (locked / "t.h5").chmod(0o644)
+    locked.chmod(0o555)
+    score = ["score", "--model", "xpl", "--data", str(locked / "t.h5"), "--out", str(home / "s.csv"), "--quiet"]
+    before = snapshot(shared_folder)
+    done = run_unprivileged(shared_folder, score)
+    assert done.returncode == 2 and len(done.stderr.strip().splitlines()) == 1, done.stderr
+    assert f"cannot write to {locked}: permission denied" in done.stderr and "Traceback" not in done.stderr
+    assert snapshot(shared_folder) == before and not list(home.glob("s.*"))
+    done = run_unprivileged(shared_folder, score + ["--cache", str(home / "t.latents.h5")])
+    assert done.returncode == 0 and (home / "t.latents.h5").is_file(), done.stderr
 
 
 @needs_setpriv

@@ -22,7 +22,7 @@ from ..models.nll import InferenceConfig
 from ..outputs import claim_directory, claim_file, refuse_overlap
 from ..training.data import check_focus
 from ..training.loop import TrainConfig
-from ..training.xpl import default_cache
+from ..training.xpl import encoded_cache
 
 
 class _Parser(argparse.ArgumentParser):
@@ -119,9 +119,9 @@ def cmd_show(args: argparse.Namespace) -> None:
 
 def cmd_score(args: argparse.Namespace) -> None:
     if args.merge:
-        if args.model or args.data or args.shard != (0, 1):
+        if args.model or args.data or args.shard != (0, 1) or args.cache:
             raise XvoeError("--merge joins score files as they were written; "
-                            "leave out --model, --data and --shard")
+                            "leave out --model, --data, --shard and --cache")
         print(xvoe.merge_scores(args.merge, args.out, overwrite=args.overwrite))
         return
     if args.model is None or args.data is None:
@@ -130,7 +130,7 @@ def cmd_score(args: argparse.Namespace) -> None:
                      seed=args.seed, nll_settings=xvoe.nll_settings(args.nll_set), how=args.aggregate,
                      shard=args.shard, videos_per_batch=args.batch, workers=args.workers,
                      checks=not args.no_checks, overwrite=args.overwrite, progress=not args.quiet,
-                     device=args.device))
+                     device=args.device, cache=args.cache or True))
 
 
 def cmd_explain(args: argparse.Namespace) -> None:
@@ -272,7 +272,8 @@ def add_train_parser(verbs) -> None:
     encode.add_argument("--data", required=True, help="the split file to encode")
     encode.add_argument("--out", required=True, help="the run directory (its perception.pt unless --model)")
     encode.add_argument("--model", help="a perception run or checkpoint (default: --out)")
-    encode.add_argument("--cache", help="the latent cache to write (default: OUT/latents-DATA.h5)")
+    encode.add_argument("--cache", help="the latent cache to write (default: OUT/latents-DATA.h5; of a test split, "
+                                        "beside it, DATA.latents-PERCEPTION.h5, where xvoe score reads it)")
     encode.add_argument("--overwrite", action="store_true", help="replace the cache if it exists")
     encode.add_argument("--quiet", action="store_true", help="no progress bar")
     _add_device(encode, "the perception module")
@@ -372,6 +373,9 @@ def build_parser() -> argparse.ArgumentParser:
     score.add_argument("--shard", type=_shard, default=(0, 1), metavar="I/N",
                        help="score only part I of N (counted from 0); join the parts with --merge")
     score.add_argument("--merge", nargs="+", metavar="PART", help="join the score files of --shard runs into --out")
+    score.add_argument("--cache", help="the split's latent cache, read instead of encoding its frames and made if "
+                                       "missing (default: beside the split, DATA.latents-PERCEPTION.h5, one per "
+                                       "perception module)")
     _add_device(score, "the model")
     score.set_defaults(run=cmd_score)
 
@@ -478,8 +482,11 @@ WRITES = {
 # what a verb writes when its output argument is left out
 DEFAULT_OUTPUTS: dict[str, Callable[[argparse.Namespace], Path]] = {
     "show": lambda args: Path(Path(args.file).with_suffix(f".{args.index}.png").name),
-    "encode": lambda args: default_cache(args.data, args.out),
+    "encode": lambda args: encoded_cache(args.data, args.out, args.model),
 }
+
+# what a verb writes besides its main output, where the argument is given: (argument, suffixes)
+ALSO_WRITES = {"score": (("cache", (".h5",)),)}
 
 
 def output_of(args: argparse.Namespace) -> str | Path | None:
@@ -494,13 +501,16 @@ def check_paths(args: argparse.Namespace) -> None:
     if args.verb not in WRITES:
         return
     reads, writes, suffixes = WRITES[args.verb]
-    output = output_of(args)
-    if output is None:
-        return
     inputs = []
     for name in reads:
         value = getattr(args, name)
         inputs += value if isinstance(value, list) else [value] if value else []
+    for name, written in ALSO_WRITES.get(args.verb, ()):
+        if getattr(args, name) is not None:
+            refuse_overlap(inputs, getattr(args, name), written, what=f"--{name}")
+    output = output_of(args)
+    if output is None:
+        return
     given = getattr(args, writes) is not None
     refuse_overlap(inputs, output, suffixes, what=f"--{writes}" if given else f"the default --{writes}")
 

@@ -24,7 +24,7 @@ from ..benchmark.display import DISPLAY_SIZE, check_display_size, display_video,
 from ..errors import XvoeError
 from ..evaluation.explain import Explanation, explain_drawn
 from ..evaluation.explain import explain as explain_mse
-from ..evaluation.score import Scorer, load_model, merge_scores, score_split
+from ..evaluation.score import Scorer, load_model, merge_scores, prepare_latents, score_split
 from ..evaluation.surprise import EXPLANATIONS
 from ..models.devices import resolve_device
 from ..outputs import claim_file
@@ -35,7 +35,8 @@ SURPRISES = ("mse", "nll", "both")
 def score(model: str | Scorer, data: str | Path, out: str | Path, *, surprise: str = "mse",
           particles: int | None = None, seed: int = 0, nll_settings: dict[str, Any] | None = None, how: str = "sum",
           videos_per_batch: int = 16, shard: tuple[int, int] = (0, 1), workers: int = 1, checks: bool = True,
-          overwrite: bool = False, progress: bool = True, device: str = "cpu") -> Path:
+          overwrite: bool = False, progress: bool = True, device: str = "cpu",
+          cache: str | Path | bool = True) -> Path:
     """Score every video of a test split into a CSV (and the per-frame curves beside it).
 
     surprise: "mse", the MSE score (the columns score, s_img and s_dyn hold the default verdict,
@@ -56,23 +57,29 @@ def score(model: str | Scorer, data: str | Path, out: str | Path, *, surprise: s
     checks: a model answering `surprise(videos)` (a model of your own, PhyDNet, random) passes
     the harness of xvoe.evaluation.checks before its scores are written; False skips all but
     the finite check (docs/evaluate-your-model.md, "4. The checks"). device: where a model given
-    by name runs (cpu, cuda, cuda:N, mps; a loaded `Scorer` runs where it was loaded)."""
+    by name runs (cpu, cuda, cuda:N, mps; a loaded `Scorer` runs where it was loaded).
+    cache: the split's latent cache, which a model with a perception module reads instead of
+    encoding the frames, made on first use: True, beside the split (DATA.latents-PERCEPTION.h5,
+    one per perception module, shared by every model and surprise definition that reads it); a
+    path; False, none. Scores are the same with it or without."""
     if surprise not in SURPRISES:
         raise XvoeError(f"--surprise must be mse, nll or both, not {surprise!r}")
     if workers < 1:
         raise XvoeError(f"--workers must be at least 1, not {workers}")
     extra = NLLColumns(particles, seed, nll_settings) if surprise != "mse" else None   # bad settings fail here
     resolve_device(device)      # an absent device too, before any work
-    if workers > 1:
-        if shard != (0, 1):
-            raise XvoeError("--workers shards the split itself; leave out --shard")
-        return _score_in_workers(model, data, out, workers, overwrite, progress, surprise=surprise,
-                                 particles=particles, seed=seed, nll_settings=nll_settings, how=how,
-                                 videos_per_batch=videos_per_batch, checks=checks, device=device)
+    if workers > 1 and shard != (0, 1):
+        raise XvoeError("--workers shards the split itself; leave out --shard")
     scorer = load_model(model, device) if isinstance(model, str) else model
+    if workers > 1:
+        if extra is not None:
+            extra.check(scorer)     # before the cache is made for the workers
+        return _score_in_workers(model, scorer, data, out, workers, overwrite, progress, surprise=surprise,
+                                 particles=particles, seed=seed, nll_settings=nll_settings, how=how,
+                                 videos_per_batch=videos_per_batch, checks=checks, device=device, cache=cache)
     return score_split(scorer, str(data), str(out), how=how, videos_per_batch=videos_per_batch, extra=extra,
                        score_column="nll" if surprise == "nll" else "score", shard=shard, checks=checks,
-                       overwrite=overwrite, progress=progress)
+                       overwrite=overwrite, progress=progress, cache=cache)
 
 
 def check_explanation(explanation: str) -> None:
@@ -81,11 +88,13 @@ def check_explanation(explanation: str) -> None:
         raise XvoeError(f"--explanation must be {' or '.join(EXPLANATIONS)}, not {explanation!r}")
 
 
-def _score_in_workers(model: str | Scorer, data: str | Path, out: str | Path, workers: int, overwrite: bool,
-                      progress: bool, **settings) -> Path:
-    """`score` in `workers` spawned processes, shard I in process I, merged into `out`. The
-    first process draws its progress bar (the shards are of one size)."""
+def _score_in_workers(model: str | Scorer, scorer: Scorer, data: str | Path, out: str | Path, workers: int,
+                      overwrite: bool, progress: bool, **settings) -> Path:
+    """`score` of `model` (loaded here as `scorer`) in `workers` spawned processes, shard I in
+    process I, merged into `out`. The first process draws its progress bar (the shards are of
+    one size); the split's latent cache is made here first, for all of them to read."""
     claim_file(out, overwrite)      # refused before any work, as one run would be
+    settings["cache"] = prepare_latents(scorer, data, settings["cache"], progress=progress) or False
     threads = max(1, len(os.sched_getaffinity(0)) // workers)
     with tempfile.TemporaryDirectory(dir=Path(out).parent, prefix=".score-parts-") as parts_dir:
         parts = [Path(parts_dir) / f"part{index}.csv" for index in range(workers)]

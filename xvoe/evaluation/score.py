@@ -1,7 +1,9 @@
 """Scoring a test split with a trained model: one CSV row per video and the per-frame curves.
 
 Decoding is the cost, so videos are encoded once per batch and every column (the MSE terms,
-and any a higher layer adds, such as the NLL's) is computed from that one encoding.
+and any a higher layer adds, such as the NLL's) is computed from that one encoding. A split is
+encoded once for every model that reads the same perception module: the first score writes its
+latent cache beside the split (xvoe.training.latents, `split_cache`) and the others read it.
 
 The PhyDNet baseline predicts pixels, not latents: its per-frame surprise is the squared
 error of its one-step prediction summed over pixels (0 at frame 0). It is written in the
@@ -19,14 +21,18 @@ import importlib
 import importlib.metadata
 import importlib.util
 import json
+import os
 import re
 import sys
 import warnings
 import zipfile
+from collections.abc import Iterator
+from contextlib import contextmanager, nullcontext
 from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Protocol
 
+import h5py
 import numpy as np
 import torch
 from torch import Tensor
@@ -44,7 +50,7 @@ from ..models.xpl import XPL
 from ..outputs import atomic_paths, claim_file
 from ..training.checkpoints import SHIPPED, shipped_path
 from ..training.data import check_size, visible_threshold
-from ..training.latents import encode_frames
+from ..training.latents import check_cache, encode_frames, encode_with, open_latents, perception_identity, split_cache
 from ..training.perception import load_perception
 from ..training.phydnet import load_phydnet
 from ..training.xpl import load_xpl, nll_settings_of
@@ -354,7 +360,7 @@ class ExtraColumns(Protocol):
 def score_split(model: str | Scorer, data: str, out: str, *, how: str = "sum", videos_per_batch: int = 16,
                 extra: ExtraColumns | None = None, score_column: str = "score", shard: tuple[int, int] = (0, 1),
                 checks: bool = True, overwrite: bool = False, progress: bool = True,
-                device: str | torch.device = "cpu") -> Path:
+                device: str | torch.device = "cpu", cache: str | os.PathLike | bool = True) -> Path:
     """One CSV row per test video, and the per-frame surprise curves (s_img, s_dyn: (N, T);
     s_rec too for a model with a perception module) in an .npz beside it, with the header
     (`score_header`). Models with a perception module also get the columns s_rec and excess
@@ -364,7 +370,9 @@ def score_split(model: str | Scorer, data: str, out: str, *, how: str = "sum", v
     the bytes one run would have. `checks`: a model answering `surprise(videos)` passes the
     harness of xvoe.evaluation.checks (on the shard's videos) before anything is written; False
     skips all but the finite check. `device`: where a model given by name runs (a `Scorer` runs
-    where it was loaded)."""
+    where it was loaded). `cache`: the latent cache of the split that a model with a perception
+    module reads instead of encoding its frames (`latent_cache`): True, the split's beside it;
+    a path; False, none (every batch encoded here)."""
     if how not in ("sum", "max"):
         raise XvoeError(f"--aggregate must be sum or max, not {how!r}")
     if score_column != "score" and (extra is None or score_column not in extra.names):
@@ -372,13 +380,13 @@ def score_split(model: str | Scorer, data: str, out: str, *, how: str = "sum", v
     scorer = load_model(model, device) if isinstance(model, str) else model
     if extra is not None:
         extra.check(scorer)
-    with store.open_dataset(data, split="test") as file:
-        if scorer.image_size is not None:
-            check_size(file, scorer.image_size, f"the model {scorer.name}")
+    with open_test_split(scorer, data) as file:
         # after every check of the input: a refused run leaves nothing behind
         out = claim_file(out, overwrite)
         curves_path = claim_file(out.with_suffix(".curves.npz"), overwrite, what="the curves beside --out")
         first, last = shard_rows(file["rgbd"].shape[0], videos_per_batch, shard)
+        # the parts of a sharded run may run at once: each reads a cache, none makes one
+        latents = latent_cache(scorer, data, cache, make=shard == (0, 1), progress=progress)
         checks = checks and scorer.custom is not None
         if checks:
             check_model(scorer, file, first, last)
@@ -387,7 +395,9 @@ def score_split(model: str | Scorer, data: str, out: str, *, how: str = "sum", v
                   "split": split_identity(file), "data": str(Path(data).resolve()), "score": score_column,
                   "aggregate": how, "surprise": surprise_definitions(scorer, how),
                   **(extra.settings() if extra is not None else {})}
-        curves, added, extra_curves = score_rows(scorer, file, first, last, videos_per_batch, extra, progress)
+        with open_latents(latents) if latents is not None else nullcontext() as encoded:
+            curves, added, extra_curves = score_rows(scorer, file, first, last, videos_per_batch, extra, progress,
+                                                     encoded)
     columns = row_columns(scorer, curves, added, how, extra, score_column)
     if checks:
         check_spread(columns["score"], scorer.name)
@@ -410,9 +420,11 @@ def score_split(model: str | Scorer, data: str, out: str, *, how: str = "sum", v
 
 
 def score_rows(scorer: Scorer, file, first: int, last: int, videos_per_batch: int, extra: ExtraColumns | None,
-               progress: bool = False) -> tuple[np.ndarray, np.ndarray, dict[str, np.ndarray]]:
+               progress: bool = False,
+               latents: h5py.File | None = None) -> tuple[np.ndarray, np.ndarray, dict[str, np.ndarray]]:
     """The `CURVES` (5, N, T) of videos [first, last) of an open test split, batch by batch, the
-    `extra` columns (N, C), finished (C = 0 without), and the extra curves (N, T) by name."""
+    `extra` columns (N, C), finished (C = 0 without), and the extra curves (N, T) by name.
+    `latents`: the split's open latent cache, read instead of encoding (`encode_videos`)."""
     curves = np.zeros((len(CURVES), last - first, file["rgbd"].shape[1]))
     values, extra_curves = [], []
     for start in tqdm(range(first, last, videos_per_batch), desc=f"score {scorer.name}", unit="batch",
@@ -422,7 +434,7 @@ def score_rows(scorer: Scorer, file, first: int, last: int, videos_per_batch: in
         if scorer.custom is not None:     # one term, in the s_dyn columns
             curves[[1, 4], rows] = custom_surprise(scorer, file, start, stop)
             continue
-        batch = encode_videos(scorer, file, start, stop)     # once, for every column
+        batch = encode_videos(scorer, file, start, stop, latents)     # once, for every column
         curves[:, rows] = torch.stack(list(_xpl_curves(scorer, batch).values())).cpu().numpy()
         if extra is not None:
             found, found_curves = extra.batch(scorer, batch)
@@ -595,9 +607,54 @@ def read_videos(file, start: int, stop: int) -> Videos:
                   np.arange(start, stop))
 
 
-def encode_videos(scorer: Scorer, file, start: int, stop: int) -> dict[str, Tensor]:
-    """Videos [start, stop) of an open test split, encoded: frames, latents, visibility, walls."""
-    return encode(scorer, read_videos(file, start, stop))
+@contextmanager
+def open_test_split(scorer: Scorer, data: str | os.PathLike) -> Iterator[h5py.File]:
+    """A test split open for reading, refused in one line unless the scorer reads its frames' size."""
+    with store.open_dataset(data, split="test") as file:
+        if scorer.image_size is not None:
+            check_size(file, scorer.image_size, f"the model {scorer.name}")
+        yield file
+
+
+def latent_cache(scorer: Scorer, data: str | os.PathLike, cache: str | os.PathLike | bool = True, *,
+                 make: bool = True, progress: bool = False) -> Path | None:
+    """The latent cache a scorer reads for the test split `data` (checked before): `cache`, or
+    with True the split's own for the scorer's perception module (`split_cache`); None for a
+    model without one, with `cache` False, or where it is missing and not to be made. One found
+    is checked against the split and the perception (a one-line error for a stale or foreign
+    one); one to be made is claimed first (a folder that refuses it is named before the work),
+    then written by the scorer's perception module."""
+    if cache is False or scorer.vae is None:
+        return None
+    perception = perception_identity(scorer.vae)
+    path = split_cache(data, perception) if cache is True else Path(cache)
+    if path.exists():
+        check_cache(path, data, perception)
+        return path
+    if not make:
+        return None
+    claim_file(path, what="the latent cache")
+    # a rival process may have made it meanwhile, from the same split and perception: replacing it is harmless
+    return encode_with(scorer.vae, data, path, overwrite=True, progress=progress)
+
+
+def prepare_latents(scorer: Scorer, data: str | os.PathLike, cache: str | os.PathLike | bool = True, *,
+                    progress: bool = False) -> Path | None:
+    """The test split's latent cache for a scorer (`latent_cache`), made now if missing: what the
+    processes of a run in parts read, made once before them."""
+    with open_test_split(scorer, data):
+        return latent_cache(scorer, data, cache, progress=progress)
+
+
+def encode_videos(scorer: Scorer, file, start: int, stop: int, latents: h5py.File | None = None) -> dict[str, Tensor]:
+    """Videos [start, stop) of an open test split, encoded: frames, latents, visibility, walls;
+    read from `latents`, the split's open latent cache (`latent_cache`), where given."""
+    videos = read_videos(file, start, stop)
+    if latents is None:
+        return encode(scorer, videos)
+    return on_device(scorer, videos, torch.from_numpy(latents["mean"][start:stop]),
+                     torch.from_numpy(latents["visible"][start:stop]),
+                     torch.from_numpy(latents["background_mean"][start:stop]))
 
 
 def encode(scorer: Scorer, videos: Videos) -> dict[str, Tensor]:
@@ -607,9 +664,14 @@ def encode(scorer: Scorer, videos: Videos) -> dict[str, Tensor]:
     encoded = encode_frames(scorer.vae, videos.rgbd.reshape(-1, size, size, 4), videos.ids.reshape(-1, size, size),
                             videos.walls.shape[1])
     shaped = {k: torch.from_numpy(v).reshape(count, frames_count, *v.shape[1:]) for k, v in encoded.items()}
-    batch = {"frames": normalise(torch.from_numpy(videos.rgbd)), "mean": shaped["mean"],
-             "visible": shaped["pixels"] > visible_threshold(size), "background": shaped["background_mean"],
-             "occluder": torch.from_numpy(videos.walls)}
+    return on_device(scorer, videos, shaped["mean"], shaped["pixels"] > visible_threshold(size),
+                     shaped["background_mean"])
+
+
+def on_device(scorer: Scorer, videos: Videos, mean: Tensor, visible: Tensor, background: Tensor) -> dict[str, Tensor]:
+    """A batch as the surprise reads it (frames, latents, visibility, background, walls), on the scorer's device."""
+    batch = {"frames": normalise(torch.from_numpy(videos.rgbd)), "mean": mean, "visible": visible,
+             "background": background, "occluder": torch.from_numpy(videos.walls)}
     return {name: value.to(scorer.device) for name, value in batch.items()}
 
 

@@ -11,7 +11,13 @@ pixels. Schema (an interface; version in the attribute `xvoe_latents`):
 - extras: `pixels` int32 (N, T, K) mask pixel counts; `background_mean`, `background_std`
   float32 (N, T, D): the background component (floor and sky) that the composite needs.
 - attributes: `perception_checkpoint` (path), `perception_sha256`, `source` (data file),
-  `source_split`, `config` (JSON: recipe, perception config, threshold, the data's config).
+  `source_split`, `config` (JSON: recipe, perception config, threshold, the data's config), and
+  the cache's key: `split_identity` (JSON, xvoe.identity.split_identity) and `perception_identity`
+  (`perception_identity`, a hash of the module's weights and config). `check_cache` refuses a
+  cache whose key is not the split's and the perception's at hand.
+
+A test split's cache lies beside the split (`split_cache`, one per perception module): `xvoe
+score` makes it on first use and every model that reads that perception reads it.
 """
 from __future__ import annotations
 
@@ -28,8 +34,10 @@ from tqdm.auto import tqdm
 
 from ..benchmark import store
 from ..errors import XvoeError
+from ..identity import arrays_hash, describe_split, split_identity
+from ..models.config import to_dict
 from ..models.devices import mixed_precision, resolve_device
-from ..models.perception import normalise
+from ..models.perception import ComponentVAE, normalise
 from ..outputs import claim_file
 from .data import check_size, masked_inputs, visible_threshold
 from .perception import load_perception
@@ -69,12 +77,26 @@ def write_latents(path: str | os.PathLike, latents: Latents, overwrite: bool = F
     """Write a cache atomically (temporary name, then rename)."""
     with store.atomic_file(path, overwrite=overwrite) as file:
         for name in ARRAYS:
-            file.create_dataset(name, data=getattr(latents, name), track_times=False)
+            array = getattr(latents, name)
+            file.create_dataset(name, data=array, track_times=False, **compressed(array))
         file.attrs["xvoe_latents"] = LATENTS_VERSION
         for name, value in latents.attrs.items():
             if name != "xvoe_latents":
                 file.attrs[name] = value
     return Path(path)
+
+
+LATENT_CHUNK = 16      # videos per compressed chunk: a scoring batch reads one
+
+
+def compressed(array: np.ndarray) -> dict:
+    """How a cache's array is stored: deflate at its fastest level over byte-shuffled chunks of
+    videos, 9x smaller than the raw floats (the empty slots repeat one posterior) for 0.1 s more
+    read per 10,000 videos (docs/decisions.md, "Speed and memory")."""
+    if not len(array):
+        return {}
+    return {"chunks": (min(LATENT_CHUNK, len(array)), *array.shape[1:]), "compression": "gzip",
+            "compression_opts": 1, "shuffle": True}
 
 
 def open_latents(path: str | os.PathLike) -> h5py.File:
@@ -131,8 +153,22 @@ def encode_split(model_ref: str | os.PathLike, data: str | os.PathLike, out: str
                  device: str | torch.device = "cpu") -> Path:
     """What `xvoe encode` does: encode every frame of a split into a latent cache, on `device`."""
     model, state = load_perception(model_ref, resolve_device(device))
+    origin = {"perception_checkpoint": str(Path(state["path"]).resolve()),
+              "perception_sha256": sha256_of(state["path"]), "recipe": recipe_of(state["config"])}
+    return encode_with(model, data, out, origin, videos_per_batch=videos_per_batch, overwrite=overwrite,
+                       progress=progress)
+
+
+def encode_with(model: ComponentVAE, data: str | os.PathLike, out: str | os.PathLike, origin: dict | None = None, *,
+                videos_per_batch: int = 16, overwrite: bool = False, progress: bool = True) -> Path:
+    """A split encoded by a loaded perception module into a latent cache, keyed by the split's
+    identity and the module's (`check_cache`). `origin`: the checkpoint it was loaded from
+    (`perception_checkpoint`, `perception_sha256`, `recipe`), where there is one."""
+    origin = dict(origin or {})
+    recipe_name = origin.pop("recipe", None)
     with store.open_dataset(data) as file:
-        check_size(file, model.config.image_size, f"the checkpoint {state['path']}")
+        checkpoint = origin.get("perception_checkpoint")
+        check_size(file, model.config.image_size, f"the checkpoint {checkpoint}" if checkpoint else "the perception")
         claim_file(out, overwrite)      # after every check of the input: a refused run leaves nothing behind
         count, frames, size = file["rgbd"].shape[:3]
         slots = int(file["states"].shape[2])
@@ -151,10 +187,50 @@ def encode_split(model_ref: str | os.PathLike, data: str | os.PathLike, out: str
                 arrays[name][start:stop] = value.reshape(stop - start, frames, *value.shape[1:])
         present = file["states"][..., present_column] > 0.5
         threshold = visible_threshold(size)
-        config = {"recipe": recipe_of(state["config"]), "perception": state["config"]["perception"],
-                  "visible_threshold": threshold, "data": store.config_of(file)}
-        attrs = {"perception_checkpoint": str(Path(state["path"]).resolve()),
-                 "perception_sha256": sha256_of(state["path"]), "source": str(Path(data).resolve()),
-                 "source_split": str(file.attrs["split"]), "config": json.dumps(config, sort_keys=True)}
+        config = {"recipe": recipe_name, "perception": to_dict(model.config), "visible_threshold": threshold,
+                  "data": store.config_of(file)}
+        attrs = {**origin, "source": str(Path(data).resolve()), "source_split": str(file.attrs["split"]),
+                 "config": json.dumps(config, sort_keys=True),
+                 "split_identity": json.dumps(split_identity(file), sort_keys=True),
+                 "perception_identity": perception_identity(model)}
     latents = Latents(visible=arrays["pixels"] > threshold, present=present, attrs=attrs, **arrays)
     return write_latents(out, latents, overwrite=overwrite)
+
+
+def perception_identity(model: ComponentVAE) -> str:
+    """A perception module's key in a latent cache: the hash of its weights and config, the same
+    for a run's perception.pt and the shipped copy of it (xvoe.identity.arrays_hash)."""
+    arrays = {name: tensor.detach().cpu().numpy() for name, tensor in model.state_dict().items()}
+    return arrays_hash(arrays, to_dict(model.config))
+
+
+def split_cache(data: str | os.PathLike, perception: str) -> Path:
+    """Where a test split's latent cache lies: beside the split, one per perception module,
+    DATA.latents-PERCEPTION.h5 (PERCEPTION: its `perception_identity`)."""
+    data = Path(data)
+    return data.with_name(f"{data.stem}.latents-{perception}.h5")
+
+
+def check_cache(cache: str | os.PathLike, data: str | os.PathLike, perception: str | None = None) -> None:
+    """An error unless the latent cache was encoded from this very split and, given
+    `perception` (a `perception_identity`), by that perception module. The split is known by
+    the identity the cache records (`split_identity`: seed, config, videos, contents); a cache
+    that records none, by the same path, generation config and video count (a file regenerated
+    under the old name is another split)."""
+    with open_latents(cache) as file:
+        source, recorded = file.attrs.get("source", ""), file.attrs.get("split_identity")
+        data_config = json.loads(file.attrs.get("config", "{}")).get("data")
+        videos, encoder = file["mean"].shape[0], file.attrs.get("perception_identity")
+    with store.open_dataset(data) as split:
+        if recorded is not None:
+            same = json.loads(recorded) == split_identity(split)
+        else:
+            same = (source == str(Path(data).resolve()) and data_config == store.config_of(split)
+                    and videos == split["rgbd"].shape[0])
+    if not same:
+        found = f" ({describe_split(json.loads(recorded))})" if recorded is not None else ""
+        raise XvoeError(f"{cache} was encoded from {source or 'an unknown split'}{found}, not from {data} as it is "
+                        "now; remove it or encode again with xvoe encode --overwrite")
+    if perception is not None and encoder != perception:
+        raise XvoeError(f"{cache} was encoded by another perception module ({encoder or 'unrecorded'}) than the "
+                        f"model's ({perception}); remove it or encode again with xvoe encode --overwrite")

@@ -10,7 +10,6 @@ resumed or multi-process run sees the same batches.
 from __future__ import annotations
 
 import hashlib
-import json
 import os
 import warnings
 from dataclasses import dataclass, field, replace
@@ -30,8 +29,9 @@ from ..models.reasoning import hide_slot
 from ..models.xpl import XPL, XPLConfig, permute_slots
 from .checkpoints import load_checkpoint, resolve_run
 from .data import focus_on, owned_shards
-from .latents import encode_split, open_latents
+from .latents import check_cache, encode_split, open_latents, perception_identity, split_cache
 from .loop import Job, TrainConfig, checkpoint_path, fit, setup_distributed, start_process
+from .perception import load_perception
 from .recipes import DEFAULT_RECIPE, recipe, recipe_of
 from .stages import STAGES
 
@@ -209,7 +209,7 @@ def latent_cache_for(data: str | os.PathLike, run_dir: str | os.PathLike, percep
         pass
     cache = default_cache(data, run_dir)
     if cache.exists():
-        check_cache_source(cache, data)
+        check_cache(cache, data)
     else:
         with store.open_dataset(data, split="train"):
             pass
@@ -222,19 +222,15 @@ def default_cache(data: str | os.PathLike, run_dir: str | os.PathLike) -> Path:
     return Path(run_dir) / f"latents-{Path(data).stem}.h5"
 
 
-def check_cache_source(cache: str | os.PathLike, data: str | os.PathLike) -> None:
-    """An error unless the latent cache was encoded from this very split: the same path, and
-    the same generation config and video count (a file regenerated under the old name is
-    another split)."""
-    with open_latents(cache) as file:
-        source, recorded = file.attrs.get("source", ""), json.loads(file.attrs.get("config", "{}")).get("data")
-        videos = file["mean"].shape[0]
-    with store.open_dataset(data) as split:
-        same = (source == str(Path(data).resolve()) and recorded == store.config_of(split)
-                and videos == split["rgbd"].shape[0])
-    if not same:
-        raise XvoeError(f"{cache} was encoded from {source or 'an unknown split'}, not from {data} as it is now; "
-                        f"remove it or encode again with xvoe encode --overwrite")
+def encoded_cache(data: str | os.PathLike, run_dir: str | os.PathLike, perception: str | None = None) -> Path:
+    """Where `xvoe encode` writes the latent cache of the split `data` by default: a training
+    split's in the run (`default_cache`); a test split's beside it (`split_cache` of the
+    perception module, `perception` or the run's), where every score of that perception reads it."""
+    with store.open_hdf5(data) as file:
+        kind = file.attrs.get("split")
+    if kind != "test":
+        return default_cache(data, run_dir)
+    return split_cache(data, perception_identity(load_perception(perception or run_dir)[0]))
 
 
 @dataclass

@@ -1,0 +1,130 @@
+"""A test split encoded once: the latent cache `xvoe score` makes beside the split and every
+model of the same perception module reads, under every surprise definition."""
+import hashlib
+import shutil
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+from conftest import randomise_dynamics_head
+
+import xvoe
+from xvoe.apps.cli import main
+from xvoe.benchmark import store
+from xvoe.benchmark.generate import GenerateConfig, generate
+from xvoe.evaluation import score as scoring
+from xvoe.models.dynamics import DynamicsConfig
+from xvoe.models.perception import ComponentVAE, PerceptionConfig
+from xvoe.models.reasoning import ReasoningConfig
+from xvoe.models.xpl import XPL, XPLConfig
+from xvoe.training.checkpoints import shipped_path
+from xvoe.training.latents import perception_identity, split_cache
+from xvoe.training.perception import load_perception
+
+D, FRAMES = 4, 10
+
+
+@pytest.fixture(scope="module")
+def tiny_split(tmp_path_factory):
+    return generate(GenerateConfig("test", pairs=1, size=16, frames=FRAMES, seed=21),
+                    tmp_path_factory.mktemp("tiny") / "t.h5", workers=1, progress=False)
+
+
+def tiny_scorer(name: str, slots: int, use_reasoning: bool = True) -> xvoe.Scorer:
+    """An untrained XPL (or, without reasoning, PLATO's kind) on an untrained perception module,
+    the same perception for every name."""
+    torch.manual_seed(0)
+    vae = ComponentVAE(PerceptionConfig(image_size=16, latent_dim=D, cnn_channels=(8, 8), cnn_hidden=16,
+                                        decoder_channels=8)).eval()
+    xpl = XPL(XPLConfig(reasoning=ReasoningConfig(latent_dim=D, slots=slots, frames=FRAMES, width=16, layers=1,
+                                                  heads=2, mlp=16),
+                        dynamics=DynamicsConfig(latent_dim=D, hidden=16, lstm=16, buffer_heads=2),
+                        use_reasoning=use_reasoning))
+    randomise_dynamics_head(xpl.dynamics)      # motion costs something: the curves are not all zero
+    return xvoe.Scorer(name, vae, xpl.eval())
+
+
+def scored(scorer: xvoe.Scorer, data: Path, out: Path, **settings) -> tuple[bytes, dict[str, np.ndarray]]:
+    path = xvoe.score(scorer, data, out, progress=False, **settings)
+    with np.load(path.with_suffix(".curves.npz")) as curves:
+        return path.read_bytes(), dict(curves)
+
+
+def test_scores_from_the_cache_are_the_scores_without_it(tiny_split, tmp_path, monkeypatch):
+    """Bitwise: the cache holds what the scorer's own encoder gives, batch for batch."""
+    with store.open_dataset(tiny_split) as file:
+        slots = file["states"].shape[2]
+    xpl, plato = tiny_scorer("xpl", slots), tiny_scorer("plato", slots, use_reasoning=False)
+    nll = {"surprise": "both", "particles": 4}
+    expected = {name: scored(scorer, tiny_split, tmp_path / f"{name}-alone.csv", cache=False, **settings)
+                for name, scorer, settings in (("xpl", xpl, nll), ("plato", plato, {}))}
+    cache = split_cache(tiny_split, perception_identity(xpl.vae))
+    assert not cache.exists()
+    made = scored(xpl, tiny_split, tmp_path / "xpl-first.csv", **nll)       # makes the cache on first use
+    assert cache.is_file()
+
+    def no_encoding(*args, **kwargs):
+        raise AssertionError("a split with a cache was encoded again")
+
+    monkeypatch.setattr(scoring, "encode_frames", no_encoding)
+    monkeypatch.setattr(scoring, "encode_with", no_encoding)
+    found = {"xpl": scored(xpl, tiny_split, tmp_path / "xpl.csv", **nll),      # the MSE and the NLL read it
+             "plato": scored(plato, tiny_split, tmp_path / "plato.csv")}        # another model of that perception
+    for name in ("xpl", "plato"):
+        csv, curves = expected[name]
+        assert found[name][0] == csv, name
+        assert curves.keys() == found[name][1].keys() and "s_img" in curves
+        for key in curves:
+            np.testing.assert_array_equal(found[name][1][key], curves[key], err_msg=f"{name} {key}")
+    assert made[0] == expected["xpl"][0]
+
+
+def shipped_or_skip() -> Path:
+    if shipped_path("plato") is None or shipped_path("xpl", "perception") is None:
+        pytest.skip("no shipped plato model in xvoe/weights")
+    return shipped_path("xpl", "perception")
+
+
+def snapshot(root: Path) -> dict[str, str]:
+    return {str(p.relative_to(root)): hashlib.sha256(p.read_bytes()).hexdigest() if p.is_file() else "folder"
+            for p in sorted(root.rglob("*"))}
+
+
+def refused(args: list[str], root: Path, capsys) -> str:
+    """The one line `xvoe ARGS` fails with (exit 2), having written nothing under root."""
+    before = snapshot(root)
+    assert main(args) == 2
+    err = capsys.readouterr().err
+    assert len(err.strip().splitlines()) == 1 and "Traceback" not in err, err
+    assert snapshot(root) == before
+    return err
+
+
+def test_a_cache_of_another_split_or_another_perception_is_refused(tmp_path, capsys):
+    perception = shipped_or_skip()
+    ours, theirs = (generate(GenerateConfig("test", pairs=1, seed=seed), tmp_path / f"{name}.h5", workers=1,
+                             progress=False) for name, seed in (("ours", 31), ("theirs", 32)))
+    # xvoe encode on a test split writes the cache where xvoe score reads it
+    assert main(["encode", "--model", "plato", "--data", str(theirs), "--out", str(tmp_path), "--quiet"]) == 0
+    shipped_key = perception_identity(load_perception("plato")[0])
+    made = split_cache(theirs, shipped_key)
+    assert made.is_file()
+    shutil.copy(made, split_cache(ours, shipped_key))           # a cache of another split under our name
+    score = ["score", "--out", str(tmp_path / "s.csv"), "--quiet"]
+    err = refused(score + ["--model", "plato", "--data", str(ours)], tmp_path, capsys)
+    assert f"was encoded from {theirs}" in err and f"not from {ours}" in err
+    # a perception module with one weight changed, beside a copy of plato: another perception
+    other = tmp_path / "other"
+    other.mkdir()
+    state = torch.load(perception, weights_only=False)
+    first = next(iter(state["model"]))
+    state["model"][first] = state["model"][first] + 1e-3
+    torch.save(state, other / "perception.pt")
+    shutil.copy(shipped_path("plato"), other / "plato.pt")
+    err = refused(score + ["--model", str(other / "plato.pt"), "--data", str(theirs), "--cache", str(made)],
+                  tmp_path, capsys)
+    assert "was encoded by another perception module" in err and shipped_key in err
+    # its own cache has a name of its own beside the split: both perceptions score the split
+    assert main(score + ["--model", str(other / "plato.pt"), "--data", str(theirs)]) == 0
+    assert split_cache(theirs, perception_identity(load_perception(other)[0])).is_file()
