@@ -9,8 +9,9 @@ Scores the split (`xvoe score`; with `--surprise both` for an XPL model with rea
 --seeds), then prints the card of xvoe.evaluation.scorecard: comparative accuracy per setting
 under the default verdict (`score`, the goals), the paper's score (`paper_score`), the excess,
 the NLL and the NLL excess, each with its 95% interval over pairs and the permutation p-value against 50%; the
-S3 - S2 gap; holistic AUC; hidden_iou and mae_iou on --pairs videos; the NLL's p_hidden, ESS
-and repeatability; the perception's PSNR and position probe on --frames (a train-type split
+S3 - S2 gap under the default verdict and the NLL; holistic AUC; hidden_iou and mae_iou on --pairs
+videos; the NLL's p_hidden, ESS, p_two (two identical objects) and what both make of each S2
+member, and its repeatability; the perception's PSNR and position probe on --frames (a train-type split
 the model was not trained on); XPL's S3 lead over each of --baselines; videos per second.
 `--against CARD` (the shipped model's --json on the same split) applies the shipping rule
 (docs/design.md, "Recipes, choosing and shipping") and prints its verdict. Choose on validation

@@ -8,6 +8,7 @@ from xvoe.evaluation.scorecard import (
     Line,
     compare,
     format_line,
+    hypotheses_in_s2,
     identity_lines,
     lead_lines,
     read_card,
@@ -149,3 +150,9 @@ def test_the_identity_lines_count_the_videos_only_two_objects_explain_and_those_
     assert said.value == pytest.approx(75.0) and said.target == TWO_SAID and not said.met
     assert denied.value == pytest.approx(75.0) and denied.target == TWO_DENIED
     assert said.low <= said.value <= said.high
+    scores["p_hidden"] = np.array([0.0, 0.0, 0.0, 0.0, 0.9, 0.0, 0.0, 0.0, 0.0, 0.0, 0.6])
+    shares = {line.name: line.value for line in hypotheses_in_s2(scores)}
+    assert shares["S2 continuity member 1: two objects (% of videos)"] == pytest.approx(75.0)
+    assert shares["S2 continuity member 0: a hidden object (% of videos)"] == 100.0
+    assert shares["S2 collision member 0: a hidden object (% of videos)"] == 100.0
+    assert "S2 collision member 1: two objects (% of videos)" not in shares         # no such videos

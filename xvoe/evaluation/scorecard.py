@@ -34,6 +34,7 @@ from .score import Scorer
 
 LABELS = {"score": "MSE verdict", "paper_score": "paper's MSE score", "excess": "MSE excess", "nll": "NLL",
           "nll_excess": "NLL excess"}
+GAP_PREFIX = {"score": "", "nll": "NLL "}     # the paper's "gap", under the default verdict and the NLL
 ROLES = ("xpl", "baseline", "random", "reported")     # which of the goals a model's lines carry
 ROLE_OF = {"plato": "baseline", "phydnet": "baseline", "random": "random", "xpl-noresidual": "reported"}
 XPL_ACCURACY, BASELINE_ACCURACY, LEAD = 97.0, 90.0, 20.0      # percent
@@ -141,10 +142,10 @@ def score_lines(scores: dict[str, np.ndarray], role: str = "xpl", rounds: int = 
                 target, direction = _accuracy_goal(role, column, setting)
                 lines.append(_percent(f"{LABELS[column]} {scenario} {setting} comparative (%)", estimate, target,
                                       direction))
-        if column == "score":
+        if column in GAP_PREFIX:
             for scenario in (s for s in SCENARIOS if (s, "S3") in accuracy and (s, "S2") in accuracy):
                 gap = 100 * (accuracy[scenario, "S3"].value - accuracy[scenario, "S2"].value)
-                lines.append(Line(f"S3 - S2 gap {scenario} (points)", gap))
+                lines.append(Line(f"{GAP_PREFIX[column]}S3 - S2 gap {scenario} (points)", gap))
         target = NLL_EXCESS_AUC if column == "nll_excess" and role == "xpl" else None
         for scenario, estimate in holistic(scores, column, rounds, seed).items():
             lines.append(Line(f"{LABELS[column]} {scenario} holistic AUC", estimate.value, estimate.low,
@@ -190,7 +191,7 @@ def nll_lines(scores: dict[str, np.ndarray], file: h5py.File, repeat: dict[str, 
         lines.append(Line("p_hidden < 0.5 on all-seen videos (%)", 100 * denied.mean(),
                           *(100 * np.array(values_interval(denied, rounds=rounds, seed=seed)))))
     if "p_two" in scores:
-        lines += identity_lines(scores, rounds, seed)
+        lines += identity_lines(scores, rounds, seed) + hypotheses_in_s2(scores)
     if repeat is not None:
         difference = np.abs(scores["nll"] - repeat["nll"])
         lines.append(Line("NLL repeatability, two seeds, median (nats)", float(np.median(difference)),
@@ -216,6 +217,21 @@ def identity_lines(scores: dict[str, np.ndarray], rounds: int = 1000, seed: int 
         denied = scores["p_two"][one] < 0.5
         lines.append(Line("p_two < 0.5 on S1 and S3 possible videos (%)", 100 * denied.mean(),
                           *(100 * np.array(values_interval(denied, rounds=rounds, seed=seed))), TWO_DENIED))
+    return lines
+
+
+def hypotheses_in_s2(scores: dict[str, np.ndarray]) -> list[Line]:
+    """What the NLL's hypotheses make of each S2 setting, member by member (reported, no goal):
+    the share of videos it explains by a hidden object and by two identical objects."""
+    lines = []
+    for scenario in SCENARIOS:
+        for member in (0, 1):
+            chosen = (scores["scenario"].astype(str) == scenario) & (scores["setting"].astype(str) == "S2") & (
+                scores["member"] == member)
+            if chosen.any():
+                for column, what in (("p_hidden", "a hidden object"), ("p_two", "two objects")):
+                    share = 100 * float((scores[column][chosen] > 0.5).mean())
+                    lines.append(Line(f"S2 {scenario} member {member}: {what} (% of videos)", share))
     return lines
 
 
