@@ -1,4 +1,4 @@
-"""Time of one training or scoring step of a preset's models, against the TensorFlow reference.
+"""Time of one training or scoring step of a preset's models, against what this machine can do.
 
 Three stages, on random inputs of the right shapes (8 slots, 15-frame videos) and freshly built
 models (untrained weights cost the same as trained ones):
@@ -9,25 +9,29 @@ models (untrained weights cost the same as trained ones):
               particles), per video, on frames with one slot never seen (a hidden object's); its work
               hangs on the video (a pilot run may spare the full one, a sure existence head skips
               the pilot), so on random frames it is one draw; nll-least: the smallest pilot run
-              alone, nll-most: every pilot and then the full run; no reference
+              alone, nll-most: every pilot and then the full run
   phydnet     one training step of the PhyDNet baseline with the recipe's first ConvLSTM kernel, per
-              video (phydnet-widened: with the kernel its widening phase gives it); no reference
-Each stage runs `--warmup` steps, then `--repeats` timed ones; it prints the median wall time
-per item and the median CPU time (all threads: on a loaded machine it moves less than the wall
-time), the minor page faults and the kernel share (system / (user + system) CPU time) per
-step, the peak resident memory, and the wall time over the reference's ("vs ref"; the goal is
-below 0.5x at the paper preset). The reference (TensorFlow, 2 threads, a 32-channel decoder):
-383 ms per 128x128 frame, 539 ms per video, 881 ms per video.
+              video (phydnet-widened: with the kernel its widening phase gives it)
+Each stage is built once and timed at every thread count of `--threads` (default 1 and 2) in
+turn: `--warmup` steps, then `--repeats` timed ones. Per stage and thread count it prints the
+median wall time per item, the median CPU time (all threads), the minor page faults and the
+kernel share (system / (user + system) CPU time) per step, and, from the step's true counts
+(xvoe.evaluation.operations: torch's FlopCounterMode with the CPU flash attention and the fused
+LSTM layer registered; "torch GMAC" is what FlopCounterMode counts alone), its multiply-
+accumulates per wall-clock second and their fraction of a 2048x2048 float32 matrix product's
+rate, measured in this process at the same thread count ("of product"), and its items per second
+at N threads over those at 1 ("x 1 thread").
 
-It also counts each step's multiply-accumulates (xvoe.evaluation.operations: torch's
-FlopCounterMode with the CPU flash attention and the fused LSTM layer registered; matrix
-products, convolutions and attention, forward and backward; "torch GMAC" is what FlopCounterMode
-counts alone) and sets them against this machine's own rate: a large matrix product timed in the
-same process ("peak"). `--count-only` prints the counts without timing anything. Rates are per
-core, multiply-accumulates per CPU second, so that other jobs on the machine move them little.
-"goal needs" is the rate per core at which our step would have to run on --threads cores for
-half the reference's time: above the peak, the goal cannot be met by making the step faster,
-only by a step with fewer operations.
+The goals (docs/design.md, "Goals") are printed beside them: at 1 thread >= 80% of the product's
+rate for a step bound by arithmetic, and at N threads >= 0.9 N times the 1-thread throughput
+(1.8x at 2). A step is bound by memory when its bytes moved take longer at the machine's
+bandwidth than its multiply-accumulates at the product's rate; it is then held to the bandwidth
+instead. The bandwidth is a large tensor copy's (bytes read and written per wall second) at the
+same thread count; the bytes are those its operations read and write, counted with the
+multiply-accumulates (xvoe.evaluation.operations says what that leaves out: a lower bound on
+traffic). A step below 30% of the product's rate gets a note: how much of its time its bytes at
+the bandwidth explain. The figures are wall clock: other jobs on the machine move them, so only
+an idle machine's are results. `--count-only` prints the counts without timing anything.
 
     python benchmarks/steps.py --recipe paper --decoder-channels 32
     python benchmarks/steps.py --recipe cpu-short --stages score
@@ -43,7 +47,7 @@ import argparse
 import resource
 import statistics
 import time
-from dataclasses import replace
+from dataclasses import dataclass, replace
 
 import numpy as np
 import torch
@@ -62,7 +66,6 @@ from xvoe.training.latents import encode_frames
 from xvoe.training.recipes import recipe
 from xvoe.training.xpl import LatentBatch
 
-REFERENCE_MS = {"perception": 383.0, "xpl": 539.0, "score": 881.0}   # TensorFlow, 2 threads, this machine
 UNIT = {"perception": "frame", "xpl": "video", "score": "video", "nll": "video", "phydnet": "video"}
 SLOTS, FRAMES = 8, 15
 
@@ -174,12 +177,9 @@ def nll_most(settings: InferenceConfig) -> InferenceConfig:
     return replace(settings, smc_pilot_skip_exists=1.0, smc_pilot_margin=1e12)
 
 
-def matmul_peak(size: int = 2048, repeats: int = 5) -> float:
-    """GMAC per CPU second of a large float32 matrix product: the fastest one core runs the
-    operations the steps are made of (median CPU time over repeats, after one warm-up)."""
-    generator = torch.Generator().manual_seed(0)
-    a, b = (torch.randn(size, size, generator=generator) for _ in range(2))
-    return size ** 3 / measure(lambda: a @ b, 1, repeats)["cpu"] / 1e9
+# the goals (docs/design.md, "Goals"): a share of the product's rate (or of the bandwidth, for a
+# step bound by memory) at 1 thread, and of perfect scaling at N threads
+GOAL_SHARE, GOAL_SCALING, FAR_BELOW = 0.8, 0.9, 0.3
 
 
 def measure(step, warmup: int, repeats: int) -> dict[str, float]:
@@ -202,51 +202,120 @@ def measure(step, warmup: int, repeats: int) -> dict[str, float]:
             "kernel": system / max(1e-9, user + system)}
 
 
+@dataclass(frozen=True)
+class Machine:
+    """What this process gets from the machine at one thread count: the two ceilings of a step."""
+
+    threads: int
+    product_rate: float     # GMAC per wall second of a 2048x2048 float32 matrix product
+    bandwidth: float        # GB per wall second read and written by a large tensor copy
+
+
+def matmul_rate(size: int = 2048, repeats: int = 5) -> float:
+    """GMAC per wall second of a large float32 matrix product: the fastest the operations the
+    steps are made of run here (median over repeats, after one warm-up)."""
+    generator = torch.Generator().manual_seed(0)
+    a, b = (torch.randn(size, size, generator=generator) for _ in range(2))
+    return size ** 3 / measure(lambda: a @ b, 1, repeats)["wall"] / 1e9
+
+
+def copy_bandwidth(megabytes: int = 256, repeats: int = 5) -> float:
+    """GB per wall second a copy of a tensor far larger than the caches reads and writes."""
+    source = torch.ones(megabytes * 2**20 // 4)
+    target = torch.empty_like(source)
+    return 2 * source.nbytes / measure(lambda: target.copy_(source), 1, repeats)["wall"] / 1e9
+
+
+def machine(threads: int) -> Machine:
+    torch.set_num_threads(threads)
+    return Machine(threads, matmul_rate(), copy_bandwidth())
+
+
 def gaps(counted: Operations) -> str:
     """A warning after a row whose count misses a product kernel (a new torch, another path)."""
     return f"  NOT COUNTED: {', '.join(sorted(counted.uncounted))}" if counted.uncounted else ""
 
 
-def timed_row(stage: str, found: dict[str, float], counted: Operations, items: int, threads: int,
-              peak: float) -> str:
-    """One stage's line: times per item, the true and torch-counted GMAC, the rate and the goal."""
-    gmacs, ms = counted.gmacs / items, 1000 * found["wall"] / items
-    base = stage.split("-")[0]
-    if base in REFERENCE_MS:
-        needs = gmacs / (REFERENCE_MS[base] / 2 / 1000) / threads    # per core, for half the reference's time
-        versus, goal = f"{ms / REFERENCE_MS[base]:6.2f}x", f"{needs:7.1f} ({needs / peak:.1f}x peak)"
-    else:
-        versus, goal = f"{'-':>7}", f"{'-':>7}"
-    return (f"{stage:<15} {ms:9.1f} {1000 * found['spread'] / items:6.1f} {versus} "
-            f"{1000 * found['cpu'] / items:12.1f} {found['faults']:12.0f} {found['kernel']:7.1%} "
-            f"{gmacs:10.2f} {counted.torch_gmacs / items:10.2f} {gmacs / (found['cpu'] / items):10.1f} {goal}  "
-            f"{items} {UNIT[base]}s")
+def bound_by_memory(counted: Operations, at: Machine) -> bool:
+    """The roofline: its bytes at the bandwidth take longer than its products at the product's rate."""
+    return counted.gigabytes / at.bandwidth > counted.gmacs / at.product_rate
+
+
+def goal(counted: Operations, at: Machine, seconds: float, one_thread: float | None) -> str:
+    """The goal that applies at this thread count, and whether the step meets it."""
+    if at.threads == 1:
+        memory = bound_by_memory(counted, at)
+        share = counted.gigabytes / seconds / at.bandwidth if memory else counted.gmacs / seconds / at.product_rate
+        target = f">= {GOAL_SHARE:.0%} of {'bandwidth' if memory else 'product'}"
+        return f"{target}: {'met' if share >= GOAL_SHARE else 'missed'}"
+    if one_thread is None:
+        return "-"
+    wanted = GOAL_SCALING * at.threads
+    return f">= {wanted:.1f}x 1 thread: {'met' if one_thread / seconds >= wanted else 'missed'}"
+
+
+def far_below(counted: Operations, at: Machine, seconds: float) -> str:
+    """Under FAR_BELOW of the product's rate: how much of the step's time its traffic explains."""
+    if counted.gmacs / seconds >= FAR_BELOW * at.product_rate:
+        return ""
+    memory_ms, arithmetic_ms = 1000 * counted.gigabytes / at.bandwidth, 1000 * counted.gmacs / at.product_rate
+    rest = 1000 * seconds - max(memory_ms, arithmetic_ms)
+    return (f"\n{'':<15} far below the product: of its {1000 * seconds:.1f} ms a step, its "
+            f"{counted.gigabytes:.3f} GB at {at.bandwidth:.1f} GB/s take {memory_ms:.1f}, its MACs at the "
+            f"product's rate {arithmetic_ms:.1f}; the other {rest:.1f} ms neither bounds (many small "
+            f"operations, the threads' waits)")
+
+
+HEADER = (f"{'stage':<15} {'threads':>7} {'ms/item':>9} {'+-':>6} {'cpu ms/item':>12} {'faults/step':>12} "
+          f"{'kernel':>7} {'GMAC/item':>10} {'torch GMAC':>10} {'GMAC/s':>8} {'of product':>10} "
+          f"{'GB/item':>8} {'GB/s':>6} {'of bandwidth':>12} {'x 1 thread':>10} {'bound':>6}  goal  items/step")
+
+
+def timed_row(stage: str, found: dict[str, float], counted: Operations, items: int, at: Machine,
+              one_thread: float | None) -> str:
+    """One stage's line at one thread count: times per item, rates against the machine, the goal."""
+    seconds, per_item = found["wall"], 1000 / items
+    scaling = f"{one_thread / seconds:9.2f}x" if one_thread is not None and at.threads > 1 else f"{'-':>10}"
+    return (f"{stage:<15} {at.threads:7d} {per_item * seconds:9.1f} {per_item * found['spread']:6.1f} "
+            f"{per_item * found['cpu']:12.1f} {found['faults']:12.0f} {found['kernel']:7.1%} "
+            f"{counted.gmacs / items:10.3f} {counted.torch_gmacs / items:10.3f} {counted.gmacs / seconds:8.1f} "
+            f"{counted.gmacs / seconds / at.product_rate:10.1%} {counted.gigabytes / items:8.3f} "
+            f"{counted.gigabytes / seconds:6.1f} {counted.gigabytes / seconds / at.bandwidth:12.1%} {scaling} "
+            f"{'memory' if bound_by_memory(counted, at) else 'MACs':>6}  {goal(counted, at, seconds, one_thread)}  "
+            f"{items} {UNIT[stage.split('-')[0]]}s{gaps(counted)}{far_below(counted, at, seconds)}")
+
+
+def thread_counts(text: str) -> list[int]:
+    """`--threads`: positive whole numbers, comma-separated."""
+    try:
+        counts = [int(part) for part in text.split(",")]
+    except ValueError:
+        counts = []
+    if not counts or min(counts) < 1:
+        raise argparse.ArgumentTypeError(f"expected thread counts such as 1,2, got {text!r}")
+    return counts
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--recipe", default="paper")
-    parser.add_argument("--decoder-channels", type=int, default=0, help="override the recipe's (reference: 32)")
+    parser.add_argument("--decoder-channels", type=int, default=0, help="override the recipe's")
     parser.add_argument("--stages", default="perception,xpl,score")
     parser.add_argument("--frames", type=int, default=4, help="frames per perception step")
     parser.add_argument("--videos", type=int, default=8, help="videos per XPL step")
     parser.add_argument("--score-videos", type=int, default=2, help="videos per scoring pass")
     parser.add_argument("--phydnet-videos", type=int, default=8, help="videos per PhyDNet step (the recipes' 8)")
-    parser.add_argument("--threads", type=int, default=2)
+    parser.add_argument("--threads", type=thread_counts, default=[1, 2], help="thread counts, timed in turn")
     parser.add_argument("--warmup", type=int, default=2)
     parser.add_argument("--repeats", type=int, default=5)
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--count-only", action="store_true", help="count the operations, time nothing")
     args = parser.parse_args()
 
-    torch.set_num_threads(args.threads)
-    torch.manual_seed(args.seed)
     chosen = recipe(args.recipe)
     perception = chosen.perception
     if args.decoder_channels:
         perception = replace(perception, decoder_channels=args.decoder_channels)
-    print(f"recipe {args.recipe}: {perception.image_size}px, decoder {perception.decoder_channels} channels, "
-          f"{args.threads} threads, allocator tuned: {allocator.tuned()}, torch {torch.__version__}")
     builders = {"perception": lambda rng: (perception_step(perception, args.frames, rng), args.frames),
                 "xpl": lambda rng: (xpl_step(chosen.xpl, args.videos, rng), args.videos),
                 "score": lambda rng: (score_step(perception, chosen.xpl, args.score_videos, rng), args.score_videos),
@@ -256,25 +325,42 @@ def main() -> None:
                 "phydnet": lambda rng: (phydnet_step(chosen.phydnet, args.phydnet_videos, rng), args.phydnet_videos),
                 "phydnet-widened": lambda rng: (phydnet_step(chosen.final_phydnet(), args.phydnet_videos, rng),
                                                 args.phydnet_videos)}
+    stages = args.stages.split(",")
+    unknown = [stage for stage in stages if stage not in builders]
+    if unknown:
+        parser.error(f"unknown stage {', '.join(unknown)}; known: {', '.join(builders)}")
+
+    torch.manual_seed(args.seed)
+    torch.set_num_threads(args.threads[0])
+    print(f"recipe {args.recipe}: {perception.image_size}px, decoder {perception.decoder_channels} channels, "
+          f"threads {','.join(map(str, args.threads))}, allocator tuned: {allocator.tuned()}, "
+          f"torch {torch.__version__}")
     if args.count_only:
-        print(f"{'stage':<15} {'GMAC/item':>10} {'torch GMAC':>10}  items/step")
-        for stage in args.stages.split(","):
+        print(f"{'stage':<15} {'GMAC/item':>10} {'torch GMAC':>10} {'GB/item':>8}  items/step")
+        for stage in stages:
             torch.manual_seed(args.seed)    # the same weights, so the NLL's path, whichever stages ran before
             step, items = builders[stage](np.random.default_rng(args.seed))
             counted = count_operations(step)
-            print(f"{stage:<15} {counted.gmacs / items:10.3f} {counted.torch_gmacs / items:10.3f}  "
-                  f"{items} {UNIT[stage.split('-')[0]]}s{gaps(counted)}", flush=True)
+            print(f"{stage:<15} {counted.gmacs / items:10.3f} {counted.torch_gmacs / items:10.3f} "
+                  f"{counted.gigabytes / items:8.3f}  {items} {UNIT[stage.split('-')[0]]}s{gaps(counted)}", flush=True)
         return
-    peak = matmul_peak()
-    print(f"peak: a 2048x2048 matrix product runs at {peak:.1f} GMAC per CPU second")
-    print(f"{'stage':<15} {'ms/item':>9} {'+-':>6} {'vs ref':>7} {'cpu ms/item':>12} {'faults/step':>12} "
-          f"{'kernel':>7} {'GMAC/item':>10} {'torch GMAC':>10} {'GMAC/cpu-s':>10} {'goal needs':>11}  items/step")
-    for stage in args.stages.split(","):
+    machines = [machine(threads) for threads in args.threads]
+    for at in machines:
+        print(f"{at.threads} thread(s): a 2048x2048 matrix product runs at {at.product_rate:.1f} GMAC/s, "
+              f"a large copy moves {at.bandwidth:.1f} GB/s")
+    print(f"goals: at 1 thread >= {GOAL_SHARE:.0%} of the product's rate (of the bandwidth for a step bound "
+          f"by memory); at N threads >= {GOAL_SCALING} N x the 1-thread items per second")
+    print(HEADER)
+    for stage in stages:
         torch.manual_seed(args.seed)        # the same weights whichever stages ran before
+        torch.set_num_threads(args.threads[0])
         step, items = builders[stage](np.random.default_rng(args.seed))
-        found = measure(step, args.warmup, args.repeats)
-        counted = count_operations(step)
-        print(timed_row(stage, found, counted, items, args.threads, peak) + gaps(counted), flush=True)
+        counted, one_thread = count_operations(step), None
+        for at in machines:
+            torch.set_num_threads(at.threads)
+            found = measure(step, args.warmup, args.repeats)
+            one_thread = found["wall"] if at.threads == 1 else one_thread
+            print(timed_row(stage, found, counted, items, at, one_thread), flush=True)
     print(f"peak resident memory {resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2**20:.2f} GiB")
 
 

@@ -91,3 +91,20 @@ def test_a_product_without_formula_is_named():
             x, x, x, width, heads, qkv.weight, qkv.bias, proj.weight, proj.bias, need_weights=False))
     assert found.uncounted == {"aten._native_multi_head_attention"}
     assert found.macs == 0
+
+
+def test_linear_bytes_are_its_operands_and_output():
+    layer, x = nn.Linear(24, 40), torch.randn(6, 24)
+    # addmm reads the bias, the input and the weight (its transpose is a view) and writes the output
+    assert count_operations(lambda: layer(x)).bytes_moved == 4 * (40 + 6 * 24 + 24 * 40 + 6 * 40)
+
+
+def test_views_move_nothing_and_in_place_reads_and_writes():
+    x = torch.randn(100, 50)
+    assert count_operations(lambda: x.t().reshape(50, 100)).bytes_moved == 0
+    assert count_operations(lambda: x.mul_(2.0)).bytes_moved == 2 * 4 * 100 * 50
+
+
+def test_a_broadcast_operand_is_read_once():
+    x, row = torch.randn(100, 50), torch.randn(1, 50)
+    assert count_operations(lambda: x + row.expand(100, 50)).bytes_moved == 4 * (100 * 50 + 50 + 100 * 50)

@@ -8,6 +8,13 @@ what `scaled_dot_product_attention` runs for the ViT, Transformers 1 and 2 and t
 buffer) and the oneDNN LSTM layer (`aten.mkldnn_rnn_layer` and its backward, what `torch.lstm`
 runs for XPL's slot-wise LSTM). `EXTRA_FORMULAS` counts them from their shapes; elementwise work
 (activations, gates, softmax, norms) is counted by neither, as torch counts none.
+
+The same pass counts the bytes each operation reads and writes, to set a step bound by memory
+against the machine's bandwidth: the distinct elements of every tensor an aten operation takes
+and returns (a broadcast dimension once; an operation that writes into an argument counts it
+read and written). Views and bare allocations move nothing. Left out: what a kernel moves inside
+itself (a blocked matrix product reads its operands more than once; the flash attention keeps
+its scores in cache), and caches, which make a tensor read twice cost less than twice.
 """
 from __future__ import annotations
 
@@ -17,6 +24,7 @@ from math import prod
 
 import torch
 from torch.utils._python_dispatch import TorchDispatchMode
+from torch.utils._pytree import tree_leaves
 from torch.utils.flop_counter import FlopCounterMode, flop_registry
 
 aten = torch.ops.aten
@@ -108,14 +116,50 @@ class _Watch(TorchDispatchMode):
         return func(*args, **(kwargs or {}))
 
 
+# operations that only allocate: their output is written by the next operation, counted there
+ALLOCATIONS = frozenset({aten.empty, aten.empty_like, aten.empty_strided, aten.new_empty, aten.new_empty_strided})
+
+
+def tensor_bytes(tensor: torch.Tensor) -> int:
+    """Bytes of the distinct elements a tensor covers: a broadcast (stride 0) dimension once."""
+    if tensor.layout != torch.strided:
+        return tensor.numel() * tensor.element_size()
+    return tensor.element_size() * prod(size for size, stride in zip(tensor.shape, tensor.stride()) if stride)
+
+
+def moves_data(func) -> bool:
+    """False for a view (its output aliases an input it does not write) and a bare allocation."""
+    aliases = (value.alias_info for value in func._schema.returns)
+    is_view = any(alias is not None and not alias.is_write for alias in aliases)
+    return not is_view and func.overloadpacket not in ALLOCATIONS
+
+
+class _Traffic(TorchDispatchMode):
+    """Sums the bytes of the tensors each operation reads and writes (module docstring)."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.bytes = 0
+
+    def __torch_dispatch__(self, func, types, args=(), kwargs=None):
+        kwargs = kwargs or {}
+        out = func(*args, **kwargs)
+        if moves_data(func):
+            self.bytes += sum(tensor_bytes(leaf) for leaf in tree_leaves((args, kwargs, out))
+                              if isinstance(leaf, torch.Tensor))
+        return out
+
+
 @dataclass(frozen=True)
 class Operations:
-    """MACs of one run: `macs` all of them, `torch_macs` the part FlopCounterMode counts alone."""
+    """MACs of one run: `macs` all of them, `torch_macs` the part FlopCounterMode counts alone;
+    `bytes_moved` what its operations read and write (module docstring)."""
 
     macs: int
     torch_macs: int
     by_op: dict[str, int]       # MACs per aten operation
     uncounted: frozenset[str]   # operations that look like products but have no formula
+    bytes_moved: int = 0
 
     @property
     def gmacs(self) -> float:
@@ -125,21 +169,25 @@ class Operations:
     def torch_gmacs(self) -> float:
         return self.torch_macs / 1e9
 
+    @property
+    def gigabytes(self) -> float:
+        return self.bytes_moved / 1e9
+
 
 def count_operations(step: Callable[[], object]) -> Operations:
-    """MACs of one call of `step`, forward and backward. The Transformer's fused inference path
-    is switched off while counting: it runs the same products in an op no counter knows."""
+    """MACs and bytes moved of one call of `step`, forward and backward. The Transformer's fused
+    inference path is switched off while counting: it runs the same products in an op no counter knows."""
     counter = FlopCounterMode(display=False, custom_mapping=EXTRA_FORMULAS)
     counter.mod_tracker = _GlobalOnly()
     fastpath = torch.backends.mha.get_fastpath_enabled()
     torch.backends.mha.set_fastpath_enabled(False)
-    watch = _Watch(counter.flop_registry)
+    watch, traffic = _Watch(counter.flop_registry), _Traffic()
     try:
-        with counter, watch:
+        with counter, watch, traffic:     # traffic innermost: it sees each operation before the counter decomposes it
             step()
     finally:
         torch.backends.mha.set_fastpath_enabled(fastpath)
     flops = counter.get_flop_counts().get("Global", {})
     by_op = {str(op): count // 2 for op, count in flops.items()}
     torch_macs = sum(count for op, count in flops.items() if op in flop_registry) // 2
-    return Operations(sum(by_op.values()), torch_macs, by_op, frozenset(watch.uncounted))
+    return Operations(sum(by_op.values()), torch_macs, by_op, frozenset(watch.uncounted), traffic.bytes)
