@@ -11,10 +11,10 @@ import torch
 from conftest import randomise_dynamics_head
 
 import xvoe
-from xvoe.apps.cli import main
-from xvoe.benchmark import store
 from inference.model import InferenceConfig
 from inference.score import xpl_nll
+from xvoe.apps.cli import main
+from xvoe.benchmark import store
 from xvoe.benchmark.generate import GenerateConfig, generate
 from xvoe.evaluation import score as scoring
 from xvoe.evaluation.metrics import read_scores
