@@ -114,7 +114,7 @@ def hidden_object_scene(vae: ComponentVAE, xpl: XPL, mean: Tensor, visible: Tens
     drew them (`xvoe.evaluation.surprise.draw_scene`, a batch of one), drawn here where absent;
     the second version decodes only the two slots it changes."""
     if drawn is None:
-        drawn = draw_scene(vae, xpl, mean[None], visible[None], background[None], occluder[None])
+        drawn = draw_scene(vae, xpl, mean[None], visible[None], background[None], occluder[None], proposed=False)
     unseen = never_seen(visible[None])[0]
     hidden = int(drawn.slot[0]) if drawn.slot[0] >= 0 else int(unseen.float().argmax())
     identity = identity_gap(visible, occluder, hidden) if config.prior_two > 0 else None

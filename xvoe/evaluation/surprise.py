@@ -80,7 +80,7 @@ class DrawnScene:
     scale: Tensor        # (B, T, K, D) Transformer 2's scales, 0 outside `slot`
     slot: Tensor         # (B,) the proposed slot, -1 if none (or without reasoning)
     background: Tensor   # (B, T, 4, H, W) the background component's pictures
-    layers: Tensor       # (B, T, K, 4, H, W) the proposal's `scene_layers`: the seen slots and the proposed one
+    layers: Tensor       # (B, T, K, 4, H, W) the proposal's `scene_layers`: the seen slots (and the proposed one)
     walls: Tensor        # (B, T, 1, 1, H, W) the nearest wall's depth
 
     def seen_layers(self, blank: Tensor) -> Tensor:
@@ -103,16 +103,17 @@ class DrawnScene:
 
 @torch.no_grad()
 def draw_scene(vae: ComponentVAE, xpl: XPL, mean: Tensor, visible: Tensor, background: Tensor,
-               occluder: Tensor) -> DrawnScene:
-    """Refine, propose and decode a batch (arguments as `mse_surprise`'s): the proposal's
-    occupied slots and the background, each decoded once."""
+               occluder: Tensor, proposed: bool = True) -> DrawnScene:
+    """Refine, propose and decode a batch (arguments as `mse_surprise`'s): the background and
+    the seen slots, and the proposed slot unless `proposed` is False (the NLL's own drawing)."""
     refined = xpl.refine(mean, visible, occluder)
     if xpl.config.use_reasoning:
         proposal, scale, slot = xpl.explain(refined, visible)
     else:
         none = torch.full(mean.shape[:1], -1, dtype=torch.long, device=mean.device)
         proposal, scale, slot = refined, torch.zeros_like(refined), none
-    layers, walls = scene_layers(vae, proposal, occupied_slots(visible, slot), visible, occluder)
+    drawn = occupied_slots(visible, slot) if proposed else visible.any(dim=1)
+    layers, walls = scene_layers(vae, proposal, drawn, visible, occluder)
     return DrawnScene(refined, proposal, scale, slot, decode_background(vae, background), layers, walls)
 
 
