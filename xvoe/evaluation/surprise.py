@@ -85,7 +85,7 @@ class DrawnScene:
 
     def seen_layers(self, blank: Tensor) -> Tensor:
         """The `scene_layers` of what was seen alone: the proposed slot left `blank` (4, H, W).
-        No wall is proposed, so the walls and every other slot's picture stay as they are."""
+        It was never seen, so it draws no wall: the walls and every other picture stay as they are."""
         proposed = torch.arange(self.layers.shape[2], device=self.slot.device) == self.slot[:, None]
         return torch.where(proposed[:, None, :, None, None, None], blank, self.layers)
 
