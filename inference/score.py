@@ -12,6 +12,7 @@ from torch import Tensor
 from xvoe.domains import check_config
 from xvoe.errors import XvoeError
 from xvoe.evaluation.score import Scorer
+from xvoe.evaluation.surprise import DrawnScene
 from xvoe.models.config import field_type, parse_field, split_assignment, to_dict
 
 from .model import InferenceConfig, pixel_log_normaliser
@@ -48,18 +49,21 @@ def reference_nll(s_rec: np.ndarray, pixels: int, sigma: float) -> np.ndarray:
     return s_rec.sum(axis=1) / (2 * sigma ** 2) + pixel_log_normaliser(pixels * s_rec.shape[1], sigma)
 
 
-def xpl_nll(scorer: Scorer, batch: dict[str, Tensor], config: InferenceConfig, seed: int = 0) -> list[NLLSurprise]:
+def xpl_nll(scorer: Scorer, batch: dict[str, Tensor], config: InferenceConfig, seed: int = 0,
+            drawn: DrawnScene | None = None) -> list[NLLSurprise]:
     """The NLL surprise of each encoded video (`encode_videos`) under the Pyro hidden-object model,
-    each from its own generator seeded `seed`, so that a video's score does not hang on the others'."""
+    each from its own generator seeded `seed`, so that a video's score does not hang on the others';
+    `drawn`: the batch as the MSE score drew it (`xvoe.evaluation.surprise.draw_scene`), if it has."""
     return [nll_surprise(scorer.vae, scorer.xpl, batch["frames"][i], batch["mean"][i], batch["visible"][i],
-                         batch["background"][i], batch["occluder"][i], config, seed=seed)
+                         batch["background"][i], batch["occluder"][i], config, seed=seed,
+                         drawn=None if drawn is None else drawn.video(i))
             for i in range(len(batch["mean"]))]
 
 
 class NLLColumns:
     """The columns nll, ess, p_hidden, p_two and nll_excess of a score file (xvoe.evaluation.score's
     ExtraColumns), and the curve nll, -log p(x_t | x_<t) (the SMC's; importance sampling keeps
-    none): one Pyro estimate per video, from the batch the MSE score encoded."""
+    none): one Pyro estimate per video, from the batch the MSE score encoded and drew."""
 
     names = ("nll", "ess", "p_hidden", "p_two", "nll_excess")
 
@@ -80,8 +84,8 @@ class NLLColumns:
     def curve_names(self) -> tuple[str, ...]:
         return ("nll",) if self.config.method == "smc" else ()
 
-    def batch(self, scorer: Scorer, videos: dict[str, Tensor]) -> tuple[np.ndarray, np.ndarray]:
-        found = xpl_nll(scorer, videos, self.config, self.seed)
+    def batch(self, scorer: Scorer, videos: dict[str, Tensor], scene: DrawnScene) -> tuple[np.ndarray, np.ndarray]:
+        found = xpl_nll(scorer, videos, self.config, self.seed, scene)
         values = np.array([(f.nll, f.ess, f.p_hidden, f.p_two) for f in found], dtype=float).reshape(-1, 4)
         if not self.curve_names:
             return values, np.zeros((0, len(found), videos["frames"].shape[1]))

@@ -11,8 +11,10 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
+from xvoe.evaluation.surprise import DrawnScene, draw_scene
 from xvoe.models.perception import ComponentVAE
 from xvoe.models.reasoning import never_seen
+from xvoe.models.slots import redraw_slots
 from xvoe.models.xpl import XPL
 
 from .identity import Identity, identity_gap, two_objects
@@ -71,19 +73,20 @@ def defensive(p_exists: Tensor, particles: int) -> Tensor:
 @torch.no_grad()
 def nll_surprise(vae: ComponentVAE, xpl: XPL, frames: Tensor, mean: Tensor, visible: Tensor, background: Tensor,
                  occluder: Tensor, config: InferenceConfig, method: str | None = None,
-                 seed: Seed = 0) -> NLLSurprise:
+                 seed: Seed = 0, drawn: DrawnScene | None = None) -> NLLSurprise:
     """One video: frames (T, 4, H, W) in [-1, 1]; mean (T, K, D); visible (T, K) bool;
     background (T, D) latents; occluder (K,) bool. The guide proposes the hidden object's
     trajectory from Transformer 2's mean (moved out of sight, `refine_out_of_sight`) and scale,
     and (importance sampling) its existence from XPL's amortised existence probability.
 
     method: "smc" or "importance" (None: config.method). seed: an int or a torch.Generator;
-    the global random state is neither read nor changed."""
+    the global random state is neither read nor changed. drawn: this video's scene as the MSE
+    score drew it (`hidden_object_scene`)."""
     method = config.method if method is None else method
     if method not in ("smc", "importance"):
         raise ValueError(f"method must be smc or importance, not {method!r}")
     generator = generator_from(seed)
-    scene, loc, spread, free = hidden_object_scene(vae, xpl, mean, visible, background, occluder, config)
+    scene, loc, spread, free = hidden_object_scene(vae, xpl, mean, visible, background, occluder, config, drawn)
     hidden = scene.hidden
     p_exists = torch.sigmoid(xpl.existence_logit(loc[None], spread[None]))[0] if free else mean.new_zeros(())
     if free and config.refine_steps:
@@ -101,23 +104,30 @@ def nll_surprise(vae: ComponentVAE, xpl: XPL, frames: Tensor, mean: Tensor, visi
 
 
 def hidden_object_scene(vae: ComponentVAE, xpl: XPL, mean: Tensor, visible: Tensor, background: Tensor,
-                        occluder: Tensor, config: InferenceConfig) -> tuple[XPLScene, Tensor, Tensor, bool]:
+                        occluder: Tensor, config: InferenceConfig,
+                        drawn: DrawnScene | None = None) -> tuple[XPLScene, Tensor, Tensor, bool]:
     """One video's scene for the Pyro model (arguments as `nll_surprise`'s), with the
     two-object explanation as its second version where a seen object goes out of sight and comes
     back (and config.prior_two > 0); Transformer 2's mean and scale (T, D) for the hidden slot
     (the one it explained, else the first never-seen one), and whether any slot is free for a
-    hidden object."""
-    refined = xpl.refine(mean[None], visible[None], occluder[None])
-    explained, scale, slot = xpl.explain(refined, visible[None])
+    hidden object. drawn: the video's refined latents, proposal and pictures as the MSE score
+    drew them (`xvoe.evaluation.surprise.draw_scene`, a batch of one), drawn here where absent;
+    the second version decodes only the two slots it changes."""
+    if drawn is None:
+        drawn = draw_scene(vae, xpl, mean[None], visible[None], background[None], occluder[None], proposed=False)
     unseen = never_seen(visible[None])[0]
-    hidden = int(slot[0]) if slot[0] >= 0 else int(unseen.float().argmax())
+    hidden = int(drawn.slot[0]) if drawn.slot[0] >= 0 else int(unseen.float().argmax())
     identity = identity_gap(visible, occluder, hidden) if config.prior_two > 0 else None
-    latents, seen = refined[0][None], visible[None]
+    latents, seen, layers = drawn.refined, visible[None], drawn.seen_layers(vae.blank()[0])
     if identity is not None:
-        two, two_seen = two_objects(refined[0], visible, identity)
-        latents, seen = torch.stack([refined[0], two]), torch.stack([visible, two_seen])
-    scene = XPLScene(vae, xpl, latents, vae.decode(background), seen, occluder, hidden, identity)
-    loc, spread = explained[0, :, hidden], scale[0, :, hidden].clamp_min(xpl.config.reasoning.min_scale)
+        two, two_seen = two_objects(drawn.refined[0], visible, identity)
+        changed = torch.zeros_like(occluder)
+        changed[[identity.slot, identity.second]] = True
+        two_layers = redraw_slots(vae, layers, two[None], changed[None], two_seen[None], occluder[None])
+        latents, seen = torch.stack([drawn.refined[0], two]), torch.stack([visible, two_seen])
+        layers = torch.cat([layers, two_layers])
+    scene = XPLScene(vae, xpl, latents, drawn.background[0], seen, occluder, hidden, identity, layers)
+    loc, spread = drawn.proposal[0, :, hidden], drawn.scale[0, :, hidden].clamp_min(xpl.config.reasoning.min_scale)
     return scene, loc, spread, bool(unseen.any())
 
 

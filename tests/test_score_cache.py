@@ -1,5 +1,6 @@
 """A test split encoded once: the latent cache `xvoe score` makes beside the split and every
-model of the same perception module reads, under every surprise definition."""
+model of the same perception module reads, under every surprise definition; and each batch
+drawn once, by the MSE score, for the NLL beside it."""
 import hashlib
 import shutil
 from pathlib import Path
@@ -10,10 +11,13 @@ import torch
 from conftest import randomise_dynamics_head
 
 import xvoe
+from inference.model import InferenceConfig
+from inference.score import xpl_nll
 from xvoe.apps.cli import main
 from xvoe.benchmark import store
 from xvoe.benchmark.generate import GenerateConfig, generate
 from xvoe.evaluation import score as scoring
+from xvoe.evaluation.metrics import read_scores
 from xvoe.models.dynamics import DynamicsConfig
 from xvoe.models.perception import ComponentVAE, PerceptionConfig
 from xvoe.models.reasoning import ReasoningConfig
@@ -78,6 +82,29 @@ def test_scores_from_the_cache_are_the_scores_without_it(tiny_split, tmp_path, m
         for key in curves:
             np.testing.assert_array_equal(found[name][1][key], curves[key], err_msg=f"{name} {key}")
     assert made[0] == expected["xpl"][0]
+
+
+def test_the_nll_beside_the_mse_score_is_the_nll_of_each_video_drawn_on_its_own(tiny_split, tmp_path):
+    """`--surprise both` hands each batch as the MSE score drew it (refined, proposed, decoded)
+    to the NLL, which draws nothing again: its columns and curve are those of each video drawn on
+    its own, as `xvoe explain` draws it. Within float rounding, not bitwise: the decoder's
+    convolutions may round a picture's last bit differently in a batch of another size."""
+    with store.open_dataset(tiny_split) as file:
+        scorer = tiny_scorer("xpl", file["states"].shape[2])
+        batches = [scoring.encode_videos(scorer, file, start, min(start + 16, len(file["rgbd"])))
+                   for start in range(0, len(file["rgbd"]), 16)]     # as `xvoe score` encodes them
+    path = xvoe.score(scorer, tiny_split, tmp_path / "both.csv", surprise="both", particles=4, cache=False,
+                      progress=False)
+    alone = [found for batch in batches for found in xpl_nll(scorer, batch, InferenceConfig(particles=4))]
+    # what is reused is tried: a proposed hidden object, and a second version of two identical objects
+    assert any(found.hidden_slot >= 0 for found in alone) and any(found.identity is not None for found in alone)
+    scores = read_scores(path)
+    for column in ("nll", "ess", "p_hidden", "p_two"):
+        np.testing.assert_allclose(scores[column], [getattr(found, column) for found in alone], rtol=1e-6,
+                                   atol=1e-9, err_msg=column)
+    with np.load(path.with_suffix(".curves.npz")) as curves:
+        np.testing.assert_allclose(curves["nll"], np.stack([found.frame_nll.numpy() for found in alone]),
+                                   rtol=1e-6, atol=1e-6)
 
 
 def shipped_or_skip() -> Path:

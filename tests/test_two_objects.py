@@ -13,6 +13,9 @@ from inference.identity import Identity, identity_gap, two_objects
 from inference.model import HiddenObjectModel, InferenceConfig, Proposal
 from inference.smc import empty_branch, smc_evidence
 from inference.surprise import hidden_object_scene, nll_surprise
+from inference.xpl_scene import XPLScene
+from xvoe.evaluation.surprise import draw_scene
+from xvoe.models.slots import WALL_PIXEL
 
 
 def seen(*rows: str) -> torch.Tensor:
@@ -72,6 +75,30 @@ def test_the_scene_has_a_two_object_version_where_a_seen_object_comes_back():
     assert not torch.equal(scene.empty(0), scene.empty(1))
     no_identity, _ = tiny_two_scene(prior_two=0.0)
     assert no_identity.versions == 1 and no_identity.identity is None
+
+
+def test_the_scene_drawn_in_a_batch_is_the_scene_drawn_for_the_video_alone():
+    """The NLL's scene of a video read from its batch as the MSE score drew it (`draw_scene`):
+    the seen slots' pictures with the proposed one left out, and the two-object version with
+    only its two slots decoded again, are the pictures `XPLScene` draws of its latents itself
+    (within the decoder's rounding in a batch of another size)."""
+    vae, xpl = tiny_models()
+    videos = two_object_video()[1:], video()[1:]      # mean, visible, background, occluder of two videos
+    config = InferenceConfig(prior_two=0.3)
+    with torch.no_grad():
+        vae.decoder.out.weight.normal_(0, 0.5)         # pictures at the walls' depth: the unseen stand behind them
+        vae.decoder.out.bias.copy_(torch.tensor([0.0, 0.0, 0.0, -0.5]))
+        drawn = draw_scene(vae, xpl, *(torch.stack(parts) for parts in zip(*videos)))
+        scene, loc, spread, free = hidden_object_scene(vae, xpl, *videos[0], config, drawn.video(0))
+        alone = XPLScene(vae, xpl, scene.refined, scene.background, scene.visible, videos[0][3], scene.hidden,
+                         scene.identity)
+        _, own_loc, own_spread, _ = hidden_object_scene(vae, xpl, *videos[0], config)
+    assert scene.versions == 2 and int(drawn.slot[0]) == scene.hidden != scene.identity.second and free
+    assert (alone.walls < WALL_PIXEL).any()
+    torch.testing.assert_close(scene.layers, alone.layers, rtol=0, atol=1e-6)
+    torch.testing.assert_close(scene.walls, alone.walls, rtol=0, atol=1e-6)
+    torch.testing.assert_close(scene.empty_frame(2), alone.empty_frame(2), rtol=0, atol=1e-6)
+    torch.testing.assert_close((loc, spread), (own_loc, own_spread), rtol=0, atol=1e-6)
 
 
 def test_the_model_and_guide_match_with_the_identity_site():

@@ -56,7 +56,7 @@ from ..training.phydnet import load_phydnet
 from ..training.xpl import load_xpl, nll_settings_of
 from .checks import check_batches, check_finite, check_spread, sample_rows
 from .metrics import excess
-from .surprise import aggregate, every_explanation
+from .surprise import DrawnScene, aggregate, draw_scene, every_explanation
 
 # score, s_img and s_dyn: the default verdict (for XPL, the better of two explanations); paper_score:
 # the paper's (XPL: always Transformer 2's proposal), the same for a model with no such choice
@@ -153,7 +153,7 @@ class Scorer:
         """Per-frame surprise (B, T), the protocol every model answers: s_img + s_dyn for XPL."""
         if self.custom is not None:
             return self.custom.surprise(videos)
-        curves = _xpl_curves(self, encode(self, videos))
+        curves, _ = _xpl_curves(self, encode(self, videos))
         prefix = "" if self.explanation == "better" else "paper_"
         return curves[f"{prefix}s_img"] + curves[f"{prefix}s_dyn"]
 
@@ -346,8 +346,9 @@ class ExtraColumns(Protocol):
     def check(self, scorer: Scorer) -> None:
         """A one-line XvoeError if the scorer cannot give these columns."""
 
-    def batch(self, scorer: Scorer, videos: dict[str, Tensor]) -> tuple[np.ndarray, np.ndarray]:
-        """Per-video values (B, C) of a batch of `encode_videos`, and its curves (len(curve_names), B, T)."""
+    def batch(self, scorer: Scorer, videos: dict[str, Tensor], scene: DrawnScene) -> tuple[np.ndarray, np.ndarray]:
+        """Per-video values (B, C) of a batch of `encode_videos`, and its curves (len(curve_names), B, T);
+        `scene`: what the MSE score drew of the batch (xvoe.evaluation.surprise.draw_scene)."""
 
     def finish(self, values: np.ndarray, curves: np.ndarray, size: int) -> np.ndarray:
         """The columns (N, len(names)) from every batch's values (N, C), the `CURVES` (5, N, T)
@@ -435,9 +436,10 @@ def score_rows(scorer: Scorer, file, first: int, last: int, videos_per_batch: in
             curves[[1, 4], rows] = custom_surprise(scorer, file, start, stop)
             continue
         batch = encode_videos(scorer, file, start, stop, latents)     # once, for every column
-        curves[:, rows] = torch.stack(list(_xpl_curves(scorer, batch).values())).cpu().numpy()
+        found_curves, scene = _xpl_curves(scorer, batch)
+        curves[:, rows] = torch.stack(list(found_curves.values())).cpu().numpy()
         if extra is not None:
-            found, found_curves = extra.batch(scorer, batch)
+            found, found_curves = extra.batch(scorer, batch, scene)
             values.append(found)
             extra_curves.append(found_curves)
     if extra is None:
@@ -675,13 +677,15 @@ def on_device(scorer: Scorer, videos: Videos, mean: Tensor, visible: Tensor, bac
     return {name: value.to(scorer.device) for name, value in batch.items()}
 
 
-def _xpl_curves(scorer: Scorer, batch: dict[str, Tensor]) -> dict[str, Tensor]:
+def _xpl_curves(scorer: Scorer, batch: dict[str, Tensor]) -> tuple[dict[str, Tensor], DrawnScene]:
     """The `CURVES` (B, T) of encoded videos (`encode_videos`) under XPL or PLATO, both
-    explanations from one set of decodes (s_rec is the same under both: it draws the seen slots)."""
+    explanations from one set of decodes (s_rec is the same under both: it draws the seen slots),
+    and the scene drawn, for the NLL to read rather than draw again."""
+    videos = (batch["mean"], batch["visible"], batch["background"], batch["occluder"])
     with mixed_precision(scorer.device):
-        found = every_explanation(scorer.vae, scorer.xpl, batch["frames"], batch["mean"], batch["visible"],
-                                  batch["background"], batch["occluder"])
+        scene = draw_scene(scorer.vae, scorer.xpl, *videos)
+        found = every_explanation(scorer.vae, scorer.xpl, batch["frames"], *videos, scene)
     default, paper = found["better"], found["proposal"]
     curves = {"s_img": default.s_img, "s_dyn": default.s_dyn, "s_rec": default.s_rec,
               "paper_s_img": paper.s_img, "paper_s_dyn": paper.s_dyn}
-    return {name: curve.float() for name, curve in curves.items()}
+    return {name: curve.float() for name, curve in curves.items()}, scene.full_precision()

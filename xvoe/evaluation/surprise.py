@@ -17,12 +17,14 @@ proposal; `explanation="better"` treats it as one explanation of two and scores 
 whichever leaves the smaller sum over frames, the proposal or the slot left empty, so that an
 object proposed where nothing is hidden costs nothing (docs/decisions.md, "The better of two
 explanations"). Decoding is the cost, so only occupied slots are decoded (seen at some frame, or
-the explained one), the decodes are shared by the two terms, and videos are scored in batches
-with no Python loop over frames.
+the explained one), the decodes are shared by the two terms and the two explanations, and videos
+are scored in batches with no Python loop over frames. What is drawn (`DrawnScene`) is handed on
+to the NLL's scene of the same videos (inference.surprise.hidden_object_scene).
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
+from collections.abc import Callable
+from dataclasses import dataclass, fields
 
 import torch
 from torch import Tensor
@@ -67,6 +69,54 @@ def explained_latents(xpl: XPL, mean: Tensor, visible: Tensor, occluder: Tensor,
     return refined, slot, occupied_slots(visible, slot)
 
 
+@dataclass
+class DrawnScene:
+    """A batch of videos as XPL explains them, drawn once: what both explanations of the MSE
+    score and the NLL's scene (inference.surprise.hidden_object_scene) read, so that neither
+    refines, proposes nor decodes again."""
+
+    refined: Tensor      # (B, T, K, D) Transformer 1's latents
+    proposal: Tensor     # (B, T, K, D) with Transformer 2's proposal in `slot`
+    scale: Tensor        # (B, T, K, D) Transformer 2's scales, 0 outside `slot`
+    slot: Tensor         # (B,) the proposed slot, -1 if none (or without reasoning)
+    background: Tensor   # (B, T, 4, H, W) the background component's pictures
+    layers: Tensor       # (B, T, K, 4, H, W) the proposal's `scene_layers`: the seen slots (and the proposed one)
+    walls: Tensor        # (B, T, 1, 1, H, W) the nearest wall's depth
+
+    def seen_layers(self, blank: Tensor) -> Tensor:
+        """The `scene_layers` of what was seen alone: the proposed slot left `blank` (4, H, W).
+        It was never seen, so it draws no wall: the walls and every other picture stay as they are."""
+        proposed = torch.arange(self.layers.shape[2], device=self.slot.device) == self.slot[:, None]
+        return torch.where(proposed[:, None, :, None, None, None], blank, self.layers)
+
+    def video(self, index: int) -> DrawnScene:
+        """Video `index` alone, a batch of one."""
+        return self._map(lambda tensor: tensor[index:index + 1])
+
+    def full_precision(self) -> DrawnScene:
+        """In float32: pictures drawn under bfloat16 autocast come out in bfloat16."""
+        return self._map(lambda tensor: tensor.float() if tensor.is_floating_point() else tensor)
+
+    def _map(self, change: Callable[[Tensor], Tensor]) -> DrawnScene:
+        return DrawnScene(*(change(getattr(self, field.name)) for field in fields(self)))
+
+
+@torch.no_grad()
+def draw_scene(vae: ComponentVAE, xpl: XPL, mean: Tensor, visible: Tensor, background: Tensor,
+               occluder: Tensor, proposed: bool = True) -> DrawnScene:
+    """Refine, propose and decode a batch (arguments as `mse_surprise`'s): the background and
+    the seen slots, and the proposed slot unless `proposed` is False (the NLL's own drawing)."""
+    refined = xpl.refine(mean, visible, occluder)
+    if xpl.config.use_reasoning:
+        proposal, scale, slot = xpl.explain(refined, visible)
+    else:
+        none = torch.full(mean.shape[:1], -1, dtype=torch.long, device=mean.device)
+        proposal, scale, slot = refined, torch.zeros_like(refined), none
+    drawn = occupied_slots(visible, slot) if proposed else visible.any(dim=1)
+    layers, walls = scene_layers(vae, proposal, drawn, visible, occluder)
+    return DrawnScene(refined, proposal, scale, slot, decode_background(vae, background), layers, walls)
+
+
 def occupied_slots(visible: Tensor, slot: Tensor) -> Tensor:
     """The slots (B, K) seen at some frame, and the explained one (-1: none)."""
     occupied = visible.any(dim=1)
@@ -88,31 +138,27 @@ def mse_surprise(vae: ComponentVAE, xpl: XPL, frames: Tensor, mean: Tensor, visi
 
 @torch.no_grad()
 def every_explanation(vae: ComponentVAE, xpl: XPL, frames: Tensor, mean: Tensor, visible: Tensor,
-                      background: Tensor, occluder: Tensor) -> dict[str, Surprise]:
-    """`mse_surprise` under each of EXPLANATIONS, from one set of decodes."""
-    return _explanations(vae, xpl, frames, mean, visible, background, occluder, True)
+                      background: Tensor, occluder: Tensor, scene: DrawnScene | None = None) -> dict[str, Surprise]:
+    """`mse_surprise` under each of EXPLANATIONS, from one set of decodes. `scene`: the batch
+    drawn already (`draw_scene` of these arguments), to hand it on to the NLL."""
+    return _explanations(vae, xpl, frames, mean, visible, background, occluder, True, scene)
 
 
 def _explanations(vae: ComponentVAE, xpl: XPL, frames: Tensor, mean: Tensor, visible: Tensor, background: Tensor,
-                  occluder: Tensor, better: bool) -> dict[str, Surprise]:
-    refined = xpl.refine(mean, visible, occluder)
-    none = torch.full(mean.shape[:1], -1, dtype=torch.long, device=mean.device)
-    proposal, _, slot = xpl.explain(refined, visible) if xpl.config.use_reasoning else (refined, None, none)
-    occupied = occupied_slots(visible, slot)
-    background_pictures = decode_background(vae, background, frames)
-    layers, walls = scene_layers(vae, proposal, occupied, visible, occluder)
-    proposed = Surprise(*_terms(vae, xpl, frames, background_pictures, proposal, layers, walls, occupied, visible,
-                                occluder), slot)
+                  occluder: Tensor, better: bool, scene: DrawnScene | None = None) -> dict[str, Surprise]:
+    if scene is None:
+        scene = draw_scene(vae, xpl, mean, visible, background, occluder)
+    slot, occupied = scene.slot, occupied_slots(visible, scene.slot)
+    proposed = Surprise(*_terms(vae, xpl, frames, scene.background, scene.proposal, scene.layers, scene.walls,
+                                occupied, visible, occluder), slot)
     if not better:
         return {"proposal": proposed}
     if not (slot >= 0).any():       # nothing proposed: one explanation
         return {"proposal": proposed, "better": proposed}
     # the same scene with the proposed slot empty: the other slots' pictures are the same, so only
     # the dynamics' prediction is decoded again
-    seen = visible.any(dim=1)
-    empty_layers = torch.where((occupied & ~seen)[:, None, :, None, None, None], vae.blank()[0], layers)
-    empty = Surprise(*_terms(vae, xpl, frames, background_pictures, refined, empty_layers, walls, seen, visible,
-                             occluder), none)
+    empty = Surprise(*_terms(vae, xpl, frames, scene.background, scene.refined, scene.seen_layers(vae.blank()[0]),
+                             scene.walls, visible.any(dim=1), visible, occluder), torch.full_like(slot, -1))
     return {"proposal": proposed, "better": better_explanation(empty, proposed)}
 
 
@@ -133,14 +179,14 @@ def latent_surprise(vae: ComponentVAE, xpl: XPL, frames: Tensor, refined: Tensor
                     background: Tensor, occluder: Tensor) -> tuple[Tensor, Tensor, Tensor]:
     """s_img, s_dyn and s_rec (B, T) of given refined latents (B, T, K, D) with occupied slots (B, K),
     as `mse_surprise` scores each explanation: any latents, e.g. the hidden objects' true ones."""
-    background_pictures = decode_background(vae, background, frames)
+    background_pictures = decode_background(vae, background)
     layers, walls = scene_layers(vae, refined, occupied, visible, occluder)
     return _terms(vae, xpl, frames, background_pictures, refined, layers, walls, occupied, visible, occluder)
 
 
-def decode_background(vae: ComponentVAE, background: Tensor, frames: Tensor) -> Tensor:
+def decode_background(vae: ComponentVAE, background: Tensor) -> Tensor:
     """The background component's pictures (B, T, 4, H, W) of its means (B, T, D)."""
-    return vae.decode(background.flatten(0, 1)).reshape(*background.shape[:2], *frames.shape[2:])
+    return vae.decode(background.flatten(0, 1)).unflatten(0, background.shape[:2])
 
 
 def _terms(vae: ComponentVAE, xpl: XPL, frames: Tensor, background_pictures: Tensor, refined: Tensor, layers: Tensor,

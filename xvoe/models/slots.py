@@ -43,7 +43,22 @@ def scene_layers(vae: ComponentVAE, refined: Tensor, occupied: Tensor, visible: 
     A wall stands in the nearest depth lane, so nothing hides it: unseen, it is out of the
     picture (lowered from above, or lifted away). Transformer 1 fills it there all the same, and
     a fill that draws a wall costs pixels that vary from one video to its partner."""
-    layers = decode_slots(vae, refined, occupied)
+    return _placed(vae, decode_slots(vae, refined, occupied), visible, occluder)
+
+
+def redraw_slots(vae: ComponentVAE, layers: Tensor, refined: Tensor, changed: Tensor, visible: Tensor,
+                 occluder: Tensor) -> Tensor:
+    """The `scene_layers` (B, T, K, 4, H, W) of latents `refined` (B, T, K, D) that differ from
+    those `layers` were drawn of only in the `changed` slots (B, K): only those are decoded. The
+    kept pictures are placed again, which leaves them as they were while the walls stay: exact
+    where no changed slot is a wall."""
+    redrawn = torch.where(changed[:, None, :, None, None, None], decode_slots(vae, refined, changed), layers)
+    return _placed(vae, redrawn, visible, occluder)[0]
+
+
+def _placed(vae: ComponentVAE, layers: Tensor, visible: Tensor, occluder: Tensor) -> tuple[Tensor, Tensor]:
+    """Decoded slot pictures with the unseen walls out of the picture and every unseen object
+    behind the walls, and the walls' `nearest_wall` depth (`scene_layers`)."""
     unseen_walls = (occluder[:, None, :] & ~visible)[..., None, None, None]
     layers = torch.where(unseen_walls, vae.blank()[0], layers)
     walls = nearest_wall(layers, occluder)
