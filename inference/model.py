@@ -16,9 +16,10 @@ bouncing back raises the likelihood.
 
 The model is written as Pyro's `SMCFilter` models are, an `init` and a `step` per frame, with
 every site in a `particles` plate that the caller opens; `model` runs them over the whole
-video. Each particle carries its explanation of the seen objects as the scene's `version`. The guide (`guide_init`, `guide_step`, `guide`) proposes `exists` from its own
-amortised probability, `two` from its prior, and each z_t from Transformer 2's per-frame Gaussian fused with the
-dynamics' step: the product of the two Gaussians, as if the former were a measurement of z_t
+video. Each particle carries its explanation of the seen objects as the scene's `version`. The
+guide (`guide_init`, `guide_step`, `guide`) proposes `exists` from its own amortised
+probability, `two` from its prior, and each z_t from Transformer 2's per-frame Gaussian fused
+with the dynamics' step: the product of the two Gaussians, as if the former were a measurement of z_t
 (the locally optimal proposal of a Kalman filter), its scale widened, since it says where the
 object is on the whole, not anew each frame, and a proposal narrower than the posterior misses
 part of the evidence. The trajectory sites are masked by `exists` in both model and guide, so a

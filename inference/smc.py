@@ -241,7 +241,7 @@ class Evidence:
     log_evidence_hidden: float    # log p^(x, a hidden object) (SMC; nan by importance sampling), -inf where none fits
     log_evidence_empty: float     # log p(x, no hidden object), exact (SMC; nan by importance sampling)
     p_hidden: float               # posterior probability of a hidden object
-    ess: float                    # ESS of the final weights (SMC: of the likelier explanation's run, all holding an object)
+    ess: float                    # ESS of the final weights (SMC: the likelier explanation's run, all holding one)
     min_ess: float                # the lowest ESS over frames, before resampling
     lineages: int                 # distinct first-frame ancestors of the final particles
     resamplings: int

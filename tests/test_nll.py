@@ -234,7 +234,8 @@ def test_the_scene_steps_the_dynamics_frame_by_frame_as_a_full_run_does():
     randomise_dynamics_head(xpl.dynamics)
     _, mean, visible, background, _ = video()
     with torch.no_grad():
-        scene = XPLScene(vae, xpl, mean[None], vae.decode(background), visible[None], torch.zeros(K, dtype=torch.bool), 3)
+        no_walls = torch.zeros(K, dtype=torch.bool)
+        scene = XPLScene(vae, xpl, mean[None], vae.decode(background), visible[None], no_walls, 3)
         trajectory, alive = torch.randn(6, T, D), torch.tensor([True, False, True, True, False, True])
         scenes = mean.expand(6, T, K, D).clone()
         scenes[alive, :, 3] = trajectory[alive]
@@ -251,7 +252,8 @@ def test_the_scene_composites_a_hidden_picture_as_the_full_softmax_does():
     vae, xpl = tiny_models()
     _, mean, visible, background, _ = video()
     with torch.no_grad():
-        scene = XPLScene(vae, xpl, mean[None], vae.decode(background), visible[None], torch.zeros(K, dtype=torch.bool), 3)
+        no_walls = torch.zeros(K, dtype=torch.bool)
+        scene = XPLScene(vae, xpl, mean[None], vae.decode(background), visible[None], no_walls, 3)
         pictures = vae.decode(torch.randn(2 * T, D)).reshape(2, T, 4, 16, 16)
         layers = scene.layers.expand(2, *scene.layers.shape[1:]).clone()
         layers[:, :, 3] = pictures

@@ -220,7 +220,8 @@ def test_the_sum_over_two_explanations_of_what_was_seen_matches_the_closed_form(
     branches = []
     for prior, background in ((1 - p_two, BACKGROUND), (p_two, other)):
         empty = torch.distributions.Normal(background, SIGMA).log_prob(frames).sum(1).cumsum(0)
-        branches += [math.log(prior * (1 - P)) + empty, math.log(prior * P) + kalman_frames(frames, background).cumsum(0)]
+        hidden = kalman_frames(frames, background).cumsum(0)
+        branches += [math.log(prior * (1 - P)) + empty, math.log(prior * P) + hidden]
     so_far = torch.logsumexp(torch.stack(branches), 0)
     exact_two = float(torch.logsumexp(torch.stack([branches[2][-1], branches[3][-1]]), 0) - so_far[-1])
     assert 0.05 < math.exp(exact_two) < 0.95                # neither explanation is a foregone one

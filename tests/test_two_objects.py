@@ -7,7 +7,7 @@ import pytest
 import torch
 from pyro import poutine
 from pyro.util import check_model_guide_match
-from test_nll import T, K, D, tiny_models, video
+from test_nll import D, T, tiny_models, video
 
 from inference.identity import Identity, identity_gap, two_objects
 from inference.model import HiddenObjectModel, InferenceConfig, Proposal
@@ -123,7 +123,8 @@ def test_the_evidence_sums_both_explanations_exactly():
     with torch.no_grad():
         one, two = (float(empty_branch(model, frames, version).sum()) for version in (0, 1))
         found = smc_evidence(scene, frames, config, None, torch.Generator().manual_seed(0), free=False)
-    assert found.log_evidence == pytest.approx(float(torch.logaddexp(torch.tensor(one, dtype=torch.float64), torch.tensor(two, dtype=torch.float64))), abs=1e-9)
+    assert found.log_evidence == pytest.approx(float(torch.logaddexp(*torch.tensor([one, two], dtype=torch.float64))),
+                                               abs=1e-9)
     assert found.p_two == pytest.approx(1 / (1 + math.exp(one - two)), abs=1e-9)
     assert float(found.frame_nll.sum()) == pytest.approx(found.nll, rel=1e-12)
     # the prior is one of the terms: halving the odds of two objects moves the branch by log 2 less

@@ -33,7 +33,8 @@ from ..errors import XvoeError
 from .resampling import chance_p, interval, pairwise_win
 
 REQUIRED = ("index", "scenario", "setting", "pair", "member", "possible")
-SCORE_NAMES = ("score", "paper_score", "s_img", "s_dyn", "s_rec", "excess", "nll", "ess", "p_hidden", "p_two", "nll_excess")
+SCORE_NAMES = ("score", "paper_score", "s_img", "s_dyn", "s_rec", "excess", "nll", "ess", "p_hidden", "p_two",
+               "nll_excess")
 IDEAL_COMPARATIVE = {"S1": 1.0, "S2": 0.5, "S3": 1.0}
 
 
