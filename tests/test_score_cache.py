@@ -23,7 +23,7 @@ from xvoe.models.perception import ComponentVAE, PerceptionConfig
 from xvoe.models.reasoning import ReasoningConfig
 from xvoe.models.xpl import XPL, XPLConfig
 from xvoe.training.checkpoints import shipped_path
-from xvoe.training.latents import perception_identity, split_cache
+from xvoe.training.latents import check_cache, perception_identity, split_cache
 from xvoe.training.perception import load_perception
 
 D, FRAMES = 4, 10
@@ -137,10 +137,16 @@ def test_a_cache_of_another_split_or_another_perception_is_refused(tmp_path, cap
     shipped_key = perception_identity(load_perception("plato")[0])
     made = split_cache(theirs, shipped_key)
     assert made.is_file()
-    shutil.copy(made, split_cache(ours, shipped_key))           # a cache of another split under our name
     score = ["score", "--out", str(tmp_path / "s.csv"), "--quiet"]
-    err = refused(score + ["--model", "plato", "--data", str(ours)], tmp_path, capsys)
+    err = refused(score + ["--model", "plato", "--data", str(ours), "--cache", str(made)], tmp_path, capsys)
     assert f"was encoded from {theirs}" in err and f"not from {ours}" in err
+    # the split's own cache from an earlier file of its name (a split generated again) is made again
+    own = split_cache(ours, shipped_key)
+    shutil.copy(made, own)
+    assert main(score + ["--model", "plato", "--data", str(ours)]) == 0
+    check_cache(own, ours, shipped_key)
+    (tmp_path / "s.csv").unlink()
+    (tmp_path / "s.curves.npz").unlink()
     # a perception module with one weight changed, beside a copy of plato: another perception
     other = tmp_path / "other"
     other.mkdir()

@@ -622,20 +622,26 @@ def latent_cache(scorer: Scorer, data: str | os.PathLike, cache: str | os.PathLi
                  make: bool = True, progress: bool = False) -> Path | None:
     """The latent cache a scorer reads for the test split `data` (checked before): `cache`, or
     with True the split's own for the scorer's perception module (`split_cache`); None for a
-    model without one, with `cache` False, or where it is missing and not to be made. One found
+    model without one, with `cache` False, or where it is missing and not to be made. One given
     is checked against the split and the perception (a one-line error for a stale or foreign
-    one); one to be made is claimed first (a folder that refuses it is named before the work),
-    then written by the scorer's perception module."""
+    one); the split's own, made from an earlier file of the split's name (a split generated again,
+    a notebook's with other pairs), is derived data and made again. One to be made is claimed
+    first (a folder that refuses it is named before the work), then written by the scorer's
+    perception module."""
     if cache is False or scorer.vae is None:
         return None
     perception = perception_identity(scorer.vae)
     path = split_cache(data, perception) if cache is True else Path(cache)
     if path.exists():
-        check_cache(path, data, perception)
-        return path
+        try:
+            check_cache(path, data, perception)
+            return path
+        except XvoeError:
+            if cache is not True:
+                raise
     if not make:
         return None
-    claim_file(path, what="the latent cache")
+    claim_file(path, overwrite=True, what="the latent cache")
     # a rival process may have made it meanwhile, from the same split and perception: replacing it is harmless
     return encode_with(scorer.vae, data, path, overwrite=True, progress=progress)
 
