@@ -92,7 +92,8 @@ def nll_explanation(vae, xpl, video: dict, particles: int, title: str = "", obse
                                                                  options.version)):
             picture = to_uint8(vae.decode(trajectory.to(video["mean"].dtype))).numpy()
             seen = "\nwith two objects" if int(version) else ""
-            drawn.append((f"hypothesis {rank + 1}:\nweight {float(weight):.2f}{seen}", picture))
+            # its weight given an object: the heading gives p(hidden object), the label which explanation
+            drawn.append((f"hypothesis {rank + 1}:\nweight {float(weight):.2f}\nif one is hidden{seen}", picture))
         if options.disagree:
             heading += f"\nthe hypotheses differ most at frames {', '.join(map(str, options.disagree[:3]))}"
     return NLLExplanation(observed, behind, alone, result.hidden_slot, heading, result.p_hidden, result.p_two,
