@@ -65,8 +65,6 @@ class Scene(Protocol):
     """What the model needs from a scene (the learned XPL one, or a linear one in tests)."""
 
     frames: int
-
-    frames: int
     versions: int       # explanations of the seen objects: 1, or 2 where one may be two identical ones
 
     def initial(self, particles: int) -> tuple[Tensor, Tensor]:

@@ -274,7 +274,8 @@ class Evidence:
         """The explanation (H,) of each particle `holding` returns."""
         if self.trajectories is None:
             return None
-        version = self.version if self.version is not None else torch.zeros(len(self.trajectories), dtype=torch.long)
+        version = self.version if self.version is not None else torch.zeros(
+            len(self.trajectories), dtype=torch.long, device=self.trajectories.device)
         return version if self.exists is None else version[self.exists]
 
 
@@ -309,10 +310,10 @@ def smc_evidence(scene: Scene, frames: Tensor, config: InferenceConfig, proposal
     device, versions = frames.device, range(scene.versions)
     with seeded(generator, device):
         empty = [empty_branch(model, frames, version).cumsum(0) for version in versions]
-        known = log_sum([float(branch[-1]) for branch in empty])
+        empty_end = [float(branch[-1]) for branch in empty]
+        known = log_sum(empty_end)
         runs = [hidden_run(model, frames, config, proposal, version, known, generator) for version in versions] \
             if free else []
-    empty_end = [float(branch[-1]) for branch in empty]
     hidden_end = [float(run.log_evidence[0]) for run in runs]
     total = log_sum(empty_end + hidden_end)
     p_two = math.exp(log_sum(empty_end[1:] + hidden_end[1:]) - total) if scene.versions > 1 else 0.0
@@ -327,7 +328,7 @@ def smc_evidence(scene: Scene, frames: Tensor, config: InferenceConfig, proposal
     log_weights = torch.cat([torch.log_softmax(run.log_weights[0], 0) + float(run.log_evidence[0]) for run in runs])
     version = torch.cat([torch.full((run.log_weights.shape[1],), v, dtype=torch.long, device=device)
                          for v, run in zip(versions, runs)])
-    return Evidence(total, hidden, log_sum(empty_end), math.exp(hidden - total), float(likelier.final_ess[0]),
+    return Evidence(total, hidden, known, math.exp(hidden - total), float(likelier.final_ess[0]),
                     float(likelier.ess[0].min()), int(likelier.lineages[0]), int(likelier.resampled[0].sum()),
                     likelier.log_weights.shape[1], torch.cat([run.state["trajectory"] for run in runs]),
                     log_weights, frame_nll=frame_nll, p_two=p_two, version=version)

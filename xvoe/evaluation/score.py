@@ -386,14 +386,15 @@ def score_split(model: str | Scorer, data: str, out: str, *, how: str = "sum", v
         out = claim_file(out, overwrite)
         curves_path = claim_file(out.with_suffix(".curves.npz"), overwrite, what="the curves beside --out")
         first, last = shard_rows(file["rgbd"].shape[0], videos_per_batch, shard)
+        identity = split_identity(file)     # the header's, and the cache's key
         # the parts of a sharded run may run at once: each reads a cache, none makes one
-        latents = latent_cache(scorer, data, cache, make=shard == (0, 1), progress=progress)
+        latents = latent_cache(scorer, data, cache, make=shard == (0, 1), progress=progress, identity=identity)
         checks = checks and scorer.custom is not None
         if checks:
             check_model(scorer, file, first, last)
         labels = store.labels(file, ("scenario", "setting", "pair", "member", "possible"))
         header = {"xvoe": package_version(), "model": scorer.name, "model_identity": model_identity(scorer),
-                  "split": split_identity(file), "data": str(Path(data).resolve()), "score": score_column,
+                  "split": identity, "data": str(Path(data).resolve()), "score": score_column,
                   "aggregate": how, "surprise": surprise_definitions(scorer, how),
                   **(extra.settings() if extra is not None else {})}
         with open_latents(latents) if latents is not None else nullcontext() as encoded:
@@ -619,7 +620,7 @@ def open_test_split(scorer: Scorer, data: str | os.PathLike) -> Iterator[h5py.Fi
 
 
 def latent_cache(scorer: Scorer, data: str | os.PathLike, cache: str | os.PathLike | bool = True, *,
-                 make: bool = True, progress: bool = False) -> Path | None:
+                 make: bool = True, progress: bool = False, identity: dict | None = None) -> Path | None:
     """The latent cache a scorer reads for the test split `data` (checked before): `cache`, or
     with True the split's own for the scorer's perception module (`split_cache`); None for a
     model without one, with `cache` False, or where it is missing and not to be made. One given
@@ -627,14 +628,14 @@ def latent_cache(scorer: Scorer, data: str | os.PathLike, cache: str | os.PathLi
     one); the split's own, made from an earlier file of the split's name (a split generated again,
     a notebook's with other pairs), is derived data and made again. One to be made is claimed
     first (a folder that refuses it is named before the work), then written by the scorer's
-    perception module."""
+    perception module. `identity`: the split's `split_identity`, where the caller has it."""
     if cache is False or scorer.vae is None:
         return None
     perception = perception_identity(scorer.vae)
     path = split_cache(data, perception) if cache is True else Path(cache)
     if path.exists():
         try:
-            check_cache(path, data, perception)
+            check_cache(path, data, perception, identity)
             return path
         except XvoeError:
             if cache is not True:

@@ -223,11 +223,11 @@ def identity_lines(scores: dict[str, np.ndarray], rounds: int = 1000, seed: int 
 def hypotheses_in_s2(scores: dict[str, np.ndarray]) -> list[Line]:
     """What the NLL's hypotheses make of each S2 setting, member by member (reported, no goal):
     the share of videos it explains by a hidden object and by two identical objects."""
-    lines = []
+    lines, in_s2 = [], scores["setting"].astype(str) == "S2"
+    scenarios = scores["scenario"].astype(str)
     for scenario in SCENARIOS:
         for member in (0, 1):
-            chosen = (scores["scenario"].astype(str) == scenario) & (scores["setting"].astype(str) == "S2") & (
-                scores["member"] == member)
+            chosen = in_s2 & (scenarios == scenario) & (scores["member"] == member)
             if chosen.any():
                 for column, what in (("p_hidden", "a hidden object"), ("p_two", "two objects")):
                     share = 100 * float((scores[column][chosen] > 0.5).mean())

@@ -211,22 +211,27 @@ def split_cache(data: str | os.PathLike, perception: str) -> Path:
     return data.with_name(f"{data.stem}.latents-{perception}.h5")
 
 
-def check_cache(cache: str | os.PathLike, data: str | os.PathLike, perception: str | None = None) -> None:
+def check_cache(cache: str | os.PathLike, data: str | os.PathLike, perception: str | None = None,
+                identity: dict | None = None) -> None:
     """An error unless the latent cache was encoded from this very split and, given
     `perception` (a `perception_identity`), by that perception module. The split is known by
-    the identity the cache records (`split_identity`: seed, config, videos, contents); a cache
-    that records none, by the same path, generation config and video count (a file regenerated
-    under the old name is another split)."""
+    the identity the cache records (`split_identity`: seed, config, videos, contents; `identity`,
+    the split's, where the caller has it already: it hashes frames); a cache that records none,
+    by the same path, generation config and video count (a file regenerated under the old name
+    is another split)."""
     with open_latents(cache) as file:
         source, recorded = file.attrs.get("source", ""), file.attrs.get("split_identity")
         data_config = json.loads(file.attrs.get("config", "{}")).get("data")
         videos, encoder = file["mean"].shape[0], file.attrs.get("perception_identity")
-    with store.open_dataset(data) as split:
-        if recorded is not None:
-            same = json.loads(recorded) == split_identity(split)
-        else:
-            same = (source == str(Path(data).resolve()) and data_config == store.config_of(split)
-                    and videos == split["rgbd"].shape[0])
+    if recorded is not None and identity is not None:
+        same = json.loads(recorded) == identity
+    else:
+        with store.open_dataset(data) as split:
+            if recorded is not None:
+                same = json.loads(recorded) == split_identity(split)
+            else:
+                same = (source == str(Path(data).resolve()) and data_config == store.config_of(split)
+                        and videos == split["rgbd"].shape[0])
     if not same:
         found = f" ({describe_split(json.loads(recorded))})" if recorded is not None else ""
         raise XvoeError(f"{cache} was encoded from {source or 'an unknown split'}{found}, not from {data} as it is "
