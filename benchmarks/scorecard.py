@@ -4,6 +4,7 @@
                                    [--baselines plato,phydnet] [--role xpl|baseline|random|reported]
                                    [--particles N] [--seeds 0,1] [--pairs 100] [--json card.json]
                                    [--against shipped.json] [--nll-set FIELD=VALUE ...]
+                                   [--scores both.csv [--repeat both-seed1.csv]]
 
 Scores the split (`xvoe score`; with `--surprise both` for an XPL model with reasoning, once per
 --seeds), then prints the card of xvoe.evaluation.scorecard: comparative accuracy per setting
@@ -13,6 +14,10 @@ S3 - S2 gap under the default verdict and the NLL; holistic AUC; hidden_iou and 
 videos; the NLL's p_hidden, ESS, p_two (two identical objects) and what both make of each S2
 member, and its repeatability; the perception's PSNR and position probe on --frames (a train-type split
 the model was not trained on); XPL's S3 lead over each of --baselines; videos per second.
+`--scores FILE` reads the model's scores of the split made already with `--surprise both` (the
+parts of `xvoe score --shard` merged: a 200-pair split takes hours of NLL) instead of scoring it,
+and `--repeat FILE` the same with the NLL's second seed, over all of the split or part of it;
+both are checked to be this model's and this split's, and the card then has no speed lines.
 `--against CARD` (the shipped model's --json on the same split) applies the shipping rule
 (docs/design.md, "Recipes, choosing and shipping") and prints its verdict. Choose on validation
 seeds, report on fresh ones.
@@ -43,12 +48,27 @@ def reasons(model) -> bool:
     return model.xpl is not None and model.xpl.config.use_reasoning
 
 
+def given_scores(path: str, model, data: str) -> dict:
+    """A score file of this model on this split, made with `--surprise both`."""
+    xvoe.check_scored_by(path, model)
+    with store.open_dataset(data, split="test") as file:
+        xvoe.check_same_split(path, xvoe.split_identity(file), data)
+    scores = xvoe.read_scores(path)
+    if "nll" not in scores:
+        raise xvoe.XvoeError(f"{path} holds no NLL: score it with --surprise both")
+    return scores
+
+
 def card_lines(args: argparse.Namespace, model, work: Path) -> list[scorecard.Line]:
-    """Score, then measure every line this model's card carries."""
-    scores, seconds = timed_scores(model, args.data, work / "mse.csv")
-    lines = [scorecard.speed_line("MSE scoring", len(scores["index"]), seconds, scorecard.MSE_SPEED)]
-    runs = []
-    if reasons(model) and not args.no_nll:
+    """Score (or read the scores given), then measure every line this model's card carries."""
+    if args.scores:
+        runs = [(given_scores(path, model, args.data), None) for path in filter(None, (args.scores, args.repeat))]
+        scores, lines = runs[0][0], []
+    else:
+        scores, seconds = timed_scores(model, args.data, work / "mse.csv")
+        lines = [scorecard.speed_line("MSE scoring", len(scores["index"]), seconds, scorecard.MSE_SPEED)]
+        runs = []
+    if reasons(model) and not args.no_nll and not args.scores:
         nll_settings = xvoe.nll_settings(args.nll_set)
         runs = [timed_scores(model, args.data, work / f"both-{seed}.csv", surprise="both", particles=args.particles,
                              seed=seed, nll_settings=nll_settings) for seed in args.seeds]
@@ -56,7 +76,7 @@ def card_lines(args: argparse.Namespace, model, work: Path) -> list[scorecard.Li
         lines.append(scorecard.speed_line("NLL scoring (with MSE)", len(scores["index"]), runs[0][1],
                                           scorecard.NLL_SPEED))
     lines += scorecard.score_lines(scores, args.role, args.rounds)
-    baselines = {Path(name).name: timed_scores(name, args.data, work / f"{Path(name).name}.csv")[0]
+    baselines = {Path(name).stem: timed_scores(name, args.data, work / f"{Path(name).stem}.csv")[0]
                  for name in args.baselines}
     lines += scorecard.lead_lines(scores, baselines, args.rounds)
     with store.open_dataset(args.data) as file:
@@ -87,20 +107,27 @@ def parse() -> argparse.Namespace:
     parser.add_argument("--threads", type=int, default=2)
     parser.add_argument("--nll-set", action="append", default=[], metavar="FIELD=VALUE",
                         help="change a field of the NLL's settings (inference.InferenceConfig), as xvoe score's")
+    parser.add_argument("--scores", help="the model's scores of --data with --surprise both, made already")
+    parser.add_argument("--repeat", help="with --scores: the same, the NLL's second seed (all or part of the split)")
     parser.add_argument("--json", help="write the card here too")
     parser.add_argument("--against", help="the shipped model's card (--json) on the same split: the shipping rule")
     args = parser.parse_args()
     args.seeds = [int(s) for s in args.seeds.split(",") if s]
     args.baselines = [b for b in args.baselines.split(",") if b]
     args.role = args.role or scorecard.role_of(args.model)
+    if args.repeat and not args.scores:
+        parser.error("--repeat goes with --scores")
     return args
 
 
 def main() -> None:
     args = parse()
     torch.set_num_threads(args.threads)
-    model = xvoe.load_model(args.model)
-    lines = card_lines(args, model, Path(tempfile.mkdtemp(prefix="scorecard-")))
+    try:
+        model = xvoe.load_model(args.model)
+        lines = card_lines(args, model, Path(tempfile.mkdtemp(prefix="scorecard-")))
+    except xvoe.XvoeError as error:
+        raise SystemExit(f"scorecard.py: error: {error}") from None
     shipped = {line.name: line for line in scorecard.read_card(args.against)} if args.against else {}
     for line in lines:
         print(scorecard.format_line(line, shipped.get(line.name)))

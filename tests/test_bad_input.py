@@ -316,7 +316,7 @@ def split_cases(files, tmp: Path) -> list[tuple[list[str], str]]:
         (["metrics", str(theirs), "--data", test, "--out", str(tmp / "r")], "scored on another split"),
         (["show", test, "--out", str(tmp / "s.mp4"), "--scores", str(theirs)], "scored on another split"),
         (["verify", str(old)], "rescore it with this xvoe"),
-        (["verify", str(foreign)], "is not the one that scored"),
+        (["verify", str(foreign)], "was scored by another model than"),
         (["verify", str(tmp)], "holds no headers.json"),
         (["verify", str(ours), "--rows", "0"], "expected a number >= 1"),
     ]

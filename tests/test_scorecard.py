@@ -2,6 +2,7 @@
 import numpy as np
 import pytest
 
+from xvoe.errors import XvoeError
 from xvoe.evaluation.scorecard import (
     TWO_DENIED,
     TWO_SAID,
@@ -12,6 +13,7 @@ from xvoe.evaluation.scorecard import (
     identity_lines,
     lead_lines,
     read_card,
+    repeat_lines,
     role_of,
     score_lines,
     write_card,
@@ -156,3 +158,13 @@ def test_the_identity_lines_count_the_videos_only_two_objects_explain_and_those_
     assert shares["S2 continuity member 0: a hidden object (% of videos)"] == 100.0
     assert shares["S2 collision member 0: a hidden object (% of videos)"] == 100.0
     assert "S2 collision member 1: two objects (% of videos)" not in shares         # no such videos
+
+
+def test_the_repeat_is_measured_on_the_videos_both_seeds_scored():
+    scores = {"index": np.arange(6, dtype=float), "nll": np.array([10.0, 11.0, 12.0, 13.0, 14.0, 15.0])}
+    repeat = {"index": np.array([4.0, 1.0, 2.0]), "nll": np.array([14.0, 13.0, 12.5])}     # part, in another order
+    median, p99 = repeat_lines(scores, repeat, rounds=200)
+    assert median.value == pytest.approx(0.5) and median.met        # differences 0, 2, 0.5
+    assert p99.value == pytest.approx(np.percentile([0.0, 2.0, 0.5], 99)) and p99.met
+    with pytest.raises(XvoeError, match="share no video"):
+        repeat_lines(scores, {"index": np.array([9.0]), "nll": np.array([1.0])})

@@ -41,7 +41,7 @@ _HOMES = {
     "xvoe.training.phydnet": ("train_phydnet",),
     "xvoe.training.dataset": ("SplitDataset",),
     "xvoe.evaluation.score": ("Scorer", "load_model", "SurpriseModel", "Videos", "merge_scores", "score_header",
-                              "model_identity"),
+                              "model_identity", "check_scored_by", "check_same_split"),
     "xvoe.identity": ("split_identity",),
     "xvoe.evaluation.metrics": ("read_scores", "metric_rows", "comparative", "holistic", "relative",
                                 "disagreements", "onset", "onset_pairs"),

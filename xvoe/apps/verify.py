@@ -20,8 +20,8 @@ from ..evaluation.metrics import read_scores
 from ..evaluation.score import (
     CURVES,
     check_same_split,
+    check_scored_by,
     load_model,
-    model_identity,
     row_columns,
     score_header,
     score_rows,
@@ -75,10 +75,7 @@ def _verify_file(path: Path, rows: int, data: str | Path | None, seed: int, foun
     data = data or header["data"]
     table = read_scores(path)
     scorer = load_model(source)
-    recorded, loaded = _without_source(header["model_identity"]), _without_source(model_identity(scorer))
-    if recorded != loaded:
-        raise XvoeError(f"the model {source} is not the one that scored {path}: it is {loaded}, the file names "
-                        f"{recorded}")
+    check_scored_by(path, scorer)
     extra = _extra_columns(header)
     if extra is not None:
         extra.check(scorer)
@@ -98,10 +95,6 @@ def _verify_file(path: Path, rows: int, data: str | Path | None, seed: int, foun
             found.matches &= not differ
             found.lines.append(f"{path.name} video {video}: " + ("matches" if not differ else "differs in " + ", ".join(
                 f"{name} ({_shown(held[name])} in the file, {_shown(again[name])} scored again)" for name in differ)))
-
-
-def _without_source(identity: dict) -> dict:
-    return {key: value for key, value in identity.items() if key != "source"}
 
 
 def _extra_columns(header: dict) -> NLLColumns | None:

@@ -510,6 +510,21 @@ def check_same_split(path: str | Path, identity: dict, data: str | Path) -> None
                         f"({describe_split(identity)}); score {data} instead")
 
 
+def check_scored_by(path: str | Path, scorer: Scorer) -> None:
+    """Refuse a score file that another model made (its weights and configs, wherever they lie)."""
+    recorded = score_header(path).get("model_identity")
+    if recorded is None:
+        raise XvoeError(f"{path} does not record the model it was made with: rescore it with this xvoe")
+    loaded = model_identity(scorer)
+    if _without_source(recorded) != _without_source(loaded):
+        raise XvoeError(f"{path} was scored by another model than {scorer.name}: it names {_without_source(recorded)}, "
+                        f"the model is {_without_source(loaded)}")
+
+
+def _without_source(identity: dict) -> dict:
+    return {key: value for key, value in identity.items() if key != "source"}
+
+
 @dataclass
 class Curves:
     """A score file's per-frame curves as figures draw them: the MSE's terms (s_img, s_dyn, and
