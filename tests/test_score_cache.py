@@ -22,8 +22,9 @@ from xvoe.models.dynamics import DynamicsConfig
 from xvoe.models.perception import ComponentVAE, PerceptionConfig
 from xvoe.models.reasoning import ReasoningConfig
 from xvoe.models.xpl import XPL, XPLConfig
+from xvoe.training import latents
 from xvoe.training.checkpoints import shipped_path
-from xvoe.training.latents import check_cache, perception_identity, split_cache
+from xvoe.training.latents import check_cache, encoder_key, perception_identity, split_cache
 from xvoe.training.perception import load_perception
 
 D, FRAMES = 4, 10
@@ -161,3 +162,17 @@ def test_a_cache_of_another_split_or_another_perception_is_refused(tmp_path, cap
     # its own cache has a name of its own beside the split: both perceptions score the split
     assert main(score + ["--model", str(other / "plato.pt"), "--data", str(theirs)]) == 0
     assert split_cache(theirs, perception_identity(load_perception(other)[0])).is_file()
+
+
+def test_a_cache_encoded_in_another_precision_is_another_cache(tiny_split, tmp_path, monkeypatch):
+    """bfloat16 on CUDA moves the latents beyond float rounding: its cache is not read on the CPU."""
+    vae = tiny_scorer("xpl", slots=8).vae
+    cpu_key = encoder_key(vae)
+    assert cpu_key == perception_identity(vae)          # float32: every CPU cache keeps its name
+    monkeypatch.setattr(latents, "autocast_dtype", lambda device: torch.bfloat16)      # as on a CUDA device
+    gpu_key = encoder_key(vae)
+    assert gpu_key == f"{cpu_key}-bfloat16" and split_cache(tiny_split, gpu_key) != split_cache(tiny_split, cpu_key)
+    made = latents.encode_with(vae, tiny_split, tmp_path / "gpu.h5", progress=False)    # records the bfloat16 key
+    monkeypatch.undo()
+    with pytest.raises(xvoe.XvoeError, match="another perception module"):
+        check_cache(made, tiny_split, encoder_key(vae))

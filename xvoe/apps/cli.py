@@ -482,7 +482,7 @@ WRITES = {
 # what a verb writes when its output argument is left out
 DEFAULT_OUTPUTS: dict[str, Callable[[argparse.Namespace], Path]] = {
     "show": lambda args: Path(Path(args.file).with_suffix(f".{args.index}.png").name),
-    "encode": lambda args: encoded_cache(args.data, args.out, args.model),
+    "encode": lambda args: encoded_cache(args.data, args.out, args.model, args.device),
 }
 
 # what a verb writes besides its main output, where the argument is given: (argument, suffixes)

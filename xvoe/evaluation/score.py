@@ -50,7 +50,7 @@ from ..models.xpl import XPL
 from ..outputs import atomic_paths, claim_file
 from ..training.checkpoints import SHIPPED, shipped_path
 from ..training.data import check_size, visible_threshold
-from ..training.latents import check_cache, encode_frames, encode_with, open_latents, perception_identity, split_cache
+from ..training.latents import check_cache, encode_frames, encode_with, encoder_key, open_latents, split_cache
 from ..training.perception import load_perception
 from ..training.phydnet import load_phydnet
 from ..training.xpl import load_xpl, nll_settings_of
@@ -646,7 +646,7 @@ def latent_cache(scorer: Scorer, data: str | os.PathLike, cache: str | os.PathLi
     perception module. `identity`: the split's `split_identity`, where the caller has it."""
     if cache is False or scorer.vae is None:
         return None
-    perception = perception_identity(scorer.vae)
+    perception = encoder_key(scorer.vae)
     path = split_cache(data, perception) if cache is True else Path(cache)
     if path.exists():
         try:

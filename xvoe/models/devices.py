@@ -50,13 +50,19 @@ def device_of(module: Any) -> torch.device:
     return next((weight.device for weight in weights), torch.device("cpu"))
 
 
-def mixed_precision(device: torch.device) -> contextlib.AbstractContextManager:
-    """bfloat16 autocast on a CUDA device that has it; full precision elsewhere: on the CPU the
-    casts cost more than the products save (docs/log/decisions-2026-11.md, "Not kept: the XPL
-    step in bfloat16")."""
+def autocast_dtype(device: torch.device) -> torch.dtype:
+    """The precision networks run in on `device`: bfloat16 on a CUDA device that has it, float32
+    elsewhere: on the CPU the casts cost more than the products save (docs/log/decisions-2026-11.md,
+    "Not kept: the XPL step in bfloat16")."""
     if device.type == "cuda" and torch.cuda.is_bf16_supported():
-        return torch.autocast("cuda", dtype=torch.bfloat16)
-    return contextlib.nullcontext()
+        return torch.bfloat16
+    return torch.float32
+
+
+def mixed_precision(device: torch.device) -> contextlib.AbstractContextManager:
+    """Autocast to `autocast_dtype` where it is not float32; full precision elsewhere."""
+    dtype = autocast_dtype(device)
+    return contextlib.nullcontext() if dtype == torch.float32 else torch.autocast(device.type, dtype=dtype)
 
 
 def on_cpu(value: Any) -> Any:

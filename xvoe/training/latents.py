@@ -13,8 +13,9 @@ pixels. Schema (an interface; version in the attribute `xvoe_latents`):
 - attributes: `perception_checkpoint` (path), `perception_sha256`, `source` (data file),
   `source_split`, `config` (JSON: recipe, perception config, threshold, the data's config), and
   the cache's key: `split_identity` (JSON, xvoe.identity.split_identity) and `perception_identity`
-  (`perception_identity`, a hash of the module's weights and config). `check_cache` refuses a
-  cache whose key is not the split's and the perception's at hand.
+  (`encoder_key`: a hash of the module's weights and config, and the precision it encoded in
+  where not float32). `check_cache` refuses a cache whose key is not the split's and the
+  perception's at hand.
 
 A test split's cache lies beside the split (`split_cache`, one per perception module): `xvoe
 score` makes it on first use and every model that reads that perception reads it.
@@ -36,7 +37,7 @@ from ..benchmark import store
 from ..errors import XvoeError
 from ..identity import arrays_hash, describe_split, split_identity
 from ..models.config import to_dict
-from ..models.devices import mixed_precision, resolve_device
+from ..models.devices import autocast_dtype, device_of, mixed_precision, resolve_device
 from ..models.perception import ComponentVAE, normalise
 from ..outputs import claim_file
 from .data import check_size, masked_inputs, visible_threshold
@@ -192,7 +193,7 @@ def encode_with(model: ComponentVAE, data: str | os.PathLike, out: str | os.Path
         attrs = {**origin, "source": str(Path(data).resolve()), "source_split": str(file.attrs["split"]),
                  "config": json.dumps(config, sort_keys=True),
                  "split_identity": json.dumps(split_identity(file), sort_keys=True),
-                 "perception_identity": perception_identity(model)}
+                 "perception_identity": encoder_key(model)}
     latents = Latents(visible=arrays["pixels"] > threshold, present=present, attrs=attrs, **arrays)
     return write_latents(out, latents, overwrite=overwrite)
 
@@ -204,9 +205,17 @@ def perception_identity(model: ComponentVAE) -> str:
     return arrays_hash(arrays, to_dict(model.config))
 
 
+def encoder_key(model: ComponentVAE, device: torch.device | None = None) -> str:
+    """What a latent cache's values hang on: the module (`perception_identity`) and, where it is
+    not float32, the precision it encodes in on `device` (its own by default): bfloat16 on CUDA
+    moves latents far beyond float rounding, so a GPU's cache is not the CPU's."""
+    dtype = autocast_dtype(device or device_of(model))
+    return perception_identity(model) + ("" if dtype == torch.float32 else f"-{str(dtype).removeprefix('torch.')}")
+
+
 def split_cache(data: str | os.PathLike, perception: str) -> Path:
-    """Where a test split's latent cache lies: beside the split, one per perception module,
-    DATA.latents-PERCEPTION.h5 (PERCEPTION: its `perception_identity`)."""
+    """Where a test split's latent cache lies: beside the split, one per perception module and
+    precision, DATA.latents-PERCEPTION.h5 (PERCEPTION: its `encoder_key`)."""
     data = Path(data)
     return data.with_name(f"{data.stem}.latents-{perception}.h5")
 

@@ -24,12 +24,13 @@ from ..benchmark import store
 from ..benchmark.world import WORLD
 from ..errors import XvoeError
 from ..models.config import from_dict, override, override_resumed, to_dict
+from ..models.devices import resolve_device
 from ..models.nll import InferenceConfig
 from ..models.reasoning import hide_slot
 from ..models.xpl import XPL, XPLConfig, permute_slots
 from .checkpoints import load_checkpoint, resolve_run
 from .data import focus_on, owned_shards
-from .latents import check_cache, encode_split, open_latents, perception_identity, split_cache
+from .latents import check_cache, encode_split, encoder_key, open_latents, split_cache
 from .loop import Job, TrainConfig, checkpoint_path, fit, setup_distributed, start_process
 from .perception import load_perception
 from .recipes import DEFAULT_RECIPE, recipe, recipe_of
@@ -222,15 +223,17 @@ def default_cache(data: str | os.PathLike, run_dir: str | os.PathLike) -> Path:
     return Path(run_dir) / f"latents-{Path(data).stem}.h5"
 
 
-def encoded_cache(data: str | os.PathLike, run_dir: str | os.PathLike, perception: str | None = None) -> Path:
+def encoded_cache(data: str | os.PathLike, run_dir: str | os.PathLike, perception: str | None = None,
+                  device: str = "cpu") -> Path:
     """Where `xvoe encode` writes the latent cache of the split `data` by default: a training
     split's in the run (`default_cache`); a test split's beside it (`split_cache` of the
-    perception module, `perception` or the run's), where every score of that perception reads it."""
+    perception module, `perception` or the run's, encoding on `device`), where every score of
+    that perception reads it."""
     with store.open_hdf5(data) as file:
         kind = file.attrs.get("split")
     if kind != "test":
         return default_cache(data, run_dir)
-    return split_cache(data, perception_identity(load_perception(perception or run_dir)[0]))
+    return split_cache(data, encoder_key(load_perception(perception or run_dir)[0], resolve_device(device)))
 
 
 @dataclass
