@@ -179,3 +179,12 @@ def test_verify_rescores_the_shipped_model_within_tolerance(tmp_path, capsys):
     tamper(scores, "excess", 4, 0.99)
     assert main(["verify", str(scores), "--rows", "22"]) == 1
     assert "differs in excess" in capsys.readouterr().out
+
+
+def test_verify_rescores_the_nll_columns_with_the_settings_and_seed_the_file_records(tmp_path, capsys):
+    data = xvoe.generate(xvoe.GenerateConfig("test", pairs=1, size=32, seed=11), tmp_path / "t.h5", progress=False)
+    scores = xvoe.score("xpl", data, tmp_path / "nll.csv", surprise="both", particles=8, seed=3, progress=False)
+    tamper(scores, "nll", 12, 1.001)
+    assert main(["verify", str(scores), "--rows", "22"]) == 1
+    found = capsys.readouterr().out
+    assert "video 12: differs in nll" in found and found.count(": matches") == 21     # every other video
