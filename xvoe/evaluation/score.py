@@ -659,7 +659,7 @@ def latent_cache(scorer: Scorer, data: str | os.PathLike, cache: str | os.PathLi
         return None
     claim_file(path, overwrite=True, what="the latent cache")
     # a rival process may have made it meanwhile, from the same split and perception: replacing it is harmless
-    return encode_with(scorer.vae, data, path, overwrite=True, progress=progress)
+    return encode_with(scorer.vae, data, path, overwrite=True, progress=progress, identity=identity)
 
 
 def prepare_latents(scorer: Scorer, data: str | os.PathLike, cache: str | os.PathLike | bool = True, *,

@@ -161,10 +161,12 @@ def encode_split(model_ref: str | os.PathLike, data: str | os.PathLike, out: str
 
 
 def encode_with(model: ComponentVAE, data: str | os.PathLike, out: str | os.PathLike, origin: dict | None = None, *,
-                videos_per_batch: int = 16, overwrite: bool = False, progress: bool = True) -> Path:
+                videos_per_batch: int = 16, overwrite: bool = False, progress: bool = True,
+                identity: dict | None = None) -> Path:
     """A split encoded by a loaded perception module into a latent cache, keyed by the split's
     identity and the module's (`check_cache`). `origin`: the checkpoint it was loaded from
-    (`perception_checkpoint`, `perception_sha256`, `recipe`), where there is one."""
+    (`perception_checkpoint`, `perception_sha256`, `recipe`), where there is one; `identity`: the
+    split's `split_identity`, where the caller has it (it hashes frames)."""
     origin = dict(origin or {})
     recipe_name = origin.pop("recipe", None)
     with store.open_dataset(data) as file:
@@ -192,7 +194,7 @@ def encode_with(model: ComponentVAE, data: str | os.PathLike, out: str | os.Path
                   "data": store.config_of(file)}
         attrs = {**origin, "source": str(Path(data).resolve()), "source_split": str(file.attrs["split"]),
                  "config": json.dumps(config, sort_keys=True),
-                 "split_identity": json.dumps(split_identity(file), sort_keys=True),
+                 "split_identity": json.dumps(identity or split_identity(file), sort_keys=True),
                  "perception_identity": encoder_key(model)}
     latents = Latents(visible=arrays["pixels"] > threshold, present=present, attrs=attrs, **arrays)
     return write_latents(out, latents, overwrite=overwrite)
