@@ -4,7 +4,7 @@
                                    [--baselines plato,phydnet] [--role xpl|baseline|random|reported]
                                    [--particles N] [--seeds 0,1] [--pairs 100] [--json card.json]
                                    [--against shipped.json] [--nll-set FIELD=VALUE ...]
-                                   [--scores both.csv [--repeat both-seed1.csv]]
+                                   [--scores both.csv [--repeat seed1.csv | seed1-part*.csv]]
 
 Scores the split (`xvoe score`; with `--surprise both` for an XPL model with reasoning, once per
 --seeds), then prints the card of xvoe.evaluation.scorecard: comparative accuracy per setting
@@ -16,7 +16,7 @@ member, and its repeatability; the perception's PSNR and position probe on --fra
 the model was not trained on); XPL's S3 lead over each of --baselines; videos per second.
 `--scores FILE` reads the model's scores of the split made already with `--surprise both` (the
 parts of `xvoe score --shard` merged: a 200-pair split takes hours of NLL) instead of scoring it,
-and `--repeat FILE` the same with the NLL's second seed, over all of the split or part of it;
+and `--repeat FILE ...` the same with the NLL's second seed, whole or some of its shards;
 both are checked to be this model's and this split's, and the card then has no speed lines.
 `--against CARD` (the shipped model's --json on the same split) applies the shipping rule
 (docs/design.md, "Recipes, choosing and shipping") and prints its verdict. Choose on validation
@@ -29,6 +29,7 @@ import tempfile
 import time
 from pathlib import Path
 
+import numpy as np
 import torch
 
 import xvoe
@@ -62,7 +63,10 @@ def given_scores(path: str, model, data: str) -> dict:
 def card_lines(args: argparse.Namespace, model, work: Path) -> list[scorecard.Line]:
     """Score (or read the scores given), then measure every line this model's card carries."""
     if args.scores:
-        runs = [(given_scores(path, model, args.data), None) for path in filter(None, (args.scores, args.repeat))]
+        runs = [(given_scores(args.scores, model, args.data), None)]
+        if args.repeat:
+            parts = [given_scores(path, model, args.data) for path in args.repeat]
+            runs.append(({name: np.concatenate([part[name] for part in parts]) for name in ("index", "nll")}, None))
         scores, lines = runs[0][0], []
     else:
         scores, seconds = timed_scores(model, args.data, work / "mse.csv")
@@ -108,7 +112,8 @@ def parse() -> argparse.Namespace:
     parser.add_argument("--nll-set", action="append", default=[], metavar="FIELD=VALUE",
                         help="change a field of the NLL's settings (inference.InferenceConfig), as xvoe score's")
     parser.add_argument("--scores", help="the model's scores of --data with --surprise both, made already")
-    parser.add_argument("--repeat", help="with --scores: the same, the NLL's second seed (all or part of the split)")
+    parser.add_argument("--repeat", nargs="+", metavar="FILE",
+                        help="with --scores: the same with the NLL's second seed, whole or some of its shards")
     parser.add_argument("--json", help="write the card here too")
     parser.add_argument("--against", help="the shipped model's card (--json) on the same split: the shipping rule")
     args = parser.parse_args()
