@@ -49,6 +49,30 @@ def reference_nll(s_rec: np.ndarray, pixels: int, sigma: float) -> np.ndarray:
     return s_rec.sum(axis=1) / (2 * sigma ** 2) + pixel_log_normaliser(pixels * s_rec.shape[1], sigma)
 
 
+def under_prior_two(scores: dict[str, np.ndarray], used: float, prior: float) -> dict[str, np.ndarray]:
+    """A score table's NLL columns (nll, p_two, nll_excess) as they would be under another prior
+    of two identical objects, from the one scored with `used`: the file's p(x) and p_two give
+    p(x | one) and p(x | two) (posterior odds are prior odds times the Bayes factor), and p(x) =
+    (1 - prior) p(x | one) + prior p(x | two). Videos with no second explanation (p_two 0) keep
+    theirs. Exact where the SMC's pilot stops the same videos: it compares the hidden-object
+    branch with the sum of those without one, which the prior moves by at most log(prior /
+    used) nats. `prior` 0 leaves the one-object explanation alone."""
+    if not 0 < used < 1 or not 0 <= prior < 1:
+        raise XvoeError(f"priors of two objects lie in [0, 1) (the scored one in (0, 1)), not {used} and {prior}")
+    log_x, p_two = -scores["nll"].astype(np.float64), scores["p_two"].astype(np.float64)
+    gap = p_two > 0
+    with np.errstate(divide="ignore"):
+        one = log_x + np.log1p(-p_two) - np.log1p(-used)          # log p(x | one)
+        two = log_x + np.log(np.where(gap, p_two, 1.0)) - np.log(used)
+        if prior == 0:
+            log_new, p_new = np.where(gap, one, log_x), np.zeros_like(p_two)
+        else:
+            log_new = np.where(gap, np.logaddexp(one + np.log1p(-prior), two + np.log(prior)), log_x)
+            p_new = np.where(gap, np.exp(two + np.log(prior) - log_new), 0.0)
+    shift = -log_new - scores["nll"]
+    return {**scores, "nll": scores["nll"] + shift, "p_two": p_new, "nll_excess": scores["nll_excess"] + shift}
+
+
 def xpl_nll(scorer: Scorer, batch: dict[str, Tensor], config: InferenceConfig, seed: int = 0,
             drawn: DrawnScene | None = None) -> list[NLLSurprise]:
     """The NLL surprise of each encoded video (`encode_videos`) under the Pyro hidden-object model,

@@ -3,6 +3,7 @@ back may be two identical objects; the model sums that out exactly."""
 import math
 import warnings
 
+import numpy as np
 import pytest
 import torch
 from pyro import poutine
@@ -11,9 +12,11 @@ from test_nll import D, T, tiny_models, video
 
 from inference.identity import Identity, identity_gap, two_objects
 from inference.model import HiddenObjectModel, InferenceConfig, Proposal
+from inference.score import under_prior_two
 from inference.smc import empty_branch, smc_evidence
 from inference.surprise import hidden_object_scene, nll_surprise
 from inference.xpl_scene import XPLScene
+from xvoe.errors import XvoeError
 from xvoe.evaluation.surprise import draw_scene
 from xvoe.models.slots import WALL_PIXEL
 
@@ -147,3 +150,25 @@ def test_the_nll_reports_p_two_and_the_identity_and_a_zero_prior_leaves_one_expl
     assert found.estimate.version.tolist().count(1) == 8 and len(found.estimate.trajectories) == 16
     assert single.identity is None and single.p_two == 0.0 and single.nll != found.nll
     assert math.isfinite(found.nll) and float(found.frame_nll.sum()) == pytest.approx(found.nll, rel=1e-12)
+
+
+def test_another_prior_of_two_objects_follows_from_one_scoring_by_hand():
+    one, two = -100.0, -97.0        # log p(x | one object), log p(x | two identical ones)
+
+    def scored(prior):
+        log_x = np.logaddexp(np.log1p(-prior) + one, np.log(prior) + two)
+        return -log_x, np.exp(np.log(prior) + two - log_x)
+
+    nll, p_two = scored(0.1)
+    table = {"nll": np.array([nll, 50.0]), "p_two": np.array([p_two, 0.0]),     # the second video has no gap
+             "nll_excess": np.array([nll - 10.0, 7.0])}
+    for prior in (0.3, 0.001):
+        derived = under_prior_two(table, 0.1, prior)
+        assert derived["nll"][0] == pytest.approx(scored(prior)[0], abs=1e-9)
+        assert derived["p_two"][0] == pytest.approx(scored(prior)[1], abs=1e-12)
+        assert derived["nll_excess"][0] == pytest.approx(derived["nll"][0] - 10.0, abs=1e-9)
+        assert (derived["nll"][1], derived["p_two"][1], derived["nll_excess"][1]) == (50.0, 0.0, 7.0)
+    off = under_prior_two(table, 0.1, 0.0)
+    assert off["nll"][0] == pytest.approx(-one, abs=1e-9) and off["p_two"][0] == 0.0
+    with pytest.raises(XvoeError, match="priors of two objects"):
+        under_prior_two(table, 0.0, 0.1)
