@@ -60,32 +60,39 @@ def given_scores(path: str, model, data: str) -> dict:
     return scores
 
 
-def card_lines(args: argparse.Namespace, model, work: Path) -> list[scorecard.Line]:
-    """Score (or read the scores given), then measure every line this model's card carries."""
+def scored_runs(args: argparse.Namespace, model, work: Path) -> tuple[list[dict], list[scorecard.Line]]:
+    """The model's score tables, the first the card's (the NLL's seeds after it, where it has
+    one), and the speed lines of scoring them: read from --scores and --repeat where given."""
     if args.scores:
-        runs = [(given_scores(args.scores, model, args.data), None)]
+        runs = [given_scores(args.scores, model, args.data)]
         if args.repeat:
             parts = [given_scores(path, model, args.data) for path in args.repeat]
-            runs.append(({name: np.concatenate([part[name] for part in parts]) for name in ("index", "nll")}, None))
-        scores, lines = runs[0][0], []
-    else:
+            runs.append({name: np.concatenate([part[name] for part in parts]) for name in ("index", "nll")})
+        return runs, []
+    if not reasons(model) or args.no_nll:
         scores, seconds = timed_scores(model, args.data, work / "mse.csv")
-        lines = [scorecard.speed_line("MSE scoring", len(scores["index"]), seconds, scorecard.MSE_SPEED)]
-        runs = []
-    if reasons(model) and not args.no_nll and not args.scores:
-        nll_settings = xvoe.nll_settings(args.nll_set)
-        runs = [timed_scores(model, args.data, work / f"both-{seed}.csv", surprise="both", particles=args.particles,
-                             seed=seed, nll_settings=nll_settings) for seed in args.seeds]
-        scores = runs[0][0]
-        lines.append(scorecard.speed_line("NLL scoring (with MSE)", len(scores["index"]), runs[0][1],
-                                          scorecard.NLL_SPEED))
+        return [scores], [scorecard.speed_line("MSE scoring", len(scores["index"]), seconds, scorecard.MSE_SPEED)]
+    mse, mse_seconds = timed_scores(model, args.data, work / "mse.csv")
+    nll_settings = xvoe.nll_settings(args.nll_set)
+    timed = [timed_scores(model, args.data, work / f"both-{seed}.csv", surprise="both", particles=args.particles,
+                          seed=seed, nll_settings=nll_settings) for seed in args.seeds]
+    videos = len(mse["index"])
+    return [found for found, _ in timed], [
+        scorecard.speed_line("MSE scoring", videos, mse_seconds, scorecard.MSE_SPEED),
+        scorecard.speed_line("NLL scoring (with MSE)", videos, timed[0][1], scorecard.NLL_SPEED)]
+
+
+def card_lines(args: argparse.Namespace, model, work: Path) -> list[scorecard.Line]:
+    """Score (or read the scores given), then measure every line this model's card carries."""
+    runs, lines = scored_runs(args, model, work)
+    scores = runs[0]
     lines += scorecard.score_lines(scores, args.role, args.rounds)
     baselines = {Path(name).stem: timed_scores(name, args.data, work / f"{Path(name).stem}.csv")[0]
                  for name in args.baselines}
     lines += scorecard.lead_lines(scores, baselines, args.rounds)
     with store.open_dataset(args.data) as file:
-        if runs:
-            lines += scorecard.nll_lines(scores, file, runs[1][0] if len(runs) > 1 else None, args.rounds)
+        if "nll" in scores and not args.no_nll:
+            lines += scorecard.nll_lines(scores, file, runs[1] if len(runs) > 1 else None, args.rounds)
         if reasons(model) and args.pairs:
             lines += scorecard.explanation_lines(model, file, args.pairs, args.rounds)
     if model.vae is not None and args.frames:
