@@ -61,16 +61,12 @@ def under_prior_two(scores: dict[str, np.ndarray], used: float, prior: float) ->
         raise XvoeError(f"priors of two objects lie in [0, 1) (the scored one in (0, 1)), not {used} and {prior}")
     log_x, p_two = -scores["nll"].astype(np.float64), scores["p_two"].astype(np.float64)
     gap = p_two > 0
-    with np.errstate(divide="ignore"):
+    with np.errstate(divide="ignore"):     # prior 0: log 0 = -inf leaves the one-object term alone
         one = log_x + np.log1p(-p_two) - np.log1p(-used)          # log p(x | one)
         two = log_x + np.log(np.where(gap, p_two, 1.0)) - np.log(used)
-        if prior == 0:
-            log_new, p_new = np.where(gap, one, log_x), np.zeros_like(p_two)
-        else:
-            log_new = np.where(gap, np.logaddexp(one + np.log1p(-prior), two + np.log(prior)), log_x)
-            p_new = np.where(gap, np.exp(two + np.log(prior) - log_new), 0.0)
-    shift = -log_new - scores["nll"]
-    return {**scores, "nll": scores["nll"] + shift, "p_two": p_new, "nll_excess": scores["nll_excess"] + shift}
+        log_new = np.where(gap, np.logaddexp(one + np.log1p(-prior), two + np.log(prior)), log_x)
+        p_new = np.where(gap, np.exp(two + np.log(prior) - log_new), 0.0)
+    return {**scores, "nll": -log_new, "p_two": p_new, "nll_excess": scores["nll_excess"] - log_new - scores["nll"]}
 
 
 def xpl_nll(scorer: Scorer, batch: dict[str, Tensor], config: InferenceConfig, seed: int = 0,
