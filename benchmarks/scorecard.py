@@ -49,11 +49,11 @@ def reasons(model) -> bool:
     return model.xpl is not None and model.xpl.config.use_reasoning
 
 
-def given_scores(path: str, model, data: str) -> dict:
-    """A score file of this model on this split, made with `--surprise both`."""
+def given_scores(path: str, model, data: str, identity: dict) -> dict:
+    """A score file of this model on this split (whose `split_identity` is `identity`), made with
+    `--surprise both`."""
     xvoe.check_scored_by(path, model)
-    with store.open_dataset(data, split="test") as file:
-        xvoe.check_same_split(path, xvoe.split_identity(file), data)
+    xvoe.check_same_split(path, identity, data)
     scores = xvoe.read_scores(path)
     if "nll" not in scores:
         raise xvoe.XvoeError(f"{path} holds no NLL: score it with --surprise both")
@@ -64,9 +64,11 @@ def scored_runs(args: argparse.Namespace, model, work: Path) -> tuple[list[dict]
     """The model's score tables, the first the card's (the NLL's seeds after it, where it has
     one), and the speed lines of scoring them: read from --scores and --repeat where given."""
     if args.scores:
-        runs = [given_scores(args.scores, model, args.data)]
+        with store.open_dataset(args.data, split="test") as file:
+            identity = xvoe.split_identity(file)        # hashes frames: once for every file given
+        runs = [given_scores(args.scores, model, args.data, identity)]
         if args.repeat:
-            parts = [given_scores(path, model, args.data) for path in args.repeat]
+            parts = [given_scores(path, model, args.data, identity) for path in args.repeat]
             runs.append({name: np.concatenate([part[name] for part in parts]) for name in ("index", "nll")})
         return runs, []
     if not reasons(model) or args.no_nll:
