@@ -7,8 +7,10 @@ one came back into sight and is the one seen after the gap. Where they wait is w
 1 filled in for the object's first and last unseen frames: just past the edges of what hid it.
 Both are drawn in every frame, behind the walls like every unseen object, so a wall lifted
 before the gap shows B and one lifted after it shows A: the explanation then loses by the pixels
-themselves. The two objects take the seen object's slot and a free one; the scene of each
-explanation is the same `XPLScene`, built from latents edited here.
+themselves. B's first sighting is scored as any object's is, under the latent prior
+(`XPLScene.seen_motion`): its wait says nothing of how it came into sight. The two objects take
+the seen object's slot and a free one; the scene of each explanation is the same `XPLScene`,
+built from latents edited here.
 """
 from __future__ import annotations
 

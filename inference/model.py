@@ -12,7 +12,9 @@ hidden object shows in front of everything else (the encoder reported no object 
 for every pixel it draws short of an object's area (a latent that draws nothing is no
 object); the dynamics then predict frame t + 1, and the seen objects' latents there are
 observed under that prediction (site `motion_{t+1}`): a hidden object that explains a ball
-bouncing back raises the likelihood.
+bouncing back raises the likelihood. An object seen for the first time is observed under the
+latent prior instead: the dynamics would predict it from Transformer 1's fills alone, and those
+were filled in from that very sighting.
 
 The model is written as Pyro's `SMCFilter` models are, an `init` and a `step` per frame, with
 every site in a `particles` plate that the caller opens; `model` runs them over the whole
@@ -80,8 +82,9 @@ class Scene(Protocol):
         """The dynamics run on frame t of each particle's version, the hidden slot holding
         `latents` (N, D) where `alive`."""
 
-    def seen_motion(self, t: int) -> tuple[Tensor, Tensor] | None:
-        """The seen moving objects' latents (V, M, D) at frame t and which the encoder saw (V, M)."""
+    def seen_motion(self, t: int) -> tuple[Tensor, Tensor, Tensor] | None:
+        """The seen moving objects' latents (V, M, D) at frame t, which the encoder saw (V, M) and
+        which it saw for the first time (V, M)."""
 
     def select(self, memory: Any, index: Tensor) -> Any:
         """The memory of the particles `index` (resampling)."""
@@ -163,9 +166,12 @@ class HiddenObjectModel(nn.Module):
             predicted = self.advance(state, t, z)
             motion = self.scene.seen_motion(t + 1)
             if predicted is not None and motion is not None:
-                seen, observed = (part[version] for part in motion)
-                motion = dist.Normal(predicted.double(), self.config.motion_sigma, validate_args=False)
-                pyro.sample(f"motion_{t + 1}", motion.mask(observed[..., None]).to_event(2), obs=seen.double())
+                latents, seen, first = motion
+                seen, first = seen[version, :, None], first[version, :, None]
+                # a first sighting is scored under the latent prior: the dynamics would predict it from fills alone
+                motion = dist.Normal(torch.where(first, 0.0, predicted.double()),
+                                     torch.where(first, 1.0, self.config.motion_sigma), validate_args=False)
+                pyro.sample(f"motion_{t + 1}", motion.mask(seen).to_event(2), obs=latents[version].double())
 
     def model(self, frames: Tensor, proposal: Proposal | None = None, particles: int = 1) -> Tensor:
         """The whole video: `init`, then `step` for every frame."""

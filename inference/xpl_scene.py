@@ -52,6 +52,8 @@ class XPLScene(nn.Module):
         self.register_buffer("moving", occupied.any(0) & ~occluder)
         self.register_buffer("occluder", occluder[None])      # (1, K)
         self.register_buffer("visible", visible)
+        seen_before = torch.cat([torch.zeros_like(visible[:, :1]), visible[:, :-1].cummax(dim=1).values], dim=1)
+        self.register_buffer("first_sighting", visible & ~seen_before)
         with torch.no_grad():
             self._fixed = self._partial_composite()
             self._empty = self._composite(self.layers)
@@ -77,11 +79,11 @@ class XPLScene(nn.Module):
             prediction[alive], memory = self.xpl.dynamics.step(scene, memory, self.inert())
         return Step(prediction[:, self.hidden], memory, prediction[:, self.moving])
 
-    def seen_motion(self, t: int) -> tuple[Tensor, Tensor]:
-        """The seen moving objects' refined latents (V, M, D) at frame t and which of them the
-        encoder saw (V, M), in each version: the data. Transformer 1's fills of the other frames
-        feed the dynamics' history but are not observed."""
-        return self.refined[:, t][:, self.moving], self.visible[:, t][:, self.moving]
+    def seen_motion(self, t: int) -> tuple[Tensor, Tensor, Tensor]:
+        """The seen moving objects' refined latents (V, M, D) at frame t, which of them the encoder
+        saw (V, M), and which it saw for the first time (V, M), in each version: the data.
+        Transformer 1's fills of the other frames feed the dynamics' history but are not observed."""
+        return tuple(part[:, t][:, self.moving] for part in (self.refined, self.visible, self.first_sighting))
 
     def select(self, memory: DynamicsState | None, index: Tensor) -> DynamicsState | None:
         """The dynamics' memory of the particles `index`: its tensors hold one row per slot."""

@@ -302,11 +302,13 @@ def test_the_pixel_likelihood_is_the_gaussian_density_of_every_particles_frames(
 
 def test_the_seen_objects_motion_is_observed_only_where_the_encoder_saw_them():
     """Transformer 1's fills feed the dynamics but are not data: each motion site's density is
-    the Gaussian one summed over the slots the encoder saw in that frame, and nothing else."""
+    the Gaussian one summed over the slots the encoder saw in that frame, and nothing else; an
+    object's first sighting (slot 2 enters at frame 2) is observed under the latent prior N(0, I)."""
     vae, xpl = tiny_models()
     randomise_dynamics_head(xpl.dynamics)
     frames, mean, visible, background, occluder = video()
     visible[2:4, 1] = False                     # slot 1 behind a wall for two frames: filled, not seen
+    visible[:2, 2] = False                      # slot 2 first seen at frame 2
     config = InferenceConfig()
     trajectory = torch.randn(1, T, D)
     with torch.no_grad():
@@ -319,6 +321,7 @@ def test_the_seen_objects_motion_is_observed_only_where_the_encoder_saw_them():
         moving = visible.any(0) & ~occluder
         predicted = xpl.dynamics(scenes, scene.inert())[0, :-1][:, moving]          # frames 1 .. T-1
     density = torch.distributions.Normal(predicted.double(), config.motion_sigma).log_prob(mean[1:, moving].double())
+    density[1, 1] = torch.distributions.Normal(0.0, 1.0).log_prob(mean[2, 2].double())     # slot 2 at frame 2
     observed = visible[1:, moving]
     assert not observed.all()
     for t in range(1, T):
