@@ -70,7 +70,8 @@ class Scene(Protocol):
     versions: int       # explanations of the seen objects: 1, or 2 where one may be two identical ones
 
     def initial(self, particles: int) -> tuple[Tensor, Tensor]:
-        """Mean and scale (N, D) of the hidden object's first latent."""
+        """Mean and scale (N, D) of an object's latent with no history: the hidden object's first,
+        and a seen object's at its first sighting."""
 
     def empty_frame(self, t: int) -> Tensor:
         """The expected frame t of every version (V, ...) without a hidden object."""
@@ -168,9 +169,10 @@ class HiddenObjectModel(nn.Module):
             if predicted is not None and motion is not None:
                 latents, seen, first = motion
                 seen, first = seen[version, :, None], first[version, :, None]
-                # a first sighting is scored under the latent prior: the dynamics would predict it from fills alone
-                motion = dist.Normal(torch.where(first, 0.0, predicted.double()),
-                                     torch.where(first, 1.0, self.config.motion_sigma), validate_args=False)
+                # a first sighting is scored under `initial`'s prior: the dynamics would predict it from fills alone
+                prior_loc, prior_scale = (part.double() for part in self.scene.initial(1))
+                motion = dist.Normal(torch.where(first, prior_loc, predicted.double()),
+                                     torch.where(first, prior_scale, self.config.motion_sigma), validate_args=False)
                 pyro.sample(f"motion_{t + 1}", motion.mask(seen).to_event(2), obs=latents[version].double())
 
     def model(self, frames: Tensor, proposal: Proposal | None = None, particles: int = 1) -> Tensor:

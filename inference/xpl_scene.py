@@ -52,8 +52,7 @@ class XPLScene(nn.Module):
         self.register_buffer("moving", occupied.any(0) & ~occluder)
         self.register_buffer("occluder", occluder[None])      # (1, K)
         self.register_buffer("visible", visible)
-        seen_before = torch.cat([torch.zeros_like(visible[:, :1]), visible[:, :-1].cummax(dim=1).values], dim=1)
-        self.register_buffer("first_sighting", visible & ~seen_before)
+        self.register_buffer("first_sighting", visible & (visible.cumsum(dim=1) == 1))
         with torch.no_grad():
             self._fixed = self._partial_composite()
             self._empty = self._composite(self.layers)
