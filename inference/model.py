@@ -165,15 +165,15 @@ class HiddenObjectModel(nn.Module):
         keep(state, z)
         if t + 1 < self.frames:
             predicted = self.advance(state, t, z)
-            motion = self.scene.seen_motion(t + 1)
-            if predicted is not None and motion is not None:
-                latents, seen, first = motion
+            sighted = self.scene.seen_motion(t + 1)
+            if predicted is not None and sighted is not None:
+                latents, seen, first = sighted
                 seen, first = seen[version, :, None], first[version, :, None]
                 # a first sighting is scored under `initial`'s prior: the dynamics would predict it from fills alone
                 prior_loc, prior_scale = (part.double() for part in self.scene.initial(1))
-                motion = dist.Normal(torch.where(first, prior_loc, predicted.double()),
-                                     torch.where(first, prior_scale, self.config.motion_sigma), validate_args=False)
-                pyro.sample(f"motion_{t + 1}", motion.mask(seen).to_event(2), obs=latents[version].double())
+                expected = dist.Normal(torch.where(first, prior_loc, predicted.double()),
+                                       torch.where(first, prior_scale, self.config.motion_sigma), validate_args=False)
+                pyro.sample(f"motion_{t + 1}", expected.mask(seen).to_event(2), obs=latents[version].double())
 
     def model(self, frames: Tensor, proposal: Proposal | None = None, particles: int = 1) -> Tensor:
         """The whole video: `init`, then `step` for every frame."""
