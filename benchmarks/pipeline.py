@@ -2,7 +2,7 @@
 (docs/design.md, "Goals") that the pipeline's own models show on a fresh test set.
 
     python benchmarks/pipeline.py --out runs/bench [--recipe cpu-short] [--seed 0] [--models xpl,random]
-                                  [--fresh-pairs 1000 | --fresh split.h5]
+                                  [--fresh-pairs 1000 | --fresh split.h5] [--budget 0.4]
 
 Runs `xvoe pipeline` (skipping stages a previous run finished) and prints each stage's time
 from the run's own records, so that a resumed run still reports its whole time. Then scores a
@@ -27,7 +27,7 @@ from xvoe.apps.pipeline import DEFAULT_MODELS, MODELS, PipelineConfig, run_pipel
 from xvoe.benchmark.generate import GenerateConfig, generate
 from xvoe.evaluation import scorecard
 from xvoe.evaluation.metrics import read_scores
-from xvoe.training.recipes import DEFAULT_RECIPE, recipe
+from xvoe.training.recipes import DEFAULT_RECIPE, RECIPES, recipe
 
 FRESH_SEED = 12345
 
@@ -44,6 +44,27 @@ def time_goal(models: tuple[str, ...]) -> float | None:
     if set(models) >= set(MODELS):
         return 90.0
     return 20.0 if set(models) <= set(DEFAULT_MODELS) else None
+
+
+def within_budget(name: str, fraction: float) -> str:
+    """A recipe like `name` with every stage's steps and decay steps times `fraction`, registered
+    in this process (its stages' processes get it from `on_cores`); its name."""
+    if fraction == 1.0:
+        return name
+    if not 0.0 < fraction < 1.0:
+        raise SystemExit(f"--budget must be above 0 and at most 1, not {fraction}")
+    chosen = recipe(name)
+
+    def scaled(train):
+        return train and replace(train, steps=max(1, round(train.steps * fraction)),
+                                 decay_steps=max(1, round(train.decay_steps * fraction)))
+
+    trainings = {field: scaled(getattr(chosen, field))
+                 for field in ("perception_train", "xpl_train", "proposal_train", "plato_train", "phydnet_train")}
+    budget = f"{name}-x{fraction:g}"
+    phases = tuple((stage, scaled(train)) for stage, train in chosen.phases)
+    RECIPES[budget] = replace(chosen, name=budget, phases=phases, **trainings)
+    return budget
 
 
 def accuracy_lines(found: dict[str, dict]) -> list[scorecard.Line]:
@@ -68,7 +89,9 @@ def main() -> None:
     parser.add_argument("--fresh", help="an existing fresh test split (a seed nothing was chosen on) to score")
     parser.add_argument("--fresh-pairs", type=int, default=1000, help="pairs per setting of the fresh split made")
     parser.add_argument("--fresh-seed", type=int, default=FRESH_SEED)
+    parser.add_argument("--budget", type=float, default=1.0, help="the share of the recipe's training steps")
     args = parser.parse_args()
+    args.recipe = within_budget(args.recipe, args.budget)
     models = tuple(args.models.split(","))
     run_dir = Path(args.out)
     finished_before = set(stage_times(run_dir))

@@ -219,7 +219,7 @@ def mae_iou(scorer: Scorer, file: h5py.File, videos: list[int]) -> list[float]:
 @torch.no_grad()
 def dynamics_error(scorer: Scorer, file: h5py.File, videos: list[int]) -> tuple[float, float, np.ndarray, np.ndarray]:
     """One-step pixel error, the one-step RMS error per latent of the occupied slots (what the
-    NLL's motion_sigma stands for), and the dynamics targets with and without the residual."""
+    NLL's motion_sigma was first set at), and the dynamics targets with and without the residual."""
     errors, latent_errors, residual_targets, direct_targets = [], [], [], []
     for index in videos:
         video = _encode(scorer, file, index)

@@ -36,8 +36,8 @@ class InferenceConfig:
     # plain view at the price of no exposure (docs/decisions.md, "The NLL's settings")
     presence_penalty: float = within(12.0, NON_NEGATIVE)
     object_area: float = within(0.008, SHARE)
-    # standard deviation of the seen objects' latents around the dynamics: the dynamics' own RMS
-    # one-step error per latent (docs/decisions.md, "The NLL's settings")
+    # standard deviation of the seen objects' latents around the dynamics: a scale chosen on the
+    # validation split, not the dynamics' measured error (docs/decisions.md, "The NLL's settings")
     motion_sigma: float = within(0.2, POSITIVE)
     particles: int = within(64, COUNT)
     # gradient steps on the proposal's mean (surprise.refine_out_of_sight)
