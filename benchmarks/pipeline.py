@@ -27,7 +27,9 @@ from xvoe.apps.pipeline import DEFAULT_MODELS, MODELS, PipelineConfig, run_pipel
 from xvoe.benchmark.generate import GenerateConfig, generate
 from xvoe.evaluation import scorecard
 from xvoe.evaluation.metrics import read_scores
+from xvoe.training.loop import TrainConfig
 from xvoe.training.recipes import DEFAULT_RECIPE, RECIPES, recipe
+from xvoe.training.stages import STAGES
 
 FRESH_SEED = 12345
 
@@ -55,12 +57,13 @@ def within_budget(name: str, fraction: float) -> str:
         raise SystemExit(f"--budget must be above 0 and at most 1, not {fraction}")
     chosen = recipe(name)
 
-    def scaled(train):
-        return train and replace(train, steps=max(1, round(train.steps * fraction)),
-                                 decay_steps=max(1, round(train.decay_steps * fraction)))
+    def scaled(train: TrainConfig | None) -> TrainConfig | None:     # None: the stage trains as xpl_train says
+        if train is None:
+            return None
+        return replace(train, steps=max(1, round(train.steps * fraction)),
+                       decay_steps=max(1, round(train.decay_steps * fraction)))
 
-    trainings = {field: scaled(getattr(chosen, field))
-                 for field in ("perception_train", "xpl_train", "proposal_train", "plato_train", "phydnet_train")}
+    trainings = {field: scaled(getattr(chosen, field)) for field in {entry.train_field for entry in STAGES.values()}}
     budget = f"{name}-x{fraction:g}"
     phases = tuple((stage, scaled(train)) for stage, train in chosen.phases)
     RECIPES[budget] = replace(chosen, name=budget, phases=phases, **trainings)
