@@ -56,16 +56,17 @@ def under_prior_two(scores: dict[str, np.ndarray], used: float, prior: float) ->
     (1 - prior) p(x | one) + prior p(x | two). Videos with no second explanation (p_two 0) keep
     theirs. Exact where the SMC's pilot stops the same videos: it compares the hidden-object
     branch with the sum of those without one, which the prior moves by at most log(prior /
-    used) nats. `prior` 0 leaves the one-object explanation alone."""
+    used) nats. `prior` 0 leaves the one-object explanation alone: where p_two rounded to 1, whose
+    p(x | one) underflowed, that is an infinite NLL."""
     if not 0 < used < 1 or not 0 <= prior < 1:
         raise XvoeError(f"priors of two objects lie in [0, 1) (the scored one in (0, 1)), not {used} and {prior}")
     log_x, p_two = -scores["nll"].astype(np.float64), scores["p_two"].astype(np.float64)
     gap = p_two > 0
-    with np.errstate(divide="ignore"):     # prior 0: log 0 = -inf leaves the one-object term alone
+    with np.errstate(divide="ignore", invalid="ignore"):   # prior 0: log 0 = -inf leaves the one-object term alone
         one = log_x + np.log1p(-p_two) - np.log1p(-used)          # log p(x | one)
         two = log_x + np.log(np.where(gap, p_two, 1.0)) - np.log(used)
         log_new = np.where(gap, np.logaddexp(one + np.log1p(-prior), two + np.log(prior)), log_x)
-        p_new = np.where(gap, np.exp(two + np.log(prior) - log_new), 0.0)
+        p_new = np.where(gap & (prior > 0), np.exp(two + np.log(prior) - log_new), 0.0)
     return {**scores, "nll": -log_new, "p_two": p_new, "nll_excess": scores["nll_excess"] - log_new - scores["nll"]}
 
 

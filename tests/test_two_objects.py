@@ -172,5 +172,10 @@ def test_another_prior_of_two_objects_follows_from_one_scoring_by_hand():
         assert (derived["nll"][1], derived["p_two"][1], derived["nll_excess"][1]) == (50.0, 0.0, 7.0)
     off = under_prior_two(table, 0.1, 0.0)
     assert off["nll"][0] == pytest.approx(-one, abs=1e-9) and off["p_two"][0] == 0.0
+    certain = {"nll": np.array([97.0]), "p_two": np.array([1.0]), "nll_excess": np.array([5.0])}
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")      # p(x | one) underflowed: no NaN, no warning
+        lone = under_prior_two(certain, 0.1, 0.0)
+    assert lone["nll"][0] == np.inf and lone["p_two"][0] == 0.0 and lone["nll_excess"][0] == np.inf
     with pytest.raises(XvoeError, match="priors of two objects"):
         under_prior_two(table, 0.0, 0.1)
