@@ -49,14 +49,14 @@ def reasons(model) -> bool:
     return model.xpl is not None and model.xpl.config.use_reasoning
 
 
-def given_scores(path: str, model, data: str, identity: dict) -> dict:
+def given_scores(path: str, model, data: str, identity: dict, nll: bool = True) -> dict:
     """A score file of this model on this split (whose `split_identity` is `identity`), made with
-    `--surprise both`."""
+    `--surprise both` where the card carries the NLL's lines (`nll`)."""
     xvoe.check_scored_by(path, model)
     xvoe.check_same_split(path, identity, data)
     scores = xvoe.read_scores(path)
-    if "nll" not in scores:
-        raise xvoe.XvoeError(f"{path} holds no NLL: score it with --surprise both")
+    if nll and "nll" not in scores:
+        raise xvoe.XvoeError(f"{path} holds no NLL: score it with --surprise both, or give --no-nll")
     return scores
 
 
@@ -66,7 +66,7 @@ def scored_runs(args: argparse.Namespace, model, work: Path) -> tuple[list[dict]
     if args.scores:
         with store.open_dataset(args.data, split="test") as file:
             identity = xvoe.split_identity(file)        # hashes frames: once for every file given
-        runs = [given_scores(args.scores, model, args.data, identity)]
+        runs = [given_scores(args.scores, model, args.data, identity, not args.no_nll)]
         if args.repeat:
             parts = [given_scores(path, model, args.data, identity) for path in args.repeat]
             runs.append({name: np.concatenate([part[name] for part in parts]) for name in ("index", "nll")})
