@@ -180,7 +180,7 @@ def test_stage_trains_resumes_exactly_and_loads(splits, tmp_path, tiny_recipe):
     straight = train_phydnet(splits[0], tmp_path / "a", progress=False)
     train_phydnet(splits[0], tmp_path / "b", progress=False, steps=2)
     resumed = train_phydnet(None, tmp_path / "b", progress=False, resume=True, steps=4)
-    a, b = torch.load(straight, weights_only=False), torch.load(resumed, weights_only=False)
+    a, b = torch.load(straight, weights_only=True), torch.load(resumed, weights_only=True)
     assert a["step"] == b["step"] == 4
     for name, value in a["model"].items():
         torch.testing.assert_close(value, b["model"][name], msg=name)
@@ -213,12 +213,12 @@ def test_a_phase_that_widens_the_lstm_kernel_predicts_the_same_and_trains_on(spl
     with torch.no_grad():
         torch.testing.assert_close(wide(frames), net(frames), rtol=0, atol=1e-6)
     trained = torch.load(train_phydnet(None, tmp_path / "a", progress=False, resume=True, steps=6, lstm_kernel=7,
-                                       model_overrides={"change_weight": 3.0}), weights_only=False)
+                                       model_overrides={"change_weight": 3.0}), weights_only=True)
     gates = trained["model"]["net.lstm.1.gates.weight"]
     assert trained["step"] == 6 and gates.shape[-2:] == (7, 7) and gates[..., 0, :].abs().sum() > 0
     assert trained["config"]["phydnet"]["change_weight"] == 3.0      # a loss field changed in the same phase
     again = torch.load(train_phydnet(None, tmp_path / "a", progress=False, resume=True, steps=7, lstm_kernel=7),
-                       weights_only=False)
+                       weights_only=True)
     assert again["step"] == 7 and again["model"]["net.lstm.1.gates.weight"].shape[-2:] == (7, 7)
     with pytest.raises(XvoeError, match="larger odd size, not 7 -> 5"):
         train_phydnet(None, tmp_path / "a", progress=False, resume=True, steps=8, lstm_kernel=5)
@@ -231,20 +231,20 @@ def test_an_interrupt_stops_after_its_step_and_the_run_resumes_exactly(splits, t
     in place before is back, and the resumed run ends where an uninterrupted one does."""
     import signal
 
-    straight = torch.load(train_phydnet(splits[0], tmp_path / "a", progress=False), weights_only=False)
+    straight = torch.load(train_phydnet(splits[0], tmp_path / "a", progress=False), weights_only=True)
     before = signal.getsignal(signal.SIGINT)
     draw = interrupt_during(monkeypatch, VideoBatches, 2)
     with pytest.raises(KeyboardInterrupt, match="stopped at step 3"):
         train_phydnet(splits[0], tmp_path / "b", progress=False)
     assert signal.getsignal(signal.SIGINT) is before
-    assert torch.load(tmp_path / "b" / "phydnet.pt", weights_only=False)["step"] == 3
+    assert torch.load(tmp_path / "b" / "phydnet.pt", weights_only=True)["step"] == 3
     monkeypatch.setattr(VideoBatches, "batch", draw)
-    resumed = torch.load(train_phydnet(None, tmp_path / "b", progress=False, resume=True), weights_only=False)
+    resumed = torch.load(train_phydnet(None, tmp_path / "b", progress=False, resume=True), weights_only=True)
     assert resumed["step"] == straight["step"] == 4
     for name, value in straight["model"].items():
         torch.testing.assert_close(value, resumed["model"][name], msg=name)
     again = torch.load(train_phydnet(None, tmp_path / "b", progress=False, resume=True, steps=5,
-                                     model_overrides={"change_weight": 3.0}), weights_only=False)
+                                     model_overrides={"change_weight": 3.0}), weights_only=True)
     assert again["step"] == 5 and again["config"]["phydnet"]["change_weight"] == 3.0
     with pytest.raises(XvoeError, match="only change_weight, moment_weight may change, not lstm_channels"):
         train_phydnet(None, tmp_path / "b", progress=False, resume=True, model_overrides={"lstm_channels": (4,)})
@@ -303,7 +303,7 @@ def test_the_command_line_sets_the_focus_and_the_learning_rate(splits, tmp_path,
     run = tmp_path / "run"
     assert main(["train", "phydnet", "--data", str(splits[0]), "--out", str(run), "--quiet", "--steps", "2",
                  "--lr", "0.004", "--focus-group", "continuity", "--focus-share", "0.5"]) == 0
-    train = torch.load(run / "phydnet.pt", weights_only=False)["train"]
+    train = torch.load(run / "phydnet.pt", weights_only=True)["train"]
     assert (train["lr"], train["focus_group"], train["focus_share"], train["steps"]) == (0.004, "continuity", 0.5, 2)
     with pytest.raises(SystemExit) as stop:     # perception takes no focus: the flag is not its own
         main(["train", "perception", "--data", str(splits[0]), "--out", str(tmp_path / "p"),

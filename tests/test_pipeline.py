@@ -157,7 +157,7 @@ def test_models_trained_side_by_side_match_one_after_another(tmp_path, tiny_cpu_
                 torch.set_num_threads(threads)
         runs[jobs] = tmp_path / f"jobs{jobs}"
     for model in ("plato", "xpl"):
-        one, two = (torch.load(runs[j] / f"{model}.pt", weights_only=False)["model"] for j in (1, 2))
+        one, two = (torch.load(runs[j] / f"{model}.pt", weights_only=True)["model"] for j in (1, 2))
         assert all(torch.equal(two[name], value) for name, value in one.items()), model
         assert (runs[1] / "scores" / f"{model}.csv").read_bytes() == (runs[2] / "scores" / f"{model}.csv").read_bytes()
     with pytest.raises(XvoeError, match="--jobs"):

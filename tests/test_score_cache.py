@@ -151,7 +151,7 @@ def test_a_cache_of_another_split_or_another_perception_is_refused(tmp_path, cap
     # a perception module with one weight changed, beside a copy of plato: another perception
     other = tmp_path / "other"
     other.mkdir()
-    state = torch.load(perception, weights_only=False)
+    state = torch.load(perception, weights_only=True)
     first = next(iter(state["model"]))
     state["model"][first] = state["model"][first] + 1e-3
     torch.save(state, other / "perception.pt")

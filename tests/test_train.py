@@ -359,3 +359,18 @@ def test_an_interrupt_of_the_launching_process_stops_its_training_processes_afte
     state = load_checkpoint(run / "perception.pt")
     assert said.split("stopped at step ")[1].startswith(f"{state['step']},") and state["world"] == 2
     assert 0 < state["step"] < 100_000
+
+
+def test_a_checkpoint_of_an_older_xvoe_whose_rng_state_holds_an_array_resumes_the_same(tiny_file, tmp_path):
+    """Older run checkpoints kept numpy's generator key as an array: read as data, it resumes exactly."""
+    import numpy as np
+
+    straight = load_checkpoint(run(tiny_file, tmp_path / "straight", 4))
+    path = run(tiny_file, tmp_path / "older", 2)
+    state = torch.load(path, weights_only=True)
+    kind, key, *rest = state["rng"]["numpy"]
+    state["rng"]["numpy"] = (kind, key.numpy().astype(np.uint32), *rest)
+    torch.save(state, path)
+    resumed = load_checkpoint(train_perception(tiny_file, tmp_path / "older", steps=4, resume=True, progress=False))
+    assert_same_tensors(straight["model"], resumed["model"])
+    assert isinstance(resumed["rng"]["numpy"][1], torch.Tensor)

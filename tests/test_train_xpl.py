@@ -77,7 +77,7 @@ def test_xpl_stage_learns_and_resumes_exactly(cache, tmp_path):
     # interrupted after 12 steps, then resumed: the same weights as the straight run
     train_xpl(cache, tmp_path / "b", progress=False, **{**TINY, "steps": 12})
     resumed = train_xpl(cache, tmp_path / "b", progress=False, resume=True, **TINY)
-    a, b = torch.load(straight, weights_only=False), torch.load(resumed, weights_only=False)
+    a, b = torch.load(straight, weights_only=True), torch.load(resumed, weights_only=True)
     assert a["step"] == b["step"] == 100
     for name, value in a["model"].items():
         torch.testing.assert_close(value, b["model"][name], msg=name)
@@ -87,12 +87,12 @@ def test_xpl_stage_learns_and_resumes_exactly(cache, tmp_path):
 
 def test_a_shipped_checkpoint_trains_further_from_its_step(cache, tmp_path):
     first = torch.load(train_xpl(cache, tmp_path / "a", stage="plato", progress=False, **{**TINY, "steps": 40}),
-                       weights_only=False)
+                       weights_only=True)
     (tmp_path / "b").mkdir()
     torch.save({key: first[key] for key in KEPT}, tmp_path / "b" / "plato.pt")   # what `xvoe ship` keeps
     with pytest.warns(UserWarning, match="no optimiser state.*step 40"):
         further = train_xpl(cache, tmp_path / "b", stage="plato", progress=False, resume=True, **TINY)
-    assert torch.load(further, weights_only=False)["step"] == 100
+    assert torch.load(further, weights_only=True)["step"] == 100
     # the log starts where the shipped weights left off, not at a fresh model's loss
     fresh, after = losses(tmp_path / "a", "plato"), losses(tmp_path / "b", "plato")
     assert int(after[0]["step"]) == 45
@@ -120,8 +120,8 @@ def test_a_recipe_can_train_plato_longer_than_xpl(cache, tmp_path, monkeypatch):
     xpl_train = TrainConfig(**{**TINY, "steps": 3})
     longer = replace(base, xpl_train=xpl_train, plato_train=replace(xpl_train, steps=7, lr=2e-3))
     monkeypatch.setattr(stage, "recipe", lambda name: longer)
-    plato = torch.load(train_xpl(cache, tmp_path, stage="plato", progress=False), weights_only=False)
-    ablation = torch.load(train_xpl(cache, tmp_path, stage="xpl-noresidual", progress=False), weights_only=False)
+    plato = torch.load(train_xpl(cache, tmp_path, stage="plato", progress=False), weights_only=True)
+    ablation = torch.load(train_xpl(cache, tmp_path, stage="xpl-noresidual", progress=False), weights_only=True)
     assert (plato["step"], plato["train"]["lr"]) == (7, 2e-3)
     assert (ablation["step"], ablation["train"]["lr"]) == (3, xpl_train.lr)
 
@@ -173,7 +173,7 @@ def test_the_proposal_stage_trains_transformer2_alone_and_overlays_xpl(cache, tm
     path = train_proposal(tmp_path, progress=False, **{**TINY, "steps": 150})      # the cache from xpl.pt's meta
     mae = [float(row["mae"]) for row in losses(tmp_path, "proposal")]
     assert np.mean(mae[-5:]) < np.mean(mae[:5]) - 0.5      # a row's batch noise is about 0.5
-    state = torch.load(path, weights_only=False)
+    state = torch.load(path, weights_only=True)
     assert state["model"] and all(name.startswith(("transformer2.", "existence.")) for name in state["model"])
     tuned, loaded = load_xpl(tmp_path)
     assert loaded["proposal"] == str(path)
@@ -214,7 +214,7 @@ def test_the_proposal_stage_resumes_exactly(cache, tmp_path):
     straight = train_proposal(tmp_path / "a", progress=False, **{**TINY, "steps": 30})
     train_proposal(tmp_path / "b", progress=False, **{**TINY, "steps": 12})
     resumed = train_proposal(tmp_path / "b", progress=False, resume=True, **{**TINY, "steps": 30})
-    a, b = torch.load(straight, weights_only=False), torch.load(resumed, weights_only=False)
+    a, b = torch.load(straight, weights_only=True), torch.load(resumed, weights_only=True)
     for name, value in a["model"].items():
         torch.testing.assert_close(value, b["model"][name], msg=name)
 

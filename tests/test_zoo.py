@@ -21,14 +21,14 @@ def test_shipping_keeps_the_weights_and_drops_the_optimiser(tmp_path, monkeypatc
     run = tmp_path / "run"
     run.mkdir()
     for stage in ("perception", "xpl", "proposal"):    # the default recipe trains Transformer 2 in a stage of its own
-        state = torch.load(zoo.WEIGHTS / f"{stage}.pt", weights_only=False)
+        state = torch.load(zoo.WEIGHTS / f"{stage}.pt", weights_only=True)
         state["optimizer"] = {"big": torch.zeros(1000)}
         torch.save(state, run / f"{stage}.pt")
     written = zoo.ship(run, tmp_path / "weights")
     assert [p.name for p in written] == ["perception.pt", "xpl.pt", "proposal.pt"]
-    slim = torch.load(tmp_path / "weights" / "xpl.pt", weights_only=False)
+    slim = torch.load(tmp_path / "weights" / "xpl.pt", weights_only=True)
     assert "optimizer" not in slim
-    original = torch.load(zoo.WEIGHTS / "xpl.pt", weights_only=False)
+    original = torch.load(zoo.WEIGHTS / "xpl.pt", weights_only=True)
     for name, value in original["model"].items():
         torch.testing.assert_close(slim["model"][name], value)
     monkeypatch.setattr(checkpoints, "WEIGHTS", tmp_path / "weights")
@@ -39,7 +39,7 @@ def test_a_run_that_is_not_its_recipes_is_not_shipped(tmp_path):
     run = tmp_path / "run"
     run.mkdir()
     for stage in ("perception", "xpl"):
-        state = torch.load(zoo.WEIGHTS / f"{stage}.pt", weights_only=False)
+        state = torch.load(zoo.WEIGHTS / f"{stage}.pt", weights_only=True)
         if stage == "xpl":
             state["train"]["steps"] = 99       # trained by hand, not as the recipe says
         torch.save(state, run / f"{stage}.pt")
@@ -55,7 +55,7 @@ def test_a_new_perception_is_not_shipped_without_the_models_that_read_it(tmp_pat
     for stage in ("perception", "xpl", "plato"):
         (weights / f"{stage}.pt").write_bytes((zoo.WEIGHTS / f"{stage}.pt").read_bytes())
     for stage in ("perception", "xpl"):
-        state = torch.load(zoo.WEIGHTS / f"{stage}.pt", weights_only=False)
+        state = torch.load(zoo.WEIGHTS / f"{stage}.pt", weights_only=True)
         if stage == "perception":
             first = next(iter(state["model"]))
             state["model"][first] = state["model"][first] + 1.0     # another perception
@@ -84,7 +84,7 @@ def test_a_phydnet_ships_on_its_own(tmp_path):
     run.mkdir()
     for stage in ("perception", "xpl"):
         (weights / f"{stage}.pt").write_bytes((zoo.WEIGHTS / f"{stage}.pt").read_bytes())
-    state = torch.load(zoo.WEIGHTS / "phydnet.pt", weights_only=False)
+    state = torch.load(zoo.WEIGHTS / "phydnet.pt", weights_only=True)
     state["config"] = {"recipe": "cpu-short", "phydnet": {**state["config"]["phydnet"]}}
     made = recipe("cpu-short")
     state["train"] = {**state["train"], "steps": made.final_training("phydnet").steps, "lr": 4.5e-4,
@@ -94,10 +94,10 @@ def test_a_phydnet_ships_on_its_own(tmp_path):
     before = {p.name: p.read_bytes() for p in weights.iterdir()}
     assert [p.name for p in zoo.ship(run, weights)] == ["phydnet.pt"]
     assert {p.name: p.read_bytes() for p in weights.iterdir() if p.name != "phydnet.pt"} == before
-    assert torch.load(weights / "phydnet.pt", weights_only=False)["meta"] == {"shipped_from": "run"}
+    assert torch.load(weights / "phydnet.pt", weights_only=True)["meta"] == {"shipped_from": "run"}
 
 
 @pytest.mark.parametrize("path", sorted(zoo.WEIGHTS.glob("*.pt")), ids=lambda p: p.stem)
 def test_no_shipped_checkpoint_holds_a_path_of_the_machine_it_was_trained_on(path):
-    meta = torch.load(path, weights_only=False)["meta"]
+    meta = torch.load(path, weights_only=True)["meta"]
     assert not [value for value in meta.values() if isinstance(value, str) and value.startswith("/")]

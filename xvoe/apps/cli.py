@@ -155,7 +155,7 @@ def cmd_metrics(args: argparse.Namespace) -> None:
 
 
 def cmd_verify(args: argparse.Namespace) -> int:
-    found = xvoe.verify(args.scores, rows=args.rows, data=args.data, seed=args.seed)
+    found = xvoe.verify(args.scores, rows=args.rows, data=args.data, seed=args.seed, model=args.model)
     print("\n".join(found.lines))
     print("every row scored again matches the file" if found.matches else "some rows do not match the file")
     return 0 if found.matches else 1
@@ -432,6 +432,9 @@ def build_parser() -> argparse.ArgumentParser:
     verify.add_argument("--rows", type=_positive, default=5, help="rows to score again (default 5)")
     verify.add_argument("--data", help="the scored split, where it is not at the path the header records")
     verify.add_argument("--seed", type=_flag(int, SEED, "seed"), default=0, help="seed of the rows drawn")
+    verify.add_argument("--model", help="the model to score with, as xvoe score takes it (by default the weights the "
+                                        "header names; a model of your own must be named here: a header never "
+                                        "decides what code runs)")
     verify.set_defaults(run=cmd_verify)
 
     pipeline = verbs.add_parser("pipeline", help="generate, train, score and report, end to end",

@@ -2,7 +2,9 @@
 scored again, by the model and on the split its header names, and compared with the file.
 
 A number in a paper made with xvoe can so be checked later: the header says what to load
-(xvoe.evaluation.score, `score_header`), and the hashes say whether it is still the same.
+(xvoe.evaluation.score, `score_header`), and the hashes say whether it is still the same. A
+header decides only which weights are read, never which code runs: a model of your own is
+loaded from the `model` its user names, and its file's hash must be the one recorded.
 """
 from __future__ import annotations
 
@@ -21,7 +23,9 @@ from ..evaluation.score import (
     CURVES,
     check_same_split,
     check_scored_by,
+    curves_arrays,
     load_model,
+    names_code,
     row_columns,
     score_header,
     score_rows,
@@ -42,15 +46,17 @@ class Verification:
     matches: bool = True
 
 
-def verify(path: str | Path, rows: int = 5, data: str | Path | None = None, seed: int = 0) -> Verification:
+def verify(path: str | Path, rows: int = 5, data: str | Path | None = None, seed: int = 0,
+           model: str | None = None) -> Verification:
     """Score again `rows` rows (drawn from `seed`) of a scores file, or of every scores file a
     report of `xvoe metrics` names (its headers.json), and compare them with the file, values
     and per-frame curves, within `TOLERANCE`. `data`: the split, where it is not where the
-    header says it was read from."""
+    header says it was read from. `model`: the model to score with (as `xvoe score --model`
+    takes it), which a model of your own needs: a header never names code to run."""
     path = Path(path)
     found = Verification()
     for scores in _scores_files(path):
-        _verify_file(scores, rows, data, seed, found)
+        _verify_file(scores, rows, data, seed, model, found)
     return found
 
 
@@ -64,14 +70,18 @@ def _scores_files(path: Path) -> list[Path]:
     return [Path(entry["scores"]) for entry in json.loads(headers.read_text())]
 
 
-def _verify_file(path: Path, rows: int, data: str | Path | None, seed: int, found: Verification) -> None:
+def _verify_file(path: Path, rows: int, data: str | Path | None, seed: int, model: str | None,
+                 found: Verification) -> None:
     header = score_header(path)
     if "split" not in header or "model_identity" not in header:
         raise XvoeError(f"{path} does not record the model and split it was made with (an older xvoe's, or made "
                         "elsewhere): rescore it with this xvoe to verify it")
-    source = header["model_identity"].get("source")
-    if source is None:
-        raise XvoeError(f"{path} was scored by a model made in memory, which verify cannot load again")
+    source = model or header["model_identity"].get("source")
+    if not isinstance(source, str):
+        raise XvoeError(f"{path} was scored by a model made in memory: name it with --model to verify the file")
+    if model is None and names_code(source):
+        raise XvoeError(f"{path} was scored by a model of your own, {source}; verify runs no code a file names: "
+                        "pass --model with the model you trust")
     data = data or header["data"]
     table = read_scores(path)
     scorer = load_model(source)
@@ -81,14 +91,15 @@ def _verify_file(path: Path, rows: int, data: str | Path | None, seed: int, foun
         extra.check(scorer)
     picked = np.sort(np.random.default_rng(seed).choice(len(table["index"]), min(rows, len(table["index"])),
                                                         replace=False))
-    with store.open_dataset(data, split="test") as file, np.load(path.with_suffix(".curves.npz")) as saved:
+    saved = curves_arrays(path.with_suffix(".curves.npz"))
+    with store.open_dataset(data, split="test") as file:
         check_same_split(path, split_identity(file), data)
         for row in picked:
             video = int(table["index"][row])
             curves, added, extra_curves = score_rows(scorer, file, video, video + 1, 1, extra)
             again = row_columns(scorer, curves, added, header["aggregate"], extra, header["score"])
-            again |= {f"curve {name}": curves[i, 0] for i, name in enumerate(CURVES) if name in saved.files}
-            again |= {f"curve {name}": values[0] for name, values in extra_curves.items() if name in saved.files}
+            again |= {f"curve {name}": curves[i, 0] for i, name in enumerate(CURVES) if name in saved}
+            again |= {f"curve {name}": values[0] for name, values in extra_curves.items() if name in saved}
             held = {name: table[name][row] for name in again if name in table}
             held |= {name: saved[name.removeprefix("curve ")][row] for name in again if name.startswith("curve ")}
             differ = [name for name in held if not np.allclose(held[name], again[name], **TOLERANCE)]

@@ -187,7 +187,7 @@ def load_model(model: str, device: str | torch.device = "cpu") -> Scorer:
     device = resolve_device(device)
     if model == "random":
         return Scorer("random", None, None, custom=RandomAgent(), source="random")
-    if ":" in model and not Path(model).exists():
+    if names_code(model):
         custom = load_surprise_model(model)
         return Scorer(str(custom.name), None, None, custom=custom, source=_absolute_reference(model))
 
@@ -213,6 +213,12 @@ def load_model(model: str, device: str | torch.device = "cpu") -> Scorer:
     xpl, state = load_xpl(run_dir, stage, device)
     return Scorer(stage, vae, xpl, nll=nll_settings_of(state["config"]) if xpl.config.use_reasoning else None,
                   source=_absolute_reference(model))
+
+
+def names_code(model: str) -> bool:
+    """Whether `load_model(model)` imports and runs code (a model of your own, `module:name` or
+    `file.py:name`) rather than reading weights, which never runs code."""
+    return ":" in model and not Path(model).exists()
 
 
 def _absolute_reference(model: str) -> str:
@@ -475,11 +481,11 @@ def score_header(path: str | Path) -> dict:
     curves = Path(path).with_suffix(".curves.npz")
     if not curves.is_file():
         raise XvoeError(f"{path} has no curves file beside it ({curves.name}), which holds its header")
+    found = curves_arrays(curves)
     try:
-        with np.load(curves) as found:
-            return json.loads(str(found["header"])) if "header" in found.files else {}
-    except (OSError, ValueError, zipfile.BadZipFile):
-        raise XvoeError(f"{curves} is not a curves file of xvoe score") from None
+        return json.loads(str(found["header"])) if "header" in found else {}
+    except ValueError:
+        raise XvoeError(f"{curves} is not a curves file of xvoe score (its header is not JSON)") from None
 
 
 class UncheckedScores(UserWarning):
@@ -540,19 +546,28 @@ class Curves:
         return self.arrays[self.own] if self.own else self.arrays["s_img"] + self.arrays["s_dyn"]
 
 
+def curves_arrays(path: str | Path) -> dict[str, np.ndarray]:
+    """Every array of a curves file, read as numbers and text only (never unpickled), or a one-line error."""
+    try:
+        with np.load(path, allow_pickle=False) as saved:
+            return {name: saved[name] for name in saved.files}
+    except (OSError, ValueError, zipfile.BadZipFile) as error:
+        raise XvoeError(f"{path} is not a curves file of xvoe score ({error})") from None
+
+
 def read_curves(path: str | Path, videos: int) -> Curves:
     """The curves file `path` (.curves.npz) of a score file of `videos` rows; a one-line error
     for a missing file, one that is not a curves file or one of another score file."""
     path = Path(path)
     if not path.is_file():
         raise XvoeError(f"{path}: no such file; xvoe score writes the curves beside the CSV")
-    with np.load(path) as saved:
-        header = json.loads(str(saved["header"])) if "header" in saved.files else {}
-        own = header.get("curve")
-        needed = {own} if own else {"s_img", "s_dyn"}
-        if not needed <= set(saved.files):
-            raise XvoeError(f"{path} is not a curves file (it holds {', '.join(saved.files)})")
-        arrays = {name: saved[name] for name in saved.files if name != "header"}
+    saved = curves_arrays(path)
+    header = json.loads(str(saved["header"])) if "header" in saved else {}
+    own = header.get("curve")
+    needed = {own} if own else {"s_img", "s_dyn"}
+    if not needed <= set(saved):
+        raise XvoeError(f"{path} is not a curves file (it holds {', '.join(saved)})")
+    arrays = {name: values for name, values in saved.items() if name != "header"}
     if any(len(values) != videos for values in arrays.values()):
         raise XvoeError(f"{path} does not hold the curves of its score file ({videos} videos): "
                         "they were not written together")
@@ -604,9 +619,8 @@ def merge_scores(parts: list[str | Path], out: str | Path, overwrite: bool = Fal
             raise XvoeError(f"the parts do not follow each other: {part} starts at video {first}, not {expected}")
         expected += len(lines) - 1
         rows += lines[1:]
-        with np.load(part.with_suffix(".curves.npz")) as curves:
-            for name in curves.files:
-                arrays.setdefault(name, []).append(curves[name])
+        for name, values in curves_arrays(part.with_suffix(".curves.npz")).items():
+            arrays.setdefault(name, []).append(values)
         if len({str(header) for header in arrays.get("header", [])}) > 1:
             raise XvoeError(f"{part} was scored with other settings than {found[0][1]} (their headers differ)")
     with atomic_paths(curves_path, out) as (curves_tmp, tmp):

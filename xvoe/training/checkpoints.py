@@ -7,8 +7,10 @@ name such as `xpl` resolves wherever a run directory does.
 from __future__ import annotations
 
 import os
+import pickle
 from pathlib import Path
 
+import numpy as np
 import torch
 
 from ..errors import XvoeError
@@ -18,6 +20,9 @@ from .stages import SCORED
 CHECKPOINT_FORMAT = 1
 WEIGHTS = Path(__file__).resolve().parent.parent / "weights"
 SHIPPED = SCORED         # every model a checkpoint holds ships under its stage's name
+# Run checkpoints written before the RNG state was saved as tensors hold numpy's generator key as
+# an array; these (numpy's own array rebuilder first) make arrays from bytes and call nothing else.
+_NUMPY_ARRAYS = [np.ndarray(0).__reduce__()[0], np.ndarray, np.dtype, type(np.dtype(np.uint32))]
 
 
 def save_checkpoint(path: Path, state: dict) -> None:
@@ -34,13 +39,21 @@ def save_checkpoint(path: Path, state: dict) -> None:
 
 def load_checkpoint(path: str | os.PathLike, stage: str | None = None, device: str | torch.device = "cpu") -> dict:
     """A checkpoint written by this loop (of `stage`, if given), its tensors on `device`, or a
-    one-line error. A checkpoint of one kind under another's name would be used as the kind it
-    holds and labelled as the one named."""
+    one-line error. Only tensors and plain data are read: a pickled object is refused, never built.
+    A checkpoint of one kind under another's name would be used as the kind it holds and
+    labelled as the one named."""
     path = Path(path)
     if not path.is_file():
         raise XvoeError(f"{path}: no such checkpoint")
     try:
-        state = torch.load(path, map_location=device, weights_only=False)
+        # weights_only: tensors and plain data only, so a checkpoint from elsewhere never runs code
+        with torch.serialization.safe_globals(_NUMPY_ARRAYS):
+            state = torch.load(path, map_location=device, weights_only=True)
+    except pickle.UnpicklingError as error:
+        if "Unsupported global" not in str(error):       # not a pickle of ours at all
+            raise XvoeError(f"{path} is not a readable xvoe checkpoint (UnpicklingError)") from None
+        raise XvoeError(f"{path} holds objects other than tensors and plain data; xvoe does not load it "
+                        "(loading such a file can run code)") from None
     except Exception as error:  # noqa: BLE001 - any unreadable file gets the same one-line message
         raise XvoeError(f"{path} is not a readable xvoe checkpoint ({type(error).__name__})") from None
     if not isinstance(state, dict) or state.get("format") != CHECKPOINT_FORMAT:

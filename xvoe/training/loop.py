@@ -138,13 +138,17 @@ def log_path(run_dir: str | os.PathLike, stage: str) -> Path:
 
 
 def rng_state() -> dict:
-    return {"python": random.getstate(), "numpy": np.random.get_state(), "torch": torch.get_rng_state(),
-            "cuda": torch.cuda.get_rng_state_all() if torch.cuda.is_available() else []}
+    """Every generator's state as tensors and plain data, which a checkpoint loads without pickle."""
+    kind, key, position, has_gauss, gauss = np.random.get_state()
+    return {"python": random.getstate(), "numpy": (kind, torch.from_numpy(key.astype(np.int64)), position,
+                                                   has_gauss, gauss),
+            "torch": torch.get_rng_state(), "cuda": torch.cuda.get_rng_state_all() if torch.cuda.is_available() else []}
 
 
 def set_rng_state(state: dict) -> None:
     random.setstate(state["python"])
-    np.random.set_state(state["numpy"])
+    kind, key, *rest = state["numpy"]         # the key: a tensor, or an array in older checkpoints
+    np.random.set_state((kind, np.asarray(key.cpu() if isinstance(key, torch.Tensor) else key, np.uint32), *rest))
     # generator states are CPU byte tensors, wherever the checkpoint was mapped to
     torch.set_rng_state(state["torch"].cpu())
     if state.get("cuda") and torch.cuda.is_available():
