@@ -545,6 +545,65 @@ def test_temporaries_of_dead_processes_are_removed(tmp_path):
     assert not dead.exists() and alive.exists()
 
 
+HOLDER = """
+import sys
+from xvoe.outputs import claim_file, release, temporary_name
+out = claim_file(sys.argv[1])
+temporary_name(out).write_text("being written")
+print("held", flush=True)
+sys.stdin.readline()
+release(out)
+print("released", flush=True)
+sys.stdin.readline()
+"""
+
+
+def held_elsewhere(out: Path) -> subprocess.Popen:
+    """Another process that claims `out` and starts writing it, as a run does; a line on its
+    stdin lets the claim go."""
+    holder = subprocess.Popen([sys.executable, "-c", HOLDER, str(out)], stdin=subprocess.PIPE, stdout=subprocess.PIPE,
+                              text=True)
+    assert holder.stdout.readline() == "held\n"
+    return holder
+
+
+def test_an_output_held_by_a_run_is_refused_in_one_line_until_it_is_let_go(files, tmp_path, capsys):
+    scores, split, run_dir = tmp_path / "r.csv", tmp_path / "t.h5", tmp_path / "run"
+    runs = {scores: ["score", "--model", "random", "--data", str(files["test"]), "--out", str(scores), "--quiet"],
+            split: ["generate", "--split", "train", "--videos", "2", "--out", str(split), "--quiet"],
+            run_dir / "perception.pt": ["train", "perception", "--data", str(files["train"]), "--out", str(run_dir),
+                                        "--steps", "1", "--set", "model.image_size=64", "--quiet"]}
+    holders = {target: held_elsewhere(target) for target in runs}
+    try:
+        before = snapshot(tmp_path)
+        for target, args in runs.items():
+            for overwrite in ([], ["--overwrite"]):     # overwriting replaces a finished file, not a run's
+                code, err = run(args + overwrite, capsys)
+                assert code == 2 and len(err.strip().splitlines()) == 1, err
+                assert f"{target} is being written by another run (process {holders[target].pid})" in err
+        assert snapshot(tmp_path) == before         # the first run's claim and its half-written file untouched
+        holders[scores].stdin.write("\n")
+        holders[scores].stdin.flush()
+        assert holders[scores].stdout.readline() == "released\n"
+        assert run(runs[scores], capsys)[0] == 0
+        writing = tmp_path / f".r.csv.tmp-{holders[scores].pid}"
+        assert scores.is_file() and writing.read_text() == "being written"     # its writer lives: left alone
+    finally:
+        for holder in holders.values():
+            holder.kill()
+            holder.wait()
+
+
+def test_a_claim_of_a_run_killed_with_sigkill_blocks_no_later_run(files, tmp_path, capsys):
+    out = tmp_path / "r.csv"
+    holder = held_elsewhere(out)
+    holder.kill()       # SIGKILL: no cleanup runs
+    holder.wait()
+    assert run(["score", "--model", "random", "--data", str(files["test"]), "--out", str(out), "--quiet"],
+               capsys)[0] == 0
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["r.csv", "r.curves.npz"]     # its claim and temporary gone
+
+
 @hypothesis_settings(max_examples=25, suppress_health_check=[HealthCheck.function_scoped_fixture])
 @given(drop=st.sampled_from(["rgbd", "ids", "states", "kind", "color", "scenario", "setting", "pair", "member",
                              "possible", "event_frame"]),

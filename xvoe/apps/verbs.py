@@ -27,7 +27,7 @@ from ..evaluation.explain import explain as explain_mse
 from ..evaluation.score import Scorer, load_model, merge_scores, prepare_latents, score_split
 from ..evaluation.surprise import EXPLANATIONS
 from ..models.devices import resolve_device
-from ..outputs import claim_file
+from ..outputs import claim_file, claim_scope
 
 SURPRISES = ("mse", "nll", "both")
 
@@ -88,15 +88,16 @@ def check_explanation(explanation: str) -> None:
         raise XvoeError(f"--explanation must be {' or '.join(EXPLANATIONS)}, not {explanation!r}")
 
 
+@claim_scope()
 def _score_in_workers(model: str | Scorer, scorer: Scorer, data: str | Path, out: str | Path, workers: int,
                       overwrite: bool, progress: bool, **settings) -> Path:
     """`score` of `model` (loaded here as `scorer`) in `workers` spawned processes, shard I in
     process I, merged into `out`. The first process draws its progress bar (the shards are of
     one size); the split's latent cache is made here first, for all of them to read."""
-    claim_file(out, overwrite)      # refused before any work, as one run would be
+    out = claim_file(out, overwrite)      # refused before any work, as one run would be
     settings["cache"] = prepare_latents(scorer, data, settings["cache"], progress=progress) or False
     threads = max(1, len(os.sched_getaffinity(0)) // workers)
-    with tempfile.TemporaryDirectory(dir=Path(out).parent, prefix=".score-parts-") as parts_dir:
+    with tempfile.TemporaryDirectory(dir=out.parent, prefix=".score-parts-") as parts_dir:
         parts = [Path(parts_dir) / f"part{index}.csv" for index in range(workers)]
         with ProcessPoolExecutor(workers, mp_context=get_context("spawn"), initializer=_worker_threads,
                                  initargs=(threads,)) as pool:
