@@ -20,6 +20,7 @@ from __future__ import annotations
 import fcntl
 import os
 import re
+import shutil
 import stat
 from collections.abc import Iterator
 from contextlib import contextmanager, suppress
@@ -191,6 +192,11 @@ def _writable_directory(directory: Path, make: bool = True) -> None:
         raise XvoeError(f"cannot make the directory {directory}: {error.strerror}") from None
 
 
+def parts_folder(path: Path) -> Path:
+    """The folder beside `path` where this process writes the parts it joins into `path`."""
+    return path.with_name(f".{path.name}.parts-{os.getpid()}")
+
+
 def temporary_name(path: Path) -> Path:
     """The name a file is written under before it takes `path`'s place (this process's)."""
     return path.with_name(f".{path.name}.tmp-{os.getpid()}")
@@ -202,15 +208,18 @@ def _aside_name(path: Path) -> Path:
 
 
 def remove_stale_temporaries(path: Path) -> None:
-    """Delete the temporary files of `path` left by processes that are gone (killed with -9);
-    an old file such a process had moved aside goes back where nothing took its place."""
-    pattern = re.compile(rf"^\.{re.escape(path.name)}\.(tmp|old)-(\d+)$")
+    """Delete the temporary files and parts folders of `path` left by processes that are gone
+    (killed with -9); an old file such a process had moved aside goes back where nothing took
+    its place."""
+    pattern = re.compile(rf"^\.{re.escape(path.name)}\.(tmp|old|parts)-(\d+)$")
     for candidate in path.parent.glob(f".{path.name}.*-*"):
         match = pattern.match(candidate.name)
         if not match or _alive(int(match.group(2))):
             continue
         if match.group(1) == "old" and not os.path.lexists(path):
             os.replace(candidate, path)
+        elif match.group(1) == "parts":
+            shutil.rmtree(candidate, ignore_errors=True)
         else:
             candidate.unlink(missing_ok=True)
 

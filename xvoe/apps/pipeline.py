@@ -34,6 +34,7 @@ from ..evaluation.score import load_model, score_split
 from ..models.config import to_dict
 from ..models.devices import resolve_device
 from ..outputs import claim_directory, claim_scope
+from ..processes import end_with_parent
 from ..training.data import process_counts
 from ..training.latents import encode_split
 from ..training.launch import on_cores
@@ -155,7 +156,8 @@ def run_pipeline(config: PipelineConfig) -> Path:
     if lanes > 1:       # one model's training per lane, the cores shared out: two 1-thread runs beat one 2-thread run
         threads = max(1, cores // lanes)
         context = multiprocessing.get_context("spawn")
-        with ProcessPoolExecutor(lanes, mp_context=context) as pool:
+        with ProcessPoolExecutor(lanes, mp_context=context, initializer=end_with_parent,
+                                 initargs=(os.getpid(),)) as pool:
             for done in [pool.submit(_lane, config, recipe(config.recipe), model, threads) for model in heavy]:
                 done.result()
     for model in config.models:
