@@ -2,6 +2,7 @@
 one line on stderr naming the problem, and writes or changes nothing."""
 from __future__ import annotations
 
+import contextlib
 import csv
 import hashlib
 import json
@@ -10,6 +11,7 @@ import shutil
 import subprocess
 import sys
 import tempfile
+import time
 import typing
 from dataclasses import fields
 from pathlib import Path
@@ -543,6 +545,122 @@ def test_temporaries_of_dead_processes_are_removed(tmp_path):
     alive.write_bytes(b"being written")
     remove_stale_temporaries(target)
     assert not dead.exists() and alive.exists()
+
+
+HOLDER = """
+import sys
+from xvoe.outputs import claim_file, release, temporary_name
+out = claim_file(sys.argv[1])
+temporary_name(out).write_text("being written")
+print("held", flush=True)
+sys.stdin.readline()
+release(out)
+print("released", flush=True)
+sys.stdin.readline()
+"""
+
+
+def held_elsewhere(out: Path) -> subprocess.Popen:
+    """Another process that claims `out` and starts writing it, as a run does; a line on its
+    stdin lets the claim go."""
+    holder = subprocess.Popen([sys.executable, "-c", HOLDER, str(out)], stdin=subprocess.PIPE, stdout=subprocess.PIPE,
+                              text=True)
+    assert holder.stdout.readline() == "held\n"
+    return holder
+
+
+def test_an_output_held_by_a_run_is_refused_in_one_line_until_it_is_let_go(files, tmp_path, capsys):
+    scores, split, run_dir = tmp_path / "r.csv", tmp_path / "t.h5", tmp_path / "run"
+    runs = {scores: ["score", "--model", "random", "--data", str(files["test"]), "--out", str(scores), "--quiet"],
+            split: ["generate", "--split", "train", "--videos", "2", "--out", str(split), "--quiet"],
+            run_dir / "perception.pt": ["train", "perception", "--data", str(files["train"]), "--out", str(run_dir),
+                                        "--steps", "1", "--set", "model.image_size=64", "--quiet"]}
+    holders = {target: held_elsewhere(target) for target in runs}
+    try:
+        before = snapshot(tmp_path)
+        for target, args in runs.items():
+            for overwrite in ([], ["--overwrite"]):     # overwriting replaces a finished file, not a run's
+                code, err = run(args + overwrite, capsys)
+                assert code == 2 and len(err.strip().splitlines()) == 1, err
+                assert f"{target} is being written by another run (process {holders[target].pid})" in err
+        assert snapshot(tmp_path) == before         # the first run's claim and its half-written file untouched
+        holders[scores].stdin.write("\n")
+        holders[scores].stdin.flush()
+        assert holders[scores].stdout.readline() == "released\n"
+        assert run(runs[scores], capsys)[0] == 0
+        writing = tmp_path / f".r.csv.tmp-{holders[scores].pid}"
+        assert scores.is_file() and writing.read_text() == "being written"     # its writer lives: left alone
+    finally:
+        for holder in holders.values():
+            holder.kill()
+            holder.wait()
+
+
+def test_a_claim_of_a_run_killed_with_sigkill_blocks_no_later_run(files, tmp_path, capsys):
+    out = tmp_path / "r.csv"
+    holder = held_elsewhere(out)
+    holder.kill()       # SIGKILL: no cleanup runs
+    holder.wait()
+    assert run(["score", "--model", "random", "--data", str(files["test"]), "--out", str(out), "--quiet"],
+               capsys)[0] == 0
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["r.csv", "r.curves.npz"]     # its claim and temporary gone
+
+
+WAITING_MODEL = """
+import os
+import time
+from pathlib import Path
+
+
+class Waiting:
+    name = "waiting"
+
+    def surprise(self, videos):
+        Path(__file__).with_name(f"scoring-{os.getpid()}").touch()      # a worker is scoring
+        time.sleep(3600)
+"""
+
+
+def running(pid: int) -> bool:
+    """Whether process `pid` runs (a zombie no longer does)."""
+    try:
+        return Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0] != "Z"
+    except (FileNotFoundError, ProcessLookupError):
+        return False
+
+
+def children_of(pid: int) -> list[int]:
+    found = []
+    for entry in Path("/proc").iterdir():
+        with contextlib.suppress(OSError, IndexError):
+            if entry.name.isdigit() and int((entry / "stat").read_text().rsplit(")", 1)[1].split()[1]) == pid:
+                found.append(int(entry.name))
+    return found
+
+
+@pytest.mark.skipif(not Path("/proc/self/stat").exists(), reason="reads processes from /proc")
+def test_a_score_in_workers_killed_with_sigkill_leaves_no_process_and_its_parts_go(files, tmp_path):
+    model = tmp_path / "waiting.py"
+    model.write_text(WAITING_MODEL)
+    out = tmp_path / "scores" / "r.csv"
+    scoring = subprocess.Popen([sys.executable, "-m", "xvoe", "score", "--model", f"{model}:Waiting", "--data",
+                                str(files["test"]), "--out", str(out), "--workers", "2", "--no-checks", "--quiet"],
+                               stderr=subprocess.DEVNULL)
+    while len(list(tmp_path.glob("scoring-*"))) < 2:
+        assert scoring.poll() is None, "the run ended before both workers scored"
+        time.sleep(0.1)
+    children = children_of(scoring.pid)       # the two workers and multiprocessing's resource tracker
+    assert len(children) == 3
+    scoring.kill()
+    scoring.wait()
+    for _ in range(600):
+        if not any(map(running, children)):
+            break
+        time.sleep(0.1)
+    assert not [pid for pid in children if running(pid)]
+    assert [p.name for p in out.parent.glob(".r.csv.parts-*")] == [f".r.csv.parts-{scoring.pid}"]
+    assert main(["score", "--model", "random", "--data", str(files["test"]), "--out", str(out), "--quiet"]) == 0
+    assert sorted(p.name for p in out.parent.iterdir()) == ["r.csv", "r.curves.npz"]
 
 
 @hypothesis_settings(max_examples=25, suppress_health_check=[HealthCheck.function_scoped_fixture])

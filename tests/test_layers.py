@@ -14,6 +14,7 @@ LAYERS = {
     "xvoe.errors": 0,
     "xvoe.allocator": 0,
     "xvoe.outputs": 0,
+    "xvoe.processes": 0,
     "xvoe.domains": 0,
     "xvoe.identity": 0,
     "xvoe.benchmark": 1,

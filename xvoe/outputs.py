@@ -1,25 +1,43 @@
-"""Where results go: checked before the work starts, written whole or not at all.
+"""Where results go: checked before the work starts, held by one run, written whole or not at all.
 
 Every verb that writes claims its outputs first (`claim_file`, `claim_directory`), so a bad
 path costs a one-line error and no work; files are written under a temporary name beside the
 target and renamed over it at the end (`atomic_paths`), so an interruption leaves the old
 file or none, never half a new one.
+
+A claim is held for the whole run, not only checked at its start: two runs to one name would
+both find it free, and the later would silently replace the earlier's result (with
+--overwrite too: overwriting replaces a finished file, not a run still writing it). It is an
+exclusive `flock` of a claim file beside the output (.NAME.claim; inside a claimed
+directory, .claim), taken without waiting, so the second run is refused in one line (a cache
+that one run makes for all waits instead). The kernel lets the lock go when its process ends
+however it ends, so a run killed with -9 leaves a claim file that nobody locks: the next run
+takes it, and removes that run's temporaries (`remove_stale_temporaries`). A claim ends when
+the call that took it returns (`claim_scope`), or with the process.
 """
 from __future__ import annotations
 
+import fcntl
 import os
 import re
+import shutil
 import stat
 from collections.abc import Iterator
-from contextlib import contextmanager
+from contextlib import contextmanager, suppress
 from pathlib import Path
 
 from .errors import XvoeError
 
+# the outputs this process holds, by absolute path: the descriptor that holds each one's lock
+_held: dict[Path, int] = {}
 
-def claim_file(path: str | os.PathLike, overwrite: bool = False, *, what: str = "--out") -> Path:
+
+def claim_file(path: str | os.PathLike, overwrite: bool = False, *, what: str = "--out",
+               wait: bool = False) -> Path:
     """`path` as a file that can be written now: a name, not a directory, absent unless
-    `overwrite`, in a directory that exists (made here) and can be written."""
+    `overwrite`, in a directory that exists (made here) and can be written, and held by this
+    process (`hold`) until the call that claimed it returns (`claim_scope`). `wait`: wait for a
+    run that holds it, rather than refuse (a shared cache that one run makes for all)."""
     if str(path).strip() == "":
         raise XvoeError(f"{what} is empty; give a file name")
     path = Path(path)
@@ -28,8 +46,17 @@ def claim_file(path: str | os.PathLike, overwrite: bool = False, *, what: str = 
     if path.exists() and not overwrite:
         raise XvoeError(f"{path} exists; pass --overwrite to replace it")
     _writable_directory(path.parent)
-    if os.path.lexists(path):
-        _replaceable(path)
+    taken = hold(path, wait=wait)
+    try:
+        if path.exists() and not overwrite:     # written by a run that ended since the look above
+            raise XvoeError(f"{path} exists; pass --overwrite to replace it")
+        if os.path.lexists(path):
+            _replaceable(path)
+    except XvoeError:
+        if taken:
+            release(path)
+        raise
+    remove_stale_temporaries(path)
     return path
 
 
@@ -59,16 +86,92 @@ def refuse_overlap(inputs: list[str | os.PathLike], output: str | os.PathLike, s
         raise XvoeError(f"{what} must end in {named}, not {out.suffix or 'nothing'}")
 
 
-def claim_directory(path: str | os.PathLike, *, what: str = "--out", make: bool = True) -> Path:
+def claim_directory(path: str | os.PathLike, *, what: str = "--out", make: bool = True,
+                    whole: bool = False) -> Path:
     """`path` as a directory to write into: not a file, writable, and made if missing (unless
-    `make` is false: a check before the work, which writes nothing)."""
+    `make` is false: a check before the work, which writes nothing). `whole`: held by this
+    process as one output (`hold`), as a report is; a run directory, whose stages may train in
+    other processes, is held stage by stage instead (each stage's checkpoint)."""
     if str(path).strip() == "":
         raise XvoeError(f"{what} is empty; give a directory")
     path = Path(path)
     if path.exists() and not path.is_dir():
         raise XvoeError(f"{path} is a file; {what} needs a directory")
     _writable_directory(path, make)
+    if whole and make:
+        hold(path)
     return path
+
+
+def _claim_name(path: Path) -> Path:
+    """The file whose lock holds `path`: beside a file, inside a directory."""
+    return path / ".claim" if path.is_dir() else path.with_name(f".{path.name}.claim")
+
+
+def hold(path: str | os.PathLike, *, wait: bool = False) -> bool:
+    """Hold `path` for this process: refused in one line while another process holds it (or,
+    with `wait`, taken once it lets go). True where taken now, False where held already."""
+    key = Path(os.path.abspath(path))
+    if key in _held:
+        return False
+    lock = _claim_name(key)
+    while True:
+        descriptor = _open_claim(lock, path)
+        try:
+            fcntl.flock(descriptor, fcntl.LOCK_EX | (0 if wait else fcntl.LOCK_NB))
+        except BlockingIOError:
+            holder = os.pread(descriptor, 20, 0).decode(errors="replace").strip()
+            os.close(descriptor)
+            raise XvoeError(f"{path} is being written by another run{f' (process {holder})' if holder else ''}; "
+                            "wait for it to end or write elsewhere") from None
+        except BaseException:
+            os.close(descriptor)
+            raise
+        with suppress(FileNotFoundError):
+            if os.path.samestat(os.fstat(descriptor), os.stat(lock)):
+                break
+        os.close(descriptor)        # its holder removed that file as it let go: lock the one there now
+    with suppress(OSError):         # the holder's process, for the refusal of another run to name
+        os.ftruncate(descriptor, 0)
+        os.pwrite(descriptor, f"{os.getpid()}\n".encode(), 0)
+    _held[key] = descriptor
+    return True
+
+
+def _open_claim(lock: Path, path: str | os.PathLike) -> int:
+    try:
+        return os.open(lock, os.O_RDWR | os.O_CREAT, 0o644)
+    except PermissionError:
+        with suppress(OSError):     # another user's claim file, in a folder only its owner may change: reading locks it
+            return os.open(lock, os.O_RDONLY)
+        raise XvoeError(f"cannot claim {path}: permission denied for {lock}") from None
+    except OSError as error:
+        raise XvoeError(f"cannot claim {path}: {error.strerror or error} ({lock})") from None
+
+
+def release(path: str | os.PathLike) -> None:
+    """Let go of a path this process holds (nothing if it does not). The claim file goes first,
+    while still locked, so a run waiting on it looks again and locks the next one."""
+    key = Path(os.path.abspath(path))
+    descriptor = _held.pop(key, None)
+    if descriptor is None:
+        return
+    with suppress(OSError):
+        _claim_name(key).unlink()
+    fcntl.flock(descriptor, fcntl.LOCK_UN)      # a forked worker's copy of the descriptor must not keep it
+    os.close(descriptor)
+
+
+@contextmanager
+def claim_scope() -> Iterator[None]:
+    """The claims taken in the block (or, as a decorator, in the call) end with it, whether it
+    wrote its outputs or failed: a notebook's failed call blocks no later run."""
+    before = set(_held)
+    try:
+        yield
+    finally:
+        for path in set(_held) - before:
+            release(path)
 
 
 def _writable_directory(directory: Path, make: bool = True) -> None:
@@ -89,6 +192,11 @@ def _writable_directory(directory: Path, make: bool = True) -> None:
         raise XvoeError(f"cannot make the directory {directory}: {error.strerror}") from None
 
 
+def parts_folder(path: Path) -> Path:
+    """The folder beside `path` where this process writes the parts it joins into `path`."""
+    return path.with_name(f".{path.name}.parts-{os.getpid()}")
+
+
 def temporary_name(path: Path) -> Path:
     """The name a file is written under before it takes `path`'s place (this process's)."""
     return path.with_name(f".{path.name}.tmp-{os.getpid()}")
@@ -100,15 +208,18 @@ def _aside_name(path: Path) -> Path:
 
 
 def remove_stale_temporaries(path: Path) -> None:
-    """Delete the temporary files of `path` left by processes that are gone (killed with -9);
-    an old file such a process had moved aside goes back where nothing took its place."""
-    pattern = re.compile(rf"^\.{re.escape(path.name)}\.(tmp|old)-(\d+)$")
+    """Delete the temporary files and parts folders of `path` left by processes that are gone
+    (killed with -9); an old file such a process had moved aside goes back where nothing took
+    its place."""
+    pattern = re.compile(rf"^\.{re.escape(path.name)}\.(tmp|old|parts)-(\d+)$")
     for candidate in path.parent.glob(f".{path.name}.*-*"):
         match = pattern.match(candidate.name)
         if not match or _alive(int(match.group(2))):
             continue
         if match.group(1) == "old" and not os.path.lexists(path):
             os.replace(candidate, path)
+        elif match.group(1) == "parts":
+            shutil.rmtree(candidate, ignore_errors=True)
         else:
             candidate.unlink(missing_ok=True)
 
@@ -125,18 +236,20 @@ def _alive(pid: int) -> bool:
 
 @contextmanager
 def atomic_paths(*paths: Path) -> Iterator[list[Path]]:
-    """Temporary names for `paths`, renamed over them together when the block succeeds
-    (`replace_together`) and removed when it fails. Put the file that readers look for first
-    last: it is the commit."""
-    for path in paths:
-        remove_stale_temporaries(path)
-    temporaries = [temporary_name(path) for path in paths]
-    try:
-        yield temporaries
-        replace_together(temporaries, list(paths))
-    finally:
-        for temporary in temporaries:
-            temporary.unlink(missing_ok=True)
+    """Temporary names for `paths`, held (`hold`) and renamed over them together when the block
+    succeeds (`replace_together`), removed when it fails. Put the file that readers look for
+    first last: it is the commit."""
+    with claim_scope():
+        for path in paths:
+            hold(path)
+            remove_stale_temporaries(path)
+        temporaries = [temporary_name(path) for path in paths]
+        try:
+            yield temporaries
+            replace_together(temporaries, list(paths))
+        finally:
+            for temporary in temporaries:
+                temporary.unlink(missing_ok=True)
 
 
 def replace_together(temporaries: list[Path], paths: list[Path]) -> None:

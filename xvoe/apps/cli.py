@@ -19,7 +19,7 @@ from ..errors import XvoeError
 from ..models.config import parse_field, parse_value
 from ..models.devices import DEVICES, parse_device, resolve_device
 from ..models.nll import InferenceConfig
-from ..outputs import claim_directory, claim_file, refuse_overlap
+from ..outputs import claim_directory, claim_file, claim_scope, refuse_overlap
 from ..training.data import check_focus
 from ..training.loop import TrainConfig
 from ..training.xpl import encoded_cache
@@ -133,6 +133,7 @@ def cmd_score(args: argparse.Namespace) -> None:
                      device=args.device, cache=args.cache or True))
 
 
+@claim_scope()
 def cmd_explain(args: argparse.Namespace) -> None:
     claim_file(args.out, args.overwrite)
     explanation = xvoe.explain(args.model, args.data, args.index, surprise=args.surprise, particles=args.particles,

@@ -30,7 +30,7 @@ from ..evaluation.score import MSE_LABEL, check_same_split, read_curves, warn_un
 from ..identity import split_identity
 from ..models.devices import device_of
 from ..models.perception import normalise, to_uint8
-from ..outputs import atomic_paths, claim_file
+from ..outputs import atomic_paths, claim_file, claim_scope
 from ..training.data import perception_batch
 from ..training.phydnet import load_phydnet
 
@@ -228,6 +228,7 @@ def _video_curves(scores: str | Path, file: h5py.File, indices: list[int]) -> di
                              curves.label)
 
 
+@claim_scope()
 def show(path: str | Path, index: int, out: str | Path | None = None, overwrite: bool = False,
          scores: str | Path | None = None, display_size: int | None = DISPLAY_SIZE) -> Path | plt.Figure:
     """What `xvoe show` does: a PNG contact sheet, a GIF, or an MP4 (with `scores`, the

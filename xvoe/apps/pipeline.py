@@ -33,7 +33,8 @@ from ..evaluation.explain import explain
 from ..evaluation.score import load_model, score_split
 from ..models.config import to_dict
 from ..models.devices import resolve_device
-from ..outputs import claim_directory
+from ..outputs import claim_directory, claim_scope
+from ..processes import end_with_parent
 from ..training.data import process_counts
 from ..training.latents import encode_split
 from ..training.launch import on_cores
@@ -120,11 +121,12 @@ class Stages:
         (self.marks / name).write_text(f"{self.timings[name]:.1f} s\n" + (f"{key}\n" if key else ""))
 
 
+@claim_scope()
 def run_pipeline(config: PipelineConfig) -> Path:
     """Everything, end to end; returns the path of report.md."""
     chosen = recipe(config.recipe)
     size, train_videos = chosen.perception.image_size, config.train_videos or chosen.train_videos
-    run_dir = claim_directory(config.out)
+    run_dir = claim_directory(config.out, whole=True)     # one pipeline in a run directory at a time
     (run_dir / "data").mkdir(exist_ok=True)
     stages = Stages(run_dir, config.progress)
     train_data, test_data, latents = run_files(run_dir)
@@ -154,7 +156,8 @@ def run_pipeline(config: PipelineConfig) -> Path:
     if lanes > 1:       # one model's training per lane, the cores shared out: two 1-thread runs beat one 2-thread run
         threads = max(1, cores // lanes)
         context = multiprocessing.get_context("spawn")
-        with ProcessPoolExecutor(lanes, mp_context=context) as pool:
+        with ProcessPoolExecutor(lanes, mp_context=context, initializer=end_with_parent,
+                                 initargs=(os.getpid(),)) as pool:
             for done in [pool.submit(_lane, config, recipe(config.recipe), model, threads) for model in heavy]:
                 done.result()
     for model in config.models:

@@ -26,7 +26,7 @@ from ..evaluation.metrics import (
 )
 from ..evaluation.score import check_same_split, read_curves, score_header, scored_split, warn_unchecked
 from ..identity import describe_split, split_identity
-from ..outputs import claim_directory
+from ..outputs import claim_directory, claim_scope
 from . import figures
 
 # what a report writes, so that a rerun into the same directory leaves nothing of the last one
@@ -35,6 +35,7 @@ REPORT_FILES = ("metrics.csv", "metrics.json", "headers.json", "holistic.png", "
                 "onset.png")
 
 
+@claim_scope()
 def report(paths: list[str | Path], out_dir: str | Path, rounds: int = 1000, seed: int = 0,
            data: str | Path | None = None, overwrite: bool = False) -> list[Path]:
     """What `xvoe metrics` does: the table (CSV and JSON) and the figures, for one or more
@@ -75,7 +76,7 @@ def report(paths: list[str | Path], out_dir: str | Path, rounds: int = 1000, see
                 timed_pairs[series] = onset_pairs(scores, per_frame, event)
     if not rows:
         raise XvoeError("the scores hold no test pairs to measure")
-    out_dir = claim_directory(out_dir)
+    out_dir = claim_directory(out_dir, whole=True)
     earlier = [p for pattern in REPORT_FILES for p in out_dir.glob(pattern)]
     if earlier and not overwrite:
         raise XvoeError(f"{out_dir} holds a report already ({earlier[0].name}); pass --overwrite to replace it")

@@ -7,7 +7,7 @@ notebooks and a user's own script alike.
 from __future__ import annotations
 
 import os
-import tempfile
+import shutil
 from concurrent.futures import ProcessPoolExecutor
 from dataclasses import replace
 from multiprocessing import get_context
@@ -27,7 +27,8 @@ from ..evaluation.explain import explain as explain_mse
 from ..evaluation.score import Scorer, load_model, merge_scores, prepare_latents, score_split
 from ..evaluation.surprise import EXPLANATIONS
 from ..models.devices import resolve_device
-from ..outputs import claim_file
+from ..outputs import claim_file, claim_scope, parts_folder
+from ..processes import end_with_parent
 
 SURPRISES = ("mse", "nll", "both")
 
@@ -88,26 +89,34 @@ def check_explanation(explanation: str) -> None:
         raise XvoeError(f"--explanation must be {' or '.join(EXPLANATIONS)}, not {explanation!r}")
 
 
+@claim_scope()
 def _score_in_workers(model: str | Scorer, scorer: Scorer, data: str | Path, out: str | Path, workers: int,
                       overwrite: bool, progress: bool, **settings) -> Path:
     """`score` of `model` (loaded here as `scorer`) in `workers` spawned processes, shard I in
     process I, merged into `out`. The first process draws its progress bar (the shards are of
-    one size); the split's latent cache is made here first, for all of them to read."""
-    claim_file(out, overwrite)      # refused before any work, as one run would be
+    one size); the split's latent cache is made here first, for all of them to read. The parts
+    are written in a folder beside `out` named by this process (`parts_folder`), which a later
+    run to `out` removes if this one was killed before it could."""
+    out = claim_file(out, overwrite)      # refused before any work, as one run would be
     settings["cache"] = prepare_latents(scorer, data, settings["cache"], progress=progress) or False
     threads = max(1, len(os.sched_getaffinity(0)) // workers)
-    with tempfile.TemporaryDirectory(dir=Path(out).parent, prefix=".score-parts-") as parts_dir:
-        parts = [Path(parts_dir) / f"part{index}.csv" for index in range(workers)]
+    parts_dir = parts_folder(out)
+    parts_dir.mkdir()
+    try:
+        parts = [parts_dir / f"part{index}.csv" for index in range(workers)]
         with ProcessPoolExecutor(workers, mp_context=get_context("spawn"), initializer=_worker_threads,
-                                 initargs=(threads,)) as pool:
+                                 initargs=(threads, os.getpid())) as pool:
             running = [pool.submit(score, model, data, part, shard=(index, workers), progress=progress and index == 0,
                                    **settings) for index, part in enumerate(parts)]
             for done in running:
                 done.result()
         return merge_scores(parts, out, overwrite=overwrite)
+    finally:
+        shutil.rmtree(parts_dir, ignore_errors=True)
 
 
-def _worker_threads(threads: int) -> None:
+def _worker_threads(threads: int, parent: int) -> None:
+    end_with_parent(parent)
     os.environ["OMP_NUM_THREADS"] = str(threads)
     torch.set_num_threads(threads)
 

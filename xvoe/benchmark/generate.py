@@ -22,6 +22,7 @@ from tqdm.auto import tqdm
 
 from ..domains import COUNT, SEED, Domain, check_config, within
 from ..errors import XvoeError
+from ..processes import end_with_parent
 from . import store
 from .render import Video, render
 from .scenes import SCENARIOS, TEST_SETTINGS, TRAINING_GROUPS
@@ -127,15 +128,17 @@ def _map(function, items: range, workers: int):
         yield from map(function, items)
         return
     chunk = max(1, min(64, len(items) // (workers * 8)))
-    with multiprocessing.get_context("fork").Pool(workers, initializer=_worker_follows_parent) as pool:
+    with multiprocessing.get_context("fork").Pool(workers, initializer=_worker_follows_parent,
+                                                initargs=(os.getpid(),)) as pool:
         yield from pool.imap(function, items, chunksize=chunk)
 
 
-def _worker_follows_parent() -> None:
+def _worker_follows_parent(parent: int) -> None:
     """A worker ignores Ctrl-C (the parent stops the pool and removes its half-written file) and
-    dies at once when the pool ends it, whatever SIGTERM handler the parent had; its stderr goes
-    nowhere: a unit's error is raised in the parent, and a worker would only print the pool's
-    broken pipe once the parent is killed."""
+    dies at once when the pool ends it, whatever SIGTERM handler the parent had, or when the
+    parent dies (`end_with_parent`); its stderr goes nowhere: a unit's error is raised in the
+    parent, and a worker would only print the pool's broken pipe once the parent is killed."""
+    end_with_parent(parent)
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     signal.signal(signal.SIGTERM, signal.SIG_DFL)
     sys.stderr = open(os.devnull, "w")    # noqa: SIM115 - open for the worker's whole life

@@ -18,7 +18,7 @@ import numpy as np
 from tqdm import tqdm
 
 from ..errors import XvoeError
-from ..outputs import claim_file
+from ..outputs import claim_file, claim_scope
 from . import store
 from .render import STATE_COLUMNS
 from .scenes import SCENARIOS
@@ -43,6 +43,7 @@ class Part:
     files: tuple[Path, ...]
 
 
+@claim_scope()
 def import_released(source: str | os.PathLike, split: str, out: str | os.PathLike, *, overwrite: bool = False,
                     progress: bool = True) -> Path:
     """Write the released split under `source` (the downloaded X-VoE directory, with test/ and

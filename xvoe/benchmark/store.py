@@ -21,7 +21,7 @@ import h5py
 import numpy as np
 
 from ..errors import XvoeError
-from ..outputs import atomic_paths, claim_file
+from ..outputs import atomic_paths, claim_file, claim_scope
 from .render import DEPTH_FAR, STATE_COLUMNS, Video
 from .scenes import SCENARIOS, TRAINING_GROUPS
 from .world import KIND_NAMES, MAX_SLOTS, WALL_KINDS
@@ -103,10 +103,12 @@ class Writer:
 
 @contextmanager
 def atomic_file(path: str | os.PathLike, overwrite: bool = False) -> Iterator[h5py.File]:
-    """An HDF5 file open for writing under a temporary name, renamed to `path` on success."""
-    path = claim_file(path, overwrite)
-    with atomic_paths(path) as (tmp,), h5py.File(tmp, "w", track_order=False) as file:
-        yield file
+    """An HDF5 file open for writing under a temporary name, renamed to `path` on success;
+    `path` is held from the claim to the rename (xvoe.outputs)."""
+    with claim_scope():
+        path = claim_file(path, overwrite)
+        with atomic_paths(path) as (tmp,), h5py.File(tmp, "w", track_order=False) as file:
+            yield file
 
 
 def write_attributes(file: h5py.File, split: str, config: dict, seed: int) -> None:

@@ -47,7 +47,7 @@ from ..models.nll import InferenceConfig
 from ..models.perception import ComponentVAE, normalise
 from ..models.phydnet import PhyDNet
 from ..models.xpl import XPL
-from ..outputs import atomic_paths, claim_file
+from ..outputs import atomic_paths, claim_file, claim_scope
 from ..training.checkpoints import SHIPPED, shipped_path
 from ..training.data import check_size, visible_threshold
 from ..training.latents import check_cache, encode_frames, encode_with, encoder_key, open_latents, split_cache
@@ -364,6 +364,7 @@ class ExtraColumns(Protocol):
         """What the columns were made with, for the score file's header (`score_header`)."""
 
 
+@claim_scope()
 def score_split(model: str | Scorer, data: str, out: str, *, how: str = "sum", videos_per_batch: int = 16,
                 extra: ExtraColumns | None = None, score_column: str = "score", shard: tuple[int, int] = (0, 1),
                 checks: bool = True, overwrite: bool = False, progress: bool = True,
@@ -594,6 +595,7 @@ def shard_rows(count: int, videos_per_batch: int, shard: tuple[int, int]) -> tup
     return first * videos_per_batch, min(count, last * videos_per_batch)
 
 
+@claim_scope()
 def merge_scores(parts: list[str | Path], out: str | Path, overwrite: bool = False) -> Path:
     """Join the score files of `xvoe score --shard` (and their curves) into the files one run
     would have written, byte for byte; an error unless they are the parts of one split."""
@@ -648,6 +650,7 @@ def open_test_split(scorer: Scorer, data: str | os.PathLike) -> Iterator[h5py.Fi
         yield file
 
 
+@claim_scope()
 def latent_cache(scorer: Scorer, data: str | os.PathLike, cache: str | os.PathLike | bool = True, *,
                  make: bool = True, progress: bool = False, identity: dict | None = None) -> Path | None:
     """The latent cache a scorer reads for the test split `data` (checked before): `cache`, or
@@ -656,24 +659,36 @@ def latent_cache(scorer: Scorer, data: str | os.PathLike, cache: str | os.PathLi
     is checked against the split and the perception (a one-line error for a stale or foreign
     one); the split's own, made from an earlier file of the split's name (a split generated again,
     a notebook's with other pairs), is derived data and made again. One to be made is claimed
-    first (a folder that refuses it is named before the work), then written by the scorer's
-    perception module. `identity`: the split's `split_identity`, where the caller has it."""
+    first (a folder that refuses it is named before the work; a run making it now is waited
+    for, and its cache read), then written by the scorer's perception module. `identity`: the
+    split's `split_identity`, where the caller has it."""
     if cache is False or scorer.vae is None:
         return None
     perception = encoder_key(scorer.vae)
     path = split_cache(data, perception) if cache is True else Path(cache)
-    if path.exists():
-        try:
-            check_cache(path, data, perception, identity)
-            return path
-        except XvoeError:
-            if cache is not True:
-                raise
+    if _usable_cache(path, data, perception, identity, cache is True):
+        return path
     if not make:
         return None
-    claim_file(path, overwrite=True, what="the latent cache")
-    # a rival process may have made it meanwhile, from the same split and perception: replacing it is harmless
+    # another run scoring this split with this perception makes the same cache: wait for it, then read it
+    claim_file(path, overwrite=True, what="the latent cache", wait=True)
+    if _usable_cache(path, data, perception, identity, cache is True):
+        return path
     return encode_with(scorer.vae, data, path, overwrite=True, progress=progress, identity=identity)
+
+
+def _usable_cache(path: Path, data: str | os.PathLike, perception: str, identity: dict | None, own: bool) -> bool:
+    """Whether the cache at `path` is there and of this split and perception; one given (not
+    the split's `own`) that is not is refused in one line."""
+    if not path.exists():
+        return False
+    try:
+        check_cache(path, data, perception, identity)
+    except XvoeError:
+        if not own:
+            raise
+        return False
+    return True
 
 
 def prepare_latents(scorer: Scorer, data: str | os.PathLike, cache: str | os.PathLike | bool = True, *,

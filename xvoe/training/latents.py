@@ -39,7 +39,7 @@ from ..identity import arrays_hash, describe_split, split_identity
 from ..models.config import to_dict
 from ..models.devices import autocast_dtype, device_of, mixed_precision, resolve_device
 from ..models.perception import ComponentVAE, normalise
-from ..outputs import claim_file
+from ..outputs import claim_file, claim_scope
 from .data import check_size, masked_inputs, visible_threshold
 from .perception import load_perception
 from .recipes import recipe_of
@@ -160,6 +160,7 @@ def encode_split(model_ref: str | os.PathLike, data: str | os.PathLike, out: str
                        progress=progress)
 
 
+@claim_scope()
 def encode_with(model: ComponentVAE, data: str | os.PathLike, out: str | os.PathLike, origin: dict | None = None, *,
                 videos_per_batch: int = 16, overwrite: bool = False, progress: bool = True,
                 identity: dict | None = None) -> Path:

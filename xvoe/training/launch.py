@@ -16,6 +16,7 @@ import torch.distributed as dist
 import torch.multiprocessing as mp
 
 from ..errors import XvoeError
+from ..processes import end_with_parent
 from .loop import StopRequests
 from .recipes import RECIPES, Recipe
 
@@ -38,8 +39,8 @@ def on_cores(train: Callable[..., Any], processes: int, recipe: Recipe | None = 
         train(**kwargs)
         return
     store = rendezvous_store()     # kept in a name until the processes are joined: freed, it lets its port go
-    context = mp.start_processes(_process, args=(processes, store.port, train, recipe, kwargs), nprocs=processes,
-                                 join=False, start_method="spawn")
+    context = mp.start_processes(_process, args=(processes, store.port, train, recipe, kwargs, os.getpid()),
+                                 nprocs=processes, join=False, start_method="spawn")
     try:
         with ForwardedStops(context.processes):
             while not context.join():
@@ -79,7 +80,8 @@ class Stopped(Exception):
 
 
 def _process(rank: int, world: int, port: int, train: Callable[..., Any], recipe: Recipe | None,
-             kwargs: dict) -> None:
+             kwargs: dict, parent: int) -> None:
+    end_with_parent(parent)
     os.setpgid(0, 0)        # out of the terminal's group: Ctrl-C comes once, through ForwardedStops
     os.environ.update(MASTER_ADDR="127.0.0.1", MASTER_PORT=str(port), RANK=str(rank), LOCAL_RANK=str(rank),
                       WORLD_SIZE=str(world), LOCAL_WORLD_SIZE=str(world), OMP_NUM_THREADS="1",

@@ -34,7 +34,7 @@ from ..domains import COUNT, NON_NEGATIVE, POSITIVE, SEED, SHARE, Domain, check_
 from ..errors import XvoeError
 from ..models.config import override, to_dict
 from ..models.devices import mixed_precision, resolve_device
-from ..outputs import claim_directory
+from ..outputs import claim_directory, claim_file, claim_scope
 from .checkpoints import CHECKPOINT_FORMAT, load_checkpoint, save_checkpoint
 
 
@@ -245,6 +245,7 @@ class _Meter:
 UNFOCUSED = {"perception": "single frames"}
 
 
+@claim_scope()
 def fit(job: Job, config: TrainConfig, run_dir: str | os.PathLike, *, place: Dist | None = None,
         resume: bool = False, overwrite: bool = False, progress: bool = True) -> Path:
     """Train `job.model` for config.steps steps (or config.max_minutes), checkpointing as it goes.
@@ -264,6 +265,8 @@ def fit(job: Job, config: TrainConfig, run_dir: str | os.PathLike, *, place: Dis
                         f"{UNFOCUSED[job.stage]}")
     run_dir = claim_directory(run_dir)
     ckpt, log = checkpoint_path(run_dir, job.stage), log_path(run_dir, job.stage)
+    if place.main:      # one run trains a stage of a run directory at a time; its other processes follow this one
+        claim_file(ckpt, overwrite=True, what=f"the {job.stage} stage's checkpoint")
     if ckpt.exists() and not (resume or overwrite):
         raise XvoeError(f"{ckpt} exists; pass --resume to continue it or --overwrite to start again")
     model = job.model.to(place.device)

@@ -1,0 +1,34 @@
+"""Worker processes that end with the process that started them.
+
+A process killed with -9 runs no cleanup, so its pool cannot stop its workers: they would
+score or generate on for nobody, and hold what the run held (the resource tracker's pipe,
+which keeps multiprocessing's tracker alive; a forked worker's copy of an output's claim).
+Each worker therefore asks the kernel to kill it when its parent dies (Linux), or watches
+for that itself (elsewhere).
+"""
+from __future__ import annotations
+
+import ctypes
+import os
+import signal
+import sys
+import threading
+import time
+
+PR_SET_PDEATHSIG = 1        # from <linux/prctl.h>
+
+
+def end_with_parent(parent: int) -> None:
+    """Called first in a worker whose parent is the process `parent`: the worker ends when it does."""
+    if sys.platform.startswith("linux"):
+        ctypes.CDLL(None, use_errno=True).prctl(PR_SET_PDEATHSIG, signal.SIGKILL)
+    else:
+        threading.Thread(target=_watch, args=(parent,), daemon=True).start()
+    if os.getppid() != parent:      # it died before the request was made: nothing would come
+        os._exit(1)
+
+
+def _watch(parent: int) -> None:
+    while os.getppid() == parent:
+        time.sleep(1.0)
+    os._exit(1)
