@@ -12,8 +12,9 @@ under the default verdict (`score`, the goals), the paper's score (`paper_score`
 the NLL and the NLL excess, each with its 95% interval over pairs and the permutation p-value against 50%; the
 S3 - S2 gap under the default verdict and the NLL; holistic AUC; hidden_iou and mae_iou on --pairs
 videos; the NLL's p_hidden, ESS, p_two (two identical objects) and what both make of each S2
-member, and its repeatability; the perception's PSNR and position probe on --frames (a train-type split
-the model was not trained on); XPL's S3 lead over each of --baselines; videos per second.
+member, and its repeatability; the perception's PSNR and position probes (per kind, and one for
+all kinds) on --frames (a train-type split the model was not trained on); XPL's S3 lead over each
+of --baselines; videos per second.
 `--scores FILE` reads the model's scores of the split made already with `--surprise both` (the
 parts of `xvoe score --shard` merged: a 200-pair split takes hours of NLL) instead of scoring it,
 and `--repeat FILE ...` the same with the NLL's second seed, whole or some of its shards;

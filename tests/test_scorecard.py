@@ -130,9 +130,11 @@ def test_xpl_s3_lead_over_a_baseline_by_hand():
 
 
 def test_a_card_round_trips_and_prints(tmp_path):
-    lines = [goal("S1", 98.0, 96, 100, 97.0), Line("speed", 12.0, target=10.0), Line("gap", 3.0)]
+    lines = [goal("S1", 98.0, 96, 100, 97.0), Line("speed", 12.0, target=10.0), Line("gap", 3.0),
+             Line("probe", float("nan"), target=0.95, note="too few objects")]
     path = write_card(tmp_path / "card.json", lines, model="xpl")
     assert repr(read_card(path)) == repr(lines)      # repr: nan (no interval, no p) equals itself
+    assert format_line(lines[3]) == "probe: nan (too few objects) (goal >= 0.95) NOT MET"
     text = format_line(goal("S1", 95.0, 93, 97.5, 97.0), lines[0])
     assert "NOT MET" in text and "WORSE BEYOND ITS INTERVAL" in text
     assert (role_of("plato"), role_of("random"), role_of("runs/s0"), role_of("xpl")) == (

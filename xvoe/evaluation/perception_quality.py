@@ -3,8 +3,12 @@
 - PSNR of the decoded composite (posterior means) against the frame, RGB (the goal: >= 26 dB),
   depth, and RGB on object pixels only; pooled over every frame, with an interval over videos.
 - probe: a least-squares map from a visible object's latent mean to its x and y, fitted on the
-  first half of the videos and scored (R^2) on the second half (the goal: >= 0.95 for x and for
-  y), with an interval over the held-out videos (the fit fixed).
+  first half of the videos and scored (R^2) on the second half, with an interval over the
+  held-out videos (the fit fixed). `position_probes` fits one per kind (the goal: >= 0.95 for x
+  and y of cubes and walls and x of balls: the kinds code height differently, so one probe for
+  all of them mixes codes) and one for every visible object (reported). A ball's y has no goal:
+  balls never leave the floor in the generator's splits (only falling cubes do), so it does not
+  vary and has no R^2 (docs/decisions.md, "The position probe per kind").
 
 Held-out means frames the model was not trained on: a train-type split from another seed.
 Any split with states works (a test split too): nothing here trains.
@@ -25,6 +29,8 @@ from ..training.latents import encode_means
 from .resampling import interval
 
 CHANNELS = ("rgb", "depth", "objects")
+POOLED = "all"                              # position_probes' key of the probe for every visible object
+PROBE_GOALS = {"ball": ("x",), "cube": ("x", "y"), "wall": ("x", "y")}      # the probes' goal lines: kind, axes
 
 
 @dataclass
@@ -121,18 +127,61 @@ def probe(means: np.ndarray, targets: np.ndarray, chosen: np.ndarray, rounds: in
           seed: int = 0) -> list[tuple[float, float, float]]:
     """Per target column, (R^2, low, high) of a probe fitted on the first half of the videos and
     scored on the second half, over the `chosen` slots (V, T, K); the interval resamples the
-    held-out videos (no interval, nan, when rounds is 0)."""
+    held-out videos (no interval, nan, when rounds is 0 or the R^2 is nan)."""
     half = len(means) // 2
     weights = fit_probe(means[:half], targets[:half], chosen[:half])
     held = chosen[half:]
     truth = targets[half:][held]
     guess = np.c_[means[half:][held], np.ones(held.sum())] @ weights
     values = r_squared(truth, guess)
-    if not rounds:
-        return [(float(v), float("nan"), float("nan")) for v in values]
     video = np.nonzero(held)[0]          # the held-out video of each chosen slot
-    return [(float(value), *_r2_interval(truth[:, c], guess[:, c], video, len(held), rounds, seed))
+    return [(float(value), *(_r2_interval(truth[:, c], guess[:, c], video, len(held), rounds, seed)
+                             if rounds and np.isfinite(value) else (float("nan"),) * 2))
             for c, value in enumerate(values)]
+
+
+@dataclass
+class PositionProbe:
+    """One probe's result: (R^2, low, high) for x and for y, over the visible objects (slots in a
+    frame) of the held-out half; nan with a `reason` where it could not be measured."""
+
+    objects: int                    # visible objects of the held-out half
+    x: tuple[float, float, float]
+    y: tuple[float, float, float]
+    reason: str = ""
+
+
+def position_probes(means: np.ndarray, positions: np.ndarray, visible: np.ndarray, kind: np.ndarray,
+                    kind_names: list[str], rounds: int = 0, seed: int = 0) -> dict[str, PositionProbe]:
+    """The position probe (`probe`: same halves, same interval) for every visible object, under
+    `POOLED`, and for each kind's visible objects alone, under the kind's name: every kind of
+    `kind_names` but "none", and each kind of `PROBE_GOALS` whether the split names it or not.
+
+    means (V, T, K, D), positions (V, T, K, 2), visible (V, T, K), kind (V, K) indexing
+    kind_names. A kind is measured when the first half of the videos holds at least D + 1 of its
+    visible objects (fewer leave the D + 1 weights of the least-squares fit undetermined) and the
+    second half at least 2; else its x and y are nan and `reason` says which half fell short. A
+    held-out x or y that does not vary has no R^2: nan, and the reason says so.
+    """
+    half, needed = len(means) // 2, means.shape[-1] + 1
+    kinds = np.broadcast_to(kind[:, None, :], visible.shape)
+    groups = {POOLED: visible}
+    for name in dict.fromkeys([*(n for n in kind_names if n != "none"), *PROBE_GOALS]):
+        groups[name] = visible & (kinds == kind_names.index(name)) if name in kind_names else np.zeros_like(visible)
+    found = {}
+    for name, chosen in groups.items():
+        fitted, held = int(chosen[:half].sum()), int(chosen[half:].sum())
+        if fitted < needed or held < 2:
+            short = (f"visible objects in the fitting half: {fitted}, fewer than the fit's {needed} weights"
+                     if fitted < needed else f"visible objects in the held-out half: {held}, fewer than 2")
+            missing = (float("nan"),) * 3
+            found[name] = PositionProbe(held, missing, missing, short)
+            continue
+        r2_x, r2_y = probe(means, positions, chosen, rounds, seed)
+        flat = [axis for axis, value in (("x", r2_x[0]), ("y", r2_y[0])) if np.isnan(value)]
+        found[name] = PositionProbe(held, r2_x, r2_y,
+                                    f"{' and '.join(flat)} does not vary in the held-out half" if flat else "")
+    return found
 
 
 def _r2_interval(truth: np.ndarray, guess: np.ndarray, video: np.ndarray, videos: int, rounds: int,

@@ -29,7 +29,15 @@ from ..errors import XvoeError
 from ..models.perception import ComponentVAE
 from .explanation_quality import expected_videos, ground_truth, hidden_explanations, mae_iou, pick
 from .metrics import VERDICTS, Estimate, comparative, has_both_surprises, holistic, pairs_table, pairwise_win
-from .perception_quality import latent_positions, probe, read_held_out, reconstruction
+from .perception_quality import (
+    POOLED,
+    PROBE_GOALS,
+    PositionProbe,
+    latent_positions,
+    position_probes,
+    read_held_out,
+    reconstruction,
+)
 from .resampling import values_interval
 from .score import Scorer
 
@@ -57,6 +65,7 @@ class Line:
     target: float | None = None
     direction: str = ">="       # >= or <=: which way is better; within: the target inside the interval
     p: float = float("nan")     # comparative lines: the p-value that the accuracy differs from 50%
+    note: str = ""              # why the value is nan, where it could not be measured
 
     @property
     def has_interval(self) -> bool:
@@ -263,16 +272,29 @@ def explanation_lines(scorer: Scorer, file: h5py.File, pairs: int, rounds: int =
 
 def perception_lines(vae: ComponentVAE, data: str | Path, videos: int = 300, rounds: int = 1000,
                      seed: int = 0) -> list[Line]:
-    """The perception's goals on held-out frames: RGB PSNR and the position probe's R^2 (x, y)."""
+    """The perception's goals on held-out frames: RGB PSNR and the position probe's R^2 of the
+    kinds and axes of `PROBE_GOALS`; beside them (reported) depth PSNR, PSNR on object pixels,
+    one probe for every visible object, and the probes' other lines."""
     held = read_held_out(data, videos, vae.config.image_size)
     quality = reconstruction(vae, held, rounds, seed)
-    means, positions, visible = latent_positions(vae, held)
-    r2_x, r2_y = probe(means, positions, visible, rounds, seed)
-    return [Line("perception RGB PSNR (dB)", *quality["rgb"], PSNR),
-            Line("perception depth PSNR (dB)", *quality["depth"]),
-            Line("perception RGB PSNR on object pixels (dB)", *quality["objects"]),
-            Line("perception position probe R^2 x", *r2_x, PROBE_R2),
-            Line("perception position probe R^2 y", *r2_y, PROBE_R2)]
+    lines = [Line("perception RGB PSNR (dB)", *quality["rgb"], PSNR),
+             Line("perception depth PSNR (dB)", *quality["depth"]),
+             Line("perception RGB PSNR on object pixels (dB)", *quality["objects"])]
+    return lines + probe_lines(position_probes(*latent_positions(vae, held), held.kind, held.kind_names, rounds,
+                                               seed))
+
+
+def probe_lines(probes: dict[str, PositionProbe]) -> list[Line]:
+    """The lines of `position_probes`: R^2 x and y of the probe for every visible object, then
+    of each kind's, named "(kind)"; those of `PROBE_GOALS` carry the goal."""
+    lines = []
+    for name, found in probes.items():
+        suffix = "" if name == POOLED else f" ({name})"
+        lines += [Line(f"perception position probe R^2 {axis}{suffix}", *value,
+                       PROBE_R2 if axis in PROBE_GOALS.get(name, ()) else None,
+                       note=found.reason if math.isnan(value[0]) else "")
+                  for axis, value in (("x", found.x), ("y", found.y))]
+    return lines
 
 
 def speed_line(name: str, videos: int, seconds: float, target: float | None) -> Line:
@@ -287,6 +309,8 @@ def format_line(line: Line, reference: Line | None = None) -> str:
         text += f" [{line.low:.3f}, {line.high:.3f}]"
     if math.isfinite(line.p):
         text += f" p(50%)={line.p:.3g}"
+    if line.note:
+        text += f" ({line.note})"
     if line.target is not None:
         text += f" (goal {line.direction} {line.target:g}) {'met' if line.met else 'NOT MET'}"
     if reference is not None:
