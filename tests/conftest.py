@@ -1,6 +1,14 @@
+import os
+
 import numpy as np
 import pytest
 from hypothesis import settings
+
+from xvoe.training.loop import KERNELS
+
+# The training's kernels in this process too, before its first: stages trained here then match
+# those trained in the processes the pipeline starts (xvoe.training.loop.pin_kernels).
+os.environ.update({name: os.environ.get(name, value) for name, value in KERNELS.items()})
 
 from xvoe.benchmark import store
 from xvoe.benchmark.generate import GenerateConfig, generate

@@ -21,7 +21,7 @@ from ..models.devices import DEVICES, parse_device, resolve_device
 from ..models.nll import InferenceConfig
 from ..outputs import claim_directory, claim_file, claim_scope, refuse_overlap
 from ..training.data import check_focus
-from ..training.loop import TrainConfig
+from ..training.loop import TrainConfig, pin_kernels
 from ..training.xpl import encoded_cache
 
 
@@ -522,6 +522,8 @@ def check_paths(args: argparse.Namespace) -> None:
 def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
+    if args.verb in ("train", "pipeline"):      # before any kernel runs, so that a seed trains the same bytes anywhere
+        pin_kernels()
     previous = signal.signal(signal.SIGTERM, _interrupt)   # so that a kill cleans up as Ctrl-C does
     try:
         resolve_device(getattr(args, "device", "cpu"))      # a device this machine lacks, before any work

@@ -88,8 +88,11 @@ class InteractionLSTM(nn.Module):
         per frame (forward and backward 1.6x faster at the paper's sizes)."""
         start = inputs.new_zeros(1, len(inputs), self.config.lstm)
         cell = self.cell
-        return torch.lstm(inputs, (start, start), [cell.weight_ih, cell.weight_hh, cell.bias_ih, cell.bias_hh],
-                          True, 1, 0.0, self.training, False, True)[0]
+        # torch's own LSTM kernels, not oneDNN's, whose sums follow the CPU (docs/decisions.md, "One
+        # seed, one set of weights"); on the CPU they are no slower at these sizes
+        with torch.backends.mkldnn.flags(enabled=False, deterministic=None, allow_tf32=None, fp32_precision=None):
+            return torch.lstm(inputs, (start, start), [cell.weight_ih, cell.weight_hh, cell.bias_ih, cell.bias_hh],
+                              True, 1, 0.0, self.training, False, True)[0]
 
     def step(self, z: Tensor, state: DynamicsState | None = None,
              inert: Tensor | None = None) -> tuple[Tensor, DynamicsState]:

@@ -59,7 +59,8 @@ class TrainConfig:
     # slices of the file that each feed batch_size/data_shards frames per step; 0 = the number of
     # processes of the first launch
     data_shards: int = within(0, NON_NEGATIVE)
-    threads: int = within(0, NON_NEGATIVE)                # torch threads per process (0 = cores / processes)
+    threads: int = within(0, NON_NEGATIVE)                # torch threads per process (0 = cores / processes):
+                                                          # the count splits sums, so a recipe fixes it
     # this share of each batch comes from the training videos of `focus_group` that have a wall
     # (e.g. permanence, where cubes must be remembered behind it; several: permanence,continuity);
     # 0 = uniform. PhyDNet, and the XPL, PLATO and proposal stages (through the split file the latent cache
@@ -161,9 +162,27 @@ def seed_everything(seed: int) -> None:
     torch.manual_seed(seed)
 
 
+# The code paths of torch's own kernels and oneDNN's convolutions: AVX2, which both machine kinds have,
+# so that they sum alike on either (docs/decisions.md, "One seed, one set of weights"; MKL's matrix
+# products still follow the CPU's maker). An environment that names its own keeps it.
+KERNELS = {"ATEN_CPU_CAPABILITY": "avx2", "ONEDNN_MAX_CPU_ISA": "AVX2"}
+
+
+def pin_kernels() -> str:
+    """Ask for the `KERNELS` instruction set and say which this process's torch kernels use.
+    Torch reads it at its first kernel, so a process that ran one before keeps what it chose
+    (a checkpoint records it: `kernels`); a training command or a stage's process runs none
+    before this."""
+    for name, value in KERNELS.items():
+        os.environ.setdefault(name, value)
+    return torch.backends.cpu.get_cpu_capability()
+
+
 def start_process(config: TrainConfig, place: Dist) -> TrainConfig:
-    """A stage's config in this process, as one process or any number of them read it: one data
-    shard per process unless set, this process's share of the cores taken, every RNG seeded."""
+    """A stage's config in this process, as one process or any number of them read it: the
+    kernels pinned, one data shard per process unless set, this process's share of the cores
+    taken (unless the config fixes its threads), every RNG seeded."""
+    pin_kernels()
     config = override(config, data_shards=config.data_shards or place.world)
     set_threads(config, int(os.environ.get("LOCAL_WORLD_SIZE", "1")))
     seed_everything(config.seed)
@@ -270,7 +289,9 @@ def fit(job: Job, config: TrainConfig, run_dir: str | os.PathLike, *, place: Dis
     if ckpt.exists() and not (resume or overwrite):
         raise XvoeError(f"{ckpt} exists; pass --resume to continue it or --overwrite to start again")
     model = job.model.to(place.device)
-    optimiser = torch.optim.Adam(model.parameters(), lr=config.lr)
+    # fused: one kernel of torch's own, where the loop of ops takes the square root from MKL's vector
+    # library, whose last bit differs between CPU makers (docs/decisions.md, "One seed, one set of weights")
+    optimiser = torch.optim.Adam(model.parameters(), lr=config.lr, fused=place.device.type in ("cpu", "cuda"))
     start, elapsed, meter = 0, 0.0, _Meter()
     average = WeightAverage(model, config.average_decay) if config.average_decay else None
     if resume and ckpt.exists():
@@ -313,6 +334,7 @@ def fit(job: Job, config: TrainConfig, run_dir: str | os.PathLike, *, place: Dis
                                    "train": to_dict(config), "step": step, "elapsed": elapsed,
                                    **weights, "optimizer": optimiser.state_dict(),
                                    "rng": rng_state(), "meta": job.meta, "world": place.world,
+                                   "kernels": torch.backends.cpu.get_cpu_capability(),
                                    "meter": {"sums": meter.sums, "count": meter.count}})
 
     table = None

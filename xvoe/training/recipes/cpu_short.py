@@ -15,10 +15,14 @@ from ..loop import TrainConfig
 from .recipe import Recipe
 
 # two fixed data shards: a stage's batches are then the same on one core, two or four
-# (docs/decisions.md, "Batches that do not depend on the cores")
+# (docs/decisions.md, "Batches that do not depend on the cores"); and fixed threads, which split
+# the sums: a stage of two one-thread processes, or one process of two threads (docs/decisions.md,
+# "One seed, one set of weights")
 SHARDS = 2
-PLATO = TrainConfig(steps=60_000, batch_size=32, warmup_steps=100, decay_steps=15_000, data_shards=SHARDS)
-PHYDNET = TrainConfig(steps=9_000, batch_size=8, lr=2e-3, warmup_steps=100, decay_steps=2_500, data_shards=1)
+PLATO = TrainConfig(steps=60_000, batch_size=32, warmup_steps=100, decay_steps=15_000, data_shards=SHARDS,
+                    threads=1)
+PHYDNET = TrainConfig(steps=9_000, batch_size=8, lr=2e-3, warmup_steps=100, decay_steps=2_500, data_shards=1,
+                      threads=2)
 LATER = replace(PHYDNET, decay_steps=10_000)      # the later phases' rates halve every 10,000 steps
 
 
@@ -32,15 +36,16 @@ RECIPE = Recipe(
     perception=PerceptionConfig(),
     # a quarter of each batch shows a ball or cube off the floor (docs/decisions.md, "Frames of
     # objects in the air")
-    perception_train=TrainConfig(steps=4_000, decay_steps=3_333, airborne_share=0.25, data_shards=1),
+    perception_train=TrainConfig(steps=4_000, decay_steps=3_333, airborne_share=0.25, data_shards=1, threads=2),
     xpl=XPLConfig(inert_walls=True, stop_input_gradient=True, outside_refill=True, refill_ignores_walls=True,
                   joint_proposal=False),
     xpl_train=TrainConfig(steps=9_000, batch_size=32, warmup_steps=100, decay_steps=6_000, average_decay=0.999,
-                          data_shards=SHARDS),
+                          data_shards=SHARDS, threads=1),
     # half of each batch from blocking videos with a wall, where a hidden cube's place shows in the
     # ball's path
     proposal_train=TrainConfig(steps=4_000, batch_size=32, warmup_steps=100, decay_steps=1_500,
-                               average_decay=0.999, focus_group="blocking", focus_share=0.5, data_shards=SHARDS),
+                               average_decay=0.999, focus_group="blocking", focus_share=0.5, data_shards=SHARDS,
+                               threads=1),
     plato_train=PLATO,
     # changing pixels weigh more in the training loss; 3x3 gates, widened to 5x5 in a later phase
     # (docs/decisions.md, "PhyDNet's network and loss")
