@@ -10,7 +10,7 @@ import numpy as np
 import torch
 
 from xvoe.errors import XvoeError
-from xvoe.evaluation.explain import Explanation, _pictures, _read_video
+from xvoe.evaluation.explain import DRAW_THRESHOLD, Explanation, _pictures, _read_video
 from xvoe.evaluation.score import Scorer
 from xvoe.models.perception import to_uint8
 
@@ -30,15 +30,53 @@ class NLLExplanation(Explanation):
     holding_ess: float = 0.0    # the effective sample size among those
     # the heaviest distinct hypotheses of what is hidden, each decoded alone: (label, frames)
     hypotheses: list[tuple[str, np.ndarray]] = field(default_factory=list)
+    # the scene behind the wall without the hidden object (None: behind_wall has none)
+    behind_empty: np.ndarray | None = None
+    # the scene behind the wall as two identical objects, with and without the hidden object,
+    # and the frame from which the twin is drawn (None, -1: no seen object may be two)
+    two_objects: np.ndarray | None = None
+    two_objects_empty: np.ndarray | None = None
+    twin_from: int = -1
 
-    def rows(self) -> list[tuple[str, np.ndarray]]:
-        if self.holding == 0:
-            label = "nothing hidden" if self.slot < 0 else "no sample held one"
-        else:
-            label = f"if it exists:\nmean of {self.holding} samples\n(ESS {self.holding_ess:.1f})"
-        behind = "behind the wall" if self.holding == 0 else "behind the wall,\nif it exists"
-        return [("observed", self.observed), (behind, self.behind_wall), (label, self.hidden_object),
-                *self.hypotheses]
+    @property
+    def believed(self) -> bool:
+        """Whether the posterior holds a hidden object worth drawing (p above DRAW_THRESHOLD)."""
+        return self.p_hidden > DRAW_THRESHOLD and self.holding > 0
+
+    @property
+    def p_drawn(self) -> float:
+        return self.p_hidden if self.believed and self.draws_hidden else 0.0
+
+    def _story(self, with_hidden: np.ndarray, without: np.ndarray | None) -> np.ndarray:
+        """A scene behind the wall with the hidden object at opacity p_hidden (none below the threshold)."""
+        if without is None:
+            return with_hidden
+        if not self.believed:
+            return without
+        mixed = self.p_hidden * with_hidden.astype(np.float32) + (1 - self.p_hidden) * without.astype(np.float32)
+        return np.round(mixed).astype(np.uint8)
+
+    def figure_rows(self) -> list[tuple[str, str, np.ndarray]]:
+        rows = [("observed", "observed", self.observed)]
+        two = self.two_objects is not None
+        if not two or 1.0 - self.p_two > DRAW_THRESHOLD:
+            label = f"behind the wall,\none object, not two\nidentical ones:\np = {1.0 - self.p_two:.2f}" if two \
+                else "behind the wall"
+            rows.append(("behind the wall", label, self._story(self.behind_wall, self.behind_empty)))
+        if two and self.p_two > DRAW_THRESHOLD:
+            rows.append(("two objects", f"behind the wall,\ntwo identical\nobjects: p = {self.p_two:.2f}\n"
+                                        f"(the second drawn\nfrom frame {self.twin_from},\nwhere it is seen)",
+                         self._story(self.two_objects, self.two_objects_empty)))
+        if self.believed:
+            rows.append(("hidden object", f"hidden object alone,\nif it exists: mean\nof the {self.holding} samples\n"
+                                          f"holding one\n(their ESS {self.holding_ess:.1f})", self.hidden_object))
+            rows += [("hypothesis", label, frames) for label, frames in self.hypotheses]
+        return rows
+
+    def notes(self) -> list[str]:
+        if not self.believed:
+            return [f"no hidden object (p = {self.p_hidden:.2f})"]
+        return [f"hidden object: p = {self.p_hidden:.2f}; the rows behind the wall draw it at that opacity"]
 
 
 def explain_nll(scorer: Scorer, data: str, index: int, particles: int | None = None, seed: int = 0,
@@ -72,38 +110,69 @@ def nll_explanation(vae, xpl, video: dict, particles: int, title: str = "", obse
     result = found.result
     posterior = hidden_posterior(result)
     refined = xpl.refine(video["mean"], video["visible"], video["occluder"])
-    drawn = [] if result.identity is None else [two_object_row(vae, refined, video, result)]
     occupied = video["visible"].any(dim=1)
     slot = result.hidden_slot if posterior is not None else -1
-    if posterior is not None:
-        refined[0, :, slot] = posterior.mean
-        occupied[0, slot] = True
-    behind, alone = _pictures(vae, refined, occupied, video, slot)
+
+    def with_hidden(latents: torch.Tensor, present: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        latents, present = latents.clone(), present.clone()
+        latents[0, :, slot], present[0, slot] = posterior.mean, True
+        return latents, present
+
+    empty, alone = _pictures(vae, refined, occupied, video, -1)
+    behind = empty
+    if slot >= 0:
+        behind, alone = _pictures(vae, *with_hidden(refined, occupied), video, slot)
+    two = two_object_pictures(vae, refined, video, result.identity, with_hidden if slot >= 0 else None)
     observed = to_uint8(video["frames"][0]).numpy() if observed is None else observed
     heading = f"{title}\n" if title else ""
-    heading += (f"NLL {result.nll:.0f} nats, p(hidden object) = {result.p_hidden:.2f}, "
-                f"ESS {result.ess:.1f} of {particles}")
+    heading += f"NLL {result.nll:.0f} nats, p(hidden object) = {result.p_hidden:.2f}"
     if result.identity is not None:
-        heading += f", p(two objects) = {result.p_two:.2f}"
+        heading += f", p(two identical objects) = {result.p_two:.2f}"
     holding = (posterior.holding, posterior.ess) if posterior is not None else (0, 0.0)
+    drawn = []
     if posterior is not None and found.hypotheses is not None:
         options = found.hypotheses
         for rank, (trajectory, weight, version) in enumerate(zip(options.trajectories, options.weights,
                                                                  options.version)):
             picture = to_uint8(vae.decode(trajectory.to(video["mean"].dtype))).numpy()
-            seen = "\nwith two objects" if int(version) else ""
+            seen = "\n(with two identical\nobjects seen)" if int(version) else ""
             # its weight given an object: the heading gives p(hidden object), the label which explanation
-            drawn.append((f"hypothesis {rank + 1}:\nweight {float(weight):.2f}\nif one is hidden{seen}", picture))
-        if options.disagree:
-            heading += f"\nthe hypotheses differ most at frames {', '.join(map(str, options.disagree[:3]))}"
+            drawn.append((f"hypothesis {rank + 1}:\n{float(weight):.2f} of the weight\nof samples holding\n"
+                          f"an object{seen}", picture))
+        if result.p_hidden > DRAW_THRESHOLD:     # the ESS that matters for a hidden object: among those holding one
+            heading += f"\nESS {posterior.ess:.1f} of the {posterior.holding} samples holding an object"
+            if options.disagree:
+                heading += f"; the hypotheses differ most at frames {', '.join(map(str, options.disagree[:3]))}"
     return NLLExplanation(observed, behind, alone, result.hidden_slot, heading, result.p_hidden, result.p_two,
-                          result.ess, result.nll, particles, *holding, drawn)
+                          result.ess, result.nll, particles, *holding, drawn,
+                          behind_empty=empty if slot >= 0 else None, **two)
 
 
-def two_object_row(vae, refined: torch.Tensor, video: dict, result) -> tuple[str, np.ndarray]:
+def two_object_pictures(vae, refined: torch.Tensor, video: dict, identity, with_hidden=None) -> dict:
     """The scene behind the wall under the two-object explanation (`inference.identity`): the
-    seen object's first self staying where it went out of sight, its twin waiting where it came
-    back, with the explanation's posterior probability."""
-    latents, seen = two_objects(refined[0], video["visible"][0], result.identity)
-    both, _ = _pictures(vae, latents[None], seen.any(0)[None], video, -1)
-    return f"two identical objects:\np = {result.p_two:.2f}", both
+    seen object's first self staying where it went out of sight, and its twin, which the model
+    has wait where Transformer 1 filled in the last unseen frame. That fill may stand anywhere
+    along the one object's path (in continuity S2, beside the window it was not seen in), so
+    the twin is drawn only from the frame it is seen in. `with_hidden` adds the hidden object
+    to latents and occupancy (None: there is none). Fields of `NLLExplanation`, none without an
+    identity."""
+    if identity is None:
+        return {}
+    latents, seen = two_objects(refined[0], video["visible"][0], identity)
+    latents, present = latents[None], seen.any(0)[None]
+    first_only = present.clone()
+    first_only[0, identity.slot] = False
+
+    def draw(latents: torch.Tensor, present: torch.Tensor, first_only: torch.Tensor) -> np.ndarray:
+        both, _ = _pictures(vae, latents, present, video, -1)
+        before, _ = _pictures(vae, latents, first_only, video, -1)
+        both[:identity.seen_again] = before[:identity.seen_again]
+        return both
+
+    empty = draw(latents, present, first_only)
+    if with_hidden is None:
+        return {"two_objects": empty, "twin_from": identity.seen_again}
+    hidden_latents, hidden_present = with_hidden(latents, present)
+    _, hidden_first = with_hidden(latents, first_only)
+    return {"two_objects": draw(hidden_latents, hidden_present, hidden_first), "two_objects_empty": empty,
+            "twin_from": identity.seen_again}

@@ -6,7 +6,7 @@ from PIL import Image
 
 import xvoe
 from xvoe.apps.cli import main
-from xvoe.apps.figures import EXPLAINED_COLOR, explanation_overlay, plot_explanation, save_gif, sheet_rows
+from xvoe.apps.figures import OUTLINE_COLORS, explanation_overlay, plot_explanation, save_gif, sheet_rows
 from xvoe.benchmark import store
 from xvoe.benchmark.display import LENGTHS, display_video, enlarge, hidden_silhouettes, outline
 from xvoe.benchmark.generate import GenerateConfig, generate
@@ -126,19 +126,20 @@ def test_the_explanation_is_drawn_onto_the_scene():
     scene = np.full((frames, 128, 128, 4), 100, np.uint8)
     explanation = Explanation(scene[:, ::4, ::4], scene[:, ::4, ::4], hidden, 2, "t", display=scene,
                               true_hidden=truth)
-    drawn = explanation_overlay(explanation)
-    assert drawn.shape == (frames, 128, 128, 3)
+    drawn, colour = explanation_overlay(explanation)
+    assert drawn.shape == (frames, 128, 128, 3) and colour == "magenta"   # the first of the farthest from grey
     assert (drawn[:, 40, 40] == (150, 50, 50)).all()                   # inside: half the object's colour
-    magenta = (drawn[:, :, 40] == EXPLAINED_COLOR).all(axis=-1)          # down column 40: the square's edge,
+    magenta = (drawn[:, :, 40] == OUTLINE_COLORS["magenta"]).all(axis=-1)   # down column 40: the square's edge,
     assert magenta[:, 28:34].any(axis=1).all() and magenta[:, 60:68].any(axis=1).all()   # enlarged four times
     assert not magenta[:, 36:58].any() and not magenta[:, :26].any()
     assert (drawn[:, 10, 10] == 100).all()                              # elsewhere the scene
     edge = drawn[:, 79, 80:100]                                          # just outside the true object
     assert {tuple(c) for c in edge.reshape(-1, 3)} == {(0, 0, 0), (255, 255, 255)}
     assert (drawn[:, 90, 90] == 100).all() and (drawn[:, 80, 80] == 100).all()
-    nothing = explanation_overlay(Explanation(scene[:, ::4, ::4], scene[:, ::4, ::4], hidden, -1, "t",
-                                              display=scene))
+    nothing, colour = explanation_overlay(Explanation(scene[:, ::4, ::4], scene[:, ::4, ::4], hidden, -1, "t",
+                                                      display=scene))
     np.testing.assert_array_equal(nothing, scene[..., :3])              # no slot explained: the scene alone
+    assert colour is None
     assert len(plot_explanation(explanation).axes) == 1
 
 

@@ -1,5 +1,6 @@
-"""Explanation masks against ground-truth silhouettes."""
+"""Explanation masks against ground-truth silhouettes, and the explanation figure against its numbers."""
 import numpy as np
+import pytest
 
 from xvoe.benchmark.render import STATE_COLUMNS
 from xvoe.benchmark.videos import silhouette
@@ -33,3 +34,82 @@ def test_iou_and_decoded_mask():
     pictures[1, 3, 1, 1] = 0.0                           # ...but one object pixel in the second
     masks = decoded_mask(pictures)
     assert masks.shape == (2, 3, 3) and masks.sum() == 1 and masks[1, 1, 1]
+
+
+# --- the explanation figure draws what the numbers say ------------------------------------
+
+def _frames(value: int, frames: int = 3, size: int = 8) -> np.ndarray:
+    return np.full((frames, size, size, 4), value, np.uint8)
+
+
+def _object(frames: int = 3, size: int = 8) -> np.ndarray:
+    """A decoded slot that draws a 3x3 square on the blank."""
+    pictures = _frames(255, frames, size)
+    pictures[:, 2:5, 2:5] = (200, 0, 0, 0)
+    return pictures
+
+
+def _nll(p_hidden: float, p_two: float, display: bool = False):
+    from inference.explain import NLLExplanation
+    scene = _frames(100)
+    two = {"two_objects": _frames(90), "two_objects_empty": _frames(80), "twin_from": 2} if p_two is not None else {}
+    extra = {"display": np.full((3, 32, 32, 4), 100, np.uint8)} if display else {}
+    return NLLExplanation(scene, _frames(120), _object(), 3, "hand-made", p_hidden, p_two or 0.0, 5.0, 100.0, 64,
+                          40, 7.5, [("hypothesis 1", _object()), ("hypothesis 2", _object())],
+                          behind_empty=_frames(110), **two, **extra)
+
+
+def _kinds(explanation) -> list[str]:
+    import matplotlib.pyplot as plt
+
+    from xvoe.apps.figures import plot_explanation
+    figure = plot_explanation(explanation)
+    kinds = [kind for kind, _ in figure.drawn_rows]
+    assert len(figure.axes[0].get_yticklabels()) == len(kinds)
+    plt.close(figure)
+    return kinds
+
+
+@pytest.mark.parametrize("p_hidden", [0.0, 0.9])
+@pytest.mark.parametrize("p_two", [None, 0.0, 0.9])
+def test_the_figure_draws_each_hypothesis_exactly_where_its_probability_exceeds_the_threshold(p_hidden, p_two):
+    from xvoe.evaluation.explain import DRAW_THRESHOLD
+    explanation = _nll(p_hidden, p_two)
+    kinds = _kinds(explanation)
+    hidden = p_hidden > DRAW_THRESHOLD
+    assert ("hidden object" in kinds) == hidden and kinds.count("hypothesis") == (2 if hidden else 0)
+    assert ("two objects" in kinds) == (p_two is not None and p_two > DRAW_THRESHOLD)
+    assert ("behind the wall" in kinds) == (p_two is None or 1 - p_two > DRAW_THRESHOLD)
+    assert kinds[0] == "observed"
+    assert ("no hidden object (p = 0.00)" in explanation.notes()) == (not hidden)
+    if not hidden:      # the scene without the hidden object, no label counting samples
+        rows = {kind: (label, frames) for kind, label, frames in explanation.figure_rows()}
+        if "behind the wall" in rows:
+            assert (rows["behind the wall"][1] == 110).all()
+        if "two objects" in rows:
+            assert (rows["two objects"][1] == 80).all()
+    else:               # drawn at opacity p, the samples counted as the ESS shown counts them
+        rows = {kind: (label, frames) for kind, label, frames in explanation.figure_rows()}
+        if "behind the wall" in rows:
+            assert (rows["behind the wall"][1] == 119).all()           # 0.9 * 120 + 0.1 * 110
+        assert "the 40 samples" in rows["hidden object"][0] and "ESS 7.5" in rows["hidden object"][0]
+
+
+def test_the_scene_outlines_a_hidden_object_only_above_the_threshold():
+    from xvoe.apps.figures import explanation_overlay
+    believed, colour = explanation_overlay(_nll(0.9, None, display=True))
+    assert colour is not None and (believed != 100).any()
+    doubted, colour = explanation_overlay(_nll(0.0, None, display=True))
+    assert colour is None and (doubted == 100).all()
+    kinds = _kinds(_nll(0.0, None, display=True))
+    assert kinds == ["scene", "observed", "behind the wall"]
+
+
+def test_an_mse_explanation_whose_slot_draws_nothing_says_nothing_hidden():
+    from xvoe.evaluation.explain import Explanation
+    empty = Explanation(_frames(100), _frames(100), _frames(255), 2, "kept, draws nothing")
+    drawn = Explanation(_frames(100), _frames(100), _object(), 2, "kept, draws a square")
+    assert not empty.draws_hidden and drawn.draws_hidden
+    assert [label for label, _ in empty.rows()][-1] == "nothing hidden"
+    assert _kinds(empty)[-1] == "nothing hidden" and _kinds(drawn)[-1] == "hidden object"
+    assert "nothing hidden" not in [label for label, _ in drawn.rows()]

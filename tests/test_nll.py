@@ -103,7 +103,8 @@ def test_nll_explanation_shapes_and_probabilities(hidden_free):
     for pictures in (explanation.observed, explanation.behind_wall, explanation.hidden_object):
         assert pictures.shape == (T, 16, 16, 4) and pictures.dtype == np.uint8
     assert 0.0 <= explanation.p_hidden <= 1.0 and 1.0 <= explanation.ess <= 16.0 + 1e-9
-    assert 0 <= explanation.holding <= 16 and "ESS" in explanation.title and "tiny" in explanation.title
+    assert 0 <= explanation.holding <= 16 and "tiny" in explanation.title
+    assert ("ESS" in explanation.title) == explanation.believed     # only of a hidden object the figure draws
     if hidden_free:
         assert explanation.slot == 3 and explanation.holding > 0
         assert 1.0 <= explanation.holding_ess <= explanation.holding + 1e-9
@@ -117,7 +118,8 @@ def test_nll_explanation_shapes_and_probabilities(hidden_free):
     else:
         assert explanation.hypotheses == []
     figure = plot_explanation(explanation)
-    assert len(figure.axes[0].get_yticklabels()) == 3 + len(explanation.hypotheses)
+    shown = 2 + (1 + len(explanation.hypotheses) if explanation.believed else 0)
+    assert len(figure.axes[0].get_yticklabels()) == len(figure.drawn_rows) == shown
     plt.close(figure)
 
 

@@ -24,7 +24,7 @@ from ..benchmark.display import DISPLAY_SIZE, check_display_size, display_video,
 from ..benchmark.scenes import SCENARIOS
 from ..benchmark.videos import _labels_of, _pair_rows, check_index, describe, find_pair, video_indices, wall_lowered
 from ..errors import XvoeError
-from ..evaluation.explain import OBJECT_DEPTH_LIMIT, Explanation
+from ..evaluation.explain import DRAW_THRESHOLD, Explanation, drawn_pixels
 from ..evaluation.metrics import excess, read_scores
 from ..evaluation.score import MSE_LABEL, check_same_split, read_curves, warn_unchecked
 from ..identity import split_identity
@@ -36,7 +36,10 @@ from ..training.phydnet import load_phydnet
 
 ID_COLORS = (np.array(plt.get_cmap("tab10").colors) * 255).astype(np.uint8)
 ID_PALETTE = np.vstack([[[0, 0, 0]], ID_COLORS[:9]]).astype(np.uint8)   # 0 = background
-EXPLAINED_COLOR = np.array([255, 0, 255], np.uint8)    # the outline of the model's hidden object
+# The outline of the model's hidden object: scene colours are drawn at random from all of RGB
+# (xvoe.benchmark.world.sample_colors), so each figure takes the one of these farthest from its scene's.
+OUTLINE_COLORS = {"magenta": (255, 0, 255), "cyan": (0, 255, 255), "orange": (255, 128, 0), "blue": (0, 0, 255),
+                  "red": (255, 0, 0), "yellow": (255, 255, 0), "green": (0, 160, 0), "purple": (128, 0, 255)}
 
 
 def save_figure(figure: plt.Figure, out: str | Path, dpi: int = 100) -> Path:
@@ -456,21 +459,40 @@ def plot_onset(pairs: dict[str, list[dict]]) -> plt.Figure:
 def plot_explanation(explanation: Explanation) -> plt.Figure:
     """The paper's Fig. 7/8: observed frames, the scene behind the wall as the model believes
     it (occluder left out), and the explanation object alone; the rows an explanation gives
-    (`Explanation.rows`), so the MSE and the NLL explanations draw alike. With the scene at a
-    display size (`xvoe.apps.verbs.with_display`), it comes first with the explanation drawn onto it
-    (`explanation_overlay`), and the model's rows are enlarged to its size."""
-    rows = explanation.rows()
+    (`Explanation.figure_rows`: the NLL's draws each hypothesis only where its probability
+    exceeds DRAW_THRESHOLD), so the MSE and the NLL explanations draw alike, and its notes as
+    text under them. With the scene at a display size (`xvoe.apps.verbs.with_display`), it comes
+    first with the explanation drawn onto it (`explanation_overlay`), and the model's rows are
+    enlarged to its size. The figure's `drawn_rows` lists the (kind, label) of each row drawn."""
+    rows = explanation.figure_rows()
     if explanation.display is not None:
         size = explanation.display.shape[1]
-        rows = [(f"scene {size}x{size}:\nmagenta the model's\nhidden object,\ndashed the true one",
-                 explanation_overlay(explanation)), *((name, enlarge(video, size)) for name, video in rows)]
+        scene, colour = explanation_overlay(explanation)
+        rows = [("scene", _scene_label(explanation, size, colour), scene),
+                *((kind, name, enlarge(video, size)) for kind, name, video in rows)]
     frames = explanation.observed.shape[0]
     title_lines = explanation.title.count("\n") + 1
-    cell = _cell_inches(rows[0][1].shape[1])
-    fig, ax = plt.subplots(figsize=(max(4.0, frames * cell), len(rows) * cell + 0.2 + 0.2 * title_lines))
-    draw_frame_rows(ax, [video for _, video in rows], [name for name, _ in rows], explanation.title)
+    notes = explanation.notes()
+    cell = _cell_inches(rows[0][2].shape[1])
+    fig, ax = plt.subplots(figsize=(max(4.0, frames * cell), len(rows) * cell + 0.2 + 0.2 * title_lines
+                                    + 0.2 * len(notes)))
+    draw_frame_rows(ax, [video for _, _, video in rows], [name for _, name, _ in rows], explanation.title)
+    if notes:
+        ax.set_xlabel("\n".join(notes), fontsize=8, labelpad=6)
     fig.tight_layout()
+    fig.drawn_rows = [(kind, name) for kind, name, _ in rows]     # what was drawn, for a reader to check
     return fig
+
+
+def _scene_label(explanation: Explanation, size: int, colour: str | None) -> str:
+    """The scene row's label: what its lines are, only those drawn."""
+    lines = [f"scene {size}x{size}"]
+    if colour is not None:
+        p = explanation.p_drawn
+        lines.append(f"{colour}: the model's\nhidden object" + (f" (p = {p:.2f})" if p < 1.0 else ""))
+    if explanation.true_hidden is not None and explanation.true_hidden.any():
+        lines.append("dashed: the true one")
+    return ":\n".join([lines[0], "\n".join(lines[1:])]) if len(lines) > 1 else lines[0]
 
 
 def _cell_inches(size: int) -> float:
@@ -479,27 +501,43 @@ def _cell_inches(size: int) -> float:
     return max(0.8, min(1.1, size / 100))
 
 
-def explanation_overlay(explanation: Explanation) -> np.ndarray:
-    """The scene at its display size (T, S, S, 3) with the model's explanation drawn onto it:
-    the decoded hidden object enlarged (bilinear), half-blended where it stands and outlined in
-    magenta inside its edge, and the true never-seen objects outlined just outside theirs,
-    dashed black and white, so that the two lines stay apart where they agree; both are seen
-    through the wall, as the model sees the object."""
+def explanation_overlay(explanation: Explanation) -> tuple[np.ndarray, str | None]:
+    """The scene at its display size (T, S, S, 3) with the model's explanation drawn onto it,
+    and the name of the outline's colour (None: no hidden object drawn). The decoded hidden
+    object, enlarged (bilinear), is blended in where it stands and outlined inside its edge in
+    the colour of OUTLINE_COLORS farthest from the scene's, both at an opacity of its
+    probability (`Explanation.p_drawn`; nothing below DRAW_THRESHOLD); the true never-seen
+    objects are outlined just outside theirs, dashed black and white, so that the two lines stay
+    apart where they agree; both are seen through the wall, as the model sees the object."""
     scene = explanation.display[..., :3].copy()
     size = scene.shape[1]
-    if explanation.slot >= 0:
+    p, name = explanation.p_drawn, None
+    if p > DRAW_THRESHOLD:
         depth = _resized(explanation.hidden_object[..., 3], size)
         colour = np.stack([_resized(explanation.hidden_object[..., c], size) for c in range(3)], axis=-1)
-        drawn = depth < (OBJECT_DEPTH_LIMIT + 1.0) * 127.5       # normalised units to uint8
-        scene[drawn] = (scene[drawn].astype(np.uint16) + colour[drawn]) // 2
-        scene[outline(drawn)] = EXPLAINED_COLOR
+        drawn = drawn_pixels(np.concatenate([colour, depth[..., None]], axis=-1))
+        name, line = outline_color(scene)
+        blended = scene.astype(np.float32)
+        blended[drawn] += 0.5 * p * (colour[drawn].astype(np.float32) - blended[drawn])
+        edge = outline(drawn)
+        blended[edge] += p * (np.asarray(line, np.float32) - blended[edge])
+        scene = np.round(blended).astype(np.uint8)
     if explanation.true_hidden is not None:
         edge = outline(~explanation.true_hidden)        # the ring just outside it
         rows, columns = np.indices((size, size))
         light = ((rows + columns) // 4) % 2 == 0                  # dashes of four pixels
         scene[edge & light] = 255
         scene[edge & ~light] = 0
-    return scene
+    return scene, name
+
+
+def outline_color(scene: np.ndarray) -> tuple[str, tuple[int, int, int]]:
+    """The name and RGB of the colour of OUTLINE_COLORS farthest (L1) from every colour of
+    `scene` (..., 3) uint8."""
+    colours = np.unique(scene.reshape(-1, 3), axis=0).astype(np.int32)
+    distance = {name: int(np.abs(colours - np.array(rgb)).sum(axis=1).min()) for name, rgb in OUTLINE_COLORS.items()}
+    name = max(OUTLINE_COLORS, key=lambda n: distance[n])      # ties: the first listed
+    return name, OUTLINE_COLORS[name]
 
 
 def _resized(channel: np.ndarray, size: int) -> np.ndarray:

@@ -24,6 +24,11 @@ from .score import Scorer, encode_videos, read_videos
 from .surprise import explained_latents, mse_surprise
 
 
+# A hypothesis of the NLL's posterior below this probability is not drawn as the model's belief:
+# no outline, no rows of it, one line of text instead; above it, its outline's opacity is its p.
+DRAW_THRESHOLD = 0.05
+
+
 @dataclass
 class Explanation:
     observed: np.ndarray        # (T, H, W, 4) uint8
@@ -37,18 +42,47 @@ class Explanation:
     display: np.ndarray | None = field(default=None, kw_only=True)
     true_hidden: np.ndarray | None = field(default=None, kw_only=True)
 
+    @property
+    def draws_hidden(self) -> bool:
+        """Whether the explained slot draws something: a slot kept yet decoded to (almost) no
+        pixels explains nothing, and figures and printouts call it "nothing hidden"."""
+        return self.slot >= 0 and draws_something(self.hidden_object)
+
+    @property
+    def p_drawn(self) -> float:
+        """The probability with which the model's hidden object is drawn: the MSE score's
+        verdict is all or nothing."""
+        return 1.0 if self.draws_hidden else 0.0
+
+    def figure_rows(self) -> list[tuple[str, str, np.ndarray]]:
+        """What a figure draws: (kind, label, frames) per row; the kind ("observed", "behind the
+        wall", "hidden object", "nothing hidden", ...) says what the row shows, the label says it
+        in plain words."""
+        alone = ("hidden object", "the hidden object\nalone") if self.draws_hidden else ("nothing hidden",
+                                                                                       "nothing hidden")
+        return [("observed", "observed", self.observed), ("behind the wall", "behind the wall", self.behind_wall),
+                (*alone, self.hidden_object)]
+
     def rows(self) -> list[tuple[str, np.ndarray]]:
         """What a figure draws, one labelled row of frames each."""
-        return [("observed", self.observed), ("behind the wall", self.behind_wall),
-                ("explanation" if self.slot >= 0 else "nothing hidden", self.hidden_object)]
+        return [(label, frames) for _, label, frames in self.figure_rows()]
+
+    def notes(self) -> list[str]:
+        """Lines of text a figure writes under its rows."""
+        return []
 
 
 @dataclass
 class DrawnExplanation(Explanation):
     """What a model of your own draws behind the wall (`SurpriseModel.explain`), under the video."""
 
-    def rows(self) -> list[tuple[str, np.ndarray]]:
-        return [("observed", self.observed), ("the model's\nexplanation", self.behind_wall)]
+    @property
+    def draws_hidden(self) -> bool:
+        return False        # the model's own drawing: which pixels are its hidden object is not known
+
+    def figure_rows(self) -> list[tuple[str, str, np.ndarray]]:
+        return [("observed", "observed", self.observed),
+                ("drawn", "the model's\nexplanation", self.behind_wall)]
 
 
 def explain_drawn(scorer: Scorer, data: str, index: int) -> DrawnExplanation:
@@ -102,6 +136,21 @@ def explain(scorer: Scorer, data: str, index: int) -> Explanation:
 # --- measuring explanations against the ground truth --------------------------------------
 
 OBJECT_DEPTH_LIMIT = 0.75   # normalised depth: decoded objects lie near 0, the blank at 1.5
+
+
+DRAWN_SHARE = 0.002     # of a frame's pixels: a slot drawing fewer in every frame draws nothing
+
+
+def drawn_pixels(pictures: np.ndarray) -> np.ndarray:
+    """Where decoded uint8 pictures (..., H, W, 4) draw an object (T, H, W) bool."""
+    return pictures[..., 3] < (OBJECT_DEPTH_LIMIT + 1.0) * 127.5       # normalised units to uint8
+
+
+def draws_something(pictures: np.ndarray) -> bool:
+    """Whether decoded uint8 pictures (T, H, W, 4) of one slot draw at least DRAWN_SHARE of a
+    frame in some frame."""
+    drawn = drawn_pixels(pictures)
+    return bool(drawn.any()) and float(drawn.mean(axis=(-2, -1)).max()) >= DRAWN_SHARE
 
 
 def decoded_mask(pictures: np.ndarray | torch.Tensor) -> np.ndarray:
