@@ -100,6 +100,31 @@ MALFORMED_TRAIN = {
 }
 
 
+def zero_chunk(path: Path, name: str, video: int) -> Path:
+    """Damage `path` on disk as a bad sector would: the stored (compressed) chunk of `video`'s
+    `name` overwritten with zeros."""
+    with h5py.File(path, "r") as file:
+        chunk = file[name].id.get_chunk_info(video)      # one video per chunk: chunk i is video i
+    with open(path, "r+b") as handle:
+        handle.seek(chunk.byte_offset)
+        handle.write(bytes(chunk.size))
+    return path
+
+
+def damaged_splits(root: Path) -> dict[str, Path]:
+    """Splits at the shipped models' frame size (32) with video 1's frames damaged on disk, and
+    two shards to merge, the second with video 1's ids damaged."""
+    made = {}
+    for split, size in (("test", dict(pairs=2)), ("train", dict(videos=4))):
+        path = generate(GenerateConfig(split, size=32, seed=6, **size), root / f"damaged-{split}.h5", progress=False)
+        made[f"damaged-{split}"] = zero_chunk(path, "rgbd", 1)
+    for shard in (0, 1):
+        made[f"shard-{shard}"] = generate(GenerateConfig("test", pairs=2, size=16, seed=6), root / f"shard-{shard}.h5",
+                                          shard=(shard, 2), progress=False)
+    zero_chunk(made["shard-1"], "ids", 1)
+    return made
+
+
 @pytest.fixture(scope="module")
 def files(test_file, train_file, tmp_path_factory):
     """The malformed splits, made once, in a folder of their own."""
@@ -108,7 +133,7 @@ def files(test_file, train_file, tmp_path_factory):
     made |= {name: mutate(train_file, root / f"{name}.h5", change) for name, (change, _) in MALFORMED_TRAIN.items()}
     # the test split's layout and labels from another seed (small frames, for speed)
     other = generate(GenerateConfig("test", pairs=8, size=16, seed=4), root / "other.h5", progress=False)
-    return made | {"test": test_file, "train": train_file, "other": other}
+    return made | damaged_splits(root) | {"test": test_file, "train": train_file, "other": other}
 
 
 def case_lines(files, tmp: Path) -> list[tuple[list[str], str]]:
@@ -187,7 +212,28 @@ def case_lines(files, tmp: Path) -> list[tuple[list[str], str]]:
         (["ship", str(tmp / "corrupt"), "--out", str(tmp / "weights")], "not a readable xvoe checkpoint"),
         (["ship", str(tmp / "nowhere"), "--out", str(tmp / "weights")], "no such run directory"),
     ]
-    return cases + domain_cases(files, tmp) + path_cases(files, tmp) + kind_cases(files, tmp) + split_cases(files, tmp)
+    return (cases + domain_cases(files, tmp) + path_cases(files, tmp) + kind_cases(files, tmp) + split_cases(files, tmp)
+            + damage_cases(files, tmp))
+
+
+def damage_cases(files, tmp: Path) -> list[tuple[list[str], str]]:
+    """A split whose video 1 is damaged on disk, at every verb that reads its frames (and the
+    merge that copies them): named by file and video wherever it is read."""
+    test, train = str(files["damaged-test"]), str(files["damaged-train"])
+    named = f"{test} is damaged: video 1's rgbd cannot be read"
+    return [
+        (["show", test, "--index", "1", "--out", str(tmp / "s.png")], named),
+        (["score", "--model", "random", "--data", test, "--out", str(tmp / "s.csv"), "--quiet"], named),
+        (["explain", "--model", "xpl", "--data", test, "--index", "1", "--out", str(tmp / "e.png")], named),
+        (["train", "perception", "--data", train, "--out", str(tmp / "run"), "--steps", "1", "--quiet"],
+         f"{train} is damaged: video 1's rgbd"),
+        (["train", "phydnet", "--data", train, "--out", str(tmp / "run"), "--steps", "1", "--quiet"],
+         f"{train} is damaged: video 1's rgbd"),
+        (["encode", "--model", "xpl", "--data", train, "--out", str(tmp / "new-run"), "--quiet"],
+         f"{train} is damaged: video 1's rgbd"),
+        (["generate", "--merge", str(files["shard-0"]), str(files["shard-1"]), "--out", str(tmp / "m.h5"), "--quiet"],
+         f"{files['shard-1']} is damaged: video 1's ids cannot be read"),
+    ]
 
 
 HUGE = str(2**70)
@@ -335,7 +381,7 @@ def test_every_bad_input_gets_one_line_exit_2_and_changes_nothing(files, tmp_pat
         assert "Traceback" not in err
         assert snapshot(tmp_path) == before, args
         tried += 1
-    assert tried == 5 * len(MALFORMED) + 2 * len(MALFORMED_TRAIN) + 32 + 31 + 14 + 6 + 7
+    assert tried == 5 * len(MALFORMED) + 2 * len(MALFORMED_TRAIN) + 32 + 31 + 14 + 6 + 7 + 7
 
 
 CONFIGS = (TrainConfig, PerceptionConfig, XPLConfig, ReasoningConfig, DynamicsConfig, PhyDNetConfig, InferenceConfig,

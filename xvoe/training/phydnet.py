@@ -43,7 +43,7 @@ class VideoBatches:
             check_size(file, image_size, "PhyDNet")
             owned = owned_shards(path, file["rgbd"].shape[0], batch_size=batch_size, shards=shards, rank=rank,
                                  world=world, max_videos=max_videos)
-            self.rgbd = torch.from_numpy(file["rgbd"][owned.start:owned.stop])
+            self.rgbd = torch.from_numpy(store.read_frames(file, "rgbd", owned.start, owned.stop))
         self.focus = focus_on(path, owned, focus_group, focus_share)
         self.shards, self.bounds, self.per_shard = owned.shards, owned.bounds, owned.per_shard
         self.start, self.seed = owned.start, seed
