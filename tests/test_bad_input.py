@@ -19,6 +19,7 @@ from pathlib import Path
 import h5py
 import numpy as np
 import pytest
+import torch
 from hypothesis import HealthCheck, given
 from hypothesis import settings as hypothesis_settings
 from hypothesis import strategies as st
@@ -37,6 +38,7 @@ from xvoe.models.reasoning import ReasoningConfig
 from xvoe.models.xpl import XPLConfig
 from xvoe.outputs import atomic_paths, remove_stale_temporaries
 from xvoe.training.checkpoints import shipped_path
+from xvoe.training.xpl import fingerprint
 from xvoe.training.latents import Latents, write_latents
 from xvoe.training.loop import TrainConfig
 
@@ -100,6 +102,32 @@ MALFORMED_TRAIN = {
 }
 
 
+def zero_chunk(path: Path, name: str, video: int) -> Path:
+    """Damage `path` on disk as a bad sector would: the stored (compressed) chunk of `video`'s
+    `name` overwritten with zeros."""
+    with h5py.File(path, "r") as file:
+        chunk = file[name].id.get_chunk_info(video)      # one video per chunk: chunk i is video i
+    with open(path, "r+b") as handle:
+        handle.seek(chunk.byte_offset)
+        handle.write(bytes(chunk.size))
+    return path
+
+
+def damaged_splits(root: Path) -> dict[str, Path]:
+    """Splits at the shipped models' frame size (32), whole and with video 1's frames damaged on
+    disk, and two shards to merge, the second with video 1's ids damaged."""
+    made = {}
+    for split, size in (("test", dict(pairs=2)), ("train", dict(videos=4))):
+        path = generate(GenerateConfig(split, size=32, seed=6, **size), root / f"damaged-{split}.h5", progress=False)
+        made[f"{split}-32"] = shutil.copy(path, root / f"{split}-32.h5")
+        made[f"damaged-{split}"] = zero_chunk(path, "rgbd", 1)
+    for shard in (0, 1):
+        made[f"shard-{shard}"] = generate(GenerateConfig("test", pairs=2, size=16, seed=6), root / f"shard-{shard}.h5",
+                                          shard=(shard, 2), progress=False)
+    zero_chunk(made["shard-1"], "ids", 1)
+    return made
+
+
 @pytest.fixture(scope="module")
 def files(test_file, train_file, tmp_path_factory):
     """The malformed splits, made once, in a folder of their own."""
@@ -108,7 +136,7 @@ def files(test_file, train_file, tmp_path_factory):
     made |= {name: mutate(train_file, root / f"{name}.h5", change) for name, (change, _) in MALFORMED_TRAIN.items()}
     # the test split's layout and labels from another seed (small frames, for speed)
     other = generate(GenerateConfig("test", pairs=8, size=16, seed=4), root / "other.h5", progress=False)
-    return made | {"test": test_file, "train": train_file, "other": other}
+    return made | damaged_splits(root) | {"test": test_file, "train": train_file, "other": other}
 
 
 def case_lines(files, tmp: Path) -> list[tuple[list[str], str]]:
@@ -187,7 +215,97 @@ def case_lines(files, tmp: Path) -> list[tuple[list[str], str]]:
         (["ship", str(tmp / "corrupt"), "--out", str(tmp / "weights")], "not a readable xvoe checkpoint"),
         (["ship", str(tmp / "nowhere"), "--out", str(tmp / "weights")], "no such run directory"),
     ]
-    return cases + domain_cases(files, tmp) + path_cases(files, tmp) + kind_cases(files, tmp) + split_cases(files, tmp)
+    return (cases + domain_cases(files, tmp) + path_cases(files, tmp) + kind_cases(files, tmp) + split_cases(files, tmp)
+            + damage_cases(files, tmp) + checkpoint_cases(files, tmp))
+
+
+def edited_checkpoint(run: Path, stage: str, change, shipped: str = "xpl") -> Path:
+    """RUN/STAGE.pt: the shipped model's checkpoint of `stage` with `change` made to its contents,
+    beside the shipped perception."""
+    run.mkdir(exist_ok=True)
+    if not (run / "perception.pt").exists():
+        shutil.copy(shipped_path(shipped, "perception"), run / "perception.pt")
+    state = torch.load(shipped_path(shipped, stage), weights_only=True)
+    change(state)
+    torch.save(state, run / f"{stage}.pt")
+    return run / f"{stage}.pt"
+
+
+def _first(weights: dict) -> str:
+    return next(iter(weights))
+
+
+def checkpoint_cases(files, tmp: Path) -> list[tuple[list[str], str]]:
+    """Checkpoints that are not what they claim: each named by file and key on loading, by
+    every verb (a resumed run too)."""
+    weights = torch.load(shipped_path("xpl"), weights_only=True)["model"]
+    first, shape = _first(weights), tuple(weights[_first(weights)].shape)
+    edits = {
+        "no-model": ("xpl", lambda s: s.pop("model"), "it has no model key"),
+        "missing-tensor": ("xpl", lambda s: s["model"].pop(first), f"model lacks {first}"),
+        "misshaped": ("xpl", lambda s: s["model"].__setitem__(first, torch.zeros(3, 5)),
+                      f"{first} has shape (3, 5), the model {shape}"),
+        "config-type": ("xpl", lambda s: s["config"]["xpl"].__setitem__("stop_target_gradient", "yes"),
+                        "config.xpl.stop_target_gradient is 'yes', not a bool"),
+        "config-list": ("xpl", lambda s: s.__setitem__("config", [1, 2]), "config is a list, not a dict"),
+        "step-text": ("xpl", lambda s: s.__setitem__("step", "12"), "step is '12', not a whole number"),
+        "nan-perception": ("perception", lambda s: [t.fill_(float("nan")) for t in s["model"].values()
+                                                    if t.is_floating_point()], "holds weights that are not finite"),
+        "perception-misshaped": ("perception", lambda s: s["model"].__setitem__(_first(s["model"]), torch.zeros(2)),
+                                 "has shape (2,), the model"),
+        "phydnet-misshaped": ("phydnet", lambda s: s["model"].__setitem__(_first(s["model"]), torch.zeros(2)),
+                              "has shape (2,), the model"),
+    }
+    made = {name: edited_checkpoint(tmp / name, stage, change, "phydnet" if stage == "phydnet" else "xpl")
+            for name, (stage, change, _) in edits.items()}
+    # a proposal.pt (part of the network, loaded over xpl.pt) whose tensor fits nowhere
+    proposal = tmp / "proposal-misshaped"
+    edited_checkpoint(proposal, "xpl", lambda s: None)
+    fingerprint_of = torch.load(proposal / "xpl.pt", weights_only=True)
+    tuned = {"format": 1, "stage": "proposal", "config": fingerprint_of["config"], "step": 1,
+             "meta": {"xpl_fingerprint": fingerprint(fingerprint_of["model"])},
+             "model": {"transformer2.nothing.weight": torch.zeros(2)}}
+    torch.save(tuned, proposal / "proposal.pt")
+    test = str(files["test-32"])
+    cases = []
+    for name, (stage, _, needle) in edits.items():
+        model = str(made[name]) if stage == "phydnet" else str(made[name].parent)
+        cases.append((["score", "--model", model, "--data", test, "--out", str(tmp / "c.csv"), "--quiet"],
+                      f"{made[name]} {needle}" if needle.startswith("holds") else needle))
+        if name in ("no-model", "config-type", "config-list", "step-text"):    # refused before the data is asked for
+            cases.append((["train", "xpl", "--out", str(made[name].parent), "--resume", "--steps", "1", "--quiet"],
+                          f"{made[name]} does not fit the xpl model: {needle}"))
+    # a resumed run whose weights do not fit the network it builds
+    perception = made["perception-misshaped"]
+    cases.append((["train", "perception", "--data", str(files["train-32"]), "--out", str(perception.parent), "--resume",
+                   "--steps", "1", "--set", "airborne_share=0", "--quiet"], f"{perception} does not fit the perception model"))
+    cases.append((["train", "xpl", "--out", str(made["misshaped"].parent), "--resume", "--steps", "1", "--quiet"],
+                  f"{made['misshaped']} records no latents to resume on"))
+    cases.append((["explain", "--model", str(made["misshaped"].parent), "--data", test, "--out", str(tmp / "c.png")],
+                  f"{made['misshaped']} does not fit the xpl model: {first} has shape (3, 5)"))
+    cases.append((["score", "--model", str(proposal), "--data", test, "--out", str(tmp / "c.csv"), "--quiet"],
+                  f"{proposal / 'proposal.pt'} does not fit the proposal model: model holds transformer2.nothing"))
+    return cases
+
+
+def damage_cases(files, tmp: Path) -> list[tuple[list[str], str]]:
+    """A split whose video 1 is damaged on disk, at every verb that reads its frames (and the
+    merge that copies them): named by file and video wherever it is read."""
+    test, train = str(files["damaged-test"]), str(files["damaged-train"])
+    named = f"{test} is damaged: video 1's rgbd cannot be read"
+    return [
+        (["show", test, "--index", "1", "--out", str(tmp / "s.png")], named),
+        (["score", "--model", "random", "--data", test, "--out", str(tmp / "s.csv"), "--quiet"], named),
+        (["explain", "--model", "xpl", "--data", test, "--index", "1", "--out", str(tmp / "e.png")], named),
+        (["train", "perception", "--data", train, "--out", str(tmp / "run"), "--steps", "1", "--quiet"],
+         f"{train} is damaged: video 1's rgbd"),
+        (["train", "phydnet", "--data", train, "--out", str(tmp / "run"), "--steps", "1", "--quiet"],
+         f"{train} is damaged: video 1's rgbd"),
+        (["encode", "--model", "xpl", "--data", train, "--out", str(tmp / "new-run"), "--quiet"],
+         f"{train} is damaged: video 1's rgbd"),
+        (["generate", "--merge", str(files["shard-0"]), str(files["shard-1"]), "--out", str(tmp / "m.h5"), "--quiet"],
+         f"{files['shard-1']} is damaged: video 1's ids cannot be read"),
+    ]
 
 
 HUGE = str(2**70)
@@ -335,7 +453,7 @@ def test_every_bad_input_gets_one_line_exit_2_and_changes_nothing(files, tmp_pat
         assert "Traceback" not in err
         assert snapshot(tmp_path) == before, args
         tried += 1
-    assert tried == 5 * len(MALFORMED) + 2 * len(MALFORMED_TRAIN) + 32 + 31 + 14 + 6 + 7
+    assert tried == 5 * len(MALFORMED) + 2 * len(MALFORMED_TRAIN) + 32 + 31 + 14 + 6 + 7 + 7 + 17
 
 
 CONFIGS = (TrainConfig, PerceptionConfig, XPLConfig, ReasoningConfig, DynamicsConfig, PhyDNetConfig, InferenceConfig,
@@ -516,6 +634,21 @@ def test_a_stale_latent_cache_of_another_split_is_refused(files, tmp_path, capsy
     code, err = run(["train", "xpl", "--data", str(files["train"]), "--out", str(run_dir), "--steps", "2"], capsys)
     assert code == 2 and "was encoded from /elsewhere/train.h5" in err
     assert snapshot(tmp_path) == before
+
+
+def test_a_diverged_stage_saves_no_checkpoint_and_keeps_the_last_good_one(files, tmp_path, capsys):
+    run_dir = tmp_path / "run"
+    train = ["train", "perception", "--data", str(files["train"]), "--out", str(run_dir), "--set",
+             "model.image_size=64", "--quiet"]
+    code, err = run(train + ["--steps", "2", "--lr", "1e4"], capsys)
+    assert code == 2 and len(err.strip().splitlines()) == 1 and "Traceback" not in err, err
+    assert "the perception stage diverged by step 2" in err and "lower --lr than 10000" in err
+    assert not (run_dir / "perception.pt").exists()
+    assert run(train + ["--steps", "1", "--overwrite"], capsys)[0] == 0
+    good = (run_dir / "perception.pt").read_bytes()
+    code, err = run(train + ["--steps", "3", "--lr", "1e4", "--resume"], capsys)
+    assert code == 2 and "diverged by step 3" in err, err
+    assert (run_dir / "perception.pt").read_bytes() == good
 
 
 def test_a_scores_file_and_its_curves_are_written_together(files, tmp_path):

@@ -14,6 +14,8 @@ from pathlib import Path
 
 import numpy as np
 
+from .benchmark.store import read_frames
+
 HASH_CHARS = 16         # 64 bits of sha256: no accidental collision, short enough to read in a report
 SAMPLED_VIDEOS = 64     # videos whose frames the split's content hash reads (evenly spaced, first and last kept)
 
@@ -81,8 +83,8 @@ def split_identity(file) -> dict:
             values = file[name].asstr()[:] if file[name].dtype.kind == "O" else file[name][:]
             yield from _array_bytes(name, values)
         for row in rows:
-            yield from _array_bytes(f"rgbd {row}", file["rgbd"][row])
-            yield from _array_bytes(f"ids {row}", file["ids"][row])
+            yield from _array_bytes(f"rgbd {row}", read_frames(file, "rgbd", row))
+            yield from _array_bytes(f"ids {row}", read_frames(file, "ids", row))
     config = json.dumps(json.loads(file.attrs["config"]), sort_keys=True)
     return {"seed": int(file.attrs["seed"]), "config_hash": _digest([config.encode()]), "videos": int(count),
             "content_hash": _digest(chunks())}

@@ -30,6 +30,8 @@ from .errors import XvoeError
 
 # the outputs this process holds, by absolute path: the descriptor that holds each one's lock
 _held: dict[Path, int] = {}
+# the directories this process made for its outputs, in the order made (`claim_scope` removes a failed call's)
+_made: list[Path] = []
 
 
 def claim_file(path: str | os.PathLike, overwrite: bool = False, *, what: str = "--out",
@@ -166,12 +168,27 @@ def release(path: str | os.PathLike) -> None:
 def claim_scope() -> Iterator[None]:
     """The claims taken in the block (or, as a decorator, in the call) end with it, whether it
     wrote its outputs or failed: a notebook's failed call blocks no later run."""
-    before = set(_held)
+    before, made = set(_held), len(_made)
     try:
         yield
-    finally:
-        for path in set(_held) - before:
-            release(path)
+    except BaseException:
+        _release_since(before)
+        _remove_made_since(made)
+        raise
+    _release_since(before)
+
+
+def _release_since(before: set[Path]) -> None:
+    for path in set(_held) - before:
+        release(path)
+
+
+def _remove_made_since(count: int) -> None:
+    """Remove the directories made since `_made` held `count`, deepest first, where a failed call
+    left them empty: an error found in the middle of the work leaves nothing behind."""
+    while len(_made) > count:
+        with suppress(OSError):      # not empty (something was written there) or gone: left as it is
+            _made.pop().rmdir()
 
 
 def _writable_directory(directory: Path, make: bool = True) -> None:
@@ -186,8 +203,11 @@ def _writable_directory(directory: Path, make: bool = True) -> None:
         raise XvoeError(f"cannot write to {existing}: permission denied")
     if not make:
         return
+    missing = [directory, *directory.parents][:len(directory.parents) + 1]
+    missing = [folder for folder in missing if not folder.exists()]
     try:
         directory.mkdir(parents=True, exist_ok=True)
+        _made.extend(reversed(missing))
     except OSError as error:
         raise XvoeError(f"cannot make the directory {directory}: {error.strerror}") from None
 

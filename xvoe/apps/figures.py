@@ -129,8 +129,8 @@ def show_video(file: h5py.File, index: int, display_size: int | None = DISPLAY_S
     """Contact sheet of video `index` (and its pair partner in a test file), the scene at
     `display_size` above the model's frames (None: the model's frames alone)."""
     indices = video_indices(file, index)
-    rgbd = np.stack([file["rgbd"][i] for i in indices])
-    ids = np.stack([file["ids"][i] for i in indices])
+    rgbd = np.stack([store.read_frames(file, "rgbd", i) for i in indices])
+    ids = np.stack([store.read_frames(file, "ids", i) for i in indices])
     events = [int(file["event_frame"][i]) for i in indices]
     titles = [describe(file, i) + (f", event frame {e}" if e >= 0 else "") for i, e in zip(indices, events)]
     return contact_sheet(rgbd, ids, titles, events, display_rows(file, indices, display_size))
@@ -145,7 +145,8 @@ def save_gif(file: h5py.File, index: int, out: str | Path, zoom: int = 3, frame_
     display = display_rows(file, indices, display_size)
     strips = []
     for m, i in enumerate(indices):
-        rows = sheet_rows(file["rgbd"][i], file["ids"][i], None if display is None else display[m])
+        rows = sheet_rows(store.read_frames(file, "rgbd", i), store.read_frames(file, "ids", i),
+                          None if display is None else display[m])
         strips.append(np.concatenate([row for _, row in rows], axis=2))
     movie = np.concatenate(strips, axis=1)
     if display is None:
@@ -164,7 +165,7 @@ def save_video(file: h5py.File, index: int, out: str | Path, scores: str | Path 
     marked as it plays: where the scores hold the NLL's curve, the MSE's and the NLL's side by
     side, each on its own axis, so that one sees when each definition is surprised."""
     indices = video_indices(file, index)
-    videos = [file["rgbd"][i][..., :3] for i in indices]
+    videos = [store.read_frames(file, "rgbd", i)[..., :3] for i in indices]
     display = display_rows(file, indices, display_size)
     titles = [describe(file, i) for i in indices]
     curves = _video_curves(scores, file, indices) if scores is not None else None
@@ -578,7 +579,7 @@ def plot_disagreements(file: h5py.File, rows: list[dict], examples: int = 4,
             label = "possible" if file["possible"][index] else "impossible"
             labels.append(f"member {member} ({label})\nscore {row[f'score_{member}']:.4g}\n"
                           f"nll {row[f'nll_{member}']:.4g}")
-            stored = file["rgbd"][index]
+            stored = store.read_frames(file, "rgbd", index)
             if display_size is None:
                 videos.append(stored)
             else:
@@ -611,7 +612,7 @@ def plot_settings(file: h5py.File, scenario: str, pair: int, display_size: int =
     for ax, (setting, members) in zip(axes[:, 0], found):
         videos, labels = [], []
         for member, index in enumerate(members):
-            stored = file["rgbd"][index][frames]
+            stored = store.read_frames(file, "rgbd", index)[frames]
             videos += [display_video(file, index, display_size).rgbd[frames], enlarge(stored, display_size)]
             labels += [f"member {member}\n({'possible' if file['possible'][index] else 'impossible'})",
                        f"the model's\n{stored.shape[1]}x{stored.shape[2]}"]
@@ -801,7 +802,7 @@ def plot_predictions(model, data: str | Path, index: int) -> plt.Figure:
     net = load_phydnet(model)[0] if isinstance(model, (str, Path)) else model
     with store.open_dataset(data) as file:
         check_index(file, index)
-        rgbd = file["rgbd"][index]
+        rgbd = store.read_frames(file, "rgbd", index)
     surprise = net.surprise(normalise(torch.from_numpy(rgbd))[None].to(device_of(net)))[0, 1:]
     per_frame = " ".join(f"{value:.0f}" for value in surprise.tolist())
     return frame_rows([("observed", rgbd), ("predicted", predicted_frames(net, rgbd))],

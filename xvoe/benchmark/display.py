@@ -56,11 +56,12 @@ def display_video(file: h5py.File, index: int, size: int = DISPLAY_SIZE) -> Disp
     check_index(file, index)
     states = _scaled_states(file["states"][index], size / file["rgbd"].shape[2])
     if size == file["rgbd"].shape[2]:
-        return DisplayVideo(file["rgbd"][index], file["ids"][index], states, False)
+        return DisplayVideo(store.read_frames(file, "rgbd", index), store.read_frames(file, "ids", index), states, False)
     again = _simulated_again(file, index, size)
     if again is not None and _same_scene(again.states, states):
         return DisplayVideo(again.rgbd, again.ids, states, True)
-    return DisplayVideo(enlarge(file["rgbd"][index], size), enlarge(file["ids"][index][..., None], size)[..., 0],
+    rgbd, ids = store.read_frames(file, "rgbd", index), store.read_frames(file, "ids", index)
+    return DisplayVideo(enlarge(rgbd, size), enlarge(ids[..., None], size)[..., 0],
                         states, False)
 
 

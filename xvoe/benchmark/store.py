@@ -220,8 +220,8 @@ def value_problem(file: h5py.File) -> str | None:
         return f"has kind values {kinds.min()}..{kinds.max()}; they index kind_names (0..{names - 1})"
     slots, count = kinds.shape[1], kinds.shape[0]
     for i in sorted({0, count - 1}) if count else ():
-        if file["ids"][i].max() > slots:
-            return f"has slot ids up to {file['ids'][i].max()} in video {i}; they run 0..{slots} (0 = background)"
+        if (top := read_frames(file, "ids", i).max()) > slots:
+            return f"has slot ids up to {top} in video {i}; they run 0..{slots} (0 = background)"
     columns = list(file["states"].attrs.get("state_columns", []))
     if len(columns) != file["states"].shape[3] or not {"x", "y", "present", "visible"} <= set(columns):
         return f"has states columns {columns}; expected one name per column, x, y, present and visible among them"
@@ -290,6 +290,33 @@ def pair_labels_problem(found: dict[str, np.ndarray], frames: int, custom: bool 
     return _event_problem(found["event_frame"], frames)
 
 
+def read_frames(file: h5py.File, name: str, start: int, stop: int | None = None) -> np.ndarray:
+    """`file[name][start:stop]` (`file[name][start]` without `stop`) of a split's per-video
+    frames (`rgbd`, `ids`), or a one-line error naming the file and the first video whose
+    chunk cannot be read (damaged on disk)."""
+    try:
+        return file[name][start] if stop is None else file[name][start:stop]
+    except OSError:
+        rows = range(start, start + 1) if stop is None else range(*slice(start, stop).indices(len(file[name])))
+        raise XvoeError(damaged(file.filename, name, _first_unreadable(file[name], rows))) from None
+
+
+def _first_unreadable(dataset: h5py.Dataset, rows: range) -> int:
+    """The first of `rows` whose chunk cannot be read (each read alone: only on the error's path)."""
+    for row in rows:
+        try:
+            dataset[row]
+        except OSError:
+            return row
+    return rows[0]
+
+
+def damaged(path: str | os.PathLike, name: str, video: int) -> str:
+    """The one line that says a video's stored chunk cannot be read."""
+    return (f"{path} is damaged: video {video}'s {name} cannot be read (its stored chunk does not decompress); "
+            "generate or copy the split again")
+
+
 def config_of(file: h5py.File) -> dict:
     return json.loads(file.attrs["config"])
 
@@ -310,13 +337,28 @@ def labels(file: h5py.File, names: tuple[str, ...]) -> dict[str, np.ndarray]:
     return {name: strings(file, name) if LABEL_KINDS[name] == "O" else file[name][:] for name in names}
 
 
+def _checked_chunk(source: h5py.File, name: str, video: int) -> bytes:
+    """The compressed chunk of `video`'s `name` as stored, decompressed once to check it: a
+    damaged chunk copied unread would only fail whoever reads the merged split."""
+    dataset = source[name]
+    try:
+        mask, chunk = dataset.id.read_direct_chunk((video,) + (0,) * (dataset.ndim - 1))
+        whole = len(zlib.decompress(chunk)) == np.prod(dataset.chunks) * dataset.dtype.itemsize
+    except (OSError, zlib.error):
+        whole = False
+    if not whole or mask:       # a filter skipped (mask) is not how xvoe writes a chunk either
+        raise XvoeError(damaged(source.filename, name, video))
+    return chunk
+
+
 def copy_videos(source: h5py.File, writer: Writer) -> None:
-    """Append every video of `source` to `writer`, moving the compressed chunks as they are."""
+    """Append every video of `source` to `writer`, moving the compressed chunks as they are
+    (each checked on the way, `_checked_chunk`)."""
     states, kind, color = source["states"][:], source["kind"][:], source["color"][:]
     labels = {name: source[name].asstr()[:] if source[name].dtype.kind == "O" else source[name][:]
               for name in writer.labels}
     for i in range(states.shape[0]):
-        _, rgbd = source["rgbd"].id.read_direct_chunk((i, 0, 0, 0, 0))
-        _, ids = source["ids"].id.read_direct_chunk((i, 0, 0, 0))
+        rgbd = _checked_chunk(source, "rgbd", i)
+        ids = _checked_chunk(source, "ids", i)
         writer.add(EncodedVideo(rgbd, ids, states[i], kind[i], color[i],
                                 {name: values[i] for name, values in labels.items()}))

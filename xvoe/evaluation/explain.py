@@ -105,7 +105,7 @@ def _read_video(scorer: Scorer, data: str, index: int) -> tuple[dict, np.ndarray
     with store.open_dataset(data) as file:
         check_index(file, index)
         check_size(file, scorer.vae.config.image_size, f"the model {scorer.name}")
-        return encode_videos(scorer, file, index, index + 1), file["rgbd"][index], describe(file, index)
+        return encode_videos(scorer, file, index, index + 1), store.read_frames(file, "rgbd", index), describe(file, index)
 
 
 def _pictures(vae, refined: torch.Tensor, occupied: torch.Tensor, video: dict,

@@ -636,8 +636,8 @@ def merge_scores(parts: list[str | Path], out: str | Path, overwrite: bool = Fal
 
 def read_videos(file, start: int, stop: int) -> Videos:
     """Videos [start, stop) of an open test split as a surprise model sees them."""
-    rgbd = file["rgbd"][start:stop]
-    return Videos(rgbd, file["ids"][start:stop], rgbd.shape[1], store.wall_mask(file, start, stop),
+    rgbd = store.read_frames(file, "rgbd", start, stop)
+    return Videos(rgbd, store.read_frames(file, "ids", start, stop), rgbd.shape[1], store.wall_mask(file, start, stop),
                   np.arange(start, stop))
 
 

@@ -59,24 +59,60 @@ RETIRED: dict[str, dict[str, Any]] = {
 }
 
 
-def from_dict(cls: type, data: dict) -> Any:
+def from_dict(cls: type, data: dict, where: str = "") -> Any:
     """Rebuild a (possibly nested) config dataclass from `to_dict` output; unknown keys are an
-    error, and so is a retired field (`RETIRED`) set to anything but the value it always held."""
+    error, and so are a value not of its field's type and a retired field (`RETIRED`) set to
+    anything but the value it always held. `where`: the config's key in the errors (the class
+    name by default)."""
+    where = where or cls.__name__
+    if not isinstance(data, dict):
+        raise XvoeError(f"{where} is a {type(data).__name__}, not a dict of {cls.__name__} fields")
     data = _without_retired(cls, data)
     known = {f.name for f in fields(cls)}
     unknown = set(data) - known
     if unknown:
-        raise XvoeError(f"{cls.__name__} has no field(s) {', '.join(sorted(unknown))}")
+        raise XvoeError(f"{where} has no field(s) {', '.join(sorted(unknown))} ({cls.__name__} has not)")
     hints = typing.get_type_hints(cls)
     values = {}
     for name, value in data.items():
         target = _nested_dataclass(hints[name])
         if target is not None and isinstance(value, dict):
-            value = from_dict(target, value)
+            value = from_dict(target, value, f"{where}.{name}")
         elif isinstance(value, list):
             value = tuple(value)
+        if target is None and not holds_type(hints[name], value):
+            raise XvoeError(f"{where}.{name} is {value!r}, not {_type_name(hints[name])}")
         values[name] = value
     return check_config(cls(**values))
+
+
+def holds_type(kind: Any, value: Any) -> bool:
+    """Whether `value` is of a config field's type `kind` (an int is a float too; a bool is
+    neither; a tuple's items each of its item type): a stored config of the wrong types is
+    refused by name instead of failing wherever the network first uses the value."""
+    if isinstance(kind, types.UnionType) or typing.get_origin(kind) is typing.Union:
+        return any(holds_type(option, value) for option in typing.get_args(kind))
+    if typing.get_origin(kind) is tuple:
+        items = typing.get_args(kind)[:1] or (Any,)
+        return isinstance(value, tuple) and all(holds_type(items[0], item) for item in value)
+    if kind is type(None):
+        return value is None
+    if kind is float:
+        return isinstance(value, (int, float)) and not isinstance(value, bool)
+    if kind is int:
+        return isinstance(value, int) and not isinstance(value, bool)
+    return kind is Any or not isinstance(kind, type) or isinstance(value, kind)
+
+
+def _type_name(kind: Any) -> str:
+    """A field's type in words, for an error."""
+    if isinstance(kind, types.UnionType) or typing.get_origin(kind) is typing.Union:
+        return " or ".join(_type_name(option) for option in typing.get_args(kind))
+    if typing.get_origin(kind) is tuple:
+        return f"a list of {_type_name(typing.get_args(kind)[0])}" if typing.get_args(kind) else "a list"
+    if kind is type(None):
+        return "none"
+    return f"a {getattr(kind, '__name__', kind)}"
 
 
 def _without_retired(cls: type, data: dict) -> dict:

@@ -14,8 +14,9 @@ import numpy as np
 import torch
 
 from ..errors import XvoeError
+from ..models.config import from_dict
 from ..models.devices import on_cpu
-from .stages import SCORED
+from .stages import SCORED, STAGES
 
 CHECKPOINT_FORMAT = 1
 WEIGHTS = Path(__file__).resolve().parent.parent / "weights"
@@ -61,7 +62,91 @@ def load_checkpoint(path: str | os.PathLike, stage: str | None = None, device: s
     if stage is not None and state.get("stage") != stage:
         raise XvoeError(f"{path} holds a {state.get('stage')} model, not {stage}: load it under its own name "
                         f"({state.get('stage')}.pt)")
+    if (problem := contents_problem(state)) is not None:
+        raise XvoeError(f"{path} does not fit the {state.get('stage')} model: {problem}")
+    if (bad := first_not_finite(state)) is not None:
+        raise XvoeError(f"{path} holds weights that are not finite ({bad}); the run that wrote it diverged")
     return state
+
+
+def recorded_input(state: dict, path: str | os.PathLike, key: str, flag: str = "--data") -> str:
+    """The input a resumed run trained on, as its checkpoint records it (`meta[key]`), or a
+    one-line error asking for it where none is recorded (a shipped model keeps no paths)."""
+    if not state.get("meta", {}).get(key):
+        raise XvoeError(f"{path} records no {key} to resume on (a shipped model?); give it with {flag}")
+    return state["meta"][key]
+
+
+WEIGHT_KEYS = ("model", "trained")      # "trained" beside "model" when a run averages its weights
+
+
+def contents_problem(state: dict) -> str | None:
+    """What in a checkpoint of a known format is not what its stage stores, naming the key, or
+    None: its model config of the stage's fields and types, the training config's, a whole
+    step, and weights that are tensors by name. Read here, where every loader passes, so that
+    no loader meets a bad value deep in a network."""
+    from .loop import TrainConfig       # the loop imports this module
+
+    if state.get("stage") not in STAGES:
+        return f"its stage {state.get('stage')!r} is not one of {', '.join(STAGES)}"
+    entry = STAGES[state["stage"]]
+    if not isinstance(state.get("config"), dict):
+        return f"config is a {type(state.get('config')).__name__}, not a dict"
+    if entry.config_key not in state["config"]:
+        return f"config has no {entry.config_key}"
+    stored = [(f"config.{entry.config_key}", entry.config, state["config"][entry.config_key])]
+    stored += [("train", TrainConfig, state["train"])] if "train" in state else []
+    for key, cls, value in stored:
+        try:
+            from_dict(cls, value, key)
+        except XvoeError as error:
+            return str(error)
+    step = state.get("step", 0)
+    if not isinstance(step, int) or isinstance(step, bool) or step < 0:
+        return f"step is {step!r}, not a whole number of steps"
+    if not isinstance(state.get("meta", {}), dict):
+        return f"meta is a {type(state['meta']).__name__}, not a dict"
+    if "model" not in state:
+        return "it has no model key (the weights)"
+    for key in (key for key in WEIGHT_KEYS if key in state):
+        if not isinstance(state[key], dict):
+            return f"{key} is a {type(state[key]).__name__}, not a dict of tensors"
+        for name, value in state[key].items():
+            if not isinstance(name, str) or not isinstance(value, torch.Tensor):
+                return f"{key} entry {name!r} is a {type(value).__name__}, not a tensor"
+    return None
+
+
+def first_not_finite(state: dict) -> str | None:
+    """The first weight of a checkpoint (`WEIGHT_KEYS`) holding a NaN or an infinity, as
+    "KEY NAME", or None."""
+    for key in (key for key in WEIGHT_KEYS if key in state):
+        for name, tensor in state[key].items():
+            if tensor.is_floating_point() and not bool(torch.isfinite(tensor).all()):
+                return f"{key} {name}"
+    return None
+
+
+def load_weights(module: torch.nn.Module, state: dict, path: str | os.PathLike, key: str = "model",
+                 strict: bool = True) -> None:
+    """Load a checkpoint's weights `state[key]` into `module`, or say in one line which tensor
+    does not fit (missing, unknown to the network, or of another shape); with `strict` false
+    (a checkpoint of part of the network) only those it holds must fit."""
+    expected, found = module.state_dict(), state[key]
+    problem = None
+    for name, tensor in found.items():
+        if name not in expected:
+            problem = f"{key} holds {name}, which the model has not"
+        elif tensor.shape != expected[name].shape:
+            problem = f"{name} has shape {tuple(tensor.shape)}, the model {tuple(expected[name].shape)}"
+        if problem:
+            break
+    missing = [name for name in expected if name not in found] if strict else []
+    if problem is None and missing:
+        problem = f"{key} lacks {missing[0]}" + (f" and {len(missing) - 1} more" if len(missing) > 1 else "")
+    if problem is not None:
+        raise XvoeError(f"{path} does not fit the {state.get('stage')} model: {problem}")
+    module.load_state_dict(found, strict=strict)
 
 
 def resolve_run(model: str | os.PathLike, stage: str = "perception") -> Path:

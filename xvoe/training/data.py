@@ -82,7 +82,8 @@ class Slice:
 
 def load_slice(path: str, start: int, stop: int) -> Slice:
     with store.open_dataset(path) as file:
-        return Slice(file["rgbd"][start:stop], file["ids"][start:stop], start, stop)
+        return Slice(store.read_frames(file, "rgbd", start, stop), store.read_frames(file, "ids", start, stop),
+                     start, stop)
 
 
 def shard_bounds(videos: int, shards: int) -> list[tuple[int, int]]:

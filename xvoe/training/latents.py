@@ -183,7 +183,7 @@ def encode_with(model: ComponentVAE, data: str | os.PathLike, out: str | os.Path
         for start in tqdm(range(0, count, videos_per_batch), desc="encode", disable=not progress,
                           unit_scale=videos_per_batch, unit="video"):
             stop = min(count, start + videos_per_batch)
-            rgbd, ids = file["rgbd"][start:stop], file["ids"][start:stop]
+            rgbd, ids = store.read_frames(file, "rgbd", start, stop), store.read_frames(file, "ids", start, stop)
             encoded = encode_frames(model, rgbd.reshape(-1, size, size, 4), ids.reshape(-1, size, size), slots)
             for name, value in encoded.items():
                 if name not in arrays:

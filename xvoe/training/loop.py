@@ -35,7 +35,7 @@ from ..errors import XvoeError
 from ..models.config import override, to_dict
 from ..models.devices import mixed_precision, resolve_device
 from ..outputs import claim_directory, claim_file, claim_scope
-from .checkpoints import CHECKPOINT_FORMAT, load_checkpoint, save_checkpoint
+from .checkpoints import CHECKPOINT_FORMAT, first_not_finite, load_checkpoint, load_weights, save_checkpoint
 
 
 @dataclass(frozen=True)
@@ -296,7 +296,9 @@ def fit(job: Job, config: TrainConfig, run_dir: str | os.PathLike, *, place: Dis
     average = WeightAverage(model, config.average_decay) if config.average_decay else None
     if resume and ckpt.exists():
         state = load_checkpoint(ckpt, job.stage, place.device)
-        model.load_state_dict(state.get("trained", state["model"]))
+        load_weights(model, state, ckpt)        # "model" is checked to fit even where "trained" replaces it
+        if "trained" in state:
+            load_weights(model, state, ckpt, "trained")
         if average:
             average.load(state["model"])
         start, elapsed = state["step"], state.get("elapsed", 0.0)
@@ -330,6 +332,9 @@ def fit(job: Job, config: TrainConfig, run_dir: str | os.PathLike, *, place: Dis
             # "model" is what every loader reads: the average when there is one
             weights = {"model": average.state, "trained": model.state_dict()} if average else \
                 {"model": model.state_dict()}
+            if (bad := first_not_finite(weights)) is not None:     # the last good checkpoint stays as it was
+                raise XvoeError(f"the {job.stage} stage diverged by step {step} (its weights are not finite: {bad}); "
+                                f"nothing was saved: train with a lower --lr than {config.lr:g}")
             save_checkpoint(ckpt, {"format": CHECKPOINT_FORMAT, "stage": job.stage, "config": job.config,
                                    "train": to_dict(config), "step": step, "elapsed": elapsed,
                                    **weights, "optimizer": optimiser.state_dict(),

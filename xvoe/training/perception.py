@@ -10,7 +10,7 @@ import torch
 from ..errors import XvoeError
 from ..models.config import from_dict, override, override_resumed, to_dict
 from ..models.perception import ComponentVAE, PerceptionConfig
-from .checkpoints import load_checkpoint, resolve_run
+from .checkpoints import load_checkpoint, load_weights, recorded_input, resolve_run
 from .data import ShardedFrames
 from .loop import Job, TrainConfig, checkpoint_path, fit, setup_distributed, start_process
 from .recipes import DEFAULT_RECIPE, recipe, recipe_of
@@ -21,7 +21,7 @@ def load_perception(model: str | os.PathLike, device: str | torch.device = "cpu"
     path = resolve_run(model)
     state = load_checkpoint(path, "perception", device)
     vae = ComponentVAE(from_dict(PerceptionConfig, state["config"]["perception"]))
-    vae.load_state_dict(state["model"])
+    load_weights(vae, state, path)
     state["path"] = str(path)
     return vae.to(device).eval(), state
 
@@ -50,7 +50,8 @@ def train_perception(data: str | os.PathLike | None, run_dir: str | os.PathLike,
     if data is None:
         if not (resume and checkpoint_path(run_dir, "perception").exists()):
             raise XvoeError("--data is required to start a run (the training split file)")
-        data = load_checkpoint(checkpoint_path(run_dir, "perception"))["meta"]["data"]
+        ckpt = checkpoint_path(run_dir, "perception")
+        data = recorded_input(load_checkpoint(ckpt), ckpt, "data")
     recipe_name, model_config, config = perception_configs(recipe_name, run_dir, resume, **train_overrides)
     if resume and checkpoint_path(run_dir, "perception").exists():
         model_config = override_resumed(model_config, model_overrides, what="perception run")

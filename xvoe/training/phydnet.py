@@ -20,7 +20,7 @@ from ..benchmark import store
 from ..errors import XvoeError
 from ..models.config import from_dict, override, override_resumed, to_dict
 from ..models.phydnet import PhyDNet, PhyDNetConfig, PhyDNetObjective, widen_lstm_kernel
-from .checkpoints import load_checkpoint, resolve_run, save_checkpoint
+from .checkpoints import load_checkpoint, load_weights, recorded_input, resolve_run, save_checkpoint
 from .data import check_size, focus_on, owned_shards
 from .loop import Dist, Job, TrainConfig, checkpoint_path, fit, setup_distributed, start_process
 from .recipes import DEFAULT_RECIPE, recipe, recipe_of
@@ -43,7 +43,7 @@ class VideoBatches:
             check_size(file, image_size, "PhyDNet")
             owned = owned_shards(path, file["rgbd"].shape[0], batch_size=batch_size, shards=shards, rank=rank,
                                  world=world, max_videos=max_videos)
-            self.rgbd = torch.from_numpy(file["rgbd"][owned.start:owned.stop])
+            self.rgbd = torch.from_numpy(store.read_frames(file, "rgbd", owned.start, owned.stop))
         self.focus = focus_on(path, owned, focus_group, focus_share)
         self.shards, self.bounds, self.per_shard = owned.shards, owned.bounds, owned.per_shard
         self.start, self.seed = owned.start, seed
@@ -63,7 +63,7 @@ def phydnet_configs(recipe_name: str, run_dir: Path, resume: bool, data: str | o
         state = load_checkpoint(ckpt, STAGE)
         model_config = from_dict(PhyDNetConfig, state["config"]["phydnet"])
         train_config, recipe_name = from_dict(TrainConfig, state["train"]), recipe_of(state["config"])
-        return recipe_name, model_config, train_config, str(data or state["meta"]["data"])
+        return recipe_name, model_config, train_config, str(data or recorded_input(state, ckpt, "data"))
     if data is None:
         raise XvoeError(f"nothing to resume in {run_dir}: give the training split to start a run")
     chosen = recipe(recipe_name)
@@ -111,7 +111,7 @@ def widen_checkpoint(path: Path, kernel: int, place: Dist) -> None:
         for key in ("model", "trained"):        # "trained" beside "model" when the run averages its weights
             if key in state:
                 objective = PhyDNetObjective(PhyDNet(narrow))
-                objective.load_state_dict(state[key])
+                load_weights(objective, state, path, key)
                 wider = PhyDNetObjective(widen_lstm_kernel(objective.net, kernel))
                 widened[key] = wider.state_dict()
         if "optimizer" in state:     # an un-stepped Adam over the same parameters, in the same order
@@ -127,6 +127,6 @@ def load_phydnet(model: str | os.PathLike, device: str | torch.device = "cpu") -
     path = resolve_run(model, STAGE)
     state = load_checkpoint(path, STAGE, device)
     objective = PhyDNetObjective(PhyDNet(from_dict(PhyDNetConfig, state["config"]["phydnet"])))
-    objective.load_state_dict(state["model"])
+    load_weights(objective, state, path)
     state["path"] = str(path)
     return objective.net.to(device).eval(), state

@@ -28,7 +28,7 @@ from ..models.devices import resolve_device
 from ..models.nll import InferenceConfig
 from ..models.reasoning import hide_slot
 from ..models.xpl import XPL, XPLConfig, permute_slots
-from .checkpoints import load_checkpoint, resolve_run
+from .checkpoints import load_checkpoint, load_weights, recorded_input, resolve_run
 from .data import focus_on, owned_shards
 from .latents import check_cache, encode_split, encoder_key, open_latents, split_cache
 from .loop import Job, TrainConfig, checkpoint_path, fit, setup_distributed, start_process
@@ -160,7 +160,7 @@ def train_xpl(latents: str | os.PathLike | None, run_dir: str | os.PathLike, *, 
         state = load_checkpoint(ckpt, stage)
         model_config = from_dict(XPLConfig, state["config"]["xpl"])
         config, recipe_name = from_dict(TrainConfig, state["train"]), recipe_of(state["config"])
-        latents = latents or state["meta"]["latents"]
+        latents = latents or recorded_input(state, ckpt, "latents")
         model_config = override_resumed(model_config, model_overrides, what=f"{stage} run")
     elif latents is None:
         raise XvoeError(f"nothing to resume in {run_dir}: give the latent cache to start a run")
@@ -430,7 +430,7 @@ def train_proposal(run_dir: str | os.PathLike, latents: str | os.PathLike | None
         config = recipe(recipe_name).proposal_train
     xpl.config = override_resumed(xpl.config, model_overrides, what="proposal run")
     config = start_process(override(config, **train_overrides), place)
-    latents = latents or xpl_state["meta"]["latents"]
+    latents = latents or recorded_input(xpl_state, xpl_path, "latents")
     batches = ProposalBatches(str(latents), batch_size=config.batch_size, shards=config.data_shards, rank=place.rank,
                               world=place.world, max_videos=config.max_videos, seed=config.seed,
                               focus_group=config.focus_group, focus_share=config.focus_share)
@@ -458,14 +458,14 @@ def load_xpl(model: str | os.PathLike, stage: str = "xpl", device: str | torch.d
     path = resolve_run(model, stage)
     state = load_checkpoint(path, stage, device)
     xpl = XPL(from_dict(XPLConfig, state["config"]["xpl"]))
-    xpl.load_state_dict(state["model"])
+    load_weights(xpl, state, path)
     tuned = path.parent / "proposal.pt"
     if proposal and state["stage"] == "xpl" and tuned.is_file():
         extra = load_checkpoint(tuned, "proposal", device)
         if extra["meta"].get("xpl_fingerprint") != fingerprint(state["model"]):
             raise XvoeError(f"{tuned} was trained on another xpl.pt than {path}; retrain it "
                             "(xvoe train proposal --overwrite) or move it away")
-        xpl.load_state_dict(extra["model"], strict=False)
+        load_weights(xpl, extra, tuned, strict=False)
         xpl.config = from_dict(XPLConfig, extra["config"]["xpl"])     # how its Transformer 2 is used, too
         state["proposal"] = str(tuned)
     elif proposal and state["stage"] == "xpl" and not xpl.config.joint_proposal:
