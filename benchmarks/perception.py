@@ -29,8 +29,8 @@ from xvoe.evaluation import perception_quality as quality
 from xvoe.evaluation.scorecard import PROBE_R2
 from xvoe.models.config import from_dict
 from xvoe.models.perception import ComponentVAE
+from xvoe.training.config import TrainConfig
 from xvoe.training.data import perception_batch
-from xvoe.training.loop import TrainConfig
 from xvoe.training.perception import load_perception
 from xvoe.training.recipes import recipe_of
 

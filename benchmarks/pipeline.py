@@ -27,7 +27,7 @@ from xvoe.apps.pipeline import DEFAULT_MODELS, MODELS, PipelineConfig, run_pipel
 from xvoe.benchmark.generate import GenerateConfig, generate
 from xvoe.evaluation import scorecard
 from xvoe.evaluation.metrics import read_scores
-from xvoe.training.loop import TrainConfig
+from xvoe.training.config import TrainConfig
 from xvoe.training.recipes import DEFAULT_RECIPE, RECIPES, recipe
 from xvoe.training.stages import STAGES
 

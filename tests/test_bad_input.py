@@ -38,9 +38,9 @@ from xvoe.models.reasoning import ReasoningConfig
 from xvoe.models.xpl import XPLConfig
 from xvoe.outputs import atomic_paths, remove_stale_temporaries
 from xvoe.training.checkpoints import shipped_path
-from xvoe.training.xpl import fingerprint
+from xvoe.training.config import TrainConfig
 from xvoe.training.latents import Latents, write_latents
-from xvoe.training.loop import TrainConfig
+from xvoe.training.xpl import fingerprint
 
 EXAMPLES = Path(__file__).resolve().parent.parent / "examples"
 
@@ -278,7 +278,8 @@ def checkpoint_cases(files, tmp: Path) -> list[tuple[list[str], str]]:
     # a resumed run whose weights do not fit the network it builds
     perception = made["perception-misshaped"]
     cases.append((["train", "perception", "--data", str(files["train-32"]), "--out", str(perception.parent), "--resume",
-                   "--steps", "1", "--set", "airborne_share=0", "--quiet"], f"{perception} does not fit the perception model"))
+                   "--steps", "1", "--set", "airborne_share=0", "--quiet"],
+                  f"{perception} does not fit the perception model"))
     cases.append((["train", "xpl", "--out", str(made["misshaped"].parent), "--resume", "--steps", "1", "--quiet"],
                   f"{made['misshaped']} records no latents to resume on"))
     cases.append((["explain", "--model", str(made["misshaped"].parent), "--data", test, "--out", str(tmp / "c.png")],

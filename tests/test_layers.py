@@ -16,8 +16,8 @@ LAYERS = {
     "xvoe.outputs": 0,
     "xvoe.processes": 0,
     "xvoe.domains": 0,
-    "xvoe.identity": 0,
     "xvoe.benchmark": 1,
+    "xvoe.identity": 1,         # hashes splits, read through the store
     "xvoe.models": 2,
     "xvoe.training": 3,
     "xvoe.evaluation": 4,

@@ -84,7 +84,8 @@ def test_resuming_a_run_whose_checkpoint_holds_a_payload_is_refused(tmp_path, ma
                          progress=False)
     run = tmp_path / "run"
     tiny = ["--set", "model.image_size=16", "--set", "model.broadcast_size=4", "--set", "model.latent_dim=4",
-            "--set", "model.cnn_channels=8,8", "--set", "model.cnn_hidden=16", "--set", "model.decoder_channels=8", "--set", "airborne_share=0"]
+            "--set", "model.cnn_channels=8,8", "--set", "model.cnn_hidden=16", "--set", "model.decoder_channels=8",
+            "--set", "airborne_share=0"]
     train = ["train", "perception", "--data", str(data), "--out", str(run), "--batch-size", "8", "--quiet"]
     assert main([*train, "--steps", "2", *tiny]) == 0
     plant(run / "perception.pt", Payload(marker), "meta")

@@ -23,7 +23,8 @@ from xvoe.models.phydnet import (
     kernel_moments,
     kernels_with_moments,
 )
-from xvoe.training.loop import Dist, TrainConfig
+from xvoe.training.config import TrainConfig
+from xvoe.training.loop import Dist
 from xvoe.training.phydnet import VideoBatches, load_phydnet, train_phydnet, widen_checkpoint
 from xvoe.training.recipes import DEFAULT_RECIPE, RECIPES
 

@@ -11,7 +11,7 @@ from xvoe.apps.pipeline import PipelineConfig, Stages, compare_models, run_pipel
 from xvoe.benchmark import store
 from xvoe.errors import XvoeError
 from xvoe.training.checkpoints import load_checkpoint
-from xvoe.training.loop import TrainConfig
+from xvoe.training.config import TrainConfig
 from xvoe.training.recipes import DEFAULT_RECIPE, RECIPES
 
 

@@ -11,7 +11,7 @@ from xvoe.benchmark.generate import GenerateConfig
 from xvoe.errors import XvoeError
 from xvoe.models.config import to_dict
 from xvoe.training.checkpoints import WEIGHTS, load_checkpoint
-from xvoe.training.loop import TrainConfig
+from xvoe.training.config import TrainConfig
 from xvoe.training.provenance import RUN_FIELDS, recipe_differences
 from xvoe.training.recipes import DEFAULT_RECIPE, RECIPES, recipe, recipe_of
 from xvoe.training.stages import STAGES

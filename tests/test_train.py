@@ -15,8 +15,9 @@ from xvoe.errors import XvoeError
 from xvoe.models.config import from_dict, override
 from xvoe.models.perception import ComponentVAE, PerceptionConfig
 from xvoe.training.checkpoints import load_checkpoint
+from xvoe.training.config import TrainConfig
 from xvoe.training.data import ShardedFrames
-from xvoe.training.loop import Job, TrainConfig, fit, learning_rate, seed_everything
+from xvoe.training.loop import Job, fit, learning_rate, seed_everything
 from xvoe.training.perception import load_perception, train_perception
 from xvoe.training.recipes import DEFAULT_RECIPE, recipe
 

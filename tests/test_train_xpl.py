@@ -10,8 +10,8 @@ from xvoe.errors import XvoeError
 from xvoe.models.dynamics import DynamicsConfig
 from xvoe.models.reasoning import ReasoningConfig
 from xvoe.models.xpl import XPL, XPLConfig
+from xvoe.training.config import TrainConfig
 from xvoe.training.latents import Latents, write_latents
-from xvoe.training.loop import TrainConfig
 from xvoe.training.recipes import RECIPES
 from xvoe.training.xpl import (
     LatentBatches,

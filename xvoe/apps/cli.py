@@ -20,8 +20,9 @@ from ..models.config import parse_field, parse_value
 from ..models.devices import DEVICES, parse_device, resolve_device
 from ..models.nll import InferenceConfig
 from ..outputs import claim_directory, claim_file, claim_scope, refuse_overlap
+from ..training.config import TrainConfig
 from ..training.data import check_focus
-from ..training.loop import TrainConfig, pin_kernels
+from ..training.loop import pin_kernels
 from ..training.xpl import encoded_cache
 
 

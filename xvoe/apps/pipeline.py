@@ -35,10 +35,11 @@ from ..models.config import to_dict
 from ..models.devices import resolve_device
 from ..outputs import claim_directory, claim_scope
 from ..processes import end_with_parent
+from ..training.config import TrainConfig
 from ..training.data import process_counts
 from ..training.latents import encode_split
 from ..training.launch import on_cores
-from ..training.loop import TrainConfig, checkpoint_path
+from ..training.loop import checkpoint_path
 from ..training.perception import train_perception
 from ..training.phydnet import train_phydnet
 from ..training.recipes import DEFAULT_RECIPE, RECIPES, Recipe, recipe

@@ -56,7 +56,8 @@ def display_video(file: h5py.File, index: int, size: int = DISPLAY_SIZE) -> Disp
     check_index(file, index)
     states = _scaled_states(file["states"][index], size / file["rgbd"].shape[2])
     if size == file["rgbd"].shape[2]:
-        return DisplayVideo(store.read_frames(file, "rgbd", index), store.read_frames(file, "ids", index), states, False)
+        frames, ids = store.read_frames(file, "rgbd", index), store.read_frames(file, "ids", index)
+        return DisplayVideo(frames, ids, states, False)
     again = _simulated_again(file, index, size)
     if again is not None and _same_scene(again.states, states):
         return DisplayVideo(again.rgbd, again.ids, states, True)

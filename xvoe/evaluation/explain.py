@@ -23,7 +23,6 @@ from ..training.data import check_size
 from .score import Scorer, encode_videos, read_videos
 from .surprise import explained_latents, mse_surprise
 
-
 # A hypothesis of the NLL's posterior below this probability is not drawn as the model's belief:
 # no outline, no rows of it, one line of text instead; above it, its outline's opacity is its p.
 DRAW_THRESHOLD = 0.05
@@ -105,7 +104,8 @@ def _read_video(scorer: Scorer, data: str, index: int) -> tuple[dict, np.ndarray
     with store.open_dataset(data) as file:
         check_index(file, index)
         check_size(file, scorer.vae.config.image_size, f"the model {scorer.name}")
-        return encode_videos(scorer, file, index, index + 1), store.read_frames(file, "rgbd", index), describe(file, index)
+        frames = store.read_frames(file, "rgbd", index)
+        return encode_videos(scorer, file, index, index + 1), frames, describe(file, index)
 
 
 def _pictures(vae, refined: torch.Tensor, occupied: torch.Tensor, video: dict,

@@ -11,8 +11,9 @@ from ..errors import XvoeError
 from ..models.config import from_dict, override, override_resumed, to_dict
 from ..models.perception import ComponentVAE, PerceptionConfig
 from .checkpoints import load_checkpoint, load_weights, recorded_input, resolve_run
+from .config import TrainConfig
 from .data import ShardedFrames
-from .loop import Job, TrainConfig, checkpoint_path, fit, setup_distributed, start_process
+from .loop import Job, checkpoint_path, fit, setup_distributed, start_process
 from .recipes import DEFAULT_RECIPE, recipe, recipe_of
 
 

@@ -21,8 +21,9 @@ from ..errors import XvoeError
 from ..models.config import from_dict, override, override_resumed, to_dict
 from ..models.phydnet import PhyDNet, PhyDNetConfig, PhyDNetObjective, widen_lstm_kernel
 from .checkpoints import load_checkpoint, load_weights, recorded_input, resolve_run, save_checkpoint
+from .config import TrainConfig
 from .data import check_size, focus_on, owned_shards
-from .loop import Dist, Job, TrainConfig, checkpoint_path, fit, setup_distributed, start_process
+from .loop import Dist, Job, checkpoint_path, fit, setup_distributed, start_process
 from .recipes import DEFAULT_RECIPE, recipe, recipe_of
 
 STAGE = "phydnet"

@@ -10,7 +10,7 @@ from __future__ import annotations
 
 from ..models.config import from_dict, to_dict
 from ..models.xpl import XPLConfig
-from .loop import TrainConfig
+from .config import TrainConfig
 from .recipes import recipe, recipe_of
 from .stages import stage
 from .xpl import nll_settings_of, stage_config

@@ -29,9 +29,10 @@ from ..models.nll import InferenceConfig
 from ..models.reasoning import hide_slot
 from ..models.xpl import XPL, XPLConfig, permute_slots
 from .checkpoints import load_checkpoint, load_weights, recorded_input, resolve_run
+from .config import TrainConfig
 from .data import focus_on, owned_shards
 from .latents import check_cache, encode_split, encoder_key, open_latents, split_cache
-from .loop import Job, TrainConfig, checkpoint_path, fit, setup_distributed, start_process
+from .loop import Job, checkpoint_path, fit, setup_distributed, start_process
 from .perception import load_perception
 from .recipes import DEFAULT_RECIPE, recipe, recipe_of
 from .stages import STAGES

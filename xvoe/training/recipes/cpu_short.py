@@ -11,7 +11,7 @@ from dataclasses import replace
 from ...models.perception import PerceptionConfig
 from ...models.phydnet import PhyDNetConfig
 from ...models.xpl import XPLConfig
-from ..loop import TrainConfig
+from ..config import TrainConfig
 from .recipe import Recipe
 
 # two fixed data shards: a stage's batches are then the same on one core, two or four

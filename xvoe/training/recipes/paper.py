@@ -4,7 +4,7 @@ from ...models.perception import PerceptionConfig
 from ...models.phydnet import PhyDNetConfig
 from ...models.reasoning import ReasoningConfig
 from ...models.xpl import XPLConfig
-from ..loop import TrainConfig
+from ..config import TrainConfig
 from .recipe import Recipe
 
 RECIPE = Recipe(

@@ -14,7 +14,7 @@ from ...models.nll import InferenceConfig
 from ...models.perception import PerceptionConfig
 from ...models.phydnet import PhyDNetConfig
 from ...models.xpl import XPLConfig
-from ..loop import TrainConfig
+from ..config import TrainConfig
 from ..stages import STAGES, stage
 
 
