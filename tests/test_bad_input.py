@@ -146,6 +146,7 @@ def case_lines(files, tmp: Path) -> list[tuple[list[str], str]]:
         bad = str(files[name])
         cases += [
             (["show", bad, "--out", str(tmp / "s.png")], bad),
+            (["list", bad], bad),
             (["score", "--model", "random", "--data", bad, "--out", str(tmp / "s.csv")], bad),
             (["explain", "--model", "xpl", "--data", bad, "--out", str(tmp / "e.png")], bad),
             (["train", "perception", "--data", bad, "--out", str(tmp / "run"), "--steps", "1", "--quiet"], bad),
@@ -179,6 +180,14 @@ def case_lines(files, tmp: Path) -> list[tuple[list[str], str]]:
         (["show", str(tmp), "--out", str(tmp / "s.png")], "is a directory"),
         (["show", test, "--out", str(tmp / "taken.png")], "--overwrite"),
         (["show", test, "--index", "5000", "--out", str(tmp / "s.png")], "out of range"),
+        (["list", test, "--scenario", "telekinesis"], "holds no scenario 'telekinesis'; it holds collision"),
+        (["list", test, "--scenario", "permanence", "--setting", "S3"], "it holds S1, S2"),
+        (["list", test, "--setting", "2"], "holds no setting '2'"),
+        (["list", test, "--member", "2"], "it holds 0 and 1"),
+        (["list", test, "--pair", "99"], "holds no pair 99"),
+        (["list", test, "--pair", "first"], "pair: expected"),
+        (["list", train], "pairs live in test splits"),
+        (["list", str(tmp / "nowhere.h5")], "no such file"),
         (["explain", "--model", "xpl", "--data", test, "--out", str(tmp / "taken.png")], "--overwrite"),
         (["score", "--model", "random", "--data", test, "--out", str(tmp / "taken.csv")], "--overwrite"),
         (["score", "--model", "random", "--data", train, "--out", str(tmp / "s.csv")], "test split"),
@@ -454,7 +463,7 @@ def test_every_bad_input_gets_one_line_exit_2_and_changes_nothing(files, tmp_pat
         assert "Traceback" not in err
         assert snapshot(tmp_path) == before, args
         tried += 1
-    assert tried == 5 * len(MALFORMED) + 2 * len(MALFORMED_TRAIN) + 32 + 31 + 14 + 6 + 7 + 7 + 17
+    assert tried == 6 * len(MALFORMED) + 2 * len(MALFORMED_TRAIN) + 40 + 31 + 14 + 6 + 7 + 7 + 17
 
 
 CONFIGS = (TrainConfig, PerceptionConfig, XPLConfig, ReasoningConfig, DynamicsConfig, PhyDNetConfig, InferenceConfig,

@@ -5,6 +5,7 @@ import sys
 import numpy as np
 import pytest
 
+import xvoe
 from xvoe.apps.cli import main
 
 
@@ -64,12 +65,23 @@ def test_existing_output_needs_overwrite(tmp_path, capsys):
     assert out.read_bytes() != before
 
 
-@pytest.mark.parametrize("verb", ["generate", "show", "train", "score", "metrics", "pipeline", "explain"])
+@pytest.mark.parametrize("verb", ["generate", "list", "show", "train", "score", "metrics", "pipeline", "explain"])
 def test_every_verb_has_help(verb, capsys):
     with pytest.raises(SystemExit) as exit_:
         main([verb, "--help"])
     assert exit_.value.code == 0
     assert "usage: xvoe " + verb in capsys.readouterr().out
+
+
+def test_list_names_the_videos_a_filter_picks_as_find_pair_does(test_file, test_data, capsys):
+    assert main(["list", str(test_file), "--scenario", "blocking", "--setting", "S2", "--pair", "3"]) == 0
+    lines = capsys.readouterr().out.splitlines()
+    assert lines[0].split() == ["index", "scenario", "setting", "pair", "member"]
+    with xvoe.open_dataset(test_file) as file:
+        assert [int(line.split()[0]) for line in lines[1:]] == list(xvoe.find_pair(file, "blocking", "S2", 3))
+        impossible = xvoe.list_videos(file, setting="S3", member=1)
+    assert len(impossible) == 3 * 8     # a pair of every S3 scenario (permanence has none)
+    assert all(not row["possible"] and test_data["setting"][row["index"]] == "S3" for row in impossible)
 
 
 def test_show_writes_an_mp4_with_the_surprise_curves(test_file, tmp_path, capsys):

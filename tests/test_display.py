@@ -1,5 +1,7 @@
 """The scene at a display size: the same video simulated again, exact against the stored one,
 and the figures that draw it above the model's frames with the explanation onto it."""
+from dataclasses import replace
+
 import numpy as np
 import pytest
 from PIL import Image
@@ -77,6 +79,9 @@ def test_a_hand_made_event_is_enlarged_pixel_by_pixel(tmp_path):
         assert not display.resimulated and display.rgbd.shape == (15, 128, 128, 4)
         np.testing.assert_array_equal(display.rgbd[:, 1::4, 2::4], file["rgbd"][1])
         np.testing.assert_array_equal(display.ids[:, 3::4, ::4], file["ids"][1])
+        # the sheet draws no "scene 128x128" row of what are the model's frames enlarged
+        labels = [tick.get_text() for tick in xvoe.show_video(file, 1).axes[0].get_yticklabels()]
+        assert labels == ["model's 32x32", "depth", "ids"] * 2
 
 
 def test_enlarge_and_outline():
@@ -109,7 +114,8 @@ def test_the_sheet_and_the_gif_draw_the_scene_above_the_model_frames(splits, tmp
         np.testing.assert_array_equal(rows[1][1][:, ::2, ::2], file["rgbd"][0][..., :3])
         gif = save_gif(file, 0, tmp_path / "pair.gif", display_size=96)
         plain = save_gif(file, 0, tmp_path / "plain.gif", display_size=None, zoom=2)
-    assert Image.open(gif).size == (4 * 96, 2 * 96) and Image.open(plain).size == (3 * 64, 2 * 64)
+    # a caption line of 14 pixels above the columns and above each member
+    assert Image.open(gif).size == (4 * 96, 3 * 14 + 2 * 96) and Image.open(plain).size == (3 * 64, 3 * 14 + 2 * 64)
     assert main(["show", str(splits[32]), "--index", "2", "--display-size", "64", "--out",
                  str(tmp_path / "s.png")]) == 0
 
@@ -140,7 +146,11 @@ def test_the_explanation_is_drawn_onto_the_scene():
                                                       display=scene))
     np.testing.assert_array_equal(nothing, scene[..., :3])              # no slot explained: the scene alone
     assert colour is None
-    assert len(plot_explanation(explanation).axes) == 1
+    figure = plot_explanation(explanation)
+    assert len(figure.axes) == 1 and figure.drawn_rows[0][1].startswith("scene 128x128")
+    # a hand-made event's display is its 32x32 frames enlarged, and is called that
+    enlarged = plot_explanation(replace(explanation, display_resimulated=False))
+    assert enlarged.drawn_rows[0][1].startswith("model's 32x32,\nenlarged")
 
 
 def test_a_display_size_outside_its_domain_is_refused(splits, tmp_path):

@@ -16,6 +16,7 @@ LAYERS = {
     "xvoe.outputs": 0,
     "xvoe.processes": 0,
     "xvoe.domains": 0,
+    "xvoe.progress": 0,
     "xvoe.benchmark": 1,
     "xvoe.identity": 1,         # hashes splits, read through the store
     "xvoe.models": 2,

@@ -24,7 +24,7 @@ from xvoe.evaluation.metrics import (
     relative,
     side_by_side,
 )
-from xvoe.evaluation.resampling import chance_p, values_interval
+from xvoe.evaluation.resampling import chance_p, values_interval, wilson
 
 
 def table(rows):
@@ -115,12 +115,33 @@ def random_scores(pairs=40, seed=0, signal=1.0):
     return table(rows)
 
 
-def test_bootstrap_is_reproducible_and_brackets_the_estimate():
+def test_wilson_interval_against_its_closed_form():
+    # 5 of 10: 0.5 -/+ 1.96 sqrt(0.25/10 + 1.96^2/400) / (1 + 1.96^2/10) = [0.2366, 0.7634]
+    assert wilson(5, 10) == pytest.approx((0.236593, 0.763407), abs=1e-5)
+    # none of n: [0, z^2 / (n + z^2)]; all of n: its mirror image; never of zero width
+    z2 = 1.959964 ** 2
+    assert wilson(0, 4) == pytest.approx((0.0, z2 / (4 + z2)), abs=1e-6)
+    assert wilson(4, 4) == pytest.approx((4 / (4 + z2), 1.0), abs=1e-6)
+    assert wilson(3.5, 4)[0] < 3.5 / 4 < wilson(3.5, 4)[1]      # a tie counts one half
+    assert np.isnan(wilson(0, 0)).all()
+
+
+def test_four_pairs_all_right_get_a_wide_interval_and_their_count():
+    scores = table([("blocking", "S1", pair, member, member == 0, float(member)) for pair in range(4)
+                    for member in (0, 1)])
+    rows = {r["metric"]: r for r in metric_rows(scores, "m", columns=("score",), rounds=50)}
+    for metric in ("comparative", "holistic"):
+        assert rows[metric]["value"] == 1.0 and rows[metric]["count"] == 4
+        assert rows[metric]["low"] == pytest.approx(0.510, abs=1e-3) and rows[metric]["high"] == 1.0
+    assert rows["relative"]["count"] == 8       # videos
+
+
+def test_intervals_are_reproducible_and_bracket_the_estimate():
     scores = random_scores()
-    a = comparative(scores, seed=3)["blocking", "S1"]
-    b = comparative(scores, seed=3)["blocking", "S1"]
+    a = holistic(scores, seed=3)["blocking"]
+    b = holistic(scores, seed=3)["blocking"]
     assert (a.low, a.high) == (b.low, b.high) and a.low < a.high
-    for estimate in [a, holistic(scores, seed=3)["blocking"], relative(scores, seed=3)["blocking", "S3"]]:
+    for estimate in [a, comparative(scores)["blocking", "S1"], relative(scores)["blocking", "S3"]]:
         assert estimate.low <= estimate.value <= estimate.high and estimate.high - estimate.low < 0.5
 
 
@@ -181,14 +202,16 @@ def with_second(column, rows):
 
 BOTH = with_second("nll", [
     # blocking S1 (member 1 impossible): pair 0 both right; pair 1 only the score right; pair 2 only the NLL
-    # right; pair 3 the score ties and the NLL is wrong: neither
+    # right; pair 3 the score ties and the NLL is wrong: no disagreement (the score picks no member)
     ("blocking", "S1", 0, 0, True, 1.0, 10.0), ("blocking", "S1", 0, 1, False, 2.0, 20.0),
     ("blocking", "S1", 1, 0, True, 1.0, 30.0), ("blocking", "S1", 1, 1, False, 2.0, 20.0),
     ("blocking", "S1", 2, 0, True, 3.0, 10.0), ("blocking", "S1", 2, 1, False, 2.0, 20.0),
     ("blocking", "S1", 3, 0, True, 2.0, 30.0), ("blocking", "S1", 3, 1, False, 2.0, 20.0),
-    # blocking S2 (both possible): pair 0 agree, pair 1 disagree with no right answer
+    # blocking S2 (both possible): pair 0 agree, pair 1 disagree with no right answer, pair 2 the NLL's
+    # members within the tolerance (787.3 against 787.5 nats): no disagreement
     ("blocking", "S2", 0, 0, True, 1.0, 10.0), ("blocking", "S2", 0, 1, True, 2.0, 20.0),
     ("blocking", "S2", 1, 0, True, 1.0, 30.0), ("blocking", "S2", 1, 1, True, 2.0, 20.0),
+    ("blocking", "S2", 2, 0, True, 1.0, 787.5), ("blocking", "S2", 2, 1, True, 2.0, 787.3),
 ])
 
 
@@ -196,7 +219,7 @@ def test_disagreements_hand_case():
     rows = disagreements(BOTH)
     found = {(r["setting"], r["pair"]): (r["score_says"], r["nll_says"], r["right"]) for r in rows}
     assert found == {("S1", 1): ("member 1", "member 0", "score"), ("S1", 2): ("member 0", "member 1", "nll"),
-                     ("S1", 3): ("tie", "member 0", "neither"), ("S2", 1): ("member 1", "member 0", "")}
+                     ("S2", 1): ("member 1", "member 0", "")}
     first = next(r for r in rows if r["setting"] == "S1" and r["pair"] == 1)
     assert (first["index_0"], first["index_1"], first["score_1"], first["nll_0"]) == (2, 3, 2.0, 30.0)
 
@@ -207,7 +230,7 @@ def test_side_by_side_table_counts_disagreeing_pairs():
     table_rows = side_by_side(BOTH, metric_rows(BOTH, "m", rounds=20), "m")
     s1 = next(r for r in table_rows if r["metric"] == "comparative" and r["setting"] == "S1")
     assert s1["score"] == pytest.approx(2.5 / 4) and s1["nll"] == pytest.approx(2 / 4)
-    assert s1["difference"] == pytest.approx(-0.125) and (s1["pairs"], s1["disagreeing_pairs"]) == (4, 3)
+    assert s1["difference"] == pytest.approx(-0.125) and (s1["pairs"], s1["disagreeing_pairs"]) == (4, 2)
     assert {r["metric"] for r in table_rows} == {"comparative", "holistic", "relative"}
 
 
@@ -261,7 +284,7 @@ def test_the_report_times_the_onset_of_each_definition_the_curves_hold(test_data
 
 VERDICT_PAIRS = with_second("paper_score", [
     # blocking S1 (member 1 impossible): the default verdict right in 3 of 4 pairs, the paper's
-    # score in 1 (pair 0 both right; pairs 1, 2 only the verdict; pair 3 neither, a paper's tie)
+    # score in 1 (pair 0 both right; pairs 1, 2 only the verdict; pair 3 a paper's tie, no disagreement)
     ("blocking", "S1", 0, 0, True, 1.0, 1.0), ("blocking", "S1", 0, 1, False, 2.0, 2.0),
     ("blocking", "S1", 1, 0, True, 1.0, 5.0), ("blocking", "S1", 1, 1, False, 2.0, 2.0),
     ("blocking", "S1", 2, 0, True, 1.0, 5.0), ("blocking", "S1", 2, 1, False, 2.0, 2.0),
@@ -279,10 +302,10 @@ def test_the_paper_score_is_measured_beside_the_default_verdict():
     assert has_both_surprises(VERDICT_PAIRS, VERDICTS)
     s1 = next(r for r in side_by_side(VERDICT_PAIRS, rows, "m", VERDICTS)
               if r["metric"] == "comparative" and r["setting"] == "S1")
-    assert (s1["score"], s1["paper_score"], s1["disagreeing_pairs"]) == (0.75, 0.375, 3)
+    assert (s1["score"], s1["paper_score"], s1["disagreeing_pairs"]) == (0.75, 0.375, 2)
     differ = disagreements(VERDICT_PAIRS, VERDICTS)
     assert [(r["pair"], r["score_says"], r["paper_score_says"], r["right"]) for r in differ] == [
-        (1, "member 1", "member 0", "score"), (2, "member 1", "member 0", "score"), (3, "member 0", "tie", "neither")]
+        (1, "member 1", "member 0", "score"), (2, "member 1", "member 0", "score")]
 
 
 def test_without_the_paper_score_the_metrics_are_as_before():

@@ -34,14 +34,29 @@ def test_the_curves_of_a_pair_are_drawn_and_written(scored, test_file, tmp_path)
     xvoe.plot_surprise_curves(scored, None, "permanence", "S2", 0)       # the curves alone
 
 
+def test_the_pair_plays_without_a_kernel_frame_by_frame(scored, test_file):
+    """animate_pair: a frame of the player per video frame, with the cursor and the pictures
+    moving with it; its HTML player holds every frame (no kernel needed)."""
+    animation = xvoe.animate_pair(scored, test_file, "blocking", "S3", 1, display_size=64)
+    with store.open_dataset(test_file) as file:
+        frames = file["rgbd"].shape[1]
+        first, _ = xvoe.find_pair(file, "blocking", "S3", 1)
+        scene = xvoe.display_video(file, first, 64).rgbd[..., :3]
+    drawn = animation._func(7)
+    np.testing.assert_array_equal(drawn[0].get_array(), scene[7])
+    assert list(drawn[2].get_xdata()) == [7, 7] and "frame 7" in drawn[-1].get_text()
+    player = animation.to_jshtml()
+    assert player.count("data:image/png;base64") == frames
+
+
 def test_curves_with_the_perception_error_add_the_excess_panel(scored, test_file, tmp_path):
     with np.load(scored.with_suffix(".curves.npz")) as saved:
         s_img, s_dyn = saved["surprise"], 2 * saved["surprise"]
     s_rec = 0.5 * s_img
     np.savez(tmp_path / "rec.npz", s_img=s_img, s_dyn=s_dyn, s_rec=s_rec)
     fig = xvoe.plot_surprise_curves(scored, None, "collision", "S3", 2, curves=tmp_path / "rec.npz")
-    assert [ax.get_title().splitlines()[0] for ax in fig.axes] == ["s_img", "s_dyn", "s_img + s_dyn",
-                                                                   "excess: s_img - s_rec + s_dyn"]
+    assert [ax.get_title().splitlines()[0] for ax in fig.axes] == [
+        "s_img, image error", "s_dyn, motion error", "s_img + s_dyn, the score", "excess: s_img - s_rec + s_dyn"]
     assert fig.axes[0].get_ylabel() == "surprise\n(squared pixel error)"
     with store.open_dataset(test_file) as file:
         first, _ = xvoe.find_pair(file, "collision", "S3", 2)

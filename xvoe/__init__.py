@@ -19,8 +19,10 @@ import importlib
 from typing import Any
 
 from .allocator import tune as _tune_allocator
+from .progress import quiet_widget_warning as _quiet_widget_warning
 
 _tune_allocator()       # before any large tensor: freed buffers stay in the heap (xvoe/allocator.py)
+_quiet_widget_warning()     # before pyro is imported (xvoe/progress.py)
 
 __version__ = "0.1.0"
 
@@ -30,7 +32,7 @@ _HOMES = {
     "xvoe.benchmark.scenes": ("SCENARIOS", "TEST_SETTINGS"),
     "xvoe.benchmark.store": ("open_dataset",),
     "xvoe.benchmark.released": ("import_released",),
-    "xvoe.benchmark.videos": ("describe", "find_pair", "true_objects"),
+    "xvoe.benchmark.videos": ("describe", "find_pair", "list_videos", "true_objects"),
     "xvoe.benchmark.display": ("DISPLAY_SIZE", "display_video"),
     "xvoe.training.recipes": ("DEFAULT_RECIPE", "RECIPES", "recipe", "stage_settings"),
     "xvoe.training.stages": ("STAGES",),
@@ -54,7 +56,7 @@ _HOMES = {
     "xvoe.apps.figures": ("show", "show_video", "save_gif", "save_video", "save_figure", "frame_rows",
                           "plot_explanation", "plot_comparative", "plot_components", "plot_holistic",
                           "plot_disagreements", "plot_surprise_curves", "plot_surprise_definitions",
-                          "plot_predictions", "plot_onset", "plot_settings"),
+                          "plot_predictions", "plot_onset", "plot_settings", "animate_pair"),
 }
 _MODULES = {"custom": "xvoe.benchmark.custom"}     # make your own VoE event: xvoe.custom.make_pair(...)
 _HOME_OF = {name: module for module, names in _HOMES.items() for name in names}

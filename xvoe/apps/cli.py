@@ -118,6 +118,21 @@ def cmd_show(args: argparse.Namespace) -> None:
                     display_size=args.display_size))
 
 
+def cmd_list(args: argparse.Namespace) -> None:
+    with xvoe.open_dataset(args.file) as file:
+        rows = xvoe.list_videos(file, args.scenario, args.setting, args.member, args.pair)
+    print(format_videos(rows))
+
+
+def format_videos(rows: list[dict]) -> str:
+    """`list_videos` rows as an aligned table, a header first."""
+    lines = [("index", "scenario", "setting", "pair", "member", "")]
+    lines += [(str(r["index"]), r["scenario"], r["setting"], str(r["pair"]), str(r["member"]),
+               "possible" if r["possible"] else "impossible") for r in rows]
+    widths = [max(len(line[i]) for line in lines) for i in range(len(lines[0]))]
+    return "\n".join("  ".join(cell.ljust(width) for cell, width in zip(line, widths)).rstrip() for line in lines)
+
+
 def cmd_score(args: argparse.Namespace) -> None:
     if args.merge:
         if args.model or args.data or args.shard != (0, 1) or args.cache:
@@ -335,6 +350,17 @@ def build_parser() -> argparse.ArgumentParser:
                       help=f"pixels a side of the scene drawn above the model's frames (default {DISPLAY_SIZE})")
     show.add_argument("--overwrite", action="store_true", help="replace --out if it exists")
     show.set_defaults(run=cmd_show)
+
+    listing = verbs.add_parser("list", help="list a test split's videos by scenario, setting, member and pair",
+                               description="One line per video of a test split: its index (what show, explain "
+                                           "and the notebooks take), scenario, setting, pair, member and whether "
+                                           "it is possible; the filters given narrow the list.")
+    listing.add_argument("file", help="a test split (HDF5)")
+    listing.add_argument("--scenario", help="collision, blocking, permanence or continuity")
+    listing.add_argument("--setting", help="S1, S2 or S3")
+    listing.add_argument("--member", type=_flag(int, NON_NEGATIVE, "member"), help="0 (expected) or 1")
+    listing.add_argument("--pair", type=_flag(int, NON_NEGATIVE, "pair"), help="the pair's number")
+    listing.set_defaults(run=cmd_list)
 
     add_train_parser(verbs)
 

@@ -16,8 +16,9 @@ import imageio_ffmpeg
 import matplotlib.pyplot as plt
 import numpy as np
 import torch
+from matplotlib.animation import FuncAnimation
 from matplotlib.patches import Rectangle
-from PIL import Image
+from PIL import Image, ImageDraw
 
 from ..benchmark import store
 from ..benchmark.display import DISPLAY_SIZE, check_display_size, display_video, enlarge, outline
@@ -107,22 +108,26 @@ def contact_sheet(rgbd: np.ndarray, ids: np.ndarray, titles: list[str],
 
 
 def sheet_rows(rgbd: np.ndarray, ids: np.ndarray, display: np.ndarray | None = None) -> list[tuple[str, np.ndarray]]:
-    """A video's named rows of (T, S, S, 3) pictures: RGB, depth and ids; with `display`, the
-    scene at that size first and the model's rows enlarged to it."""
+    """A video's named rows of (T, S, S, 3) pictures: the model's frames (RGB), their depth
+    (near is bright) and slot ids (one colour per object); with `display`, the scene at that
+    size first and the model's rows enlarged to it."""
     height, width = rgbd.shape[1:3]
-    rows = [("RGB", rgbd[..., :3]), ("depth", depth_to_rgb(rgbd[..., 3])), ("ids", ids_to_rgb(ids))]
+    rows = [(f"model's {height}x{width}", rgbd[..., :3]), ("depth", depth_to_rgb(rgbd[..., 3])),
+            ("ids", ids_to_rgb(ids))]
     if display is None:
         return rows
     size = display.shape[1]
-    return [(f"scene {size}x{size}", display[..., :3]), (f"model's {height}x{width}", enlarge(rows[0][1], size)),
-            *((name, enlarge(row, size)) for name, row in rows[1:])]
+    return [(f"scene {size}x{size}", display[..., :3]), *((name, enlarge(row, size)) for name, row in rows)]
 
 
 def display_rows(file: h5py.File, indices: list[int], display_size: int | None) -> np.ndarray | None:
-    """The scene of videos `indices` at `display_size` (M, T, S, S, 4), or None without one."""
+    """The scene of videos `indices` simulated again at `display_size` (M, T, S, S, 4), or None
+    without a display size or where the split cannot be simulated again (a hand-made event):
+    the model's frames enlarged are no scene of their own, and are drawn once, as what they are."""
     if display_size is None:
         return None
-    return np.stack([display_video(file, i, display_size).rgbd for i in indices])
+    found = [display_video(file, i, display_size) for i in indices]
+    return np.stack([d.rgbd for d in found]) if all(d.resimulated for d in found) else None
 
 
 def show_video(file: h5py.File, index: int, display_size: int | None = DISPLAY_SIZE) -> plt.Figure:
@@ -138,23 +143,48 @@ def show_video(file: h5py.File, index: int, display_size: int | None = DISPLAY_S
 
 def save_gif(file: h5py.File, index: int, out: str | Path, zoom: int = 3, frame_ms: int = 150,
              display_size: int | None = DISPLAY_SIZE) -> Path:
-    """An animated GIF: RGB, depth and ids side by side, pair members one above the other; with
-    `display_size`, the scene at that size first and the model's frames enlarged to it (else
-    `zoom` times)."""
+    """An animated GIF: the model's frames (RGB), depth and ids side by side, pair members one
+    above the other; with `display_size`, the scene at that size first and the model's frames
+    enlarged to it (else `zoom` times). Captioned: what each column is above them, and over each
+    member what it is and the frame number (in red at the event frame)."""
     indices = video_indices(file, index)
     display = display_rows(file, indices, display_size)
-    strips = []
+    strips, names = [], []
     for m, i in enumerate(indices):
         rows = sheet_rows(store.read_frames(file, "rgbd", i), store.read_frames(file, "ids", i),
                           None if display is None else display[m])
         strips.append(np.concatenate([row for _, row in rows], axis=2))
-    movie = np.concatenate(strips, axis=1)
+        names = [name for name, _ in rows]
     if display is None:
-        movie = movie.repeat(zoom, axis=1).repeat(zoom, axis=2)
-    images = [Image.fromarray(frame) for frame in movie]
+        strips = [strip.repeat(zoom, axis=1).repeat(zoom, axis=2) for strip in strips]
+    titles = [describe(file, i) for i in indices]
+    events = [int(file["event_frame"][i]) if "event_frame" in file else -1 for i in indices]
+    images = [_captioned(t, [strip[t] for strip in strips], names, titles, events) for t in range(len(strips[0]))]
     with atomic_paths(Path(out)) as (tmp,):
         images[0].save(tmp, format="GIF", save_all=True, append_images=images[1:], duration=frame_ms, loop=0)
     return Path(out)
+
+
+CAPTION = 14      # pixels of a caption line of PIL's default font
+
+
+def _captioned(t: int, pictures: list[np.ndarray], columns: list[str], titles: list[str],
+               events: list[int]) -> Image.Image:
+    """Frame `t` of a GIF: a line naming the columns, then each member's picture (H, W, 3)
+    under a line with its title and the frame number, red at its event frame."""
+    width, column = pictures[0].shape[1], pictures[0].shape[1] // len(columns)
+    canvas = np.full((CAPTION + sum(CAPTION + p.shape[0] for p in pictures), width, 3), 255, np.uint8)
+    image = Image.fromarray(canvas)
+    draw = ImageDraw.Draw(image)
+    for c, name in enumerate(columns):
+        draw.text((c * column + 2, 1), name, fill=(0, 0, 0))
+    top = CAPTION
+    for picture, title, event in zip(pictures, titles, events):
+        draw.text((2, top + 1), f"{title}, frame {t}" + (" (event)" if t == event else ""),
+                  fill=(220, 0, 0) if t == event else (0, 0, 0))
+        image.paste(Image.fromarray(picture), (0, top + CAPTION))
+        top += CAPTION + picture.shape[0]
+    return image
 
 
 def save_video(file: h5py.File, index: int, out: str | Path, scores: str | Path | None = None,
@@ -322,8 +352,11 @@ def _models(rows: list[dict]) -> list[str]:
 
 
 def _bars(ax, groups: list[str], models: list[str], lookup, width: float = 0.8) -> None:
-    """Grouped bars with 95% intervals: lookup(model, group) -> row or None."""
+    """Grouped bars with 95% intervals: lookup(model, group) -> row or None. Each bar's value is
+    also marked by a dash in its colour, so that a bar of height 0 is seen; each group's tick
+    says how many units (pairs, or videos) its bars rest on."""
     step = width / max(1, len(models))
+    counts: dict[int, set[int]] = {}
     for m, model in enumerate(models):
         xs, values, errors = [], [], [[], []]
         for g, group in enumerate(groups):
@@ -335,8 +368,18 @@ def _bars(ax, groups: list[str], models: list[str], lookup, width: float = 0.8) 
             # a percentile interval of a statistic full of ties may stop short of the value itself
             errors[0].append(max(0.0, 100 * (row["value"] - row["low"])))
             errors[1].append(max(0.0, 100 * (row["high"] - row["value"])))
-        ax.bar(xs, values, step * 0.95, yerr=errors, capsize=2, label=model)
-    ax.set_xticks(range(len(groups)), groups)
+            if row.get("count"):
+                counts.setdefault(g, set()).add(int(row["count"]))
+        bars = ax.bar(xs, values, step * 0.95, yerr=errors, capsize=2, label=model)
+        ax.scatter(xs, values, marker="_", s=(72 * step * 0.9) ** 2 / 4, linewidths=2, zorder=3,
+                   color=bars.patches[0].get_facecolor() if bars.patches else None)
+    ax.set_xticks(range(len(groups)), [f"{group}\n(n={'/'.join(map(str, sorted(counts[g])))})" if g in counts
+                                       else group for g, group in enumerate(groups)])
+
+
+def _legend_outside(ax, **kwargs) -> None:
+    """The legend right of the axes, where no bar or interval can be under it."""
+    ax.legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.01, 1), borderaxespad=0, **kwargs)
 
 
 def plot_holistic(rows: list[dict], column: str = "score") -> plt.Figure:
@@ -348,10 +391,10 @@ def plot_holistic(rows: list[dict], column: str = "score") -> plt.Figure:
     _bars(ax, scenarios, _models(chosen), lambda m, s: index.get((m, s)))
     ax.axhline(100, color="black", linestyle="--", linewidth=1, label="ideal")
     ax.axhline(50, color="grey", linestyle=":", linewidth=1, label="chance")
-    ax.set_ylim(0, 105)
+    ax.set_ylim(-4, 105)      # below 0: a bar at 0 shows its dash
     ax.set_ylabel("holistic accuracy (%)")
-    ax.set_title(f"Holistic metric ({column})")
-    ax.legend(fontsize=7, ncol=2, loc="lower right")
+    ax.set_title(f"Holistic metric ({column}), 95% intervals; n: pairs", fontsize=9)
+    _legend_outside(ax)
     fig.tight_layout()
     return fig
 
@@ -369,10 +412,10 @@ def plot_comparative(rows: list[dict], column: str = "score") -> plt.Figure:
     _bars(top, settings, models, lambda m, s: index.get((m, s)))
     top.scatter(range(len(settings)), [100 * ideal[s] for s in settings], marker="_", s=300, color="black",
                 zorder=3, label="ideal")
-    top.set_ylim(0, 105)
+    top.set_ylim(-4, 105)
     top.set_ylabel("comparative accuracy (%)")
-    top.set_title(f"Comparative metric ({column})")
-    top.legend(fontsize=7, ncol=3, loc="lower right")
+    top.set_title(f"Comparative metric ({column}), 95% Wilson intervals; n: pairs", fontsize=9)
+    _legend_outside(top)
 
     def difference(model, setting):
         row = index.get((model, setting))
@@ -398,11 +441,11 @@ def plot_components(rows: list[dict], model: str, metric: str = "comparative") -
     columns = list(dict.fromkeys(r["column"] for r in chosen))
     fig, ax = plt.subplots(figsize=(1.5 + 0.75 * len(groups), 3.2))
     _bars(ax, groups, columns, lambda c, g: index.get((c, g)))
-    ax.set_ylim(0, 105)
+    ax.set_ylim(-4, 105)
     ax.set_ylabel(f"{metric} accuracy (%)")
-    ax.set_title(f"Score components: {model}")
+    ax.set_title(f"Score components: {model}, 95% intervals", fontsize=9)
     ax.tick_params(axis="x", labelrotation=45, labelsize=8)
-    ax.legend(fontsize=7)
+    _legend_outside(ax)
     fig.tight_layout()
     return fig
 
@@ -452,7 +495,7 @@ def plot_onset(pairs: dict[str, list[dict]]) -> plt.Figure:
         ax.set_title(scenario, fontsize=9)
         ax.set_xlabel("frames from event to peak", fontsize=8)
     axes[0][0].set_ylabel("S1/S3 pairs", fontsize=8)
-    axes[0][-1].legend(fontsize=7)
+    _legend_outside(axes[0][-1])
     fig.tight_layout()
     return fig
 
@@ -487,7 +530,8 @@ def plot_explanation(explanation: Explanation) -> plt.Figure:
 
 def _scene_label(explanation: Explanation, size: int, colour: str | None) -> str:
     """The scene row's label: what its lines are, only those drawn."""
-    lines = [f"scene {size}x{size}"]
+    height, width = explanation.observed.shape[1:3]
+    lines = [f"scene {size}x{size}" if explanation.display_resimulated else f"model's {height}x{width},\nenlarged"]
     if colour is not None:
         p = explanation.p_drawn
         lines.append(f"{colour}: the model's\nhidden object" + (f" (p = {p:.2f})" if p < 1.0 else ""))
@@ -614,7 +658,8 @@ def plot_settings(file: h5py.File, scenario: str, pair: int, display_size: int =
         for member, index in enumerate(members):
             stored = store.read_frames(file, "rgbd", index)[frames]
             videos += [display_video(file, index, display_size).rgbd[frames], enlarge(stored, display_size)]
-            labels += [f"member {member}\n({'possible' if file['possible'][index] else 'impossible'})",
+            labels += [f"member {member}\n({'possible' if file['possible'][index] else 'impossible'}):\n"
+                       f"scene {display_size}x{display_size}",
                        f"the model's\n{stored.shape[1]}x{stored.shape[2]}"]
         draw_frame_rows(ax, videos, labels, f"{scenario} {setting}, pair {pair}", frames,
                         int(file["event_frame"][members[1]]))
@@ -676,8 +721,8 @@ def draw_pair_curves(ax, values: np.ndarray, labels: list[str], events: list[int
     t = np.arange(values.shape[1])
     for t0 in t[lowered > 0] if lowered is not None else ():
         ax.axvspan(t0 - 0.5, t0 + 0.5, color="grey", alpha=0.25 if lowered[t0] >= 1 else 0.1, linewidth=0)
-    if frame is not None:
-        ax.axvline(frame, color="black", linewidth=2, alpha=0.35)
+    if frame is not None:      # solid black: a cursor over the wall's grey shading stays seen
+        ax.axvline(frame, color="black", linewidth=1.2, zorder=1)
     for event in sorted(set(e for e in events if e >= 0)):
         ax.axvline(event, color="red", linestyle=":", linewidth=1.5)
     for curve, label, style in zip(values, labels, ("-o", "--s", "-.^")):
@@ -711,7 +756,7 @@ def _curves_figure(found: PairCurves, panels: list[tuple[str, str, np.ndarray]],
 
 def _marks(data: str | Path | None, frame: int | None) -> list[str]:
     marks = ["red: event frame", "grey: the wall stands (lighter: it moves)"] if data is not None else []
-    return marks + ([f"black: frame {frame}"] if frame is not None else [])
+    return marks + ([f"black line: frame {frame}"] if frame is not None else [])
 
 
 def plot_surprise_curves(scores: str | Path, data: str | Path | None, scenario: str, setting: str, pair: int, *,
@@ -730,11 +775,63 @@ def plot_surprise_curves(scores: str | Path, data: str | Path | None, scenario: 
     else:
         s_img, s_dyn = found.curves["s_img"], found.curves["s_dyn"]
         unit = f"surprise\n({MSE_LABEL})"
-        panels = [("s_img", unit, s_img), ("s_dyn", "", s_dyn), ("s_img + s_dyn", "", s_img + s_dyn)]
+        # each term named in words too: the image and motion errors, the perception's own drawing error
+        panels = [("s_img, image error", unit, s_img), ("s_dyn, motion error", "", s_dyn),
+                  ("s_img + s_dyn, the score", "", s_img + s_dyn)]
         if "s_rec" in found.curves:
-            panels.append(("excess: s_img - s_rec + s_dyn", "", excess(s_img, s_dyn, found.curves["s_rec"])))
+            panels.append(("excess: s_img - s_rec + s_dyn\n(s_rec: drawing error)", "",
+                           excess(s_img, s_dyn, found.curves["s_rec"])))
     return _curves_figure(found, panels, f"{found.model}: {scenario} {setting} pair {pair}", _marks(data, frame),
                           frame)
+
+
+def animate_pair(scores: str | Path, data: str | Path, scenario: str, setting: str, pair: int,
+                 display_size: int = DISPLAY_SIZE) -> FuncAnimation:
+    """A test pair frame by frame for a saved notebook or a slide: both members' scenes at
+    `display_size` above their per-frame surprise (each definition the scores hold, as
+    `plot_surprise_definitions`), a black line at the frame shown. Its `to_jshtml()` is a
+    player that needs no kernel: the frames are drawn now, once."""
+    check_display_size(display_size)
+    found = pair_curves(scores, data, scenario, setting, pair)
+    with store.open_dataset(data) as file:
+        videos = find_pair(file, scenario, setting, pair)
+        scenes = [display_video(file, index, display_size).rgbd[..., :3] for index in videos]
+    curves = definition_curves(found.curves, found.own, found.label)
+    labels = _member_labels(found.possible)
+    fig = plt.figure(figsize=(2.2 * max(2, len(curves)) + 0.6, 4.6), dpi=50)
+    grid = fig.add_gridspec(2, 2 * len(curves), height_ratios=[1.2, 1])
+    cursors, colours = [], []
+    for column, (name, (unit, values)) in enumerate(curves.items()):
+        ax = fig.add_subplot(grid[1, 2 * column:2 * column + 2] if len(curves) > 1 else grid[1, :])
+        draw_pair_curves(ax, values, labels, found.events, found.lowered)
+        colours = [line.get_color() for line in ax.get_lines()[-len(labels):]]
+        cursors.append(ax.axvline(0, color="black", linewidth=1.2))
+        ax.set_title(name, fontsize=8)
+        ax.set_xlabel("frame", fontsize=7)
+        ax.set_ylabel(unit, fontsize=7)
+        ax.tick_params(labelsize=6)
+    pictures = []
+    for m, (scene, label) in enumerate(zip(scenes, labels)):
+        ax = fig.add_subplot(grid[0, m * len(curves):(m + 1) * len(curves)])
+        pictures.append(ax.imshow(scene[0], interpolation="nearest"))
+        ax.set_title(label, fontsize=8, color=colours[m])       # the colour of its curve below
+        ax.set_axis_off()
+    caption = fig.suptitle("", fontsize=9)
+    fig.text(0.5, 0.005, "red dotted: event frame; grey: the wall stands; black line: the frame shown",
+             ha="center", va="bottom", fontsize=7)
+
+    def draw(t: int) -> list:
+        for picture, scene in zip(pictures, scenes):
+            picture.set_data(scene[t])
+        for cursor in cursors:
+            cursor.set_xdata([t, t])
+        caption.set_text(f"{scenario} {setting} pair {pair}, frame {t}" + (" (the event)" if t in found.events else ""))
+        return [*pictures, *cursors, caption]
+
+    fig.tight_layout(rect=(0, 0.04, 1, 1))
+    animation = FuncAnimation(fig, draw, frames=len(scenes[0]), interval=300)
+    plt.close(fig)       # drawn by its player, not again as a still below it
+    return animation
 
 
 def plot_surprise_definitions(scores: str | Path, data: str | Path | None, scenario: str, setting: str, pair: int,

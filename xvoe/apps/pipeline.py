@@ -329,12 +329,14 @@ def write_report(run_dir: Path, config: PipelineConfig) -> Path:
     videos = config.train_videos or recipe(config.recipe).train_videos
     lines = [f"# xvoe pipeline report: {run_dir.name}", "",
              f"Recipe `{config.recipe}`, {videos} training videos, {config.pairs} test pairs per setting, "
-             f"seed {config.seed}. Values are percentages with bootstrap 95% intervals.", ""]
+             f"seed {config.seed}. Values are percentages with 95% intervals and the pairs they rest on "
+             f"(comparative: Wilson's; holistic: the wider of a bootstrap over pairs and Wilson's).", ""]
     models = list(dict.fromkeys(r["model"] for r in rows))
     total = [r for r in rows if r["column"] == "score"]
 
     def cell(row: dict) -> str:
-        return f"{100 * float(row['value']):.1f} [{100 * float(row['low']):.0f}, {100 * float(row['high']):.0f}]"
+        return (f"{100 * float(row['value']):.1f} [{100 * float(row['low']):.0f}, {100 * float(row['high']):.0f}]"
+                + (f", n = {row['count']}" if row.get("count") else ""))
 
     lines += ["## Holistic (AUC) per scenario", "", "| scenario | " + " | ".join(models) + " |",
               "|---|" + "---|" * len(models)]

@@ -169,4 +169,5 @@ def with_display(explanation: Explanation, data: str | Path, index: int,
         return explanation
     with store.open_dataset(data) as file:
         display = display_video(file, index, display_size)
-        return replace(explanation, display=display.rgbd, true_hidden=hidden_silhouettes(file, index, display))
+        return replace(explanation, display=display.rgbd, true_hidden=hidden_silhouettes(file, index, display),
+                       display_resimulated=display.resimulated)

@@ -18,11 +18,11 @@ from functools import partial
 from pathlib import Path
 
 import numpy as np
-from tqdm.auto import tqdm
 
 from ..domains import COUNT, SEED, Domain, check_config, within
 from ..errors import XvoeError
 from ..processes import end_with_parent
+from ..progress import progress_bar
 from . import store
 from .render import Video, render
 from .scenes import SCENARIOS, TEST_SETTINGS, TRAINING_GROUPS
@@ -113,7 +113,7 @@ def generate(config: GenerateConfig, out: str | Path, workers: int = 1, shard: t
             file.attrs["shard"] = f"{shard[0]}/{shard[1]}"
             file.attrs["first_unit"] = units.start
         writer = store.Writer(file, config.split, count, config.frames, config.size)
-        bar = tqdm(total=count, unit="video", desc=f"generate {config.split}", disable=not progress)
+        bar = progress_bar(total=count, unit="video", desc=f"generate {config.split}", disable=not progress)
         for videos in _map(partial(make_unit, config), units, workers):
             for video in videos:
                 writer.add(video)
@@ -165,7 +165,7 @@ def merge(parts: list[str | Path], out: str | Path, overwrite: bool = False, pro
         with store.atomic_file(out, overwrite) as target:
             store.write_attributes(target, config.split, config.to_dict(), config.seed)
             writer = store.Writer(target, config.split, total, config.frames, config.size)
-            for _, _, file in tqdm(shards, desc="merge", unit="shard", disable=not progress):
+            for _, _, file in progress_bar(shards, desc="merge", unit="shard", disable=not progress):
                 store.copy_videos(file, writer)
             writer.finish()
     finally:

@@ -15,10 +15,10 @@ from pathlib import Path
 
 import h5py
 import numpy as np
-from tqdm import tqdm
 
 from ..errors import XvoeError
 from ..outputs import claim_file, claim_scope
+from ..progress import progress_bar
 from . import store
 from .render import STATE_COLUMNS
 from .scenes import SCENARIOS
@@ -64,7 +64,7 @@ def import_released(source: str | os.PathLike, split: str, out: str | os.PathLik
     with store.atomic_file(out, overwrite) as file:
         _write_attributes(file, split, config)
         writer = store.Writer(file, split, total, int(frames), int(size))
-        bar = tqdm(total=total, unit="video", desc=f"import {split}", disable=not progress)
+        bar = progress_bar(total=total, unit="video", desc=f"import {split}", disable=not progress)
         offset = 0
         for part, count in zip(parts, counts):
             for index, (image, masks) in enumerate(_videos(part, (frames, size))):

@@ -48,6 +48,40 @@ def find_pair(file: h5py.File, scenario: str, setting: str, pair: int) -> tuple[
                       file["member"][:], scenario, setting, pair, str(file.filename))
 
 
+VIDEO_FIELDS = ("index", "scenario", "setting", "pair", "member", "possible")
+
+
+def list_videos(file: h5py.File, scenario: str | None = None, setting: str | None = None,
+                member: int | None = None, pair: int | None = None) -> list[dict]:
+    """The videos of a test split, one row each (VIDEO_FIELDS), those of `scenario`, `setting`,
+    `member` and `pair` where given, in index order: how a notebook or `xvoe list` picks videos
+    instead of counting indices by hand. A filter naming what the split does not hold is a
+    one-line error that says what it holds."""
+    if file.attrs["split"] != "test":
+        raise XvoeError(f"{file.filename} is a {file.attrs['split']} split; pairs live in test splits")
+    found = store.labels(file, VIDEO_FIELDS[1:])
+    chosen, so_far = np.ones(len(found["scenario"]), bool), []
+    for name, wanted in (("scenario", scenario), ("setting", setting), ("member", member), ("pair", pair)):
+        if wanted is None:
+            continue
+        held = list(dict.fromkeys(found[name][chosen].tolist()))
+        if wanted not in held:
+            among = f" among its {', '.join(so_far)} videos" if so_far else ""
+            raise XvoeError(f"{file.filename} holds no {name} {wanted!r}{among}; it holds {_held(held)}")
+        chosen &= found[name] == wanted
+        so_far.append(str(wanted) if name in ("scenario", "setting") else f"{name} {wanted}")
+    return [{"index": int(i), "scenario": str(found["scenario"][i]), "setting": str(found["setting"][i]),
+             "pair": int(found["pair"][i]), "member": int(found["member"][i]), "possible": bool(found["possible"][i])}
+            for i in np.flatnonzero(chosen)]
+
+
+def _held(values: list) -> str:
+    """What a label column holds, in a line: names listed, a run of numbers as its range."""
+    if values and all(isinstance(v, int) for v in values):
+        return f"{min(values)}..{max(values)}" if len(values) > 2 else " and ".join(map(str, sorted(values)))
+    return ", ".join(map(str, values))
+
+
 def _pair_rows(scenarios, settings, pairs, members, scenario: str, setting: str, pair: int,
                where: str) -> tuple[int, int]:
     """Rows of member 0 and 1 of (scenario, setting, pair) among label columns."""

@@ -40,6 +40,8 @@ class Explanation:
     # subclasses' fields keep their places
     display: np.ndarray | None = field(default=None, kw_only=True)
     true_hidden: np.ndarray | None = field(default=None, kw_only=True)
+    # False where the display is the model's frames enlarged (a split not simulated again)
+    display_resimulated: bool = field(default=True, kw_only=True)
 
     @property
     def draws_hidden(self) -> bool:

@@ -1,4 +1,4 @@
-"""The paper's metrics over surprise scores, with bootstrap 95% intervals.
+"""The paper's metrics over surprise scores, with 95% intervals and the counts they rest on.
 
 Scores are one row per test video (`index, scenario, setting, pair, member, possible` and
 one or more score columns: `score`, `s_img`, `s_dyn`, ...). A higher score means more
@@ -15,8 +15,12 @@ Transformer 2's proposal), measured beside it under its own column name.
 - relative: each video against the mean score of the S1 pair of its scenario and pair index
   (the same scene in every setting): judged impossible when above it. Accuracy per setting.
 
-Intervals resample pair indices with replacement (the unit that the settings of a scenario
-share), from a seeded generator (resampling.interval).
+Intervals: the comparative and relative metrics and the onset's timely share are shares of
+pairs (videos for the relative one), with Wilson's interval (resampling.wilson), right for a
+few pairs and at 0% or 100%. The holistic AUC, whose comparisons share videos, gets the wider
+of a bootstrap interval that resamples pair indices (the unit the settings of a scenario
+share; resampling.interval, seeded) and Wilson's over the pairs it rests on, so that four
+pairs never give an interval of zero width. Every row says how many units it rests on (`count`).
 """
 from __future__ import annotations
 
@@ -30,7 +34,7 @@ import numpy as np
 from ..benchmark import store
 from ..benchmark.scenes import SCENARIOS
 from ..errors import XvoeError
-from .resampling import chance_p, interval, pairwise_win
+from .resampling import chance_p, interval, pairwise_win, wilson
 
 REQUIRED = ("index", "scenario", "setting", "pair", "member", "possible")
 SCORE_NAMES = ("score", "paper_score", "s_img", "s_dyn", "s_rec", "excess", "nll", "ess", "p_hidden", "p_two",
@@ -44,6 +48,7 @@ class Estimate:
     low: float
     high: float
     p: float = float("nan")     # comparative only: the p-value that the accuracy differs from 50%
+    count: int = 0              # the units it rests on: pairs (videos for the relative metric)
 
 
 def read_scores(path: str | Path, data: str | Path | None = None) -> dict[str, np.ndarray]:
@@ -195,11 +200,11 @@ def pairs_table(scores: dict[str, np.ndarray], scenario: str, setting: str, colu
 def comparative(scores: dict[str, np.ndarray], column: str = "score", rounds: int = 1000,
                 seed: int = 0) -> dict[tuple[str, str], Estimate]:
     """Per setting: the share of pairs whose member 1 is more surprising than member 0, and
-    the p-value that it differs from 50%."""
+    the p-value that it differs from 50% (`rounds` permutations from `seed`)."""
     out = {}
     for scenario, setting in _settings(scores):
         _, first, second = pairs_table(scores, scenario, setting, column)
-        found = _mean_by_unit(pairwise_win(second, first), np.arange(len(first)), rounds, seed)
+        found = _share(pairwise_win(second, first))
         found.p = chance_p(first, second, rounds, seed)
         out[scenario, setting] = found
     return out
@@ -230,22 +235,21 @@ def relative(scores: dict[str, np.ndarray], column: str = "score", rounds: int =
         value, possible, pair = scores[column][mask][known], scores["possible"][mask][known], pair[known]
         limit = np.array([threshold[p] for p in pair])
         right = np.where(possible, pairwise_win(limit, value), pairwise_win(value, limit))
-        out[scenario, setting] = _mean_by_unit(right, pair, rounds, seed)
+        out[scenario, setting] = _share(right)
     return out
 
 
-def _mean_by_unit(values: np.ndarray, unit: np.ndarray, rounds: int, seed: int) -> Estimate:
-    """Mean of `values`, with an interval from resampling the units they belong to."""
+def _share(values: np.ndarray) -> Estimate:
+    """The share of units judged rightly (`values` 1, 0 or one half for a tie), with Wilson's
+    interval over their count."""
     if len(values) == 0:
         return Estimate(float("nan"), float("nan"), float("nan"))
-    units, slot = np.unique(unit, return_inverse=True)
-    total, count = np.bincount(slot, values, len(units)), np.bincount(slot, minlength=len(units))
-    low, high = interval(lambda chosen: total[chosen].sum() / count[chosen].sum(), len(units), rounds, seed)
-    return Estimate(float(values.mean()), low, high)
+    return Estimate(float(values.mean()), *wilson(float(values.sum()), len(values)), count=len(values))
 
 
 def _auc_by_unit(values: np.ndarray, possible: np.ndarray, unit: np.ndarray, rounds: int, seed: int) -> Estimate:
-    """AUC of impossible against possible videos, with an interval from resampling units."""
+    """AUC of impossible against possible videos, with the wider of a bootstrap interval over
+    units and Wilson's over their count (a bootstrap of four units is often of zero width)."""
     units, slot = np.unique(unit, return_inverse=True)
     by_unit = np.argsort(slot, kind="stable")
     bounds = np.searchsorted(slot[by_unit], np.arange(len(units) + 1))
@@ -256,7 +260,10 @@ def _auc_by_unit(values: np.ndarray, possible: np.ndarray, unit: np.ndarray, rou
         rows = by_unit[np.repeat(starts, sizes) + offsets]
         return auc(values[rows][~possible[rows]], values[rows][possible[rows]])
 
-    return Estimate(auc(values[~possible], values[possible]), *interval(statistic, len(units), rounds, seed))
+    value = auc(values[~possible], values[possible])
+    low, high = interval(statistic, len(units), rounds, seed)
+    floor, ceiling = wilson(value * len(units), len(units))
+    return Estimate(value, min(low, floor), max(high, ceiling), count=len(units))
 
 
 def _unique(values: np.ndarray) -> list[str]:
@@ -302,7 +309,8 @@ def metric_rows(scores: dict[str, np.ndarray], model: str, columns: tuple[str, .
 
 def _row(model, metric, column, scenario, setting, estimate: Estimate, ideal: float) -> dict:
     return {"model": model, "metric": metric, "column": column, "scenario": scenario, "setting": setting,
-            "value": estimate.value, "low": estimate.low, "high": estimate.high, "ideal": ideal, "p": estimate.p}
+            "value": estimate.value, "low": estimate.low, "high": estimate.high, "count": estimate.count,
+            "ideal": ideal, "p": estimate.p}
 
 
 def model_name(path: str | Path, scores: dict[str, np.ndarray]) -> str:
@@ -334,15 +342,21 @@ def has_both_surprises(scores: dict[str, np.ndarray], columns: tuple[str, str] =
     return all(c in scores for c in columns) and not np.array_equal(scores[columns[0]], scores[columns[1]])
 
 
-def verdict(first: np.ndarray, second: np.ndarray) -> np.ndarray:
-    """Which member of each pair a score finds more surprising: 1, 0, or -1 on a tie."""
-    return np.where(second > first, 1, np.where(first > second, 0, -1))
+TIE_TOLERANCE = 1e-3     # members whose scores differ by less than this share of the larger are too close to call
+
+
+def verdict(first: np.ndarray, second: np.ndarray, tolerance: float = 0.0) -> np.ndarray:
+    """Which member of each pair a score finds more surprising: 1, 0, or -1 on a tie, which
+    within `tolerance` (a share of the larger magnitude of the two) includes near ties."""
+    close = np.abs(second - first) <= tolerance * np.maximum(np.abs(first), np.abs(second))
+    return np.where(close, -1, np.where(second > first, 1, 0))
 
 
 def disagreements(scores: dict[str, np.ndarray], columns: tuple[str, str] = SURPRISES) -> list[dict]:
-    """Per setting, the pairs whose verdict (which member is more surprising) differs between
-    two surprise columns; `right` names the column that picked the impossible member, where
-    a pair holds one (S1, S3), "neither" when both missed it (a tie), "" in S2."""
+    """Per setting, the pairs in which two surprise columns pick different members as the more
+    surprising one, each by more than TIE_TOLERANCE (787.3 against 787.5 nats picks no member:
+    such a pair is no disagreement); `right` names the column that picked the impossible member,
+    where a pair holds one (S1, S3), "" in S2."""
     a, b = columns
     rows = []
     for scenario, setting in _settings(scores):
@@ -350,10 +364,10 @@ def disagreements(scores: dict[str, np.ndarray], columns: tuple[str, str] = SURP
         _, a_0, a_1 = pairs_table(scores, scenario, setting, a)
         _, b_0, b_1 = pairs_table(scores, scenario, setting, b)
         _, possible_0, possible_1 = pairs_table(scores, scenario, setting, "possible")
-        says_a, says_b = verdict(a_0, a_1), verdict(b_0, b_1)
+        says_a, says_b = verdict(a_0, a_1, TIE_TOLERANCE), verdict(b_0, b_1, TIE_TOLERANCE)
         truth = np.where(possible_0 == possible_1, -2, np.where(possible_0, 1, 0))    # -2: no right answer
-        for i in np.flatnonzero(says_a != says_b):
-            right = "" if truth[i] == -2 else a if says_a[i] == truth[i] else b if says_b[i] == truth[i] else "neither"
+        for i in np.flatnonzero((says_a != says_b) & (says_a >= 0) & (says_b >= 0)):
+            right = "" if truth[i] == -2 else a if says_a[i] == truth[i] else b
             rows.append(dict(zip(disagreement_fields(columns), (
                 scenario, setting, int(pairs[i]), int(index_0[i]), int(index_1[i]), float(a_0[i]), float(a_1[i]),
                 float(b_0[i]), float(b_1[i]), _said(says_a[i]), _said(says_b[i]), right))))
@@ -429,14 +443,14 @@ def onset_pairs(scores: dict[str, np.ndarray], per_frame: np.ndarray, event_fram
 def onset(scores: dict[str, np.ndarray], per_frame: np.ndarray, event_frame: np.ndarray, model: str,
           rounds: int = 1000, seed: int = 0, surprise: str = "mse") -> list[dict]:
     """Per S1/S3 setting: the share of pairs whose surprise rises at or after the event (with a
-    bootstrap interval over pairs) and the median frame of its peak after the event. surprise:
+    Wilson interval over pairs) and the median frame of its peak after the event. surprise:
     the definition whose curves `per_frame` are ("mse": s_img + s_dyn; "nll": -log p(x_t | x_<t))."""
     pairs = onset_pairs(scores, per_frame, event_frame)
     rows = []
     for scenario, setting in dict.fromkeys((p["scenario"], p["setting"]) for p in pairs):
         chosen = [p for p in pairs if (p["scenario"], p["setting"]) == (scenario, setting)]
         timely = np.array([p["timely"] for p in chosen], dtype=float)
-        estimate = _mean_by_unit(timely, np.array([p["pair"] for p in chosen]), rounds, seed)
+        estimate = _share(timely)
         rows.append(dict(zip(ONSET_FIELDS, (model, surprise, scenario, setting, len(chosen), estimate.value,
                                             estimate.low, estimate.high,
                                             float(np.median([p["peak_offset"] for p in chosen]))))))

@@ -1,8 +1,11 @@
-"""Intervals and p-values by resampling (scipy.stats), one way for every metric and scorecard line.
+"""Intervals and p-values: Wilson's for a share, resampling (scipy.stats) for the rest.
 
-Intervals are 95% percentile bootstrap intervals over units (pairs, or videos where a line is
-measured per video), drawn from a generator seeded by `seed`: the same inputs give the same
-interval. The percentile method, not BCa: an accuracy of 100% has a degenerate bootstrap
+A share of n units (pairs judged rightly, videos, timely onsets) gets the Wilson score
+interval (`wilson`): right at small n and at 0% or 100%, where the bootstrap has nothing to
+resample from (every resample of 4 pairs out of 4 judged rightly is 100%: "100 [100, 100]").
+Other statistics get 95% percentile bootstrap intervals over units (pairs, or videos where a
+line is measured per video), drawn from a generator seeded by `seed`: the same inputs give the
+same interval. The percentile method, not BCa: an accuracy of 100% has a degenerate bootstrap
 distribution, on which BCa is undefined.
 """
 from __future__ import annotations
@@ -26,6 +29,18 @@ def interval(statistic: Callable[[np.ndarray], float], units: int, rounds: int =
     found = stats.bootstrap((np.arange(units),), statistic, n_resamples=rounds, vectorized=False,
                             method="percentile", confidence_level=CONFIDENCE, rng=np.random.default_rng(seed))
     return float(found.confidence_interval.low), float(found.confidence_interval.high)
+
+
+def wilson(successes: float, count: int) -> tuple[float, float]:
+    """The 95% Wilson score interval of the share successes / count (a tie may count one
+    half, so `successes` need not be whole): never of zero width for count >= 1, inside [0, 1]."""
+    if count == 0:
+        return float("nan"), float("nan")
+    z = stats.norm.ppf(0.5 + CONFIDENCE / 2)
+    share, spread = successes / count, z * z / count
+    centre = (share + spread / 2) / (1 + spread)
+    half = z / (1 + spread) * np.sqrt(share * (1 - share) / count + spread / (4 * count))
+    return float(max(0.0, centre - half)), float(min(1.0, centre + half))
 
 
 def values_interval(values, statistic: Callable[[np.ndarray], float] = np.mean, rounds: int = 1000,

@@ -36,7 +36,6 @@ import h5py
 import numpy as np
 import torch
 from torch import Tensor
-from tqdm.auto import tqdm
 
 from ..benchmark import store
 from ..errors import XvoeError
@@ -48,6 +47,7 @@ from ..models.perception import ComponentVAE, normalise
 from ..models.phydnet import PhyDNet
 from ..models.xpl import XPL
 from ..outputs import atomic_paths, claim_file, claim_scope
+from ..progress import progress_bar
 from ..training.checkpoints import SHIPPED, shipped_path
 from ..training.data import check_size, visible_threshold
 from ..training.latents import check_cache, encode_frames, encode_with, encoder_key, open_latents, split_cache
@@ -436,20 +436,21 @@ def score_rows(scorer: Scorer, file, first: int, last: int, videos_per_batch: in
     `latents`: the split's open latent cache, read instead of encoding (`encode_videos`)."""
     curves = np.zeros((len(CURVES), last - first, file["rgbd"].shape[1]))
     values, extra_curves = [], []
-    for start in tqdm(range(first, last, videos_per_batch), desc=f"score {scorer.name}", unit="batch",
-                      disable=not progress):
-        stop = min(last, start + videos_per_batch)
-        rows = slice(start - first, stop - first)
-        if scorer.custom is not None:     # one term, in the s_dyn columns
-            curves[[1, 4], rows] = custom_surprise(scorer, file, start, stop)
-            continue
-        batch = encode_videos(scorer, file, start, stop, latents)     # once, for every column
-        found_curves, scene = _xpl_curves(scorer, batch)
-        curves[:, rows] = torch.stack(list(found_curves.values())).cpu().numpy()
-        if extra is not None:
-            found, found_curves = extra.batch(scorer, batch, scene)
-            values.append(found)
-            extra_curves.append(found_curves)
+    with progress_bar(total=last - first, desc=f"score {scorer.name}", unit="video", disable=not progress) as bar:
+        for start in range(first, last, videos_per_batch):
+            stop = min(last, start + videos_per_batch)
+            rows = slice(start - first, stop - first)
+            if scorer.custom is not None:     # one term, in the s_dyn columns
+                curves[[1, 4], rows] = custom_surprise(scorer, file, start, stop)
+            else:
+                batch = encode_videos(scorer, file, start, stop, latents)     # once, for every column
+                found_curves, scene = _xpl_curves(scorer, batch)
+                curves[:, rows] = torch.stack(list(found_curves.values())).cpu().numpy()
+                if extra is not None:
+                    found, found_curves = extra.batch(scorer, batch, scene)
+                    values.append(found)
+                    extra_curves.append(found_curves)
+            bar.update(stop - start)
     if extra is None:
         return curves, np.zeros((last - first, 0)), {}
     named = dict(zip(extra.curve_names, np.concatenate(extra_curves, axis=1)))

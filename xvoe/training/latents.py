@@ -31,7 +31,6 @@ from pathlib import Path
 import h5py
 import numpy as np
 import torch
-from tqdm.auto import tqdm
 
 from ..benchmark import store
 from ..errors import XvoeError
@@ -40,6 +39,7 @@ from ..models.config import to_dict
 from ..models.devices import autocast_dtype, device_of, mixed_precision, resolve_device
 from ..models.perception import ComponentVAE, normalise
 from ..outputs import claim_file, claim_scope
+from ..progress import progress_bar
 from .data import check_size, masked_inputs, visible_threshold
 from .perception import load_perception
 from .recipes import recipe_of
@@ -180,15 +180,16 @@ def encode_with(model: ComponentVAE, data: str | os.PathLike, out: str | os.Path
         # filled in place: small outputs kept in lists among each batch's large temporaries
         # fragment the heap (docs/decisions.md, "Speed and memory")
         arrays: dict[str, np.ndarray] = {}
-        for start in tqdm(range(0, count, videos_per_batch), desc="encode", disable=not progress,
-                          unit_scale=videos_per_batch, unit="video"):
-            stop = min(count, start + videos_per_batch)
-            rgbd, ids = store.read_frames(file, "rgbd", start, stop), store.read_frames(file, "ids", start, stop)
-            encoded = encode_frames(model, rgbd.reshape(-1, size, size, 4), ids.reshape(-1, size, size), slots)
-            for name, value in encoded.items():
-                if name not in arrays:
-                    arrays[name] = np.empty((count, frames, *value.shape[1:]), value.dtype)
-                arrays[name][start:stop] = value.reshape(stop - start, frames, *value.shape[1:])
+        with progress_bar(total=count, desc="encode", disable=not progress, unit="video") as bar:
+            for start in range(0, count, videos_per_batch):
+                stop = min(count, start + videos_per_batch)
+                rgbd, ids = store.read_frames(file, "rgbd", start, stop), store.read_frames(file, "ids", start, stop)
+                encoded = encode_frames(model, rgbd.reshape(-1, size, size, 4), ids.reshape(-1, size, size), slots)
+                for name, value in encoded.items():
+                    if name not in arrays:
+                        arrays[name] = np.empty((count, frames, *value.shape[1:]), value.dtype)
+                    arrays[name][start:stop] = value.reshape(stop - start, frames, *value.shape[1:])
+                bar.update(stop - start)
         present = file["states"][..., present_column] > 0.5
         threshold = visible_threshold(size)
         config = {"recipe": recipe_name, "perception": to_dict(model.config), "visible_threshold": threshold,

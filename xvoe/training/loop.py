@@ -28,13 +28,13 @@ import numpy as np
 import torch
 import torch.distributed as dist
 from torch import nn
-from tqdm.auto import tqdm
 
 from ..domains import check_config
 from ..errors import XvoeError
 from ..models.config import override, to_dict
 from ..models.devices import mixed_precision, resolve_device
 from ..outputs import claim_directory, claim_file, claim_scope
+from ..progress import progress_bar
 from .checkpoints import CHECKPOINT_FORMAT, first_not_finite, load_checkpoint, load_weights, save_checkpoint
 from .config import TrainConfig
 
@@ -308,7 +308,7 @@ def fit(job: Job, config: TrainConfig, run_dir: str | os.PathLike, *, place: Dis
 
     table = None
     precision = mixed_precision(place.device)
-    bar = tqdm(total=config.steps, initial=start, desc=job.stage, disable=not (progress and place.main),
+    bar = progress_bar(total=config.steps, initial=start, desc=job.stage, disable=not (progress and place.main),
                dynamic_ncols=True)
     session = last_save = time.monotonic()
     items, began = 0, session - elapsed
