@@ -13,7 +13,7 @@ import pytest
 
 from xvoe.apps.cli import main
 from xvoe.benchmark import store
-from xvoe.benchmark.released import BLOCKS, TEST_FILES, ids_of
+from xvoe.benchmark.released import BLOCKS, TEST_FILES, downsample, ids_of
 from xvoe.benchmark.tfrecord import masked_crc, parse_example, parse_tensor, records
 
 FRAMES, SIZE, SLOTS, PAIRS = 3, 8, 8, 2
@@ -120,11 +120,42 @@ def test_records_and_features_come_back(tmp_path):
     np.testing.assert_array_equal(parse_tensor(parsed["mask"][0]), masks)
 
 
-def test_overlapping_masks_give_the_lowest_slot():
-    masks = np.zeros((1, 3, 1, 2), np.uint8)
-    masks[0, 2, 0, :] = 255       # slot 2 everywhere, slot 1 over the second pixel too
-    masks[0, 1, 0, 1] = 1
-    np.testing.assert_array_equal(ids_of(masks), [[[3, 2]]])
+def test_overlapping_masks_go_to_the_nearest_slot():
+    masks = np.zeros((1, 3, 1, 4), np.uint8)
+    masks[0, 2, 0, :] = 255       # slot 2 (a wall, near) everywhere; slot 1 over the last three pixels (amodal)
+    masks[0, 1, 0, 1:] = 1
+    masks[0, 0, 0, 3] = 1         # slot 0 claims no pixel alone: behind the others wherever it is
+    depth = np.array([[[20, 80, 80, 80]]], np.uint8)
+    depth[0, 0, 0] = 20
+    ids, shared = ids_of(masks, depth)
+    np.testing.assert_array_equal(ids, [[[3, 3, 3, 3]]])
+    assert shared == 3
+    masks[0, 2, 0, 0], masks[0, 1, 0, 0] = 0, 1     # now slot 1 alone at pixel 0, the wall alone nowhere
+    depth[0, 0, 0] = 10
+    ids, shared = ids_of(masks, depth)
+    np.testing.assert_array_equal(ids, [[[2, 2, 2, 2]]])
+    assert shared == 3
+
+
+def test_downsampling_keeps_a_small_object_and_averages_colour():
+    image = np.zeros((1, 8, 8, 4), np.uint8)
+    image[..., :3] = 100
+    image[..., 3] = 200                 # background far
+    ids = np.zeros((1, 8, 8), np.uint8)
+    ids[0, :, 4:] = 8                   # the wall, the right half, near
+    image[0, :, 4:, 3] = 20
+    image[0, :, 4:, :3] = 60
+    ids[0, 1, 1] = 1                    # a one-pixel object in the top-left block: a quarter of it
+    image[0, 1, 1] = (200, 0, 0, 40)
+    ids[0, 4, 3:5] = 2                  # an object straddling the wall's edge: one pixel in each of two blocks
+    image[0, 4, 3:5, 3] = 10
+    rgbd, small = downsample(image, ids, 4)
+    assert small.shape == (1, 4, 4) and rgbd.shape == (1, 4, 4, 4)
+    assert small[0, 0, 0] == 1 and rgbd[0, 0, 0, 3] == 40       # kept, at its own depth, not the background's
+    np.testing.assert_array_equal(rgbd[0, 0, 0, :3], np.rint([(3 * 100 + 200) / 4, 75, 75]))   # area average
+    assert small[0, 2, 1] == 2 and rgbd[0, 2, 1, 3] == 10       # in the first block it covers most
+    assert (small[0, :, 2:] == 8).all() and (rgbd[0, :, 2:, 3] == 20).all()
+    assert (small[0, :, :2] == 0).sum() == 6 and (rgbd[0, :, :2, 3][small[0, :, :2] == 0] == 200).all()
 
 
 # --- the import --------------------------------------------------------------------------------

@@ -110,7 +110,8 @@ def cmd_generate(args: argparse.Namespace) -> None:
 
 
 def cmd_import(args: argparse.Namespace) -> None:
-    print(xvoe.import_released(args.source, args.split, args.out, overwrite=args.overwrite, progress=not args.quiet))
+    print(xvoe.import_released(args.source, args.split, args.out, size=args.size, overwrite=args.overwrite,
+                               progress=not args.quiet))
 
 
 def cmd_show(args: argparse.Namespace) -> None:
@@ -318,6 +319,10 @@ def build_parser() -> argparse.ArgumentParser:
     imp.add_argument("--split", choices=("train", "test"), required=True,
                      help="test: test/SCENARIO/eval-part-NNN.tfrecord; train: train/train-part-NNN.tfrecord")
     imp.add_argument("--out", required=True, help="the HDF5 file to write")
+    imp.add_argument("--size", type=_positive,
+                     help="resample to this many pixels a side, a divisor of the release's 128 (32 for the shipped "
+                          "models): RGB by area, ids and depth by the label covering most of a block, no seen "
+                          "object lost (default: as released)")
     imp.add_argument("--overwrite", action="store_true", help="replace --out if it exists")
     imp.add_argument("--quiet", action="store_true", help="no progress bar")
     imp.set_defaults(run=cmd_import)
