@@ -267,3 +267,32 @@ def test_a_missing_file_or_an_uneven_scenario_is_refused(release, tmp_path, caps
     assert main(["import", str(root), "--split", "test", "--out", str(tmp_path / "a.h5")]) == 2
     assert "not 6 equal blocks" in capsys.readouterr().err
     assert not (tmp_path / "a.h5").exists()
+
+
+def test_a_training_set_with_a_gap_imports_with_a_warning(tmp_path, capsys):
+    rng = np.random.default_rng(4)
+    for part in (0, 2):         # train-part-001 is missing
+        image, masks, _ = make_video(rng)
+        write_tfrecord(tmp_path / "X-VoE" / "train" / f"train-part-{part:03d}.tfrecord",
+                       [video_record(image, masks, rng)])
+    out = tmp_path / "train.h5"
+    assert main(["import", str(tmp_path / "X-VoE"), "--split", "train", "--out", str(out), "--quiet"]) == 0
+    warned = capsys.readouterr().err.strip().splitlines()
+    assert len(warned) == 1 and "incomplete" in warned[0] and "without train-part-001" in warned[0], warned
+    with store.open_dataset(out, "train") as file:
+        assert file["rgbd"].shape[0] == 2
+
+
+def test_a_size_that_does_not_divide_the_release_is_refused(release, tmp_path, capsys):
+    out = tmp_path / "r.h5"
+    assert main(["import", str(release[0]), "--split", "test", "--size", "3", "--out", str(out), "--quiet"]) == 2
+    assert "--size 3 does not divide the release's 8x8 frames" in capsys.readouterr().err
+    assert not out.exists()
+
+
+def test_scoring_the_release_at_its_own_size_names_the_import_option(release, tmp_path, capsys):
+    data = tmp_path / "released.h5"
+    assert main(["import", str(release[0]), "--split", "test", "--out", str(data), "--quiet"]) == 0
+    assert main(["score", "--model", "xpl", "--data", str(data), "--out", str(tmp_path / "s.csv"), "--quiet"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "holds 8x8 frames" in err and err.endswith("import the release again with xvoe import --size 32"), err

@@ -153,7 +153,7 @@ def cmd_pipeline(args: argparse.Namespace) -> None:
 
 def cmd_metrics(args: argparse.Namespace) -> None:
     for path in xvoe.report(args.scores, args.out, rounds=args.rounds, seed=args.seed, data=args.data,
-                            overwrite=args.overwrite):
+                            overwrite=args.overwrite, table=args.table):
         print(path)
 
 
@@ -428,6 +428,10 @@ def build_parser() -> argparse.ArgumentParser:
     metrics.add_argument("--data", help="the test split that was scored: with scores of both surprise definitions "
                                         "(xvoe score --surprise both), draws pairs they judge differently")
     metrics.add_argument("--overwrite", action="store_true", help="replace a report already in --out")
+    metrics.add_argument("--table", choices=("md", "latex"),
+                         help="also write table.md or table.tex: the paper's layout (scenarios across; holistic, "
+                              "comparative and relative by setting with the reference's sub-rows S2-ext1, S2-ext2, "
+                              "S3-ext, S3-sur), in percent, every model, ready to paste")
     metrics.set_defaults(run=cmd_metrics)
 
     verify = verbs.add_parser("verify", help="score a sample of a scores file's rows again and compare",
