@@ -365,4 +365,5 @@ def main() -> None:
 
 
 if __name__ == "__main__":
+    allocator.tune()        # timed as the command line runs: with its malloc settings
     main()

@@ -18,9 +18,9 @@ from __future__ import annotations
 import importlib
 from typing import Any
 
-from .allocator import tune as _tune_allocator
+from .allocator import follow as _follow_allocator
 
-_tune_allocator()       # before any large tensor: freed buffers stay in the heap (xvoe/allocator.py)
+_follow_allocator()     # a worker of a tuned process keeps its malloc settings; else glibc's stay (xvoe/allocator.py)
 
 __version__ = "0.1.0"
 
