@@ -35,8 +35,6 @@ import torch
 from tqdm.auto import tqdm
 
 import xvoe
-from inference.score import nll_config, reference_nll
-from inference.surprise import nll_surprise
 from xvoe import allocator
 from xvoe.benchmark import store
 from xvoe.errors import XvoeError
@@ -44,6 +42,8 @@ from xvoe.evaluation.explanation_quality import ground_truth
 from xvoe.evaluation.metrics import comparative, holistic
 from xvoe.evaluation.score import encode_videos
 from xvoe.evaluation.surprise import mse_surprise
+from xvoe.inference.score import nll_config, reference_nll
+from xvoe.inference.surprise import nll_surprise
 from xvoe.models.nll import InferenceConfig
 from xvoe.training.data import check_size
 

@@ -46,7 +46,7 @@ _HOMES = {
     "xvoe.evaluation.metrics": ("read_scores", "metric_rows", "comparative", "holistic", "relative",
                                 "disagreements", "onset", "onset_pairs"),
     "xvoe.apps.verbs": ("score", "explain", "with_display"),
-    "inference.score": ("nll_settings",),
+    "xvoe.inference.score": ("nll_settings",),
     "xvoe.apps.report": ("report",),
     "xvoe.apps.verify": ("verify",),
     "xvoe.apps.zoo": ("available_models", "ship"),
