@@ -3,8 +3,10 @@ benchmarks/cli_help.py's to measure); --quiet taken by every verb; the recipe na
 lists without loading a recipe are the recipes'."""
 from __future__ import annotations
 
+import re
 import subprocess
 import sys
+from pathlib import Path
 
 import pytest
 
@@ -14,6 +16,7 @@ from xvoe.training.config import DEFAULT_RECIPE, RECIPE_NAMES
 from xvoe.training.recipes import RECIPES
 
 HEAVY = ("torch", "pyro", "h5py", "pymunk", "matplotlib")
+ROOT = Path(__file__).resolve().parent.parent
 
 
 def verbs() -> dict:
@@ -45,3 +48,13 @@ def test_every_verb_takes_quiet():
 
 def test_the_recipe_names_are_the_recipes():
     assert RECIPE_NAMES == tuple(RECIPES) and DEFAULT_RECIPE in RECIPE_NAMES
+
+
+def test_the_inference_layer_is_imported_by_its_installed_name():
+    # the wheel installs it as xvoe.inference only: a top-level `inference` import works in a checkout alone
+    stray = [f"{path.relative_to(ROOT)}:{number}"
+             for folder in ("xvoe", "inference", "tests", "benchmarks", "examples")
+             for path in sorted((ROOT / folder).rglob("*.py"))
+             for number, line in enumerate(path.read_text().splitlines(), 1)
+             if re.match(r"\s*(from|import) inference\b", line)]
+    assert stray == []
