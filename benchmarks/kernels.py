@@ -19,6 +19,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+from xvoe import allocator
 from xvoe.training.loop import KERNELS
 
 STEPS = Path(__file__).with_name("steps.py")
@@ -68,4 +69,5 @@ def main() -> None:
 
 
 if __name__ == "__main__":
+    allocator.tune()        # timed as the command line runs: with its malloc settings
     main()

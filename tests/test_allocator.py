@@ -36,13 +36,26 @@ def run_loop(**env: str) -> tuple[bool, int, int]:
     return out[0] == "True", int(out[1]), int(out[2])
 
 
-@pytest.mark.skipif(not sys.platform.startswith("linux") or allocator._glibc() is None, reason="glibc only")
-def test_import_keeps_freed_buffers_in_the_heap():
-    tuned, faults, thread_faults = run_loop()
-    system, system_faults, system_thread_faults = run_loop(XVOE_MALLOC="system")
+GLIBC = pytest.mark.skipif(not sys.platform.startswith("linux") or allocator._glibc() is None, reason="glibc only")
+
+
+@GLIBC
+def test_import_leaves_the_allocator_alone_and_a_tuned_parent_is_followed():
+    system, system_faults, system_thread_faults = run_loop()
+    tuned, faults, thread_faults = run_loop(XVOE_MALLOC="tuned")     # what tune() sets for the workers it starts
     assert tuned and not system
     assert system_faults > 10_000 and system_thread_faults > 20_000     # every buffer faulted in again
     assert faults < 500 and thread_faults < 500                         # the pages stay
+    assert not run_loop(XVOE_MALLOC="system")[0]
+
+
+@GLIBC
+def test_the_command_line_tunes():
+    code = ("import os; from xvoe.apps.cli import main; from xvoe import allocator; "
+            "main(['metrics', 'missing.csv', '--out', 'report']); print(allocator.tuned(), os.environ['XVOE_MALLOC'])")
+    clean = {k: v for k, v in os.environ.items() if k != allocator.ENV}
+    out = subprocess.run([sys.executable, "-c", code], env=clean, capture_output=True, text=True, check=True)
+    assert out.stdout.split() == ["True", "tuned"] and "missing.csv: no such file" in out.stderr
 
 
 def test_tune_is_idempotent():

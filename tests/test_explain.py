@@ -50,7 +50,7 @@ def _object(frames: int = 3, size: int = 8) -> np.ndarray:
 
 
 def _nll(p_hidden: float, p_two: float, display: bool = False):
-    from inference.explain import NLLExplanation
+    from xvoe.inference.explain import NLLExplanation
     scene = _frames(100)
     two = {"two_objects": _frames(90), "two_objects_empty": _frames(80), "twin_from": 2} if p_two is not None else {}
     extra = {"display": np.full((3, 32, 32, 4), 100, np.uint8)} if display else {}

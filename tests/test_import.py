@@ -13,7 +13,7 @@ import pytest
 
 from xvoe.apps.cli import main
 from xvoe.benchmark import store
-from xvoe.benchmark.released import BLOCKS, TEST_FILES, ids_of
+from xvoe.benchmark.released import BLOCKS, TEST_FILES, downsample, ids_of
 from xvoe.benchmark.tfrecord import masked_crc, parse_example, parse_tensor, records
 
 FRAMES, SIZE, SLOTS, PAIRS = 3, 8, 8, 2
@@ -120,11 +120,42 @@ def test_records_and_features_come_back(tmp_path):
     np.testing.assert_array_equal(parse_tensor(parsed["mask"][0]), masks)
 
 
-def test_overlapping_masks_give_the_lowest_slot():
-    masks = np.zeros((1, 3, 1, 2), np.uint8)
-    masks[0, 2, 0, :] = 255       # slot 2 everywhere, slot 1 over the second pixel too
-    masks[0, 1, 0, 1] = 1
-    np.testing.assert_array_equal(ids_of(masks), [[[3, 2]]])
+def test_overlapping_masks_go_to_the_nearest_slot():
+    masks = np.zeros((1, 3, 1, 4), np.uint8)
+    masks[0, 2, 0, :] = 255       # slot 2 (a wall, near) everywhere; slot 1 over the last three pixels (amodal)
+    masks[0, 1, 0, 1:] = 1
+    masks[0, 0, 0, 3] = 1         # slot 0 claims no pixel alone: behind the others wherever it is
+    depth = np.array([[[20, 80, 80, 80]]], np.uint8)
+    depth[0, 0, 0] = 20
+    ids, shared = ids_of(masks, depth)
+    np.testing.assert_array_equal(ids, [[[3, 3, 3, 3]]])
+    assert shared == 3
+    masks[0, 2, 0, 0], masks[0, 1, 0, 0] = 0, 1     # now slot 1 alone at pixel 0, the wall alone nowhere
+    depth[0, 0, 0] = 10
+    ids, shared = ids_of(masks, depth)
+    np.testing.assert_array_equal(ids, [[[2, 2, 2, 2]]])
+    assert shared == 3
+
+
+def test_downsampling_keeps_a_small_object_and_averages_colour():
+    image = np.zeros((1, 8, 8, 4), np.uint8)
+    image[..., :3] = 100
+    image[..., 3] = 200                 # background far
+    ids = np.zeros((1, 8, 8), np.uint8)
+    ids[0, :, 4:] = 8                   # the wall, the right half, near
+    image[0, :, 4:, 3] = 20
+    image[0, :, 4:, :3] = 60
+    ids[0, 1, 1] = 1                    # a one-pixel object in the top-left block: a quarter of it
+    image[0, 1, 1] = (200, 0, 0, 40)
+    ids[0, 4, 3:5] = 2                  # an object straddling the wall's edge: one pixel in each of two blocks
+    image[0, 4, 3:5, 3] = 10
+    rgbd, small = downsample(image, ids, 4)
+    assert small.shape == (1, 4, 4) and rgbd.shape == (1, 4, 4, 4)
+    assert small[0, 0, 0] == 1 and rgbd[0, 0, 0, 3] == 40       # kept, at its own depth, not the background's
+    np.testing.assert_array_equal(rgbd[0, 0, 0, :3], np.rint([(3 * 100 + 200) / 4, 75, 75]))   # area average
+    assert small[0, 2, 1] == 2 and rgbd[0, 2, 1, 3] == 10       # in the first block it covers most
+    assert (small[0, :, 2:] == 8).all() and (rgbd[0, :, 2:, 3] == 20).all()
+    assert (small[0, :, :2] == 0).sum() == 6 and (rgbd[0, :, :2, 3][small[0, :, :2] == 0] == 200).all()
 
 
 # --- the import --------------------------------------------------------------------------------
@@ -236,3 +267,32 @@ def test_a_missing_file_or_an_uneven_scenario_is_refused(release, tmp_path, caps
     assert main(["import", str(root), "--split", "test", "--out", str(tmp_path / "a.h5")]) == 2
     assert "not 6 equal blocks" in capsys.readouterr().err
     assert not (tmp_path / "a.h5").exists()
+
+
+def test_a_training_set_with_a_gap_imports_with_a_warning(tmp_path, capsys):
+    rng = np.random.default_rng(4)
+    for part in (0, 2):         # train-part-001 is missing
+        image, masks, _ = make_video(rng)
+        write_tfrecord(tmp_path / "X-VoE" / "train" / f"train-part-{part:03d}.tfrecord",
+                       [video_record(image, masks, rng)])
+    out = tmp_path / "train.h5"
+    assert main(["import", str(tmp_path / "X-VoE"), "--split", "train", "--out", str(out), "--quiet"]) == 0
+    warned = capsys.readouterr().err.strip().splitlines()
+    assert len(warned) == 1 and "incomplete" in warned[0] and "without train-part-001" in warned[0], warned
+    with store.open_dataset(out, "train") as file:
+        assert file["rgbd"].shape[0] == 2
+
+
+def test_a_size_that_does_not_divide_the_release_is_refused(release, tmp_path, capsys):
+    out = tmp_path / "r.h5"
+    assert main(["import", str(release[0]), "--split", "test", "--size", "3", "--out", str(out), "--quiet"]) == 2
+    assert "--size 3 does not divide the release's 8x8 frames" in capsys.readouterr().err
+    assert not out.exists()
+
+
+def test_scoring_the_release_at_its_own_size_names_the_import_option(release, tmp_path, capsys):
+    data = tmp_path / "released.h5"
+    assert main(["import", str(release[0]), "--split", "test", "--out", str(data), "--quiet"]) == 0
+    assert main(["score", "--model", "xpl", "--data", str(data), "--out", str(tmp_path / "s.csv"), "--quiet"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "holds 8x8 frames" in err and err.endswith("import the release again with xvoe import --size 32"), err

@@ -10,8 +10,8 @@ import torch
 from pyro import poutine
 from pyro.util import check_model_guide_match
 
-from inference.model import HiddenObjectModel, InferenceConfig, LinearGaussianScene, Proposal, fuse
-from inference.smc import importance_evidence
+from xvoe.inference.model import HiddenObjectModel, InferenceConfig, LinearGaussianScene, Proposal, fuse
+from xvoe.inference.smc import importance_evidence
 
 pytestmark = pytest.mark.usefixtures("double_precision")     # these checks compare to 1e-4
 

@@ -23,6 +23,7 @@ LAYERS = {
     "xvoe.training": 3,
     "xvoe.evaluation": 4,
     "inference": 5,
+    "xvoe.inference": 5,        # the same folder as it is imported (xvoe/inference links to it)
     "xvoe.apps": 6,
     "xvoe.__main__": 6,
     "xvoe": 6,          # the package itself: the public API, the top

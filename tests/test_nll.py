@@ -11,11 +11,6 @@ from pyro import poutine
 from pyro.util import check_model_guide_match
 
 import xvoe
-from inference.explain import nll_explanation
-from inference.model import Drawing, HiddenObjectModel, InferenceConfig, Proposal, drawing_cost
-from inference.score import reference_nll
-from inference.surprise import BRANCH_SAMPLES, AdamSteps, defensive, hidden_posterior, nll_surprise, refine_out_of_sight
-from inference.xpl_scene import XPLScene
 from xvoe.apps.cli import main
 from xvoe.apps.figures import plot_explanation
 from xvoe.apps.zoo import available_models
@@ -23,6 +18,18 @@ from xvoe.benchmark import store
 from xvoe.benchmark.generate import GenerateConfig, generate
 from xvoe.evaluation.metrics import read_scores
 from xvoe.evaluation.score import encode_videos, load_model
+from xvoe.inference.explain import nll_explanation
+from xvoe.inference.model import Drawing, HiddenObjectModel, InferenceConfig, Proposal, drawing_cost
+from xvoe.inference.score import reference_nll
+from xvoe.inference.surprise import (
+    BRANCH_SAMPLES,
+    AdamSteps,
+    defensive,
+    hidden_posterior,
+    nll_surprise,
+    refine_out_of_sight,
+)
+from xvoe.inference.xpl_scene import XPLScene
 from xvoe.models.config import to_dict
 from xvoe.models.dynamics import DynamicsConfig
 from xvoe.models.perception import ComponentVAE, PerceptionConfig

@@ -1,6 +1,7 @@
 """The package as a user installs it: a wheel built from the sources, with the shipped weights,
 installed into a fresh venv, runs `xvoe generate`, `score --model random` and `metrics` from a
-directory that holds no source."""
+directory that holds no source. Both distributions carry the licence; the inference layer
+installs as xvoe.inference, no top-level package but xvoe."""
 from __future__ import annotations
 
 import os
@@ -8,6 +9,7 @@ import shutil
 import subprocess
 import sys
 import sysconfig
+import tarfile
 import venv
 import zipfile
 from pathlib import Path
@@ -15,10 +17,10 @@ from pathlib import Path
 import pytest
 
 ROOT = Path(__file__).resolve().parent.parent
-SOURCES = ("setup.cfg", "pyproject.toml", "README.md", "xvoe", "inference")
+SOURCES = ("setup.cfg", "pyproject.toml", "README.md", "LICENSE", "xvoe", "inference")
 
 
-def build_wheel(target: Path) -> Path:
+def build_wheel(target: Path) -> tuple[Path, Path]:
     """An sdist of a copy of the sources and a wheel built from that sdist (so the sdist must hold
     all a build needs), offline with this venv's setuptools (no isolation: an isolated build would
     fetch setuptools from the network); both must pass `twine check`."""
@@ -28,7 +30,8 @@ def build_wheel(target: Path) -> Path:
     source.mkdir()
     for name in SOURCES:
         if (ROOT / name).is_dir():
-            shutil.copytree(ROOT / name, source / name, ignore=shutil.ignore_patterns("__pycache__", "*.egg-info"))
+            shutil.copytree(ROOT / name, source / name, symlinks=True,      # xvoe/inference stays a link
+                            ignore=shutil.ignore_patterns("__pycache__", "*.egg-info"))
         else:
             shutil.copy2(ROOT / name, source / name)
     done = subprocess.run([sys.executable, "-m", "build", "--no-isolation", "--skip-dependency-check",
@@ -38,7 +41,7 @@ def build_wheel(target: Path) -> Path:
     built = [next((target / "dist").glob(pattern)) for pattern in ("xvoe-*.tar.gz", "xvoe-*.whl")]
     subprocess.run([sys.executable, "-m", "twine", "check", "--strict", *map(str, built)], check=True,
                    capture_output=True)
-    return built[1]
+    return built[0], built[1]
 
 
 def fresh_venv(where: Path) -> Path:
@@ -53,13 +56,22 @@ def fresh_venv(where: Path) -> Path:
 
 
 def test_the_wheel_installs_and_runs_from_another_directory(tmp_path):
-    wheel = build_wheel(tmp_path)
+    sdist, wheel = build_wheel(tmp_path)
     names = zipfile.ZipFile(wheel).namelist()
     shipped = {path.name for path in (ROOT / "xvoe" / "weights").glob("*.pt")}
     assert {Path(name).name for name in names if name.startswith("xvoe/weights/")} == shipped
-    sources = {str(path.relative_to(ROOT)) for package in ("xvoe", "inference")
-               for path in (ROOT / package).rglob("*.py")}
+    sources = {str(path.relative_to(ROOT)) for path in (ROOT / "xvoe").rglob("*.py")} \
+        | {f"xvoe/{path.relative_to(ROOT)}" for path in (ROOT / "inference").rglob("*.py")}
     assert sources <= set(names), f"missing from the wheel: {sorted(sources - set(names))[:5]}"
+    assert {name.split("/")[0] for name in names if ".dist-info/" not in name} == {"xvoe"}
+    licence = (ROOT / "LICENSE").read_text()
+    assert "MIT License" in licence
+    assert [zipfile.ZipFile(wheel).read(n).decode() for n in names if n.endswith(".dist-info/licenses/LICENSE")
+            or n.endswith(".dist-info/LICENSE")] == [licence]
+    with tarfile.open(sdist) as archive:
+        found = archive.getnames()
+        assert archive.extractfile(next(n for n in found if n.endswith("/LICENSE"))).read().decode() == licence
+    assert any(name.endswith("/xvoe/inference/smc.py") for name in found)
 
     python = fresh_venv(tmp_path / "venv")
     subprocess.run([sys.executable, "-m", "pip", "--python", str(python), "install", "--quiet", "--no-deps",
@@ -76,6 +88,10 @@ def test_the_wheel_installs_and_runs_from_another_directory(tmp_path):
         return done.stdout
 
     assert run("python", "-c", "import xvoe; print(xvoe.__file__)").startswith(str(tmp_path / "venv"))
+    assert run("python", "-c", "import importlib.util, xvoe.inference.score; print(importlib.util.find_spec("
+               "'inference'))").strip() == "None"
+    version = run("python", "-c", "import xvoe; print(xvoe.__version__)").strip()
+    assert run("xvoe", "--version").strip() == f"xvoe {version}"
     run("xvoe", "generate", "--split", "test", "--pairs", "2", "--workers", "1", "--out", "test.h5", "--quiet")
     run("xvoe", "score", "--model", "random", "--data", "test.h5", "--out", "scores/random.csv", "--quiet")
     run("xvoe", "metrics", "scores/random.csv", "--out", "report", "--rounds", "20")

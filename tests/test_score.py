@@ -3,10 +3,10 @@ import pytest
 import torch
 
 import xvoe
-from inference.score import reference_nll
 from xvoe.errors import XvoeError
 from xvoe.evaluation.score import SCORE_COLUMNS
 from xvoe.evaluation.surprise import Surprise, aggregate, better_explanation, latent_surprise, mse_surprise
+from xvoe.inference.score import reference_nll
 from xvoe.models.dynamics import DynamicsConfig
 from xvoe.models.perception import ComponentVAE, PerceptionConfig
 from xvoe.models.reasoning import ReasoningConfig

@@ -11,13 +11,13 @@ import torch
 from conftest import randomise_dynamics_head
 
 import xvoe
-from inference.model import InferenceConfig
-from inference.score import xpl_nll
 from xvoe.apps.cli import main
 from xvoe.benchmark import store
 from xvoe.benchmark.generate import GenerateConfig, generate
 from xvoe.evaluation import score as scoring
 from xvoe.evaluation.metrics import read_scores
+from xvoe.inference.model import InferenceConfig
+from xvoe.inference.score import xpl_nll
 from xvoe.models.dynamics import DynamicsConfig
 from xvoe.models.perception import ComponentVAE, PerceptionConfig
 from xvoe.models.reasoning import ReasoningConfig

@@ -7,8 +7,8 @@ import pytest
 import torch
 from pyro import poutine
 
-from inference.model import HiddenObjectModel, InferenceConfig, LinearGaussianScene, Proposal
-from inference.smc import (
+from xvoe.inference.model import HiddenObjectModel, InferenceConfig, LinearGaussianScene, Proposal
+from xvoe.inference.smc import (
     Evidence,
     ModelSteps,
     run_smc,
@@ -333,7 +333,7 @@ def test_the_frame_by_frame_weights_are_the_whole_videos_model_over_guide(exists
             f"z_{t}": run.state["trajectory"][:, t] for t in range(scene.frames)}
         joint = poutine.trace(poutine.condition(model.model, data=values)).get_trace(frames, proposal, 4)
         proposed = poutine.trace(poutine.condition(model.guide, data=values)).get_trace(frames, proposal, 4)
-    from inference.smc import site_log_probs
+    from xvoe.inference.smc import site_log_probs
     proposed.compute_log_prob()         # conditioned, every guide site is observed: pick the proposed ones
     drawn = [name for name in proposed.nodes
              if name.startswith("z_") or name == "two" or (name == "exists" and exists is None)]
@@ -363,7 +363,7 @@ def tiny_video():
 
 @pytest.mark.parametrize("method", ["smc", "importance"])
 def test_nll_surprise_is_reproducible_from_a_seed_and_leaves_the_global_state_alone(method):
-    from inference.surprise import nll_surprise
+    from xvoe.inference.surprise import nll_surprise
 
     (vae, xpl), args = tiny_video()
     # no exposure penalty: the tiny decoder draws every picture at about the background's depth, so a
@@ -383,7 +383,7 @@ def test_nll_surprise_is_reproducible_from_a_seed_and_leaves_the_global_state_al
 
 
 def test_explain_surprise_returns_the_heaviest_hypotheses_and_the_posterior_mean():
-    from inference.surprise import explain_surprise, hidden_posterior
+    from xvoe.inference.surprise import explain_surprise, hidden_posterior
 
     (vae, xpl), args = tiny_video()
     found = explain_surprise(vae, xpl, *args, InferenceConfig(particles=32, smc_pilot=0), top=3)
@@ -407,7 +407,7 @@ def test_the_nll_of_each_frame_adds_up_to_the_videos(hidden_free):
     float64 precision, with a free slot (both branches) and without one (the exact branch)."""
     from test_nll import tiny_models, video
 
-    from inference.surprise import nll_surprise
+    from xvoe.inference.surprise import nll_surprise
 
     torch.set_default_dtype(torch.float32)
     vae, xpl = tiny_models()

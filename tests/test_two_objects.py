@@ -11,14 +11,14 @@ from pyro import poutine
 from pyro.util import check_model_guide_match
 from test_nll import D, T, tiny_models, video
 
-from inference.identity import Identity, identity_gap, two_objects
-from inference.model import HiddenObjectModel, InferenceConfig, Proposal
-from inference.score import under_prior_two
-from inference.smc import empty_branch, smc_evidence
-from inference.surprise import hidden_object_scene, nll_surprise
-from inference.xpl_scene import XPLScene
 from xvoe.errors import XvoeError
 from xvoe.evaluation.surprise import draw_scene
+from xvoe.inference.identity import Identity, identity_gap, two_objects
+from xvoe.inference.model import HiddenObjectModel, InferenceConfig, Proposal
+from xvoe.inference.score import under_prior_two
+from xvoe.inference.smc import empty_branch, smc_evidence
+from xvoe.inference.surprise import hidden_object_scene, nll_surprise
+from xvoe.inference.xpl_scene import XPLScene
 from xvoe.models.slots import WALL_PIXEL
 
 

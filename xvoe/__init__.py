@@ -18,10 +18,10 @@ from __future__ import annotations
 import importlib
 from typing import Any
 
-from .allocator import tune as _tune_allocator
+from .allocator import follow as _follow_allocator
 from .progress import quiet_widget_warning as _quiet_widget_warning
 
-_tune_allocator()       # before any large tensor: freed buffers stay in the heap (xvoe/allocator.py)
+_follow_allocator()     # a worker of a tuned process keeps its malloc settings; else glibc's stay (xvoe/allocator.py)
 _quiet_widget_warning()     # before pyro is imported (xvoe/progress.py)
 
 __version__ = "0.1.0"
@@ -48,7 +48,7 @@ _HOMES = {
     "xvoe.evaluation.metrics": ("read_scores", "metric_rows", "comparative", "holistic", "relative",
                                 "disagreements", "onset", "onset_pairs"),
     "xvoe.apps.verbs": ("score", "explain", "with_display"),
-    "inference.score": ("nll_settings",),
+    "xvoe.inference.score": ("nll_settings",),
     "xvoe.apps.report": ("report",),
     "xvoe.apps.verify": ("verify",),
     "xvoe.apps.zoo": ("available_models", "ship"),

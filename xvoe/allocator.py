@@ -10,10 +10,14 @@ on the one main arena: another thread's arena is made of 64 MiB heaps, so a larg
 allocated there (by a torch worker thread, or a thread of the user's) is mapped and unmapped
 each time whatever the thresholds say.
 
-`import xvoe` calls it, so the CLI, notebooks, torchrun workers and pool workers (forked:
-inherited; spawned: they import xvoe) all get it. XVOE_MALLOC=system leaves the allocator
-as glibc sets it, and so does a GLIBC_TUNABLES or MALLOC_*_ setting of the user's own.
-A thread that allocated before the call keeps its arena, hence the call at import time.
+The settings are the whole process's, so only the command line calls `tune()` (first thing
+after reading its arguments); `import xvoe` leaves the allocator as it is, since a notebook's
+other code runs under it too. A notebook or script that wants them calls
+`xvoe.allocator.tune()` before its first large tensor (a thread that allocated before the call
+keeps its arena). `tune()` sets XVOE_MALLOC=tuned in the environment, and `import xvoe` in a
+process started with it (the spawned workers of scoring, training and the pipeline; torchrun
+workers of a tuned launcher) tunes too; forked workers inherit the settings. XVOE_MALLOC=system,
+or a GLIBC_TUNABLES or MALLOC_*_ setting of the user's own, keeps glibc's settings throughout.
 """
 from __future__ import annotations
 
@@ -27,7 +31,7 @@ M_ARENA_MAX = -8
 MMAP_THRESHOLD = 1 << 30            # blocks up to 1 GiB come from the heap, whose pages stay
 TRIM_THRESHOLD = (1 << 31) - 1      # the largest int: free memory at the top of the heap stays
 ARENA_MAX = 1                       # one arena (a lock shared by a few threads costs nothing measurable)
-ENV = "XVOE_MALLOC"                 # "system": leave glibc's defaults
+ENV = "XVOE_MALLOC"                 # "system": leave glibc's defaults; "tuned": tune at import (set by tune())
 
 _state: dict[str, bool] = {}
 
@@ -66,8 +70,15 @@ def tune() -> bool:
                 tuned = all([libc.mallopt(M_TRIM_THRESHOLD, TRIM_THRESHOLD),
                              libc.mallopt(M_MMAP_THRESHOLD, MMAP_THRESHOLD),
                              libc.mallopt(M_ARENA_MAX, ARENA_MAX)])
+        if tuned:
+            os.environ[ENV] = "tuned"       # the workers this process starts tune as they import xvoe
         _state["tuned"] = tuned
     return _state["tuned"]
+
+
+def follow() -> bool:
+    """Tune if the process that started this one did (XVOE_MALLOC=tuned); what `import xvoe` calls."""
+    return os.environ.get(ENV, "").strip().lower() == "tuned" and tune()
 
 
 def tuned() -> bool:

@@ -1,7 +1,12 @@
-"""The `xvoe` command: one verb per job. Each verb calls the same functions as the notebooks."""
+"""The `xvoe` command: one verb per job. Each verb calls the same functions as the notebooks.
+
+Building the parser imports nothing of torch (nor of h5py or pymunk), so that `xvoe --help` and
+`xvoe VERB --help` answer at once (benchmarks/cli_help.py); what a verb needs is imported when
+it runs, or when a value is parsed."""
 from __future__ import annotations
 
 import argparse
+import importlib
 import os
 import re
 import signal
@@ -13,17 +18,23 @@ from typing import Any
 
 import xvoe
 
-from ..benchmark.display import DISPLAY_SIZE
-from ..domains import NON_NEGATIVE, PICTURE_SIZE, POSITIVE, SEED, Domain, check_number
+from ..allocator import tune as tune_allocator
+from ..domains import DEVICES, DISPLAY_SIZE, NON_NEGATIVE, PICTURE_SIZE, POSITIVE, SEED, Domain, check_number
 from ..errors import XvoeError
 from ..models.config import parse_field, parse_value
-from ..models.devices import DEVICES, parse_device, resolve_device
 from ..models.nll import InferenceConfig
 from ..outputs import claim_directory, claim_file, claim_scope, refuse_overlap
-from ..training.config import TrainConfig
-from ..training.data import check_focus
-from ..training.loop import pin_kernels
-from ..training.xpl import encoded_cache
+from ..training.config import DEFAULT_RECIPE, RECIPE_NAMES, TrainConfig
+
+# what the verbs need of the layers that import torch, loaded when a verb runs or a value is
+# parsed: building the parser imports none of them, so that --help answers at once
+_LATE = {"parse_device": "xvoe.models.devices", "resolve_device": "xvoe.models.devices",
+         "check_focus": "xvoe.training.data", "pin_kernels": "xvoe.training.loop",
+         "encoded_cache": "xvoe.training.xpl"}
+
+
+def _late(name: str) -> Callable[..., Any]:
+    return getattr(importlib.import_module(_LATE[name]), name)
 
 
 class _Parser(argparse.ArgumentParser):
@@ -50,8 +61,8 @@ def _shard(text: str) -> tuple[int, int]:
 
 def _recipe_names() -> str:
     """The recipes for a --help line, the default (the shipped models') named first."""
-    others = [name for name in xvoe.RECIPES if name != xvoe.DEFAULT_RECIPE]
-    return f"{xvoe.DEFAULT_RECIPE} (default, the shipped models'), " + ", ".join(others)
+    others = [name for name in RECIPE_NAMES if name != DEFAULT_RECIPE]
+    return f"{DEFAULT_RECIPE} (default, the shipped models'), " + ", ".join(others)
 
 
 def _positive(text: str) -> int:
@@ -84,9 +95,18 @@ def _field(cls: type, name: str) -> Callable[[str], Any]:
     return _argument(lambda text: parse_field(cls, name, text))
 
 
+def _generate_field(name: str) -> Callable[[str], Any]:
+    """`_field` of GenerateConfig, whose module (h5py, pymunk) loads when a value is parsed, not for --help."""
+    return _argument(lambda text: parse_field(xvoe.GenerateConfig, name, text))
+
+
+def _device(text: str) -> str:
+    return str(_late("parse_device")(text))
+
+
 def _add_device(parser: argparse.ArgumentParser, what: str) -> None:
     # a device name is checked here; whether this machine has it, first thing in `main`
-    parser.add_argument("--device", type=_argument(lambda text: str(parse_device(text))), default="cpu",
+    parser.add_argument("--device", type=_argument(_device), default="cpu",
                         help=f"where {what} runs: {DEVICES} (default cpu)")
 
 
@@ -110,7 +130,8 @@ def cmd_generate(args: argparse.Namespace) -> None:
 
 
 def cmd_import(args: argparse.Namespace) -> None:
-    print(xvoe.import_released(args.source, args.split, args.out, overwrite=args.overwrite, progress=not args.quiet))
+    print(xvoe.import_released(args.source, args.split, args.out, size=args.size, overwrite=args.overwrite,
+                               progress=not args.quiet))
 
 
 def cmd_show(args: argparse.Namespace) -> None:
@@ -167,26 +188,28 @@ def cmd_pipeline(args: argparse.Namespace) -> None:
 
 def cmd_metrics(args: argparse.Namespace) -> None:
     for path in xvoe.report(args.scores, args.out, rounds=args.rounds, seed=args.seed, data=args.data,
-                            overwrite=args.overwrite):
+                            overwrite=args.overwrite, table=args.table):
         print(path)
 
 
 def cmd_verify(args: argparse.Namespace) -> int:
     found = xvoe.verify(args.scores, rows=args.rows, data=args.data, seed=args.seed, model=args.model)
-    print("\n".join(found.lines))
+    if not (args.quiet and found.matches):     # quiet: the verdict alone, unless a row is named in it
+        print("\n".join(found.lines))
     print("every row scored again matches the file" if found.matches else "some rows do not match the file")
     return 0 if found.matches else 1
 
 
 def cmd_ship(args: argparse.Namespace) -> None:
     for path in xvoe.ship(args.run_dir, args.out):
-        print(f"{path}  {path.stat().st_size / 2**20:.1f} MB")
+        print(path if args.quiet else f"{path}  {path.stat().st_size / 2**20:.1f} MB")
 
 
 # --- training: one subcommand per stage, each with its own flags --------------------------
 
 def _train_overrides(args: argparse.Namespace, stage: str) -> tuple[dict, dict]:
     """The TrainConfig fields the flags and `--set` change (None: keep the recipe's), and the model's."""
+    check_focus = _late("check_focus")
     train, model = xvoe.stage_settings(stage, args.set)
     flags = {"steps": args.steps, "max_minutes": args.minutes, "batch_size": args.batch_size, "seed": args.seed,
              "max_videos": args.max_videos, "lr": args.lr, "focus_group": getattr(args, "focus_group", None),
@@ -250,7 +273,7 @@ def add_train_parser(verbs) -> None:
             parser.add_argument("--data", help="the training split file (HDF5)")
         parser.add_argument("--out", required=True, help="the run directory")
         if entry.reads != "xpl":
-            parser.add_argument("--recipe", default=xvoe.DEFAULT_RECIPE,
+            parser.add_argument("--recipe", default=DEFAULT_RECIPE,
                                 help=f"the recipe whose sizes and settings start the run: {_recipe_names()}")
         parser.add_argument("--steps", type=_field(TrainConfig, "steps"), help="training steps (default: the recipe's)")
         parser.add_argument("--minutes", type=_flag(float, POSITIVE, "minutes"),
@@ -299,6 +322,7 @@ def add_train_parser(verbs) -> None:
 
 def build_parser() -> argparse.ArgumentParser:
     parser = _Parser(prog="xvoe", description="The X-VoE benchmark and the XPL model.")
+    parser.add_argument("--version", action="version", version=f"xvoe {xvoe.__version__}")
     verbs = parser.add_subparsers(dest="verb", required=True, metavar="VERB", parser_class=_Parser)
 
     gen = verbs.add_parser("generate", help="generate a split of the benchmark into an HDF5 file",
@@ -306,15 +330,15 @@ def build_parser() -> argparse.ArgumentParser:
                                        "whatever the number of workers.")
     gen.add_argument("--split", choices=("train", "test"), help="training videos or test pairs")
     gen.add_argument("--out", required=True, help="the HDF5 file to write")
-    gen.add_argument("--videos", type=_field(xvoe.GenerateConfig, "videos"), default=10_000,
+    gen.add_argument("--videos", type=_generate_field("videos"), default=10_000,
                      help="training videos (default 10000)")
-    gen.add_argument("--pairs", type=_field(xvoe.GenerateConfig, "pairs"), default=1_000,
+    gen.add_argument("--pairs", type=_generate_field("pairs"), default=1_000,
                      help="test pairs per setting (default 1000)")
-    gen.add_argument("--size", type=_field(xvoe.GenerateConfig, "size"), default=32,
+    gen.add_argument("--size", type=_generate_field("size"), default=32,
                      help="frame size in pixels (default 32, what the default recipe's models read)")
-    gen.add_argument("--frames", type=_field(xvoe.GenerateConfig, "frames"), default=15,
+    gen.add_argument("--frames", type=_generate_field("frames"), default=15,
                      help="frames per video (default 15)")
-    gen.add_argument("--seed", type=_field(xvoe.GenerateConfig, "seed"), default=0,
+    gen.add_argument("--seed", type=_generate_field("seed"), default=0,
                      help="the seed every random choice flows from")
     gen.add_argument("--workers", type=_positive, default=_default_workers(), help="worker processes")
     gen.add_argument("--shard", type=_shard, default=(0, 1), metavar="I/N",
@@ -333,6 +357,10 @@ def build_parser() -> argparse.ArgumentParser:
     imp.add_argument("--split", choices=("train", "test"), required=True,
                      help="test: test/SCENARIO/eval-part-NNN.tfrecord; train: train/train-part-NNN.tfrecord")
     imp.add_argument("--out", required=True, help="the HDF5 file to write")
+    imp.add_argument("--size", type=_positive,
+                     help="resample to this many pixels a side, a divisor of the release's 128 (32 for the shipped "
+                          "models): RGB by area, ids and depth by the label covering most of a block, no seen "
+                          "object lost (default: as released)")
     imp.add_argument("--overwrite", action="store_true", help="replace --out if it exists")
     imp.add_argument("--quiet", action="store_true", help="no progress bar")
     imp.set_defaults(run=cmd_import)
@@ -349,6 +377,7 @@ def build_parser() -> argparse.ArgumentParser:
     show.add_argument("--display-size", type=_flag(int, PICTURE_SIZE, "display-size"), default=DISPLAY_SIZE,
                       help=f"pixels a side of the scene drawn above the model's frames (default {DISPLAY_SIZE})")
     show.add_argument("--overwrite", action="store_true", help="replace --out if it exists")
+    show.add_argument("--quiet", action="store_true", help="accepted as by every verb; show draws no progress bar")
     show.set_defaults(run=cmd_show)
 
     listing = verbs.add_parser("list", help="list a test split's videos by scenario, setting, member and pair",
@@ -432,6 +461,8 @@ def build_parser() -> argparse.ArgumentParser:
                          help=f"pixels a side of the scene the explanation is drawn onto (default {DISPLAY_SIZE}); "
                               "the model reads its own frames")
     explain.add_argument("--overwrite", action="store_true", help="replace --out if it exists")
+    explain.add_argument("--quiet", action="store_true",
+                         help="accepted as by every verb; explain draws no progress bar")
     _add_device(explain, "the model")
     explain.set_defaults(run=cmd_explain)
 
@@ -449,6 +480,12 @@ def build_parser() -> argparse.ArgumentParser:
     metrics.add_argument("--data", help="the test split that was scored: with scores of both surprise definitions "
                                         "(xvoe score --surprise both), draws pairs they judge differently")
     metrics.add_argument("--overwrite", action="store_true", help="replace a report already in --out")
+    metrics.add_argument("--quiet", action="store_true",
+                         help="accepted as by every verb; metrics draws no progress bar")
+    metrics.add_argument("--table", choices=("md", "latex"),
+                         help="also write table.md or table.tex: the paper's layout (scenarios across; holistic, "
+                              "comparative and relative by setting with the reference's sub-rows S2-ext1, S2-ext2, "
+                              "S3-ext, S3-sur), in percent, every model, ready to paste")
     metrics.set_defaults(run=cmd_metrics)
 
     verify = verbs.add_parser("verify", help="score a sample of a scores file's rows again and compare",
@@ -463,6 +500,8 @@ def build_parser() -> argparse.ArgumentParser:
     verify.add_argument("--model", help="the model to score with, as xvoe score takes it (by default the weights the "
                                         "header names; a model of your own must be named here: a header never "
                                         "decides what code runs)")
+    verify.add_argument("--quiet", action="store_true",
+                        help="print the verdict alone when every row matches (a mismatch is always named)")
     verify.set_defaults(run=cmd_verify)
 
     pipeline = verbs.add_parser("pipeline", help="generate, train, score and report, end to end",
@@ -470,7 +509,7 @@ def build_parser() -> argparse.ArgumentParser:
                                             "compute the metrics and write RUN_DIR/report.md. A rerun skips "
                                             "the stages already done and resumes an interrupted one.")
     pipeline.add_argument("--out", required=True, help="the run directory")
-    pipeline.add_argument("--recipe", default=xvoe.DEFAULT_RECIPE,
+    pipeline.add_argument("--recipe", default=DEFAULT_RECIPE,
                           help=f"every stage and setting of the models: {_recipe_names()}")
     pipeline.add_argument("--train-videos", type=_positive, help="training videos (default: the recipe's, 10000)")
     pipeline.add_argument("--pairs", type=_positive, default=200, help="test pairs per setting (default 200)")
@@ -495,6 +534,7 @@ def build_parser() -> argparse.ArgumentParser:
                                         "the package's weights directory, where --model xpl finds them.")
     ship.add_argument("run_dir", help="the run directory (of xvoe pipeline)")
     ship.add_argument("--out", help="another directory to write to (default: the package's)")
+    ship.add_argument("--quiet", action="store_true", help="the paths written, without their sizes")
     ship.set_defaults(run=cmd_ship)
     return parser
 
@@ -513,7 +553,7 @@ WRITES = {
 # what a verb writes when its output argument is left out
 DEFAULT_OUTPUTS: dict[str, Callable[[argparse.Namespace], Path]] = {
     "show": lambda args: Path(Path(args.file).with_suffix(f".{args.index}.png").name),
-    "encode": lambda args: encoded_cache(args.data, args.out, args.model, args.device),
+    "encode": lambda args: _late("encoded_cache")(args.data, args.out, args.model, args.device),
 }
 
 # what a verb writes besides its main output, where the argument is given: (argument, suffixes)
@@ -549,11 +589,13 @@ def check_paths(args: argparse.Namespace) -> None:
 def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
+    tune_allocator()        # before any large tensor: freed buffers stay in the heap (xvoe/allocator.py)
     if args.verb in ("train", "pipeline"):      # before any kernel runs, so that a seed trains the same bytes anywhere
-        pin_kernels()
+        _late("pin_kernels")()
     previous = signal.signal(signal.SIGTERM, _interrupt)   # so that a kill cleans up as Ctrl-C does
     try:
-        resolve_device(getattr(args, "device", "cpu"))      # a device this machine lacks, before any work
+        if hasattr(args, "device"):     # a device this machine lacks, before any work
+            _late("resolve_device")(args.device)
         check_paths(args)
         with warnings.catch_warnings():     # a warning is one line, as an error is
             warnings.showwarning = lambda message, *_: print(f"xvoe {args.verb}: warning: {message}", file=sys.stderr)

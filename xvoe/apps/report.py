@@ -22,22 +22,24 @@ from ..evaluation.metrics import (
     onset,
     onset_pairs,
     read_scores,
+    relative_members,
     side_by_side,
 )
 from ..evaluation.score import check_same_split, read_curves, score_header, scored_split, warn_unchecked
 from ..identity import describe_split, split_identity
 from ..outputs import claim_directory, claim_scope
 from . import figures
+from .table import STYLES, paper_table
 
 # what a report writes, so that a rerun into the same directory leaves nothing of the last one
 REPORT_FILES = ("metrics.csv", "metrics.json", "headers.json", "holistic.png", "comparative.png", "components-*.png",
                 "disagreements-*.png", "surprise-*.csv", "disagreements-*.csv", "verdicts-*.csv", "onset.csv",
-                "onset.png")
+                "onset.png", *STYLES.values())
 
 
 @claim_scope()
 def report(paths: list[str | Path], out_dir: str | Path, rounds: int = 1000, seed: int = 0,
-           data: str | Path | None = None, overwrite: bool = False) -> list[Path]:
+           data: str | Path | None = None, overwrite: bool = False, table: str | None = None) -> list[Path]:
     """What `xvoe metrics` does: the table (CSV and JSON) and the figures, for one or more
     models' scores files. A scores file holding both surprise definitions (`xvoe score
     --surprise both`) also gets them side by side (surprise-MODEL.csv) and the pairs they
@@ -48,11 +50,14 @@ def report(paths: list[str | Path], out_dir: str | Path, rounds: int = 1000, see
     curves lie beside its scores, the violation onset (onset.csv, onset.png) of each definition
     they hold: the MSE's, and the NLL's where it was scored. Scores of another split than `data`,
     or than each other, are refused; headers.json repeats every scores file's header
-    (`score_header`)."""
+    (`score_header`). With `table` ("md" or "latex"), table.md or table.tex holds the paper's
+    layout of every model's metrics, in percent (xvoe/apps/table.py)."""
+    if table is not None and table not in STYLES:
+        raise XvoeError(f"table must be one of {', '.join(STYLES)}, not {table!r}")
     check_one_split(paths, data)
     rows = []
     names = []
-    compared, verdicts = {}, {}
+    compared, verdicts, members = {}, {}, {}
     timing, timed_pairs = [], {}
     events = _event_frames(data) if data is not None else None
     for path in paths:
@@ -63,6 +68,8 @@ def report(paths: list[str | Path], out_dir: str | Path, rounds: int = 1000, see
             raise XvoeError(f"two scores files name the model {name!r}; give each model its own name")
         names.append(name)
         rows += metric_rows(scores, name, rounds=rounds, seed=seed)
+        if table is not None:
+            members[name] = relative_members(scores)
         if has_both_surprises(scores):
             compared[name] = scores
         if has_both_surprises(scores, VERDICTS):
@@ -84,6 +91,9 @@ def report(paths: list[str | Path], out_dir: str | Path, rounds: int = 1000, see
         path.unlink()
     written = list(write_table(rows, out_dir))
     written.append(write_headers(paths, names, out_dir / "headers.json"))
+    if table is not None:
+        written.append(out_dir / STYLES[table])
+        written[-1].write_text(paper_table(rows, members, table))
     drawn = {"holistic.png": figures.plot_holistic(rows), "comparative.png": figures.plot_comparative(rows)}
     for name in names:
         if any(r["model"] == name and r["column"] != "score" for r in rows):

@@ -16,8 +16,8 @@ from typing import Any
 
 import torch
 
-from inference.explain import explain_nll
-from inference.score import NLLColumns
+from xvoe.inference.explain import explain_nll
+from xvoe.inference.score import NLLColumns
 
 from ..benchmark import store
 from ..benchmark.display import DISPLAY_SIZE, check_display_size, display_video, hidden_silhouettes

@@ -14,7 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
-from inference.score import NLLColumns
+from xvoe.inference.score import NLLColumns
 
 from ..benchmark import store
 from ..errors import XvoeError

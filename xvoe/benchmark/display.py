@@ -20,13 +20,12 @@ from dataclasses import dataclass
 import h5py
 import numpy as np
 
-from ..domains import PICTURE_SIZE, check_number
+from ..domains import DISPLAY_SIZE, PICTURE_SIZE, check_number
 from . import store
 from .generate import GenerateConfig, render_unit
 from .render import STATE_COLUMNS, Video
 from .videos import check_index, silhouette
 
-DISPLAY_SIZE = 128
 LENGTHS = ("x", "y", "size", "height", "vx", "vy")     # state columns in pixels, which scale with the picture
 
 

@@ -10,6 +10,7 @@ them: docs/benchmark.md, "The released X-VoE and this one".
 from __future__ import annotations
 
 import os
+import warnings
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -44,39 +45,60 @@ class Part:
 
 
 @claim_scope()
-def import_released(source: str | os.PathLike, split: str, out: str | os.PathLike, *, overwrite: bool = False,
-                    progress: bool = True) -> Path:
+def import_released(source: str | os.PathLike, split: str, out: str | os.PathLike, *, size: int | None = None,
+                    overwrite: bool = False, progress: bool = True) -> Path:
     """Write the released split under `source` (the downloaded X-VoE directory, with test/ and
-    train/) to `out` in xvoe's schema. Every file is read through once first, so a truncated or
-    foreign file is refused before anything is written."""
+    train/) to `out` in xvoe's schema, at `size` pixels a side if given (a divisor of the
+    release's 128, so that the shipped 32x32 models read it; see `downsample`). Every file is
+    read through once first, so a truncated or foreign file is refused before anything is written."""
     if split not in store.SPLITS:
         raise XvoeError(f"--split must be train or test, not {split!r}")
     claim_file(out, overwrite)
     parts = _test_parts(Path(source)) if split == "test" else [_train_part(Path(source))]
     counts, first = _survey(parts)
-    frames, size = first[0].shape[:2]
+    frames, native = first[0].shape[:2]
+    size = _check_size(size, native)
     total = sum(counts)
     per_block = {part.scenario: count // TEST_FILES[part.scenario] for part, count in zip(parts, counts)} \
         if split == "test" else {}
-    config = {"source": SOURCE_NAME, "split": split, "frames": int(frames), "size": int(size),
+    config = {"source": SOURCE_NAME, "split": split, "frames": int(frames), "size": size,
               "files": [str(path.relative_to(Path(source))) for part in parts for path in part.files],
+              **({"source_size": int(native), "resampled": RESAMPLING} if size != native else {}),
               **({"pairs": per_block} if split == "test" else {"videos": total})}
+    overlapped = 0
     with store.atomic_file(out, overwrite) as file:
         _write_attributes(file, split, config)
-        writer = store.Writer(file, split, total, int(frames), int(size))
+        writer = store.Writer(file, split, total, int(frames), size)
         bar = progress_bar(total=total, unit="video", desc=f"import {split}", disable=not progress)
         offset = 0
         for part, count in zip(parts, counts):
-            for index, (image, masks) in enumerate(_videos(part, (frames, size))):
+            for index, (image, masks) in enumerate(_videos(part, (frames, native))):
                 at = offset + _test_row(index, per_block[part.scenario]) if split == "test" else offset + index
                 labels = _test_labels(part.scenario, index, per_block[part.scenario]) if split == "test" \
                     else _train_labels(masks)
-                writer.add(store.encode(_as_video(image, masks), labels), at=at)
+                ids, shared = ids_of(masks, image[..., 3])
+                overlapped += shared
+                if size != native:
+                    image, ids = downsample(image, ids, size)
+                writer.add(store.encode(_as_video(image, ids), labels), at=at)
                 bar.update()
             offset += count
         bar.close()
         writer.finish()
+    if overlapped:
+        warnings.warn(f"{overlapped} pixels lie under more than one slot's mask (amodal masks); each went to the "
+                      "nearest of its slots by depth", stacklevel=2)
     return Path(out)
+
+
+def _check_size(size: int | None, native: int) -> int:
+    """The size to store: the release's own, or a divisor of it (every output pixel a whole block)."""
+    if size is None or size == native:
+        return int(native)
+    if not 0 < size < native or native % size:
+        raise XvoeError(f"--size {size} does not divide the release's {native}x{native} frames; give a divisor "
+                        f"of {native} (e.g. 32, the shipped models' size)")
+    return int(size)
 
 
 def _test_parts(source: Path) -> list[Part]:
@@ -103,6 +125,13 @@ def _train_part(source: Path) -> Part:
     files = tuple(sorted(root.glob("train-part-[0-9][0-9][0-9].tfrecord")))
     if not files:
         raise XvoeError(f"{root} holds no train-part-NNN.tfrecord file")
+    numbers = {int(path.name[len("train-part-"):][:3]) for path in files}
+    gaps = sorted(set(range(max(numbers) + 1)) - numbers)
+    if gaps:
+        warnings.warn(f"the training set is incomplete: {len(files)} files, without "
+                      f"{', '.join(f'train-part-{n:03d}' for n in gaps[:3])}{' ...' if len(gaps) > 3 else ''} "
+                      f"({len(gaps)} missing up to train-part-{max(numbers):03d}); the files present are imported",
+                      stacklevel=3)
     return Part(None, files)
 
 
@@ -111,7 +140,7 @@ def _survey(parts: list[Part]) -> tuple[list[int], tuple[np.ndarray, np.ndarray]
     first video (its shape is the split's); refuses what cannot be imported whole."""
     counts, first = [], None
     for part in parts:
-        count = 0
+        count, per_file = 0, []
         for path in part.files:
             found = 0
             for record in records(path):
@@ -121,8 +150,10 @@ def _survey(parts: list[Part]) -> tuple[list[int], tuple[np.ndarray, np.ndarray]
                     _check_same_shape(video, first, path, 0)
                 found += 1
             count += found
+            per_file.append(found)
         if part.scenario is not None:
             _check_blocks(part, count)
+            _check_files(part, per_file)
         counts.append(count)
     if first is None:
         raise XvoeError("the files hold no record")
@@ -134,6 +165,17 @@ def _check_blocks(part: Part, count: int) -> None:
     if count == 0 or count % blocks:
         raise XvoeError(f"{part.scenario} holds {count} videos, not {blocks} equal blocks (one per setting and "
                         "member, as the reference's metrics read them)")
+
+
+def _check_files(part: Part, per_file: list[int]) -> None:
+    """Warn where a scenario's files do not each hold one block: the labels go by position
+    among the scenario's records, which is what the reference's metrics read, but such files
+    were not written as the reference's build scripts write them."""
+    block = sum(per_file) // TEST_FILES[part.scenario]
+    if any(found != block for found in per_file):
+        warnings.warn(f"{part.scenario}'s files hold {', '.join(map(str, per_file))} records, not one block of "
+                      f"{block} each; the records are labelled by their place among the scenario's "
+                      f"{sum(per_file)} (blocks of {block}), not by file", stacklevel=4)
 
 
 def _parse(record: bytes, path: Path, index: int) -> tuple[np.ndarray, np.ndarray]:
@@ -221,32 +263,86 @@ class _Video:
     color: np.ndarray
 
 
-def ids_of(masks: np.ndarray) -> np.ndarray:
-    """(T, H, W) slot ids from (T, K, H, W) per-slot masks: k+1 where slot k's mask is set, 0 where
-    none is; where masks overlap, the lowest slot (the release's masks are of what is seen, so
-    they should not overlap)."""
+def ids_of(masks: np.ndarray, depth: np.ndarray) -> tuple[np.ndarray, int]:
+    """(T, H, W) slot ids from (T, K, H, W) per-slot masks and the (T, H, W) depth (near small):
+    k+1 where slot k's mask alone is set, 0 where none is; and the number of pixels under more
+    than one mask. The release does not say whether its masks are of what is seen or amodal
+    (whole objects, a hidden part included); where they overlap, the nearest slot owns the
+    pixel, the slot's depth in a frame being the mean depth of the pixels it alone claims there
+    (a slot that claims none alone is behind the others: it loses; ties to the lowest slot)."""
     seen = masks > 0
-    return np.where(seen.any(axis=1), seen.argmax(axis=1) + 1, 0).astype(np.uint8)
+    claims = seen.sum(axis=1)
+    ids = np.where(claims > 0, seen.argmax(axis=1) + 1, 0).astype(np.uint8)
+    shared = claims > 1
+    if not shared.any():
+        return ids, 0
+    frames, slots = seen.shape[:2]
+    alone = (seen & ~shared[:, None]).reshape(frames, slots, -1)
+    pixels = alone.sum(axis=2)
+    total = np.matmul(alone.astype(np.float32), depth.reshape(frames, -1, 1).astype(np.float32))[..., 0]
+    with np.errstate(invalid="ignore", divide="ignore"):
+        slot_depth = np.where(pixels > 0, total / pixels, np.inf)                   # (T, K)
+    frame = np.nonzero(shared)[0]
+    candidates = np.moveaxis(seen, 1, -1)[shared]                                   # (pixels, K)
+    ids[shared] = np.where(candidates, slot_depth[frame], np.inf).argmin(axis=1) + 1
+    return ids, int(shared.sum())
 
 
-def _as_video(image: np.ndarray, masks: np.ndarray) -> _Video:
-    """A video in the schema: the image as rgbd, ids from the masks, and of the states, kinds and
-    colours what the masks tell (the rest NaN: the release holds no states)."""
-    frames, slots = masks.shape[:2]
-    seen = masks > 0
+# how `downsample` resamples, recorded in the file's config
+RESAMPLING = "rgb: block mean; ids: the label covering most of a block, ties to the nearer, and a slot a frame " \
+             "shows that would own no block takes the block it covers most; depth: the mean of the owner's pixels"
+
+
+def downsample(image: np.ndarray, ids: np.ndarray, size: int) -> tuple[np.ndarray, np.ndarray]:
+    """(T, H, W, 4) RGBD and (T, H, W) ids to `size` pixels a side, H a multiple of it.
+
+    RGB is the block's mean (area averaging). Each block gets one label: the one covering most
+    of its pixels, a tie going to the nearer; a slot that a frame shows but that owns no block
+    then (an object smaller than a block, or straddling four) takes the block it covers most, so
+    that nothing seen at full size vanishes from the ids. Depth is the mean depth of the owner's
+    pixels in the block, so that an object's depth is not blended with the wall's or the
+    background's at its edges."""
+    frames, native = image.shape[:2]
+    factor = native // size
+    shaped = image.reshape(frames, size, factor, size, factor, 4)
+    rgb = np.rint(shaped[..., :3].mean(axis=(2, 4), dtype=np.float64)).astype(np.uint8)
+    # every full-size pixel's block (frame, row, column) and label, counted in one bincount each
+    block = (np.arange(frames)[:, None, None] * size + np.arange(native)[None, :, None] // factor) * size \
+        + np.arange(native)[None, None, :] // factor
+    labels = int(ids.max()) + 1
+    key = (block * labels + ids).ravel()
+    count = frames * size * size * labels
+    cover = np.bincount(key, minlength=count).reshape(frames, size, size, labels)
+    depth_sum = np.bincount(key, image[..., 3].ravel().astype(np.float64), count).reshape(cover.shape)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        label_depth = np.where(cover > 0, depth_sum / cover, np.inf)
+    # most coverage first; among equals the smallest depth (a depth is below 256: one pixel more wins)
+    owner = np.argmax(cover * 256.0 - np.minimum(label_depth, 255.0), axis=-1)
+    shown = cover[..., 1:].any(axis=(1, 2))                                      # (T, L-1)
+    kept = (owner[..., None] == np.arange(1, labels)).any(axis=(1, 2))
+    for frame, slot in zip(*np.nonzero(shown & ~kept)):
+        at = np.unravel_index(np.argmax(cover[frame, ..., slot + 1]), (size, size))
+        owner[(frame, *at)] = slot + 1
+    owned = np.take_along_axis(label_depth, owner[..., None], axis=-1)[..., 0]
+    rgbd = np.concatenate([rgb, np.rint(owned).astype(np.uint8)[..., None]], axis=-1)
+    return rgbd, owner.astype(np.uint8)
+
+
+def _as_video(image: np.ndarray, ids: np.ndarray) -> _Video:
+    """A video in the schema: the image as rgbd, the ids, and of the states, kinds and colours
+    what the ids tell (the rest NaN: the release holds no states)."""
+    frames = ids.shape[0]
+    seen = ids[:, None] == np.arange(1, MAX_SLOTS + 1)[None, :, None, None]   # (T, K, H, W)
     pixels = seen.sum(axis=(2, 3))                               # (T, K)
     states = np.full((frames, MAX_SLOTS, len(STATE_COLUMNS)), np.nan, np.float32)
     column = {name: i for i, name in enumerate(STATE_COLUMNS)}
-    ever = np.zeros(MAX_SLOTS, bool)
-    ever[:slots] = pixels.any(axis=0)
+    ever = pixels.any(axis=0)
     states[..., column["present"]] = ever[None, :]
-    visible = np.zeros((frames, MAX_SLOTS), np.float32)
-    visible[:, :slots] = pixels > 0
-    states[..., column["visible"]] = visible
+    states[..., column["visible"]] = pixels > 0
     rows, cols = np.arange(image.shape[1], dtype=np.float64), np.arange(image.shape[2], dtype=np.float64)
     with np.errstate(invalid="ignore", divide="ignore"):        # NaN where a slot shows nothing
-        states[:, :slots, column["x"]] = (seen.sum(axis=2) * cols).sum(axis=-1) / pixels
-        states[:, :slots, column["y"]] = (seen.sum(axis=3) * rows).sum(axis=-1) / pixels
+        states[..., column["x"]] = (seen.sum(axis=2) * cols).sum(axis=-1) / pixels
+        states[..., column["y"]] = (seen.sum(axis=3) * rows).sum(axis=-1) / pixels
     kind = np.zeros(MAX_SLOTS, np.int8)
     kind[ever] = IMPORTED_KINDS.index("object")
     if ever[OCCLUDER_SLOT]:
@@ -254,7 +350,7 @@ def _as_video(image: np.ndarray, masks: np.ndarray) -> _Video:
     color = np.zeros((MAX_SLOTS, 3), np.uint8)
     for k in np.flatnonzero(ever):
         color[k] = np.round(image[..., :3][seen[:, k]].mean(axis=0)).astype(np.uint8)
-    return _Video(np.ascontiguousarray(image), ids_of(masks), states, kind, color)
+    return _Video(np.ascontiguousarray(image), ids, states, kind, color)
 
 
 def _write_attributes(file: h5py.File, split: str, config: dict) -> None:

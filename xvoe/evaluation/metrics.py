@@ -227,16 +227,43 @@ def relative(scores: dict[str, np.ndarray], column: str = "score", rounds: int =
     of the same scenario and pair index; the share judged rightly."""
     out = {}
     for scenario, setting in _settings(scores):
-        pairs_s1, first, second = pairs_table(scores, scenario, "S1", column)
-        threshold = dict(zip(pairs_s1, (first + second) / 2))
-        mask = (scores["scenario"] == scenario) & (scores["setting"] == setting)
-        pair = scores["pair"][mask].astype(int)
-        known = np.array([p in threshold for p in pair], dtype=bool)
-        value, possible, pair = scores[column][mask][known], scores["possible"][mask][known], pair[known]
-        limit = np.array([threshold[p] for p in pair])
-        right = np.where(possible, pairwise_win(limit, value), pairwise_win(value, limit))
+        right, _, _ = _relative_right(scores, scenario, setting, column)
         out[scenario, setting] = _share(right)
     return out
+
+
+# the reference's relative metric, one row per member of S2 and S3 (utils/metrix_ds.py): each the
+# share of one block of videos judged rightly against its S1 pair's mean; `relative` is their mean
+OFFICIAL_RELATIVE = {("S2", 0): "S2-ext1", ("S2", 1): "S2-ext2", ("S3", 0): "S3-ext", ("S3", 1): "S3-sur"}
+
+
+def relative_members(scores: dict[str, np.ndarray], column: str = "score") -> dict[tuple[str, str], Estimate]:
+    """The reference's relative sub-rows: per scenario and OFFICIAL_RELATIVE name, the share of
+    that member's videos judged rightly against the mean of their S1 pair."""
+    out = {}
+    for scenario, setting in _settings(scores):
+        right, _, member = _relative_right(scores, scenario, setting, column)
+        for which in (0, 1):
+            name = OFFICIAL_RELATIVE.get((setting, which))
+            if name is not None:
+                out[scenario, name] = _share(right[member == which])
+    return out
+
+
+def _relative_right(scores: dict[str, np.ndarray], scenario: str, setting: str,
+                    column: str) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """For each video of a setting whose S1 pair is scored: 1 if judged rightly against the S1
+    pair's mean (a tie one half), with its pair index and member."""
+    pairs_s1, first, second = pairs_table(scores, scenario, "S1", column)
+    threshold = dict(zip(pairs_s1, (first + second) / 2))
+    mask = (scores["scenario"] == scenario) & (scores["setting"] == setting)
+    pair, member = scores["pair"][mask].astype(int), scores["member"][mask].astype(int)
+    known = np.array([p in threshold for p in pair], dtype=bool)
+    value, possible, pair, member = scores[column][mask][known], scores["possible"][mask][known], pair[known], \
+        member[known]
+    limit = np.array([threshold[p] for p in pair])
+    right = np.where(possible, pairwise_win(limit, value), pairwise_win(value, limit))
+    return right, pair, member
 
 
 def _share(values: np.ndarray) -> Estimate:

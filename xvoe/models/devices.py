@@ -14,9 +14,8 @@ from typing import Any
 
 import torch
 
+from ..domains import DEVICES
 from ..errors import XvoeError
-
-DEVICES = "cpu, cuda, cuda:N or mps"
 
 
 def parse_device(name: str | torch.device) -> torch.device:

@@ -6,6 +6,13 @@ from dataclasses import dataclass
 
 from ..domains import COUNT, NON_NEGATIVE, POSITIVE, SEED, SHARE, Domain, within
 
+# the recipes' names (a module each in xvoe/training/recipes/, whose RECIPES must hold these),
+# named here too because a recipe builds network configs, which import torch, and the command
+# line lists them in its --help
+RECIPE_NAMES = ("cpu-short", "paper")
+# what `xvoe pipeline` runs and the shipped models come from (docs/decisions.md, "The default recipe")
+DEFAULT_RECIPE = "cpu-short"
+
 
 @dataclass(frozen=True)
 class TrainConfig:

@@ -15,6 +15,7 @@ import torch
 from torch import Tensor
 
 from ..benchmark import store
+from ..benchmark.released import SOURCE_NAME
 from ..benchmark.scenes import TRAINING_GROUPS
 from ..benchmark.world import FLOOR, WORLD
 from ..errors import XvoeError
@@ -36,8 +37,10 @@ def check_size(file: h5py.File, image_size: int, what: str = "the model") -> Non
     """Refuse data whose frames are not the size the model was built for."""
     size = frame_size(file)
     if size != image_size:
+        remedy = "import the release again with xvoe import" if file.attrs.get("source") == SOURCE_NAME \
+            else "generate the data with"
         raise XvoeError(f"{file.filename} holds {size}x{size} frames but {what} works at "
-                        f"{image_size}x{image_size}; generate the data with --size {image_size}")
+                        f"{image_size}x{image_size}; {remedy} --size {image_size}")
 
 
 def masked_inputs(frames: Tensor, ids: Tensor, slots: int) -> dict[str, Tensor]:

@@ -7,12 +7,11 @@ that the shipped checkpoints' configs are their recipe's.
 from __future__ import annotations
 
 from ...errors import XvoeError
+from ..config import DEFAULT_RECIPE
 from . import cpu_short, paper
 from .recipe import Recipe, stage_settings
 
-RECIPES: dict[str, Recipe] = {r.name: r for r in (cpu_short.RECIPE, paper.RECIPE)}
-# what `xvoe pipeline` runs and the shipped models come from (docs/decisions.md, "The default recipe")
-DEFAULT_RECIPE = "cpu-short"
+RECIPES: dict[str, Recipe] = {r.name: r for r in (cpu_short.RECIPE, paper.RECIPE)}     # named in ..config too
 
 
 def recipe(name: str) -> Recipe:
