@@ -82,6 +82,8 @@ def test_list_names_the_videos_a_filter_picks_as_find_pair_does(test_file, test_
         impossible = xvoe.list_videos(file, setting="S3", member=1)
     assert len(impossible) == 3 * 8     # a pair of every S3 scenario (permanence has none)
     assert all(not row["possible"] and test_data["setting"][row["index"]] == "S3" for row in impossible)
+    assert main(["list", str(test_file), "--setting", "S3", "--member", "1", "--quiet"]) == 0
+    assert capsys.readouterr().out.split() == [str(row["index"]) for row in impossible]
 
 
 def test_show_writes_an_mp4_with_the_surprise_curves(test_file, tmp_path, capsys):

@@ -142,7 +142,7 @@ def cmd_show(args: argparse.Namespace) -> None:
 def cmd_list(args: argparse.Namespace) -> None:
     with xvoe.open_dataset(args.file) as file:
         rows = xvoe.list_videos(file, args.scenario, args.setting, args.member, args.pair)
-    print(format_videos(rows))
+    print("\n".join(str(row["index"]) for row in rows) if args.quiet else format_videos(rows))
 
 
 def format_videos(rows: list[dict]) -> str:
@@ -389,6 +389,7 @@ def build_parser() -> argparse.ArgumentParser:
     listing.add_argument("--setting", help="S1, S2 or S3")
     listing.add_argument("--member", type=_flag(int, NON_NEGATIVE, "member"), help="0 (expected) or 1")
     listing.add_argument("--pair", type=_flag(int, NON_NEGATIVE, "pair"), help="the pair's number")
+    listing.add_argument("--quiet", action="store_true", help="the indices alone, one a line (for a shell loop)")
     listing.set_defaults(run=cmd_list)
 
     add_train_parser(verbs)
