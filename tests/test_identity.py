@@ -104,8 +104,7 @@ def test_a_score_file_records_the_model_the_split_and_the_surprise(test_file, tm
     header = xvoe.score_header(out)
     assert header["split"] == identity_of(test_file) and header["data"] == str(Path(test_file).resolve())
     assert header["model_identity"] == {"source": "random", "seed": 0}
-    assert header["xvoe"] and header["surprise"] == {"own": "the model's per-frame surprise (in s_dyn), sum over "
-                                                            "frames"}
+    assert header["xvoe"] and header["surprise"] == {"own": "the model's per-frame surprise, sum over frames"}
 
 
 @pytest.fixture(scope="module")
@@ -119,7 +118,7 @@ def test_a_report_repeats_each_score_files_header(test_file, tmp_path):
     scores = xvoe.score("random", test_file, tmp_path / "r.csv", progress=False)
     xvoe.report([scores], tmp_path / "report", rounds=5, data=test_file)
     (entry,) = json.loads((tmp_path / "report" / "headers.json").read_text())
-    assert entry["scores"] == str(scores.resolve()) and entry["header"] == xvoe.score_header(scores)
+    assert entry["scores"] == str(scores.path.resolve()) and entry["header"] == xvoe.score_header(scores)
 
 
 def test_scores_of_another_split_of_the_same_layout_are_refused(test_file, other_split, tmp_path):
@@ -135,7 +134,7 @@ def test_scores_of_another_split_of_the_same_layout_are_refused(test_file, other
 
 def test_a_score_file_without_a_split_is_read_with_a_warning(test_file, tmp_path, capsys):
     scores = xvoe.score("random", test_file, tmp_path / "r.csv", progress=False)
-    scores.with_suffix(".curves.npz").unlink()          # as a CSV made elsewhere
+    scores.path.with_suffix(".curves.npz").unlink()          # as a CSV made elsewhere
     assert main(["metrics", str(scores), "--data", str(test_file), "--out", str(tmp_path / "report"),
                  "--rounds", "5"]) == 0
     assert "warning: " in capsys.readouterr().err and (tmp_path / "report" / "metrics.csv").is_file()

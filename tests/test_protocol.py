@@ -18,11 +18,13 @@ def test_an_example_model_goes_from_score_to_the_paper_metrics(reference, curve,
     assert main(["score", "--model", str(EXAMPLES / reference), "--data", str(test_file), "--out", str(scores),
                  "--quiet"]) == 0
     rows = list(csv.DictReader(open(scores)))
-    assert len(rows) == 176 and all(float(r["s_img"]) == 0 for r in rows)     # 8 pairs of 11 settings
+    assert len(rows) == 176 and list(rows[0])[-1] == "score" and "s_dyn" not in rows[0]    # 8 pairs of 11 settings
     curves = np.load(scores.with_suffix(".curves.npz"))      # its own curve, under its own name
     assert sorted(curves.files) == sorted(["header", curve])
     np.testing.assert_allclose([float(r["score"]) for r in rows], curves[curve].sum(1), rtol=1e-9)
     assert main(["metrics", str(scores), "--out", str(tmp_path / "report"), "--rounds", "10"]) == 0
+    metrics = list(csv.DictReader(open(tmp_path / "report" / "metrics.csv")))
+    assert {r["column"] for r in metrics} == {"score"}       # its own score, once: no MSE terms it has not
     assert (tmp_path / "report" / "comparative.png").exists()
 
 

@@ -42,6 +42,9 @@ COUNT = Domain(1)
 SHARE = Domain(0, 1)
 SEED = Domain(0, 2**63 - 1)     # what numpy's and torch's generators take, with room for seed + 1
 PICTURE_SIZE = Domain(16, 512)  # pixels a side of a rendered or displayed frame
+# seconds a model of your own may take for one batch (xvoe score --time-limit): generous, so
+# that only a hang ends a run; here, below torch, for the command line's default
+TIME_LIMIT = 600.0
 
 
 def within(default: Any, domain: Domain) -> Any:

@@ -14,7 +14,7 @@ from typing import Any
 import xvoe
 
 from ..benchmark.display import DISPLAY_SIZE
-from ..domains import NON_NEGATIVE, PICTURE_SIZE, POSITIVE, SEED, Domain, check_number
+from ..domains import NON_NEGATIVE, PICTURE_SIZE, POSITIVE, SEED, TIME_LIMIT, Domain, check_number
 from ..errors import XvoeError
 from ..models.config import parse_field, parse_value
 from ..models.devices import DEVICES, parse_device, resolve_device
@@ -131,7 +131,7 @@ def cmd_score(args: argparse.Namespace) -> None:
                      seed=args.seed, nll_settings=xvoe.nll_settings(args.nll_set), how=args.aggregate,
                      shard=args.shard, videos_per_batch=args.batch, workers=args.workers,
                      checks=not args.no_checks, overwrite=args.overwrite, progress=not args.quiet,
-                     device=args.device, cache=args.cache or True))
+                     device=args.device, cache=args.cache or True, time_limit=args.time_limit))
 
 
 @claim_scope()
@@ -370,6 +370,10 @@ def build_parser() -> argparse.ArgumentParser:
                        help="a model of your own (file.py:name), phydnet or random: write its scores without the "
                             "checks that the same videos score the same in another order, batch size and on a "
                             "repeat, and not all alike (NaN and inf are refused still)")
+    score.add_argument("--time-limit", type=_flag(float, POSITIVE, "--time-limit"), default=TIME_LIMIT,
+                       metavar="SECONDS",
+                       help=f"a model of your own (file.py:name), phydnet or random: the seconds its surprise may take "
+                            f"for one batch before the run ends (default {TIME_LIMIT:g})")
     score.add_argument("--overwrite", action="store_true", help="replace --out if it exists")
     score.add_argument("--quiet", action="store_true", help="no progress bar")
     score.add_argument("--shard", type=_shard, default=(0, 1), metavar="I/N",

@@ -51,22 +51,35 @@ def read_scores(path: str | Path, data: str | Path | None = None) -> dict[str, n
     test split that was scored, the CSV needs only `index` and `score` (any other columns
     too): the labels are joined from the split, and labels the CSV carries must be the
     split's. Every refusal is one line naming the problem."""
-    path = Path(path)
+    columns = _read_columns(Path(path), ("index", "score") if data is not None else (*REQUIRED, "score"),
+                            "" if data is not None else " (or give --data, the scored split, to join its labels)")
+    if data is not None:
+        columns = _join_labels(Path(path), columns, data)
+    problem = score_problem(columns)
+    if problem:
+        raise XvoeError(f"{path}: {problem}")
+    return columns
+
+
+def _read_columns(path: Path, needed: tuple[str, ...], hint: str = "") -> dict[str, np.ndarray]:
+    """A scores CSV's columns as read, each row's fields and the model's name checked, not yet
+    the table as a whole (`score_problem`). UTF-8, with or without a byte-order mark."""
     if path.is_dir():
         raise XvoeError(f"{path} is a directory, not a scores file")
     if not path.is_file():
         raise XvoeError(f"{path}: no such file")
     try:
-        with open(path, newline="", encoding="utf-8") as handle:
+        with open(path, newline="", encoding="utf-8-sig") as handle:
             rows = list(csv.DictReader(handle))
     except (UnicodeDecodeError, csv.Error):
         raise XvoeError(f"{path} is not a CSV text file") from None
     if not rows or not rows[0]:
         raise XvoeError(f"{path} holds no scores")
-    needed = ("index", "score") if data is not None else (*REQUIRED, "score")
+    longer = next((number for number, row in enumerate(rows, 1) if None in row), None)
+    if longer is not None:
+        raise XvoeError(f"{path}: row {longer} (line {longer + 1}) has more fields than the header names")
     missing = [c for c in needed if c not in rows[0]]
     if missing:
-        hint = "" if data is not None else " (or give --data, the scored split, to join its labels)"
         raise XvoeError(f"{path} is not a scores file: no column(s) {', '.join(missing)}{hint}")
     columns: dict[str, np.ndarray] = {}
     for name in rows[0]:
@@ -87,12 +100,49 @@ def read_scores(path: str | Path, data: str | Path | None = None) -> dict[str, n
                     bad = next(v for v in values if not _is_number(v))
                     raise XvoeError(f"{path}: {name} holds {bad!r}, not a number") from None
                 columns[name] = np.array(values)
-    if data is not None:
-        columns = _join_labels(path, columns, data)
-    problem = score_problem(columns)
-    if problem:
-        raise XvoeError(f"{path}: {problem}")
+    if "model" in columns:
+        _check_one_model(path, columns["model"])
     return columns
+
+
+def _check_one_model(path: Path, names: np.ndarray) -> None:
+    """One model's scores per file, under a usable name (`model_name_problem`): two names in one
+    file are refused rather than reported under the first (docs/decisions.md, "One model per
+    score file")."""
+    for number, name in enumerate(names, 1):
+        problem = model_name_problem(str(name))
+        if problem:
+            raise XvoeError(f"{path}: row {number}'s model name {problem}")
+        if name != names[0]:
+            raise XvoeError(f"{path} holds the scores of two models, {names[0]!r} and {name!r} (row {number}); "
+                            "give each model a file of its own")
+
+
+@dataclass(frozen=True)
+class ScoreTable:
+    """A score file as `xvoe.score` returns it: its path (the table stands for it wherever a
+    path is taken: `open`, `Path`, `xvoe.report`) and its columns as read, one row per video."""
+
+    path: Path
+
+    def __fspath__(self) -> str:
+        return str(self.path)
+
+    def __str__(self) -> str:
+        return str(self.path)
+
+    @property
+    def columns(self) -> dict[str, np.ndarray]:
+        """name -> (N,) values, as `read_scores` reads them (a shard's part too: not checked whole)."""
+        return _read_columns(self.path, ("index", "score"))
+
+    @property
+    def rows(self) -> list[dict]:
+        """One dict per video, the columns' values as Python numbers (index, pair and member whole) and text."""
+        columns = self.columns
+        whole = {name for name in ("index", "pair", "member") if name in columns}
+        return [{name: int(values[i]) if name in whole else values[i].item() for name, values in columns.items()}
+                for i in range(len(columns["index"]))]
 
 
 def _is_number(text: str) -> bool:
@@ -303,6 +353,19 @@ def metric_rows(scores: dict[str, np.ndarray], model: str, columns: tuple[str, .
 def _row(model, metric, column, scenario, setting, estimate: Estimate, ideal: float) -> dict:
     return {"model": model, "metric": metric, "column": column, "scenario": scenario, "setting": setting,
             "value": estimate.value, "low": estimate.low, "high": estimate.high, "ideal": ideal, "p": estimate.p}
+
+
+def model_name_problem(name: str) -> str | None:
+    """What makes `name` unusable as a model's name, in a few words, or None: a name is a CSV
+    field, a line of a report and part of its figures' file names (components-NAME.png), so it
+    is one line of printable text, not empty, with no path separator."""
+    if not name.strip():
+        return "is empty"
+    if not name.isprintable():
+        return f"holds a control character ({name!r}); a name is one line of printable text"
+    if "/" in name or "\\" in name:
+        return f"holds a path separator ({name!r}); a name is part of a report's file names"
+    return None
 
 
 def model_name(path: str | Path, scores: dict[str, np.ndarray]) -> str:
