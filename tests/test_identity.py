@@ -191,3 +191,32 @@ def test_verify_rescores_the_nll_columns_with_the_settings_and_seed_the_file_rec
     assert main(["verify", str(scores), "--rows", "22"]) == 1
     found = capsys.readouterr().out
     assert "video 12: differs in nll" in found and found.count(": matches") == 21     # every other video
+
+
+def test_verify_names_an_edit_of_any_row_outside_the_rescored_sample(tmp_path):
+    """Every row is checked against the curves it was summed from, not only the rescored sample:
+    each row's score edited in turn is named, as is an edited label or model name."""
+    data = xvoe.generate(xvoe.GenerateConfig("test", pairs=1, size=32, seed=11), tmp_path / "t.h5", progress=False)
+    scores = xvoe.score("random", data, tmp_path / "r.csv", progress=False).path
+    written = scores.read_bytes()
+    assert xvoe.verify(scores, rows=1).matches
+    for row in range(22):
+        tamper(scores, "score", row, 1.5)
+        found = xvoe.verify(scores, rows=1)
+        assert not found.matches and f"1 of 22 rows differ from what was written: row {row + 1} (video {row})" \
+            in found.lines[0], (row, found.lines)
+        scores.write_bytes(written)
+    for column, values in (("setting", ("S1", "S2")), ("possible", ("True", "False")), ("model", ("someone-else",))):
+        rows = list(csv.DictReader(open(scores, newline="")))
+        rows[5][column] = next(value for value in values if value != rows[5][column])
+        with open(scores, "w", newline="") as handle:
+            writer = csv.DictWriter(handle, list(rows[0]))
+            writer.writeheader()
+            writer.writerows(rows)
+        if column == "model":       # two models in one file: refused, naming the row
+            with pytest.raises(XvoeError, match="two models, 'random' and 'someone-else' \\(row 6\\)"):
+                xvoe.verify(scores, rows=1)
+        else:
+            found = xvoe.verify(scores, rows=1)
+            assert not found.matches and f"row 6 (video 5): {column}" in found.lines[0], found.lines
+        scores.write_bytes(written)

@@ -159,7 +159,8 @@ def cmd_metrics(args: argparse.Namespace) -> None:
 def cmd_verify(args: argparse.Namespace) -> int:
     found = xvoe.verify(args.scores, rows=args.rows, data=args.data, seed=args.seed, model=args.model)
     print("\n".join(found.lines))
-    print("every row scored again matches the file" if found.matches else "some rows do not match the file")
+    print("every row matches its curves and labels, and every row scored again matches the file" if found.matches
+          else "some rows do not match the file")
     return 0 if found.matches else 1
 
 

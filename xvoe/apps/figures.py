@@ -222,7 +222,7 @@ def _video_curves(scores: str | Path, file: h5py.File, indices: list[int]) -> di
     check_same_split(scores, split_identity(file), file.filename)
     table = read_scores(scores)
     warn_unchecked(scores)
-    curves = read_curves(Path(scores).with_suffix(".curves.npz"), len(table["index"]))
+    curves = read_curves(Path(scores).with_suffix(".curves.npz"), len(table["index"]), scores)
     rows = {int(video): row for row, video in enumerate(table["index"])}
     missing = [i for i in indices if i not in rows]
     if missing:
@@ -643,7 +643,7 @@ def pair_curves(scores: str | Path, data: str | Path | None, scenario: str, sett
     split `data` (None: the curves alone); `frame`, a cursor to draw, checked against them."""
     table = read_scores(scores)
     saved = read_curves(curves if curves is not None else Path(scores).with_suffix(".curves.npz"),
-                        len(table["index"]))
+                        len(table["index"]), scores)
     rows = _pair_rows(table["scenario"], table["setting"], table["pair"], table["member"], scenario, setting, pair,
                       str(scores))
     videos = [int(table["index"][r]) for r in rows]

@@ -21,6 +21,7 @@ share), from a seeded generator (resampling.interval).
 from __future__ import annotations
 
 import csv
+import hashlib
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TypeVar
@@ -51,7 +52,7 @@ def read_scores(path: str | Path, data: str | Path | None = None) -> dict[str, n
     test split that was scored, the CSV needs only `index` and `score` (any other columns
     too): the labels are joined from the split, and labels the CSV carries must be the
     split's. Every refusal is one line naming the problem."""
-    columns = _read_columns(Path(path), ("index", "score") if data is not None else (*REQUIRED, "score"),
+    columns = read_columns(Path(path), ("index", "score") if data is not None else (*REQUIRED, "score"),
                             "" if data is not None else " (or give --data, the scored split, to join its labels)")
     if data is not None:
         columns = _join_labels(Path(path), columns, data)
@@ -61,9 +62,10 @@ def read_scores(path: str | Path, data: str | Path | None = None) -> dict[str, n
     return columns
 
 
-def _read_columns(path: Path, needed: tuple[str, ...], hint: str = "") -> dict[str, np.ndarray]:
+def read_columns(path: Path, needed: tuple[str, ...] = ("index", "score"), hint: str = "") -> dict[str, np.ndarray]:
     """A scores CSV's columns as read, each row's fields and the model's name checked, not yet
-    the table as a whole (`score_problem`). UTF-8, with or without a byte-order mark."""
+    the table as a whole (`score_problem`: a shard's part is not whole, and `xvoe verify` names
+    an edited label by its row). UTF-8, with or without a byte-order mark."""
     if path.is_dir():
         raise XvoeError(f"{path} is a directory, not a scores file")
     if not path.is_file():
@@ -109,13 +111,27 @@ def _check_one_model(path: Path, names: np.ndarray) -> None:
     """One model's scores per file, under a usable name (`model_name_problem`): two names in one
     file are refused rather than reported under the first (docs/decisions.md, "One model per
     score file")."""
-    for number, name in enumerate(names, 1):
-        problem = model_name_problem(str(name))
+    for number, name in enumerate(map(str, names), 1):
+        problem = model_name_problem(name)
         if problem:
             raise XvoeError(f"{path}: row {number}'s model name {problem}")
         if name != names[0]:
-            raise XvoeError(f"{path} holds the scores of two models, {names[0]!r} and {name!r} (row {number}); "
+            raise XvoeError(f"{path} holds the scores of two models, {str(names[0])!r} and {name!r} (row {number}); "
                             "give each model a file of its own")
+
+
+def scores_digest(path: str | Path) -> str:
+    """A digest of a scores CSV's columns as read (names, labels and values; not its bytes, so
+    that a file saved again with a byte-order mark or other line ends keeps it), which its curves
+    file records: curves beside another score file, or beside scores edited since, are told apart."""
+    digest = hashlib.sha256()
+    for name, values in read_columns(Path(path), ("index", "score")).items():
+        digest.update(name.encode() + b"\0")
+        if values.dtype.kind in "fb":
+            digest.update(np.ascontiguousarray(values, dtype="<f8").tobytes())
+        else:
+            digest.update("\0".join(map(str, values)).encode() + b"\0")
+    return digest.hexdigest()
 
 
 @dataclass(frozen=True)
@@ -134,7 +150,7 @@ class ScoreTable:
     @property
     def columns(self) -> dict[str, np.ndarray]:
         """name -> (N,) values, as `read_scores` reads them (a shard's part too: not checked whole)."""
-        return _read_columns(self.path, ("index", "score"))
+        return read_columns(self.path, ("index", "score"))
 
     @property
     def rows(self) -> list[dict]:
@@ -273,7 +289,7 @@ def relative(scores: dict[str, np.ndarray], column: str = "score", rounds: int =
     out = {}
     for scenario, setting in _settings(scores):
         pairs_s1, first, second = pairs_table(scores, scenario, "S1", column)
-        threshold = dict(zip(pairs_s1, (first + second) / 2))
+        threshold = dict(zip(pairs_s1, first / 2 + second / 2))    # halved first: 1e308 + 1e308 overflows
         mask = (scores["scenario"] == scenario) & (scores["setting"] == setting)
         pair = scores["pair"][mask].astype(int)
         known = np.array([p in threshold for p in pair], dtype=bool)

@@ -58,7 +58,7 @@ from ..training.perception import load_perception
 from ..training.phydnet import load_phydnet
 from ..training.xpl import load_xpl, nll_settings_of
 from .checks import check_batches, check_finite, check_spread, sample_rows
-from .metrics import excess, model_name_problem
+from .metrics import excess, model_name_problem, scores_digest
 from .surprise import DrawnScene, aggregate, draw_scene, every_explanation
 
 # score, s_img and s_dyn: the default verdict (for XPL, the better of two explanations); paper_score:
@@ -547,15 +547,17 @@ def score_split(model: str | Scorer, data: str, out: str, *, how: str = "sum", v
         own, header["curve_label"] = curve_of(scorer.custom)
         named, header["curve"] = {own: curves[1]}, own
     # the CSV and its curves are one result: the CSV, which names the curves, is renamed last
-    with atomic_paths(curves_path, out) as (curves_tmp, tmp), open(tmp, "w", newline="") as handle:
+    with atomic_paths(curves_path, out) as (curves_tmp, tmp):
+        with open(tmp, "w", newline="") as handle:
+            writer = csv.writer(handle)
+            writer.writerow(SCORE_COLUMNS[:7] + tuple(columns))
+            for row, i in enumerate(range(first, last)):
+                writer.writerow([i, scorer.name, labels["scenario"][i], labels["setting"][i], int(labels["pair"][i]),
+                                 int(labels["member"][i]), bool(labels["possible"][i])]
+                                + [float(values[row]) for values in columns.values()])
+        header["scores_digest"] = scores_digest(tmp)
         with open(curves_tmp, "wb") as curves_file:
             np.savez_compressed(curves_file, header=np.array(json.dumps(header, sort_keys=True)), **named)
-        writer = csv.writer(handle)
-        writer.writerow(SCORE_COLUMNS[:7] + tuple(columns))
-        for row, i in enumerate(range(first, last)):
-            writer.writerow([i, scorer.name, labels["scenario"][i], labels["setting"][i], int(labels["pair"][i]),
-                             int(labels["member"][i]), bool(labels["possible"][i])]
-                            + [float(values[row]) for values in columns.values()])
     return out
 
 
@@ -607,20 +609,64 @@ def row_columns(scorer: Scorer, curves: np.ndarray, added: np.ndarray, how: str,
     return columns
 
 
-def score_header(path: str | Path) -> dict:
+def stored_columns(saved: dict[str, np.ndarray], header: dict) -> dict[str, np.ndarray]:
+    """The columns of a score file that its stored curves (`curves_arrays`) reduce to, by the
+    aggregation its header records: score (where it is the MSE's or a model's own), s_img, s_dyn,
+    s_rec, paper_score and excess, each where its curves are stored. The NLL's columns are not
+    sums of curves: `xvoe verify` rescores them."""
+    how, own = header.get("aggregate", "sum"), header.get("curve")
+
+    def reduced(curve: np.ndarray) -> np.ndarray:
+        return aggregate(torch.from_numpy(np.asarray(curve, float)), how).numpy()
+
+    found = {name: reduced(saved[name]) for name in ("s_img", "s_dyn", "s_rec") if name in saved}
+    if {"paper_s_img", "paper_s_dyn"} <= set(saved):
+        found["paper_score"] = reduced(saved["paper_s_img"] + saved["paper_s_dyn"])
+    if {"s_img", "s_dyn", "s_rec"} <= set(saved):
+        found["excess"] = reduced(excess(saved["s_img"], saved["s_dyn"], saved["s_rec"]))
+    if header.get("score", "score") == "score":
+        if own in saved:
+            found["score"] = reduced(saved[own])
+        elif {"s_img", "s_dyn"} <= set(saved):
+            found["score"] = reduced(saved["s_img"] + saved["s_dyn"])
+    return found
+
+
+def score_header(path: str | Path, check: bool = True) -> dict:
     """What a score file was made with, kept in its curves file: the package version (`xvoe`),
     the model's name and identity (`model_identity`), the split's identity (`split`,
     `xvoe.identity.split_identity`) and the path it was read from (`data`), the score column,
-    the aggregation over frames, the surprise definitions (`surprise`) and, for the NLL, its
-    settings and seed (`nll`, `nll_seed`)."""
+    the aggregation over frames, the surprise definitions (`surprise`), for the NLL its
+    settings and seed (`nll`, `nll_seed`), and the digest of the scores it was written with
+    (`scores_digest`). `check`: refuse, in one line, curves written with other scores
+    (`check_curves_of`)."""
     curves = Path(path).with_suffix(".curves.npz")
     if not curves.is_file():
         raise XvoeError(f"{path} has no curves file beside it ({curves.name}), which holds its header")
-    found = curves_arrays(curves)
+    header = _header_of(curves, curves_arrays(curves))
+    if check:
+        check_curves_of(path, curves, header)
+    return header
+
+
+def _header_of(curves: Path, saved: dict[str, np.ndarray]) -> dict:
     try:
-        return json.loads(str(found["header"])) if "header" in found else {}
+        header = json.loads(str(saved["header"])) if "header" in saved else {}
     except ValueError:
-        raise XvoeError(f"{curves} is not a curves file of xvoe score (its header is not JSON)") from None
+        header = None
+    if not isinstance(header, dict):
+        raise XvoeError(f"{curves} is not a curves file of xvoe score (its header is not a JSON object)")
+    return header
+
+
+def check_curves_of(scores: str | Path, curves: str | Path, header: dict) -> None:
+    """Refuse curves whose header records the digest of other scores than the file `scores`: the
+    curves of another score file put beside it, or scores edited since they were written (a
+    header that records none, an older xvoe's, is taken as it is)."""
+    recorded = header.get("scores_digest")
+    if recorded is not None and recorded != scores_digest(scores):
+        raise XvoeError(f"{curves} was written with other scores than {scores} holds: the curves of another score "
+                        f"file, or scores edited since (xvoe verify {scores} names the rows)")
 
 
 class UncheckedScores(UserWarning):
@@ -632,7 +678,7 @@ class UncheckedScores(UserWarning):
 def scored_split(path: str | Path) -> dict | None:
     """The identity of the split a score file was scored on (`xvoe.identity.split_identity`), or
     None for a file that records none (`warn_unchecked` says so, once the file has been read)."""
-    header = score_header(path) if Path(path).with_suffix(".curves.npz").is_file() else {}
+    header = score_header(path, check=False) if Path(path).with_suffix(".curves.npz").is_file() else {}
     return header.get("split")
 
 
@@ -653,7 +699,7 @@ def check_same_split(path: str | Path, identity: dict, data: str | Path) -> None
 
 def check_scored_by(path: str | Path, scorer: Scorer) -> None:
     """Refuse a score file that another model made (its weights and configs, wherever they lie)."""
-    recorded = score_header(path).get("model_identity")
+    recorded = score_header(path, check=False).get("model_identity")
     if recorded is None:
         raise XvoeError(f"{path} does not record the model it was made with: rescore it with this xvoe")
     loaded = model_identity(scorer)
@@ -690,14 +736,17 @@ def curves_arrays(path: str | Path) -> dict[str, np.ndarray]:
         raise XvoeError(f"{path} is not a curves file of xvoe score ({error})") from None
 
 
-def read_curves(path: str | Path, videos: int) -> Curves:
-    """The curves file `path` (.curves.npz) of a score file of `videos` rows; a one-line error
-    for a missing file, one that is not a curves file or one of another score file."""
+def read_curves(path: str | Path, videos: int, scores: str | Path | None = None) -> Curves:
+    """The curves file `path` (.curves.npz) of a score file of `videos` rows (`scores`, where
+    known, whose digest it must record: `check_curves_of`); a one-line error for a missing
+    file, one that is not a curves file or one of another score file."""
     path = Path(path)
     if not path.is_file():
         raise XvoeError(f"{path}: no such file; xvoe score writes the curves beside the CSV")
     saved = curves_arrays(path)
-    header = json.loads(str(saved["header"])) if "header" in saved else {}
+    header = _header_of(path, saved)
+    if scores is not None:
+        check_curves_of(scores, path, header)
     own = header.get("curve")
     needed = {own} if own else {"s_img", "s_dyn"}
     if not needed <= set(saved):
@@ -755,17 +804,28 @@ def merge_scores(parts: list[str | Path], out: str | Path, overwrite: bool = Fal
             raise XvoeError(f"the parts do not follow each other: {part} starts at video {first}, not {expected}")
         expected += len(lines) - 1
         rows += lines[1:]
-        for name, values in curves_arrays(part.with_suffix(".curves.npz")).items():
-            arrays.setdefault(name, []).append(values)
+        saved = curves_arrays(part.with_suffix(".curves.npz"))
+        check_curves_of(part, part.with_suffix(".curves.npz"), _header_of(part, saved))
+        for name, values in saved.items():
+            arrays.setdefault(name, []).append(_without_digest(values) if name == "header" else values)
         if len({str(header) for header in arrays.get("header", [])}) > 1:
             raise XvoeError(f"{part} was scored with other settings than {found[0][1]} (their headers differ)")
     with atomic_paths(curves_path, out) as (curves_tmp, tmp):
-        with open(curves_tmp, "wb") as curves_file:
-            np.savez_compressed(curves_file, **{name: a[0] if name == "header" else np.concatenate(a)
-                                                for name, a in arrays.items()})
         with open(tmp, "w", newline="") as handle:
             handle.writelines([header, *rows])
+        digest = {"scores_digest": scores_digest(tmp)}     # the whole file's, where each part recorded its own
+        merged = {name: np.array(json.dumps(json.loads(a[0]) | digest, sort_keys=True)) if name == "header"
+                  else np.concatenate(a) for name, a in arrays.items()}
+        with open(curves_tmp, "wb") as curves_file:
+            np.savez_compressed(curves_file, **merged)
     return out
+
+
+def _without_digest(header: np.ndarray) -> str:
+    """A part's header without its own scores' digest: what the parts of one run share."""
+    found = json.loads(str(header))
+    found.pop("scores_digest", None)
+    return json.dumps(found, sort_keys=True)
 
 
 def read_videos(file, start: int, stop: int) -> Videos:
