@@ -119,10 +119,15 @@ def sheet_rows(rgbd: np.ndarray, ids: np.ndarray, display: np.ndarray | None = N
 
 
 def display_rows(file: h5py.File, indices: list[int], display_size: int | None) -> np.ndarray | None:
-    """The scene of videos `indices` at `display_size` (M, T, S, S, 4), or None without one."""
+    """The scene of videos `indices` at `display_size` (M, T, S, S, 4), or None without one: where
+    a video cannot be drawn anew at that size (a hand-made or imported split; `display_video`),
+    its stored frames enlarged are the model's row already, not a scene to label as one."""
     if display_size is None:
         return None
-    return np.stack([display_video(file, i, display_size).rgbd for i in indices])
+    videos = [display_video(file, i, display_size) for i in indices]
+    if not all(video.resimulated or display_size == file["rgbd"].shape[2] for video in videos):
+        return None
+    return np.stack([video.rgbd for video in videos])
 
 
 def show_video(file: h5py.File, index: int, display_size: int | None = DISPLAY_SIZE) -> plt.Figure:
