@@ -6,6 +6,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+import xvoe
 from xvoe.apps.cli import main
 
 EXAMPLES = Path(__file__).resolve().parent.parent / "examples"
@@ -155,3 +156,26 @@ def test_a_model_of_your_own_may_draw_its_explanation(test_file, tmp_path, monke
     assert main(["explain", "--model", "my_painters:Mute", "--data", str(test_file), "--out",
                  str(tmp_path / "m.png")]) == 2
     assert "no explanation to draw" in capsys.readouterr().err
+
+
+class _Mine:
+    """A model made in a script: a name and a surprise, none of the optional attributes."""
+
+    name = "mine"
+
+    def surprise(self, videos):
+        return np.stack([np.random.default_rng(int(i)).random(videos.frames) for i in videos.index])
+
+
+def test_a_model_object_from_python_scores_into_a_table_that_keeps_its_path(test_file, tmp_path):
+    table = xvoe.score(_Mine(), data=test_file, out=tmp_path / "mine.csv", progress=False)
+    assert table.path == tmp_path / "mine.csv" and Path(table) == table.path and table.path.is_file()
+    rows = table.rows
+    assert len(rows) == 176 and rows[3]["index"] == 3 and rows[0]["model"] == "mine"
+    assert set(rows[0]) == {"index", "model", "scenario", "setting", "pair", "member", "possible", "score"}
+    np.testing.assert_allclose(table.columns["score"], xvoe.read_scores(table)["score"])
+    nameless = _Mine()
+    nameless.name = "two\nlines"
+    with pytest.raises(xvoe.XvoeError, match="control character"):
+        xvoe.score(nameless, data=test_file, out=tmp_path / "n.csv", progress=False)
+    assert not (tmp_path / "n.csv").exists()
