@@ -341,7 +341,8 @@ def build_parser() -> argparse.ArgumentParser:
 
     score = verbs.add_parser("score", help="score test videos with a trained model (surprise per video)",
                              description="One CSV row per test video (index, scenario, setting, pair, member, "
-                                         "possible, score, s_img, s_dyn) and the per-frame surprise curves in "
+                                         "possible, score, s_img, s_dyn; a model of your own: score alone) and "
+                                         "the per-frame surprise curves in "
                                          "OUT.curves.npz, with the header: the package version, the model's and "
                                          "the split's identities, the surprise settings. The MSE surprise is "
                                          "the paper's (Eq. 2-4): its score column takes the better of "

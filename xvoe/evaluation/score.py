@@ -10,9 +10,11 @@ error of its one-step prediction summed over pixels (0 at frame 0). It is writte
 s_dyn column and curve; s_img is all zeros for it.
 
 A model answering `surprise(videos)` (`SurpriseModel`: PhyDNet, the random agent, a model of
-your own) has one term, written in the s_dyn column; its per-frame curve is stored under the
+your own) has one term: its score file holds the score column alone (PhyDNet's keeps it in
+s_dyn too, beside an s_img of zeros, `own_surprise`); its per-frame curve is stored under the
 model's own name for it (`curve_of`), and it passes the harness of xvoe.evaluation.checks
-before anything is written.
+before anything is written. Being the user's code, it runs under a time limit per batch, and
+whatever it raises or returns wrong ends the run in one line naming it (`checked_surprise`).
 """
 from __future__ import annotations
 
