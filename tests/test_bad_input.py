@@ -387,6 +387,14 @@ class Nameless:
     name = ""
     def surprise(self, videos):
         return ones(videos)
+
+
+class ExplainRaises:
+    name = "explain-raises"
+    def surprise(self, videos):
+        return ones(videos)
+    def explain(self, videos):
+        raise KeyError("nothing behind")
 """
 
 
@@ -410,6 +418,8 @@ def own_model_cases(files, tmp: Path) -> list[tuple[list[str], str]]:
         (score + [f"{own}:Newline"], "name holds a control character"),
         (score + [f"{own}:Nameless"], "name is empty"),
         (score + ["random", "--time-limit", "0"], "--time-limit"),
+        (["explain", "--model", f"{own}:ExplainRaises", "--data", str(files["test"]), "--index", "3", "--out",
+          str(tmp / "own.png")], "the model explain-raises failed on video 3: explain raised KeyError"),
     ]
 
 
@@ -613,7 +623,7 @@ def test_every_bad_input_gets_one_line_exit_2_and_changes_nothing(files, tmp_pat
         assert "Traceback" not in err
         assert snapshot(tmp_path) == before, args
         tried += 1
-    assert tried == 5 * len(MALFORMED) + 2 * len(MALFORMED_TRAIN) + 32 + 31 + 14 + 6 + 7 + 7 + 17 + 13 + 6 + 5
+    assert tried == 5 * len(MALFORMED) + 2 * len(MALFORMED_TRAIN) + 32 + 31 + 14 + 6 + 7 + 7 + 17 + 14 + 6 + 5
 
 
 CONFIGS = (TrainConfig, PerceptionConfig, XPLConfig, ReasoningConfig, DynamicsConfig, PhyDNetConfig, InferenceConfig,

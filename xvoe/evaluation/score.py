@@ -365,20 +365,26 @@ def checked_surprise(scorer: Scorer, videos: Videos) -> np.ndarray:
     """`scorer.custom.surprise(videos)` as floats (B, T), within the scorer's time limit, refused in
     one line naming the model (and the first video at fault) unless it returns, returns real
     numbers of that shape, and every one is finite; an exception of the model's is named too."""
+    values = _real_values(run_model(scorer, "surprise", videos), videos, scorer.name)
+    check_finite(values, videos.index, scorer.name)
+    return values
+
+
+def run_model(scorer: Scorer, method: str, videos: Videos) -> object:
+    """`scorer.custom.METHOD(videos)` (`surprise`, `explain`) within the scorer's time limit; what
+    it raises (an exception, or sys.exit) or a batch past the limit ends in one line naming the
+    model and the videos."""
     batch = _batch_name(videos.index)
     try:
         with _time_limit(scorer.time_limit):
-            found = scorer.custom.surprise(videos)
+            return getattr(scorer.custom, method)(videos)
     except _OutOfTime:
-        raise XvoeError(f"the model {scorer.name} gave no surprise for {batch} within {scorer.time_limit:g} s; "
+        raise XvoeError(f"the model {scorer.name} gave no {method} for {batch} within {scorer.time_limit:g} s; "
                         "--time-limit sets the limit per batch") from None
     except XvoeError:
         raise
     except (Exception, SystemExit) as error:  # noqa: BLE001 - a user's model may fail in any way; say which and where
-        raise XvoeError(f"the model {scorer.name} failed on {batch}: surprise raised {one_line(error)}") from None
-    values = _real_values(found, videos, scorer.name)
-    check_finite(values, videos.index, scorer.name)
-    return values
+        raise XvoeError(f"the model {scorer.name} failed on {batch}: {method} raised {one_line(error)}") from None
 
 
 def _batch_name(index: np.ndarray) -> str:
