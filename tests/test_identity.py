@@ -191,6 +191,7 @@ def test_verify_rescores_the_nll_columns_with_the_settings_and_seed_the_file_rec
     assert main(["verify", str(scores), "--rows", "22"]) == 1
     found = capsys.readouterr().out
     assert "video 12: differs in nll" in found and found.count(": matches") == 21     # every other video
+    assert "1 of 22 rows differ from what was written: row 13 (video 12): nll" in found    # its curve's sum
 
 
 def test_verify_names_an_edit_of_any_row_outside_the_rescored_sample(tmp_path):

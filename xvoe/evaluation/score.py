@@ -619,9 +619,10 @@ def row_columns(scorer: Scorer, curves: np.ndarray, added: np.ndarray, how: str,
 
 def stored_columns(saved: dict[str, np.ndarray], header: dict) -> dict[str, np.ndarray]:
     """The columns of a score file that its stored curves (`curves_arrays`) reduce to, by the
-    aggregation its header records: score (where it is the MSE's or a model's own), s_img, s_dyn,
-    s_rec, paper_score and excess, each where its curves are stored. The NLL's columns are not
-    sums of curves: `xvoe verify` rescores them."""
+    aggregation its header records: score, s_img, s_dyn, s_rec, paper_score and excess, each
+    where its curves are stored, and nll, -log p(video), the sum of its curve whatever the
+    aggregation (the sequential Monte Carlo's; importance sampling stores none). The NLL's other
+    columns are not sums of curves: `xvoe verify` rescores them."""
     how, own = header.get("aggregate", "sum"), header.get("curve")
 
     def reduced(curve: np.ndarray) -> np.ndarray:
@@ -632,11 +633,15 @@ def stored_columns(saved: dict[str, np.ndarray], header: dict) -> dict[str, np.n
         found["paper_score"] = reduced(saved["paper_s_img"] + saved["paper_s_dyn"])
     if {"s_img", "s_dyn", "s_rec"} <= set(saved):
         found["excess"] = reduced(excess(saved["s_img"], saved["s_dyn"], saved["s_rec"]))
-    if header.get("score", "score") == "score":
-        if own in saved:
-            found["score"] = reduced(saved[own])
-        elif {"s_img", "s_dyn"} <= set(saved):
-            found["score"] = reduced(saved["s_img"] + saved["s_dyn"])
+    if "nll" in saved:
+        found["nll"] = np.asarray(saved["nll"], float).sum(axis=1)
+    score = header.get("score", "score")
+    if score == "score" and own in saved:
+        found["score"] = reduced(saved[own])
+    elif score == "score" and {"s_img", "s_dyn"} <= set(saved):
+        found["score"] = reduced(saved["s_img"] + saved["s_dyn"])
+    elif score in found:
+        found["score"] = found[score]
     return found
 
 
