@@ -225,7 +225,8 @@ def case_lines(files, tmp: Path) -> list[tuple[list[str], str]]:
         (["ship", str(tmp / "nowhere"), "--out", str(tmp / "weights")], "no such run directory"),
     ]
     return (cases + domain_cases(files, tmp) + path_cases(files, tmp) + kind_cases(files, tmp) + split_cases(files, tmp)
-            + damage_cases(files, tmp) + checkpoint_cases(files, tmp))
+            + damage_cases(files, tmp) + checkpoint_cases(files, tmp) + own_model_cases(files, tmp)
+            + edited_score_cases(files, tmp) + video_value_cases(files, tmp))
 
 
 def edited_checkpoint(run: Path, stage: str, change, shipped: str = "xpl") -> Path:
@@ -315,6 +316,174 @@ def damage_cases(files, tmp: Path) -> list[tuple[list[str], str]]:
          f"{train} is damaged: video 1's rgbd"),
         (["generate", "--merge", str(files["shard-0"]), str(files["shard-1"]), "--out", str(tmp / "m.h5"), "--quiet"],
          f"{files['shard-1']} is damaged: video 1's ids cannot be read"),
+    ]
+
+
+OWN_MODELS = """
+import sys
+import time
+
+import numpy as np
+
+
+def ones(videos):
+    return np.stack([np.random.default_rng(int(i)).random(videos.frames) for i in videos.index])
+
+
+class InitRaises:
+    name = "init-raises"
+    def __init__(self):
+        raise ValueError("no weights here")
+    def surprise(self, videos):
+        return ones(videos)
+
+
+class Raises:
+    name = "raises"
+    def surprise(self, videos):
+        raise RuntimeError("lost\\nits way")
+
+
+class Text:
+    name = "text"
+    def surprise(self, videos):
+        return [["high"] * videos.frames for _ in videos.index]
+
+
+class Ragged:
+    name = "ragged"
+    def surprise(self, videos):
+        return [list(ones(videos)[i][:videos.frames - (i == 1)]) for i in range(len(videos.index))]
+
+
+class Complex:
+    name = "complex"
+    def surprise(self, videos):
+        return ones(videos) * (1 + 1j)
+
+
+class Infinite:
+    name = "infinite"
+    def surprise(self, videos):
+        found = ones(videos)
+        found[videos.index == 5] = np.inf
+        return found
+
+
+class Exits:
+    name = "exits"
+    def surprise(self, videos):
+        sys.exit(3)
+
+
+class Hangs:
+    name = "hangs"
+    def surprise(self, videos):
+        while True:
+            try:
+                time.sleep(60)
+            except Exception:
+                pass
+
+
+class Newline:
+    name = "two\\nlines"
+    def surprise(self, videos):
+        return ones(videos)
+
+
+class Nameless:
+    name = ""
+    def surprise(self, videos):
+        return ones(videos)
+
+
+class ExplainRaises:
+    name = "explain-raises"
+    def surprise(self, videos):
+        return ones(videos)
+    def explain(self, videos):
+        raise KeyError("nothing behind")
+"""
+
+
+def own_model_cases(files, tmp: Path) -> list[tuple[list[str], str]]:
+    """Models of one's own that misbehave: each ends in one line naming the model and what it did."""
+    (tmp / "own.py").write_text(OWN_MODELS)
+    (tmp / "exits_at_import.py").write_text("import sys\nsys.exit(3)\n")
+    score = ["score", "--data", str(files["test"]), "--out", str(tmp / "own.csv"), "--quiet", "--model"]
+    own = str(tmp / "own.py")
+    return [
+        (score + [f"{own}:InitRaises"], "InitRaises() raised ValueError: no weights here"),
+        (score + [f"{own}:Raises"], "the model raises failed on videos"),
+        (score + [f"{own}:Raises"], "surprise raised RuntimeError: lost its way"),
+        (score + [f"{own}:Text"], "the model text gave values of type <U4 (not numbers) for video"),
+        (score + [f"{own}:Ragged"], "the model ragged gave a row of shape (14,), not (15,) for video"),
+        (score + [f"{own}:Complex"], "the model complex gave complex numbers for video"),
+        (score + [f"{own}:Infinite", "--no-checks"], "NaN or infinite for video 5"),
+        (score + [f"{own}:Exits"], "surprise raised SystemExit: 3"),
+        (score + [f"{tmp / 'exits_at_import.py'}:Model"], "SystemExit: 3"),
+        (score + [f"{own}:Hangs", "--time-limit", "0.3"], "the model hangs gave no surprise for videos"),
+        (score + [f"{own}:Newline"], "name holds a control character"),
+        (score + [f"{own}:Nameless"], "name is empty"),
+        (score + ["random", "--time-limit", "0"], "--time-limit"),
+        (["explain", "--model", f"{own}:ExplainRaises", "--data", str(files["test"]), "--index", "3", "--out",
+          str(tmp / "own.png")], "the model explain-raises failed on video 3: explain raised KeyError"),
+    ]
+
+
+def _rewrite_rows(source: Path, target: Path, change) -> Path:
+    """A copy of a score file (its curves beside it) with its rows changed by hand."""
+    with open(source, newline="") as handle:
+        rows = list(csv.reader(handle))
+    change(rows)
+    with open(target, "w", newline="") as handle:
+        csv.writer(handle).writerows(rows)
+    shutil.copy(source.with_suffix(".curves.npz"), target.with_suffix(".curves.npz"))
+    return target
+
+
+def edited_score_cases(files, tmp: Path) -> list[tuple[list[str], str]]:
+    """Score files edited by hand, and curves that are not their score file's."""
+    test = str(files["test"])
+    ours = tmp / "edited-source.csv"
+    main(["score", "--model", "random", "--data", test, "--out", str(ours), "--quiet"])
+    mine = tmp / "mine.csv"
+    main(["score", "--model", f"{EXAMPLES / 'frame_change.py'}:FrameChange", "--data", test, "--out", str(mine),
+          "--quiet"])
+    extra = _rewrite_rows(ours, tmp / "extra.csv", lambda rows: rows[3].append("7"))
+    two = _rewrite_rows(ours, tmp / "two.csv", lambda rows: rows[4].__setitem__(1, "other"))
+    nameless = _rewrite_rows(ours, tmp / "nameless.csv", lambda rows: [row.__setitem__(1, "") for row in rows[1:]])
+    edited = _rewrite_rows(ours, tmp / "edited.csv", lambda rows: rows[9].__setitem__(7, "0.5"))
+    swapped = tmp / "swapped.csv"
+    shutil.copy(ours, swapped)
+    shutil.copy(mine.with_suffix(".curves.npz"), swapped.with_suffix(".curves.npz"))
+    report = ["--out", str(tmp / "r"), "--rounds", "5"]
+    return [
+        (["metrics", str(extra)] + report, "row 3 (line 4) has more fields than the header"),
+        (["metrics", str(two)] + report, "two models, 'random' and 'other' (row 4)"),
+        (["metrics", str(nameless)] + report, "row 1's model name is empty"),
+        (["metrics", str(swapped)] + report, "was written with other scores than"),
+        (["metrics", str(edited)] + report, "was written with other scores than"),
+        (["show", test, "--out", str(tmp / "s.mp4"), "--scores", str(swapped)], "was written with other scores than"),
+    ]
+
+
+def video_value_cases(files, tmp: Path) -> list[tuple[list[str], str]]:
+    """Slot ids and states checked in every video where read, not only the first and last."""
+    source = files["test-32"]
+    ids = mutate(source, tmp / "ids-middle.h5", lambda f: f["ids"].__setitem__((5, 3, 0, 0), 200))
+    nan = mutate(source, tmp / "nan-states.h5", lambda f: f["states"].__setitem__((5, 3, 0, 0), np.nan))
+    inf = mutate(source, tmp / "inf-states.h5", lambda f: f["states"].__setitem__((5, 3, 0, 1), np.inf))
+    named = f"{ids} has slot ids up to 200 in video 5"
+    return [
+        (["score", "--model", "random", "--data", str(ids), "--out", str(tmp / "v.csv"), "--quiet"], named),
+        (["show", str(ids), "--index", "5", "--out", str(tmp / "v.png")], named),
+        (["explain", "--model", "xpl", "--data", str(ids), "--index", "5", "--out", str(tmp / "v.png")], named),
+        (["show", str(nan), "--index", "5", "--out", str(tmp / "v.png")],
+         f"{nan} has NaN or infinite states in video 5"),
+        (["explain", "--model", "xpl", "--data", str(inf), "--index", "5", "--out", str(tmp / "v.png")],
+         f"{inf} has NaN or infinite states in video 5"),
     ]
 
 
@@ -463,7 +632,7 @@ def test_every_bad_input_gets_one_line_exit_2_and_changes_nothing(files, tmp_pat
         assert "Traceback" not in err
         assert snapshot(tmp_path) == before, args
         tried += 1
-    assert tried == 6 * len(MALFORMED) + 2 * len(MALFORMED_TRAIN) + 40 + 31 + 14 + 6 + 7 + 7 + 17
+    assert tried == 6 * len(MALFORMED) + 2 * len(MALFORMED_TRAIN) + 40 + 31 + 14 + 6 + 7 + 7 + 17 + 14 + 6 + 5
 
 
 CONFIGS = (TrainConfig, PerceptionConfig, XPLConfig, ReasoningConfig, DynamicsConfig, PhyDNetConfig, InferenceConfig,

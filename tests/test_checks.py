@@ -114,13 +114,13 @@ def test_a_score_that_is_not_a_number_is_refused_even_without_the_checks(planted
 
 def test_a_well_behaved_model_passes(planted, test_file, tmp_path):
     assert score(planted, "Good", test_file, tmp_path / "good.csv") == 0
-    assert xvoe.score("random", test_file, tmp_path / "random.csv", progress=False).exists()   # the baselines too
+    assert xvoe.score("random", test_file, tmp_path / "random.csv", progress=False).path.exists()   # the baselines too
 
 
 def test_a_model_s_own_curve_is_stored_and_drawn_under_its_own_name(test_file, tmp_path):
     out = xvoe.score(xvoe.load_model(f"{EXAMPLES / 'frame_change.py'}:FrameChange"), test_file,
                      tmp_path / "change.csv", progress=False)
-    with np.load(out.with_suffix(".curves.npz")) as saved:
+    with np.load(out.path.with_suffix(".curves.npz")) as saved:
         assert sorted(saved.files) == ["frame_change", "header"]
         per_frame = saved["frame_change"]
     assert xvoe.score_header(out)["curve_label"] == "summed squared change of the frame"

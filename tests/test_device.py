@@ -34,8 +34,8 @@ def test_scores_on_an_explicit_cpu_are_the_bytes_of_the_default(split32, tmp_pat
     settings = dict(surprise="both", particles=8, videos_per_batch=2, shard=(0, 11), progress=False)   # 2 videos
     default = xvoe.score("xpl", split32, tmp_path / "default.csv", **settings)
     chosen = xvoe.score("xpl", split32, tmp_path / "cpu.csv", **settings, device="cpu")
-    assert chosen.read_bytes() == default.read_bytes()
-    assert chosen.with_suffix(".curves.npz").read_bytes() == default.with_suffix(".curves.npz").read_bytes()
+    assert chosen.path.read_bytes() == default.path.read_bytes()
+    assert chosen.path.with_suffix(".curves.npz").read_bytes() == default.path.with_suffix(".curves.npz").read_bytes()
 
 
 def test_an_absent_device_is_refused_before_anything_is_read_or_written(split32, tmp_path):

@@ -9,7 +9,7 @@ from PIL import Image
 import xvoe
 from xvoe.apps.cli import main
 from xvoe.apps.figures import OUTLINE_COLORS, explanation_overlay, plot_explanation, save_gif, sheet_rows
-from xvoe.benchmark import store
+from xvoe.benchmark import custom, store
 from xvoe.benchmark.display import LENGTHS, display_video, enlarge, hidden_silhouettes, outline
 from xvoe.benchmark.generate import GenerateConfig, generate
 from xvoe.benchmark.render import STATE_COLUMNS
@@ -162,3 +162,18 @@ def test_a_display_size_outside_its_domain_is_refused(splits, tmp_path):
     with pytest.raises(XvoeError, match="display size must be"):
         xvoe.explain("no-such-model", splits[32], 0, display_size=0)
     assert not (tmp_path / "s.png").exists()
+
+
+def test_a_split_that_cannot_be_drawn_anew_shows_no_scene_row(tmp_path):
+    """A hand-made pair has no seed to simulate again: its stored 32 px frames, enlarged, are the
+    model's row already, so no row is labelled as the scene at 128x128; a generated split's is."""
+    things = [custom.ball(4, vx=50.0), custom.ball(34), custom.wall(32, half_width=12, height=18)]
+    mine = custom.make_pair(things, custom.pass_through(0, 1)).save(tmp_path / "mine.h5", size=32)
+    generated = generate(GenerateConfig("test", pairs=1, size=32, seed=2), tmp_path / "g.h5", progress=False)
+    labels = {}
+    for name, path in (("mine", mine), ("generated", generated)):
+        with store.open_dataset(path) as file:
+            figure = xvoe.show_video(file, 0, display_size=128)
+            labels[name] = {tick.get_text() for tick in figure.axes[0].get_yticklabels()}
+    assert "scene 128x128" in labels["generated"] and "model's 32x32" in labels["generated"]
+    assert not any(label.startswith("scene") for label in labels["mine"]) and "RGB" in labels["mine"]

@@ -104,8 +104,7 @@ def test_a_score_file_records_the_model_the_split_and_the_surprise(test_file, tm
     header = xvoe.score_header(out)
     assert header["split"] == identity_of(test_file) and header["data"] == str(Path(test_file).resolve())
     assert header["model_identity"] == {"source": "random", "seed": 0}
-    assert header["xvoe"] and header["surprise"] == {"own": "the model's per-frame surprise (in s_dyn), sum over "
-                                                            "frames"}
+    assert header["xvoe"] and header["surprise"] == {"own": "the model's per-frame surprise, sum over frames"}
 
 
 @pytest.fixture(scope="module")
@@ -119,7 +118,7 @@ def test_a_report_repeats_each_score_files_header(test_file, tmp_path):
     scores = xvoe.score("random", test_file, tmp_path / "r.csv", progress=False)
     xvoe.report([scores], tmp_path / "report", rounds=5, data=test_file)
     (entry,) = json.loads((tmp_path / "report" / "headers.json").read_text())
-    assert entry["scores"] == str(scores.resolve()) and entry["header"] == xvoe.score_header(scores)
+    assert entry["scores"] == str(scores.path.resolve()) and entry["header"] == xvoe.score_header(scores)
 
 
 def test_scores_of_another_split_of_the_same_layout_are_refused(test_file, other_split, tmp_path):
@@ -135,7 +134,7 @@ def test_scores_of_another_split_of_the_same_layout_are_refused(test_file, other
 
 def test_a_score_file_without_a_split_is_read_with_a_warning(test_file, tmp_path, capsys):
     scores = xvoe.score("random", test_file, tmp_path / "r.csv", progress=False)
-    scores.with_suffix(".curves.npz").unlink()          # as a CSV made elsewhere
+    scores.path.with_suffix(".curves.npz").unlink()          # as a CSV made elsewhere
     assert main(["metrics", str(scores), "--data", str(test_file), "--out", str(tmp_path / "report"),
                  "--rounds", "5"]) == 0
     assert "warning: " in capsys.readouterr().err and (tmp_path / "report" / "metrics.csv").is_file()
@@ -192,3 +191,33 @@ def test_verify_rescores_the_nll_columns_with_the_settings_and_seed_the_file_rec
     assert main(["verify", str(scores), "--rows", "22"]) == 1
     found = capsys.readouterr().out
     assert "video 12: differs in nll" in found and found.count(": matches") == 21     # every other video
+    assert "1 of 22 rows differ from what was written: row 13 (video 12): nll" in found    # its curve's sum
+
+
+def test_verify_names_an_edit_of_any_row_outside_the_rescored_sample(tmp_path):
+    """Every row is checked against the curves it was summed from, not only the rescored sample:
+    each row's score edited in turn is named, as is an edited label or model name."""
+    data = xvoe.generate(xvoe.GenerateConfig("test", pairs=1, size=32, seed=11), tmp_path / "t.h5", progress=False)
+    scores = xvoe.score("random", data, tmp_path / "r.csv", progress=False).path
+    written = scores.read_bytes()
+    assert xvoe.verify(scores, rows=1).matches
+    for row in range(22):
+        tamper(scores, "score", row, 1.5)
+        found = xvoe.verify(scores, rows=1)
+        assert not found.matches and f"1 of 22 rows differ from what was written: row {row + 1} (video {row})" \
+            in found.lines[0], (row, found.lines)
+        scores.write_bytes(written)
+    for column, values in (("setting", ("S1", "S2")), ("possible", ("True", "False")), ("model", ("someone-else",))):
+        rows = list(csv.DictReader(open(scores, newline="")))
+        rows[5][column] = next(value for value in values if value != rows[5][column])
+        with open(scores, "w", newline="") as handle:
+            writer = csv.DictWriter(handle, list(rows[0]))
+            writer.writeheader()
+            writer.writerows(rows)
+        if column == "model":       # two models in one file: refused, naming the row
+            with pytest.raises(XvoeError, match="two models, 'random' and 'someone-else' \\(row 6\\)"):
+                xvoe.verify(scores, rows=1)
+        else:
+            found = xvoe.verify(scores, rows=1)
+            assert not found.matches and f"row 6 (video 5): {column}" in found.lines[0], found.lines
+        scores.write_bytes(written)

@@ -69,6 +69,23 @@ def test_relative_hand_case():
     assert result["collision", "S2"].value == pytest.approx(3 / 4)
 
 
+def test_relative_midpoint_of_the_largest_scores_does_not_overflow():
+    """A constant model at 1e308: every video sits on its S1 pair's midpoint, a tie (one half),
+    not below an infinite midpoint (which had judged every possible video right)."""
+    constant = {**HAND, "score": np.full(len(HAND["score"]), 1e308)}
+    result = relative(constant, rounds=20)
+    assert result["collision", "S1"].value == 0.5 and result["collision", "S2"].value == 0.5
+    mixed = {**HAND, "score": np.where(HAND["member"] == 1, 1.7e308, 1.5e308)}     # the sum of a pair overflows
+    assert relative(mixed, rounds=20)["collision", "S2"].value == 0.5
+
+
+def test_a_scores_file_saved_with_a_byte_order_mark_reads_as_without(tmp_path):
+    write_scores(tmp_path / "plain.csv", random_scores(seed=1), "bom")
+    (tmp_path / "bom.csv").write_bytes(b"\xef\xbb\xbf" + (tmp_path / "plain.csv").read_bytes())
+    plain, bom = read_scores(tmp_path / "plain.csv"), read_scores(tmp_path / "bom.csv")
+    assert list(bom) == list(plain) and all(np.array_equal(bom[name], plain[name]) for name in plain)
+
+
 @given(st.lists(st.integers(0, 5), min_size=1, max_size=12), st.lists(st.integers(0, 5), min_size=1, max_size=12))
 def test_auc_equals_brute_force_with_half_ties(positive, negative):
     brute = np.mean([(p > n) + 0.5 * (p == n) for p, n in itertools.product(positive, negative)])

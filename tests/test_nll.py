@@ -193,7 +193,7 @@ def test_nll_scores_are_the_same_bytes_from_the_same_seed(tmp_path):
     data = generate(GenerateConfig("test", pairs=1, size=scorer.image_size, seed=5), tmp_path / "t.h5",
                     workers=1, progress=False)
     first, second = (xvoe.score(scorer, str(data), str(tmp_path / name), surprise="both", particles=8,
-                                 progress=False).read_bytes() for name in ("a.csv", "b.csv"))
+                                 progress=False).path.read_bytes() for name in ("a.csv", "b.csv"))
     assert first == second
 
 

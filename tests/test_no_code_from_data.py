@@ -107,7 +107,7 @@ def test_a_score_header_naming_code_never_runs_it(split, tmp_path, marker, capsy
     planted = tmp_path / "planted.py"
     planted.write_text(f"open({str(marker)!r}, 'w')\nclass Model:\n    name = 'planted'\n"
                        "    def surprise(self, videos):\n        return videos.rgbd[..., 0, 0, 0] * 0\n")
-    curves = scores.with_suffix(".curves.npz")
+    curves = scores.path.with_suffix(".curves.npz")
     with np.load(curves) as found:
         arrays = {name: found[name] for name in found.files}
     header = json.loads(str(arrays["header"]))
@@ -122,7 +122,7 @@ def test_a_score_header_naming_code_never_runs_it(split, tmp_path, marker, capsy
 
 def test_a_curves_file_holding_a_pickled_object_is_refused_and_never_run(split, tmp_path, marker, capsys):
     scores = xvoe.score("xpl", split, tmp_path / "x.csv", progress=False)
-    curves = scores.with_suffix(".curves.npz")
+    curves = scores.path.with_suffix(".curves.npz")
     with np.load(curves) as found:
         arrays = {name: found[name] for name in found.files}
     for name in set(arrays) - {"header"}:

@@ -82,7 +82,7 @@ def test_tiny_pipeline_runs_end_to_end_and_skips_done_stages(tmp_path, tiny_cpu_
     # the excess: the paper's score less the perception's own error of what it saw, per frame
     import numpy as np
 
-    curves = np.load(out.with_suffix(".curves.npz"))
+    curves = np.load(out.path.with_suffix(".curves.npz"))
     np.testing.assert_allclose([float(r["s_rec"]) for r in rows], curves["s_rec"].sum(1), rtol=1e-6)
     np.testing.assert_allclose([float(r["excess"]) for r in rows],
                                (curves["s_img"] - curves["s_rec"] + curves["s_dyn"]).sum(1), rtol=1e-5, atol=1e-3)

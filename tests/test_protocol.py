@@ -6,6 +6,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+import xvoe
 from xvoe.apps.cli import main
 
 EXAMPLES = Path(__file__).resolve().parent.parent / "examples"
@@ -18,11 +19,13 @@ def test_an_example_model_goes_from_score_to_the_paper_metrics(reference, curve,
     assert main(["score", "--model", str(EXAMPLES / reference), "--data", str(test_file), "--out", str(scores),
                  "--quiet"]) == 0
     rows = list(csv.DictReader(open(scores)))
-    assert len(rows) == 176 and all(float(r["s_img"]) == 0 for r in rows)     # 8 pairs of 11 settings
+    assert len(rows) == 176 and list(rows[0])[-1] == "score" and "s_dyn" not in rows[0]    # 8 pairs of 11 settings
     curves = np.load(scores.with_suffix(".curves.npz"))      # its own curve, under its own name
     assert sorted(curves.files) == sorted(["header", curve])
     np.testing.assert_allclose([float(r["score"]) for r in rows], curves[curve].sum(1), rtol=1e-9)
     assert main(["metrics", str(scores), "--out", str(tmp_path / "report"), "--rounds", "10"]) == 0
+    metrics = list(csv.DictReader(open(tmp_path / "report" / "metrics.csv")))
+    assert {r["column"] for r in metrics} == {"score"}       # its own score, once: no MSE terms it has not
     assert (tmp_path / "report" / "comparative.png").exists()
 
 
@@ -153,3 +156,26 @@ def test_a_model_of_your_own_may_draw_its_explanation(test_file, tmp_path, monke
     assert main(["explain", "--model", "my_painters:Mute", "--data", str(test_file), "--out",
                  str(tmp_path / "m.png")]) == 2
     assert "no explanation to draw" in capsys.readouterr().err
+
+
+class _Mine:
+    """A model made in a script: a name and a surprise, none of the optional attributes."""
+
+    name = "mine"
+
+    def surprise(self, videos):
+        return np.stack([np.random.default_rng(int(i)).random(videos.frames) for i in videos.index])
+
+
+def test_a_model_object_from_python_scores_into_a_table_that_keeps_its_path(test_file, tmp_path):
+    table = xvoe.score(_Mine(), data=test_file, out=tmp_path / "mine.csv", progress=False)
+    assert table.path == tmp_path / "mine.csv" and Path(table) == table.path and table.path.is_file()
+    rows = table.rows
+    assert len(rows) == 176 and rows[3]["index"] == 3 and rows[0]["model"] == "mine"
+    assert set(rows[0]) == {"index", "model", "scenario", "setting", "pair", "member", "possible", "score"}
+    np.testing.assert_allclose(table.columns["score"], xvoe.read_scores(table)["score"])
+    nameless = _Mine()
+    nameless.name = "two\nlines"
+    with pytest.raises(xvoe.XvoeError, match="control character"):
+        xvoe.score(nameless, data=test_file, out=tmp_path / "n.csv", progress=False)
+    assert not (tmp_path / "n.csv").exists()

@@ -51,9 +51,9 @@ def tiny_scorer(name: str, slots: int, use_reasoning: bool = True) -> xvoe.Score
 
 
 def scored(scorer: xvoe.Scorer, data: Path, out: Path, **settings) -> tuple[bytes, dict[str, np.ndarray]]:
-    path = xvoe.score(scorer, data, out, progress=False, **settings)
-    with np.load(path.with_suffix(".curves.npz")) as curves:
-        return path.read_bytes(), dict(curves)
+    table = xvoe.score(scorer, data, out, progress=False, **settings)
+    with np.load(table.path.with_suffix(".curves.npz")) as curves:
+        return table.path.read_bytes(), dict(curves)
 
 
 def test_scores_from_the_cache_are_the_scores_without_it(tiny_split, tmp_path, monkeypatch):
@@ -94,16 +94,16 @@ def test_the_nll_beside_the_mse_score_is_the_nll_of_each_video_drawn_on_its_own(
         scorer = tiny_scorer("xpl", file["states"].shape[2])
         batches = [scoring.encode_videos(scorer, file, start, min(start + 16, len(file["rgbd"])))
                    for start in range(0, len(file["rgbd"]), 16)]     # as `xvoe score` encodes them
-    path = xvoe.score(scorer, tiny_split, tmp_path / "both.csv", surprise="both", particles=4, cache=False,
-                      progress=False)
+    table = xvoe.score(scorer, tiny_split, tmp_path / "both.csv", surprise="both", particles=4, cache=False,
+                       progress=False)
     alone = [found for batch in batches for found in xpl_nll(scorer, batch, InferenceConfig(particles=4))]
     # what is reused is tried: a proposed hidden object, and a second version of two identical objects
     assert any(found.hidden_slot >= 0 for found in alone) and any(found.identity is not None for found in alone)
-    scores = read_scores(path)
+    scores = read_scores(table)
     for column in ("nll", "ess", "p_hidden", "p_two"):
         np.testing.assert_allclose(scores[column], [getattr(found, column) for found in alone], rtol=1e-6,
                                    atol=1e-9, err_msg=column)
-    with np.load(path.with_suffix(".curves.npz")) as curves:
+    with np.load(table.path.with_suffix(".curves.npz")) as curves:
         np.testing.assert_allclose(curves["nll"], np.stack([found.frame_nll.numpy() for found in alone]),
                                    rtol=1e-6, atol=1e-6)
 

@@ -13,7 +13,7 @@ matplotlib.use("Agg")
 @pytest.fixture(scope="module")
 def scored(test_file, tmp_path_factory):
     out = tmp_path_factory.mktemp("scores") / "random.csv"
-    return xvoe.score("random", str(test_file), str(out), progress=False)
+    return xvoe.score("random", str(test_file), str(out), progress=False).path
 
 
 def test_the_curves_of_a_pair_are_drawn_and_written(scored, test_file, tmp_path):

@@ -45,7 +45,7 @@ _HOMES = {
     "xvoe.evaluation.score": ("Scorer", "load_model", "SurpriseModel", "Videos", "merge_scores", "score_header",
                               "model_identity", "check_scored_by", "check_same_split"),
     "xvoe.identity": ("split_identity",),
-    "xvoe.evaluation.metrics": ("read_scores", "metric_rows", "comparative", "holistic", "relative",
+    "xvoe.evaluation.metrics": ("ScoreTable", "read_scores", "metric_rows", "comparative", "holistic", "relative",
                                 "disagreements", "onset", "onset_pairs"),
     "xvoe.apps.verbs": ("score", "explain", "with_display"),
     "xvoe.inference.score": ("nll_settings",),

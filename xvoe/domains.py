@@ -44,6 +44,9 @@ SEED = Domain(0, 2**63 - 1)     # what numpy's and torch's generators take, with
 PICTURE_SIZE = Domain(16, 512)  # pixels a side of a rendered or displayed frame
 DISPLAY_SIZE = 128               # pixels a side of the scene drawn for people (xvoe/benchmark/display.py)
 DEVICES = "cpu, cuda, cuda:N or mps"     # the devices a user may name (xvoe/models/devices.py)
+# seconds a model of your own may take for one batch (xvoe score --time-limit): generous, so
+# that only a hang ends a run; here, below torch, for the command line's default
+TIME_LIMIT = 600.0
 
 
 def within(default: Any, domain: Domain) -> Any:

@@ -19,7 +19,17 @@ from typing import Any
 import xvoe
 
 from ..allocator import tune as tune_allocator
-from ..domains import DEVICES, DISPLAY_SIZE, NON_NEGATIVE, PICTURE_SIZE, POSITIVE, SEED, Domain, check_number
+from ..domains import (
+    DEVICES,
+    DISPLAY_SIZE,
+    NON_NEGATIVE,
+    PICTURE_SIZE,
+    POSITIVE,
+    SEED,
+    TIME_LIMIT,
+    Domain,
+    check_number,
+)
 from ..errors import XvoeError
 from ..models.config import parse_field, parse_value
 from ..models.nll import InferenceConfig
@@ -167,7 +177,7 @@ def cmd_score(args: argparse.Namespace) -> None:
                      seed=args.seed, nll_settings=xvoe.nll_settings(args.nll_set), how=args.aggregate,
                      shard=args.shard, videos_per_batch=args.batch, workers=args.workers,
                      checks=not args.no_checks, overwrite=args.overwrite, progress=not args.quiet,
-                     device=args.device, cache=args.cache or True))
+                     device=args.device, cache=args.cache or True, time_limit=args.time_limit))
 
 
 @claim_scope()
@@ -196,7 +206,8 @@ def cmd_verify(args: argparse.Namespace) -> int:
     found = xvoe.verify(args.scores, rows=args.rows, data=args.data, seed=args.seed, model=args.model)
     if not (args.quiet and found.matches):     # quiet: the verdict alone, unless a row is named in it
         print("\n".join(found.lines))
-    print("every row scored again matches the file" if found.matches else "some rows do not match the file")
+    print("every row matches its curves and labels, and every row scored again matches the file" if found.matches
+          else "some rows do not match the file")
     return 0 if found.matches else 1
 
 
@@ -396,7 +407,8 @@ def build_parser() -> argparse.ArgumentParser:
 
     score = verbs.add_parser("score", help="score test videos with a trained model (surprise per video)",
                              description="One CSV row per test video (index, scenario, setting, pair, member, "
-                                         "possible, score, s_img, s_dyn) and the per-frame surprise curves in "
+                                         "possible, score, s_img, s_dyn; a model of your own: score alone) and "
+                                         "the per-frame surprise curves in "
                                          "OUT.curves.npz, with the header: the package version, the model's and "
                                          "the split's identities, the surprise settings. The MSE surprise is "
                                          "the paper's (Eq. 2-4): its score column takes the better of "
@@ -426,6 +438,10 @@ def build_parser() -> argparse.ArgumentParser:
                        help="a model of your own (file.py:name), phydnet or random: write its scores without the "
                             "checks that the same videos score the same in another order, batch size and on a "
                             "repeat, and not all alike (NaN and inf are refused still)")
+    score.add_argument("--time-limit", type=_flag(float, POSITIVE, "--time-limit"), default=TIME_LIMIT,
+                       metavar="SECONDS",
+                       help=f"a model of your own (file.py:name), phydnet or random: the seconds its surprise may take "
+                            f"for one batch before the run ends (default {TIME_LIMIT:g})")
     score.add_argument("--overwrite", action="store_true", help="replace --out if it exists")
     score.add_argument("--quiet", action="store_true", help="no progress bar")
     score.add_argument("--shard", type=_shard, default=(0, 1), metavar="I/N",

@@ -121,13 +121,15 @@ def sheet_rows(rgbd: np.ndarray, ids: np.ndarray, display: np.ndarray | None = N
 
 
 def display_rows(file: h5py.File, indices: list[int], display_size: int | None) -> np.ndarray | None:
-    """The scene of videos `indices` simulated again at `display_size` (M, T, S, S, 4), or None
-    without a display size or where the split cannot be simulated again (a hand-made event):
-    the model's frames enlarged are no scene of their own, and are drawn once, as what they are."""
+    """The scene of videos `indices` at `display_size` (M, T, S, S, 4), or None without one: where
+    a video cannot be drawn anew at that size (a hand-made or imported split; `display_video`),
+    its stored frames enlarged are the model's row already, not a scene to label as one."""
     if display_size is None:
         return None
-    found = [display_video(file, i, display_size) for i in indices]
-    return np.stack([d.rgbd for d in found]) if all(d.resimulated for d in found) else None
+    videos = [display_video(file, i, display_size) for i in indices]
+    if not all(video.resimulated or display_size == file["rgbd"].shape[2] for video in videos):
+        return None
+    return np.stack([video.rgbd for video in videos])
 
 
 def show_video(file: h5py.File, index: int, display_size: int | None = DISPLAY_SIZE) -> plt.Figure:
@@ -252,7 +254,7 @@ def _video_curves(scores: str | Path, file: h5py.File, indices: list[int]) -> di
     check_same_split(scores, split_identity(file), file.filename)
     table = read_scores(scores)
     warn_unchecked(scores)
-    curves = read_curves(Path(scores).with_suffix(".curves.npz"), len(table["index"]))
+    curves = read_curves(Path(scores).with_suffix(".curves.npz"), len(table["index"]), scores)
     rows = {int(video): row for row, video in enumerate(table["index"])}
     missing = [i for i in indices if i not in rows]
     if missing:
@@ -688,7 +690,7 @@ def pair_curves(scores: str | Path, data: str | Path | None, scenario: str, sett
     split `data` (None: the curves alone); `frame`, a cursor to draw, checked against them."""
     table = read_scores(scores)
     saved = read_curves(curves if curves is not None else Path(scores).with_suffix(".curves.npz"),
-                        len(table["index"]))
+                        len(table["index"]), scores)
     rows = _pair_rows(table["scenario"], table["setting"], table["pair"], table["member"], scenario, setting, pair,
                       str(scores))
     videos = [int(table["index"][r]) for r in rows]

@@ -114,8 +114,12 @@ def report(paths: list[str | Path], out_dir: str | Path, rounds: int = 1000, see
 
 
 def check_one_split(paths: list[str | Path], data: str | Path | None) -> None:
-    """Refuse, before any work, scores made on another split than `data` (with `data`) or than
-    the first scores file that records its split."""
+    """Refuse, before any work, scores whose curves were written with other scores (`score_header`),
+    and scores made on another split than `data` (with `data`) or than the first scores file that
+    records its split."""
+    for path in paths:
+        if Path(path).with_suffix(".curves.npz").is_file():
+            score_header(path)
     if data is not None:
         with store.open_dataset(data, split="test") as file:
             identity = split_identity(file)
@@ -205,5 +209,5 @@ def _per_frame(path: Path, rows: int) -> dict[str, np.ndarray]:
     curves = path.with_suffix(".curves.npz")
     if not curves.is_file():
         return {}
-    saved = read_curves(curves, rows)
+    saved = read_curves(curves, rows, path)
     return {"mse": saved.total} | ({"nll": saved.arrays["nll"]} if "nll" in saved.arrays else {})

@@ -21,10 +21,12 @@ from xvoe.inference.score import NLLColumns
 
 from ..benchmark import store
 from ..benchmark.display import DISPLAY_SIZE, check_display_size, display_video, hidden_silhouettes
+from ..domains import TIME_LIMIT
 from ..errors import XvoeError
 from ..evaluation.explain import Explanation, explain_drawn
 from ..evaluation.explain import explain as explain_mse
-from ..evaluation.score import Scorer, load_model, merge_scores, prepare_latents, score_split
+from ..evaluation.metrics import ScoreTable
+from ..evaluation.score import Scorer, SurpriseModel, as_scorer, merge_scores, prepare_latents, score_split
 from ..evaluation.surprise import EXPLANATIONS
 from ..models.devices import resolve_device
 from ..outputs import claim_file, claim_scope, parts_folder
@@ -33,12 +35,13 @@ from ..processes import end_with_parent
 SURPRISES = ("mse", "nll", "both")
 
 
-def score(model: str | Scorer, data: str | Path, out: str | Path, *, surprise: str = "mse",
+def score(model: str | Scorer | SurpriseModel, data: str | Path, out: str | Path, *, surprise: str = "mse",
           particles: int | None = None, seed: int = 0, nll_settings: dict[str, Any] | None = None, how: str = "sum",
           videos_per_batch: int = 16, shard: tuple[int, int] = (0, 1), workers: int = 1, checks: bool = True,
           overwrite: bool = False, progress: bool = True, device: str = "cpu",
-          cache: str | Path | bool = True) -> Path:
-    """Score every video of a test split into a CSV (and the per-frame curves beside it).
+          cache: str | Path | bool = True, time_limit: float | None = TIME_LIMIT) -> ScoreTable:
+    """Score every video of a test split into a CSV (and the per-frame curves beside it); the
+    scores as a `ScoreTable`, which keeps the CSV's path (and is taken wherever a path is).
 
     surprise: "mse", the MSE score (the columns score, s_img and s_dyn hold the default verdict,
     the better of Transformer 2's proposal and nothing hidden; paper_score the paper's, always
@@ -46,8 +49,10 @@ def score(model: str | Scorer, data: str | Path, out: str | Path, *, surprise: s
     column is the NLL; the columns nll, ess, p_hidden, p_two and nll_excess are added); "both", the
     MSE score with the NLL's columns beside it. shard: (I, N) scores part I of N, for
     `merge_scores` to join (xvoe score --shard / --merge). model: a name (`xpl`, `random`, ...), a run
-    directory, a checkpoint, or a loaded `Scorer`. seed: the NLL's random draws (each video's
-    from a generator of its own), so that a score file can be reproduced and its spread measured.
+    directory, a checkpoint, a loaded `Scorer`, or an object of your own with a `name` and a
+    `surprise(videos)` method (`xvoe.SurpriseModel`; its other attributes optional). seed: the
+    NLL's random draws (each video's from a generator of its own), so that a score file can be
+    reproduced and its spread measured.
     particles and nll_settings change the model's own NLL settings (its recipe's,
     xvoe.models.nll.InferenceConfig: pixel sigma, exposure penalty, pilot...), e.g.
     {"pixel_sigma": 1.0}, to see how each moves the verdicts.
@@ -62,7 +67,8 @@ def score(model: str | Scorer, data: str | Path, out: str | Path, *, surprise: s
     cache: the split's latent cache, which a model with a perception module reads instead of
     encoding the frames, made on first use: True, beside the split (DATA.latents-PERCEPTION.h5,
     one per perception module, shared by every model and surprise definition that reads it); a
-    path; False, none. Scores are the same with it or without."""
+    path; False, none. Scores are the same with it or without. time_limit: seconds a model answering
+    `surprise(videos)` may take for one batch before the run ends in one line (None: no limit)."""
     if surprise not in SURPRISES:
         raise XvoeError(f"--surprise must be mse, nll or both, not {surprise!r}")
     if workers < 1:
@@ -71,16 +77,17 @@ def score(model: str | Scorer, data: str | Path, out: str | Path, *, surprise: s
     resolve_device(device)      # an absent device too, before any work
     if workers > 1 and shard != (0, 1):
         raise XvoeError("--workers shards the split itself; leave out --shard")
-    scorer = load_model(model, device) if isinstance(model, str) else model
+    scorer = as_scorer(model, device)
     if workers > 1:
         if extra is not None:
             extra.check(scorer)     # before the cache is made for the workers
-        return _score_in_workers(model, scorer, data, out, workers, overwrite, progress, surprise=surprise,
-                                 particles=particles, seed=seed, nll_settings=nll_settings, how=how,
-                                 videos_per_batch=videos_per_batch, checks=checks, device=device, cache=cache)
-    return score_split(scorer, str(data), str(out), how=how, videos_per_batch=videos_per_batch, extra=extra,
-                       score_column="nll" if surprise == "nll" else "score", shard=shard, checks=checks,
-                       overwrite=overwrite, progress=progress, cache=cache)
+        return ScoreTable(_score_in_workers(model, scorer, data, out, workers, overwrite, progress, surprise=surprise,
+                                            particles=particles, seed=seed, nll_settings=nll_settings, how=how,
+                                            videos_per_batch=videos_per_batch, checks=checks, device=device,
+                                            cache=cache, time_limit=time_limit))
+    return ScoreTable(score_split(scorer, str(data), str(out), how=how, videos_per_batch=videos_per_batch, extra=extra,
+                                  score_column="nll" if surprise == "nll" else "score", shard=shard, checks=checks,
+                                  overwrite=overwrite, progress=progress, cache=cache, time_limit=time_limit))
 
 
 def check_explanation(explanation: str) -> None:
@@ -121,7 +128,7 @@ def _worker_threads(threads: int, parent: int) -> None:
     torch.set_num_threads(threads)
 
 
-def explain(model: str | Scorer, data: str | Path, index: int, *, surprise: str = "mse",
+def explain(model: str | Scorer | SurpriseModel, data: str | Path, index: int, *, surprise: str = "mse",
             particles: int | None = None, seed: int = 0, explanation: str = "better",
             display_size: int | None = DISPLAY_SIZE, device: str = "cpu") -> Explanation:
     """What the model believes is behind the wall in video `index`: Transformer 2's proposal
@@ -134,7 +141,7 @@ def explain(model: str | Scorer, data: str | Path, index: int, *, surprise: str 
     check_explanation(explanation)
     if display_size is not None:
         check_display_size(display_size)
-    scorer = load_model(model, device) if isinstance(model, str) else model
+    scorer = as_scorer(model, device)
     return with_display(_explain(scorer, data, index, surprise, particles, seed, explanation), data, index,
                         display_size)
 

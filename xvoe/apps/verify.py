@@ -1,5 +1,7 @@
-"""`xvoe verify`: does a score file hold what its model gives? A seeded sample of its rows is
-scored again, by the model and on the split its header names, and compared with the file.
+"""`xvoe verify`: does a score file hold what its model gives? Every row is checked against the
+curves stored beside it (they reduce to its scores, so this costs nothing) and its labels
+against the split's; then a seeded sample of its rows is scored again, by the model and on the
+split its header names, and compared with the file. An edit of any row is so named.
 
 A number in a paper made with xvoe can so be checked later: the header says what to load
 (xvoe.evaluation.score, `score_header`), and the hashes say whether it is still the same. A
@@ -18,7 +20,7 @@ from xvoe.inference.score import NLLColumns
 
 from ..benchmark import store
 from ..errors import XvoeError
-from ..evaluation.metrics import read_scores
+from ..evaluation.metrics import read_columns, scores_digest
 from ..evaluation.score import (
     CURVES,
     check_same_split,
@@ -29,6 +31,7 @@ from ..evaluation.score import (
     row_columns,
     score_header,
     score_rows,
+    stored_columns,
 )
 from ..identity import split_identity
 from ..models.config import from_dict, to_dict
@@ -36,6 +39,9 @@ from ..models.nll import InferenceConfig
 
 # a video scored alone against the batch it was scored in: the float sums differ in the last digits
 TOLERANCE = {"rtol": 1e-4, "atol": 1e-6}
+# a column against the curves it was summed from when written: the same numbers, summed again
+STORED = {"rtol": 1e-9, "atol": 0.0}
+SHOWN = 3           # rows named of those whose values or labels differ
 
 
 @dataclass
@@ -48,9 +54,10 @@ class Verification:
 
 def verify(path: str | Path, rows: int = 5, data: str | Path | None = None, seed: int = 0,
            model: str | None = None) -> Verification:
-    """Score again `rows` rows (drawn from `seed`) of a scores file, or of every scores file a
-    report of `xvoe metrics` names (its headers.json), and compare them with the file, values
-    and per-frame curves, within `TOLERANCE`. `data`: the split, where it is not where the
+    """Check every row of a scores file, or of every scores file a report of `xvoe metrics` names
+    (its headers.json), against its stored curves and the split's labels (`_check_rows`), then
+    score again `rows` rows (drawn from `seed`) and compare them with the file, values and
+    per-frame curves, within `TOLERANCE`. `data`: the split, where it is not where the
     header says it was read from. `model`: the model to score with (as `xvoe score --model`
     takes it), which a model of your own needs: a header never names code to run."""
     path = Path(path)
@@ -72,7 +79,7 @@ def _scores_files(path: Path) -> list[Path]:
 
 def _verify_file(path: Path, rows: int, data: str | Path | None, seed: int, model: str | None,
                  found: Verification) -> None:
-    header = score_header(path)
+    header = score_header(path, check=False)       # edited scores are named row by row below
     if "split" not in header or "model_identity" not in header:
         raise XvoeError(f"{path} does not record the model and split it was made with (an older xvoe's, or made "
                         "elsewhere): rescore it with this xvoe to verify it")
@@ -83,7 +90,7 @@ def _verify_file(path: Path, rows: int, data: str | Path | None, seed: int, mode
         raise XvoeError(f"{path} was scored by a model of your own, {source}; verify runs no code a file names: "
                         "pass --model with the model you trust")
     data = data or header["data"]
-    table = read_scores(path)
+    table = read_columns(path)
     scorer = load_model(source)
     check_scored_by(path, scorer)
     extra = _extra_columns(header)
@@ -94,6 +101,7 @@ def _verify_file(path: Path, rows: int, data: str | Path | None, seed: int, mode
     saved = curves_arrays(path.with_suffix(".curves.npz"))
     with store.open_dataset(data, split="test") as file:
         check_same_split(path, split_identity(file), data)
+        _check_rows(path, table, saved, header, store.labels(file, REQUIRED_LABELS), found)
         for row in picked:
             video = int(table["index"][row])
             curves, added, extra_curves = score_rows(scorer, file, video, video + 1, 1, extra)
@@ -106,6 +114,61 @@ def _verify_file(path: Path, rows: int, data: str | Path | None, seed: int, mode
             found.matches &= not differ
             found.lines.append(f"{path.name} video {video}: " + ("matches" if not differ else "differs in " + ", ".join(
                 f"{name} ({_shown(held[name])} in the file, {_shown(again[name])} scored again)" for name in differ)))
+
+
+REQUIRED_LABELS = ("scenario", "setting", "pair", "member", "possible")
+
+
+def _check_rows(path: Path, table: dict[str, np.ndarray], saved: dict[str, np.ndarray], header: dict,
+                labels: dict[str, np.ndarray], found: Verification) -> None:
+    """Every row of a scores file against what it was written from: its values against the
+    columns its curves reduce to (`stored_columns`), its model against the header's, its labels
+    against the split's video of its index; one line, naming the first rows that differ. Scores
+    that match all these but not the digest the curves record were edited in a column the
+    curves do not hold (the NLL's): said too."""
+    index = table["index"].astype(int)
+    if index.min() < 0 or index.max() >= len(labels["pair"]):
+        raise XvoeError(f"{path} names videos {index.min()}..{index.max()}, which its split does not hold")
+    expected = {name: values for name, values in stored_columns(saved, header).items() if name in table}
+    expected |= {name: values[index] for name, values in labels.items() if name in table}
+    if "model" in table and "model" in header:
+        expected["model"] = np.full(len(index), header["model"])
+    differ = np.zeros(len(index), bool)
+    for name, values in expected.items():
+        same = np.isclose(table[name], values, **STORED) if values.dtype.kind == "f" else table[name] == values
+        differ |= ~same
+    rows = np.flatnonzero(differ)
+    found.matches &= not len(rows)
+    recorded = header.get("scores_digest")
+    if len(rows):
+        named = "; ".join(f"row {row + 1} (video {index[row]}): {_differences(table, expected, row)}"
+                          for row in rows[:SHOWN])
+        more = f" (and {len(rows) - SHOWN} more rows)" if len(rows) > SHOWN else ""
+        found.lines.append(f"{path.name}: {len(rows)} of {len(index)} rows differ from what was written: {named}{more}")
+    elif recorded is not None and recorded != scores_digest(path):
+        found.matches = False
+        found.lines.append(f"{path.name}: the scores differ from those the curves were written with, in a column "
+                           "the curves do not hold")
+    else:
+        found.lines.append(f"{path.name}: all {len(index)} rows match their curves and the split's labels")
+
+
+def _differences(table: dict[str, np.ndarray], expected: dict[str, np.ndarray], row: int) -> str:
+    """What of one row differs from what was written, value by value."""
+    return ", ".join(f"{name} {_value(table[name][row])} in the file, {_value(values[row])} written"
+                     for name, values in expected.items() if _differ(table[name][row], values[row]))
+
+
+def _differ(held, written) -> bool:
+    """Whether one value of a row differs from the value written (numbers within `STORED`)."""
+    try:
+        return not np.isclose(float(held), float(written), **STORED)
+    except (TypeError, ValueError):
+        return str(held) != str(written)
+
+
+def _value(value) -> str:
+    return _shown(value) if isinstance(value, (float, np.floating)) else repr(str(value))
 
 
 def _extra_columns(header: dict) -> NLLColumns | None:

@@ -213,7 +213,9 @@ def value_problem(file: h5py.File) -> str | None:
     and each data-loading worker opens it again: the labels and the kind map are read whole (a
     few bytes a video), the pixels are bounded by their type (uint8, `schema_problem`) and only
     the slot ids of the first and last video are read, a cheap pass that finds ids written by
-    another program without decompressing the whole split.
+    another program without decompressing the whole split. Every other video's ids and states
+    are checked where they are read (`read_frames`, `read_states`), at a few milliseconds a
+    thousand pairs.
     """
     kinds, names = file["kind"][:], len(file.attrs["kind_names"])
     if kinds.size and (kinds.min() < 0 or kinds.max() >= names):
@@ -293,12 +295,41 @@ def pair_labels_problem(found: dict[str, np.ndarray], frames: int, custom: bool 
 def read_frames(file: h5py.File, name: str, start: int, stop: int | None = None) -> np.ndarray:
     """`file[name][start:stop]` (`file[name][start]` without `stop`) of a split's per-video
     frames (`rgbd`, `ids`), or a one-line error naming the file and the first video whose
-    chunk cannot be read (damaged on disk)."""
+    chunk cannot be read (damaged on disk) or, for `ids`, whose slot ids run past the split's
+    slots: every video is checked where it is read, as `value_problem` reads only two."""
     try:
-        return file[name][start] if stop is None else file[name][start:stop]
+        found = file[name][start] if stop is None else file[name][start:stop]
     except OSError:
         rows = range(start, start + 1) if stop is None else range(*slice(start, stop).indices(len(file[name])))
         raise XvoeError(damaged(file.filename, name, _first_unreadable(file[name], rows))) from None
+    if name == "ids":
+        _check_ids(file, found if stop is not None else found[None], start)
+    return found
+
+
+def _check_ids(file: h5py.File, ids: np.ndarray, start: int) -> None:
+    """Refuse slot ids (videos, T, H, W) past the split's slots, naming the first video holding one."""
+    slots = file["kind"].shape[1]
+    tops = ids.reshape(len(ids), -1).max(axis=1, initial=0)
+    if np.any(tops > slots):
+        video = int(np.argmax(tops > slots))
+        raise XvoeError(f"{file.filename} has slot ids up to {tops[video]} in video {start + video}; they run "
+                        f"0..{slots} (0 = background)")
+
+
+def read_states(file: h5py.File, start: int, stop: int | None = None) -> np.ndarray:
+    """`file["states"][start:stop]` (one video's without `stop`), or a one-line error naming
+    the first video whose states are NaN or infinite where the schema allows only numbers: an
+    import of the released X-VoE (its `source` attribute) has NaN where the release holds no
+    state, a generated split has a number everywhere."""
+    found = file["states"][start] if stop is None else file["states"][start:stop]
+    videos = found if stop is not None else found[None]
+    finite = np.isfinite(videos).reshape(len(videos), -1).all(axis=1)
+    if "source" not in file.attrs and not finite.all():
+        video = start + int(np.argmin(finite))
+        raise XvoeError(f"{file.filename} has NaN or infinite states in video {video}; a generated split's "
+                        "states are numbers (only an imported release's may be NaN)")
+    return found
 
 
 def _first_unreadable(dataset: h5py.Dataset, rows: range) -> int:

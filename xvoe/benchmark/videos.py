@@ -115,7 +115,7 @@ def wall_lowered(file: h5py.File, index: int) -> np.ndarray:
     if walls.size == 0:
         return np.zeros(frames)
     columns = list(file["states"].attrs["state_columns"])
-    states = file["states"][index][:, walls]
+    states = store.read_states(file, index)[:, walls]
     bottom = states[..., columns.index("y")] + states[..., columns.index("height")] / 2   # pixels, y down
     raised = (size - bottom) * (WORLD / size) - FLOOR           # world units above the floor
     lowered = np.clip(1.0 - raised / (WORLD - FLOOR), 0.0, 1.0)
@@ -130,7 +130,7 @@ def true_objects(file: h5py.File, index: int) -> np.ndarray:
     names = list(file.attrs["kind_names"])
     columns = list(file["states"].attrs["state_columns"])
     frames, size = file["rgbd"].shape[1], file["rgbd"].shape[2]
-    states, colors = file["states"][index], file["color"][index]
+    states, colors = store.read_states(file, index), file["color"][index]
     picture = np.full((frames, size, size, 4), 255, np.uint8)
     for slot, kind in enumerate(file["kind"][index]):
         if names[kind] in ("ball", "cube"):

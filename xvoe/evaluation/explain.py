@@ -20,7 +20,7 @@ from ..errors import XvoeError
 from ..models.perception import to_uint8
 from ..models.slots import composite, decode_slots
 from ..training.data import check_size
-from .score import Scorer, encode_videos, read_videos
+from .score import Scorer, encode_videos, read_videos, run_model
 from .surprise import explained_latents, mse_surprise
 
 # A hypothesis of the NLL's posterior below this probability is not drawn as the model's belief:
@@ -91,7 +91,10 @@ def explain_drawn(scorer: Scorer, data: str, index: int) -> DrawnExplanation:
     with store.open_dataset(data) as file:
         check_index(file, index)
         videos, title = read_videos(file, index, index + 1), describe(file, index)
-    drawn = np.asarray(scorer.custom.explain(videos))
+    try:
+        drawn = np.asarray(run_model(scorer, "explain", videos))
+    except (ValueError, TypeError):
+        drawn = np.zeros(0, object)     # ragged, or not an array: refused below with what it is
     expected = videos.rgbd.shape[:4]
     if drawn.shape[:4] != expected or drawn.ndim != 5 or drawn.shape[4] < 3 or drawn.dtype != np.uint8:
         raise XvoeError(f"the model {scorer.name} drew frames of shape {drawn.shape} and type {drawn.dtype}; "

@@ -53,7 +53,7 @@ def ground_truth(file: h5py.File, index: int) -> str:
     """"hidden": an object of the video is visible in no frame; "seen": every object is seen
     at some frame."""
     names, columns = split_names(file)
-    visible = file["states"][index][:, :, columns.index("visible")].max(axis=0)
+    visible = store.read_states(file, index)[:, :, columns.index("visible")].max(axis=0)
     objects = [k for k, kind in enumerate(file["kind"][index]) if names[kind] != "none"]
     return "hidden" if any(visible[k] == 0 for k in objects) else "seen"
 
@@ -81,7 +81,7 @@ def hidden_explanations(scorer: Scorer, file: h5py.File, videos: list[int]) -> d
     scores, offsets, away, areas, empty, ball_fill, kept = [], [], [], [], [], [], []
     for index in videos:
         kinds = [names[k] for k in file["kind"][index]]
-        states = file["states"][index]
+        states = store.read_states(file, index)
         hidden = [k for k, kind in enumerate(kinds) if kind == "cube"
                   and states[:, k, columns.index("visible")].max() == 0]
         if len(hidden) != 1:
@@ -136,7 +136,7 @@ def hidden_fills(scorer: Scorer, file: h5py.File, videos: list[int]) -> dict:
     by_distance: dict[int, list[float]] = {}    # frames before the cube is seen again: IoUs
     for index in videos:
         kinds = [names[k] for k in file["kind"][index]]
-        states = file["states"][index]
+        states = store.read_states(file, index)
         video = _encode(scorer, file, index)
         refined = scorer.xpl.refine(video["mean"], video["visible"], video["occluder"])
         for k, kind in enumerate(kinds):
@@ -177,7 +177,7 @@ def perception_iou(scorer: Scorer, file: h5py.File, videos: list[int]) -> float:
     scores = []
     for index in videos:
         kinds = [names[k] for k in file["kind"][index]]
-        states = file["states"][index]
+        states = store.read_states(file, index)
         cubes = [k for k, kind in enumerate(kinds) if kind == "cube"]
         if not cubes:
             continue
@@ -200,7 +200,7 @@ def mae_iou(scorer: Scorer, file: h5py.File, videos: list[int]) -> list[float]:
     scores = []
     for index in videos:
         kinds = [names[k] for k in file["kind"][index]]
-        video, states = _encode(scorer, file, index), file["states"][index]
+        video, states = _encode(scorer, file, index), store.read_states(file, index)
         for slot, kind in enumerate(kinds):
             if kind not in ("ball", "cube"):
                 continue

@@ -25,6 +25,7 @@ pairs never give an interval of zero width. Every row says how many units it res
 from __future__ import annotations
 
 import csv
+import hashlib
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TypeVar
@@ -56,22 +57,36 @@ def read_scores(path: str | Path, data: str | Path | None = None) -> dict[str, n
     test split that was scored, the CSV needs only `index` and `score` (any other columns
     too): the labels are joined from the split, and labels the CSV carries must be the
     split's. Every refusal is one line naming the problem."""
-    path = Path(path)
+    columns = read_columns(Path(path), ("index", "score") if data is not None else (*REQUIRED, "score"),
+                            "" if data is not None else " (or give --data, the scored split, to join its labels)")
+    if data is not None:
+        columns = _join_labels(Path(path), columns, data)
+    problem = score_problem(columns)
+    if problem:
+        raise XvoeError(f"{path}: {problem}")
+    return columns
+
+
+def read_columns(path: Path, needed: tuple[str, ...] = ("index", "score"), hint: str = "") -> dict[str, np.ndarray]:
+    """A scores CSV's columns as read, each row's fields and the model's name checked, not yet
+    the table as a whole (`score_problem`: a shard's part is not whole, and `xvoe verify` names
+    an edited label by its row). UTF-8, with or without a byte-order mark."""
     if path.is_dir():
         raise XvoeError(f"{path} is a directory, not a scores file")
     if not path.is_file():
         raise XvoeError(f"{path}: no such file")
     try:
-        with open(path, newline="", encoding="utf-8") as handle:
+        with open(path, newline="", encoding="utf-8-sig") as handle:
             rows = list(csv.DictReader(handle))
     except (UnicodeDecodeError, csv.Error):
         raise XvoeError(f"{path} is not a CSV text file") from None
     if not rows or not rows[0]:
         raise XvoeError(f"{path} holds no scores")
-    needed = ("index", "score") if data is not None else (*REQUIRED, "score")
+    longer = next((number for number, row in enumerate(rows, 1) if None in row), None)
+    if longer is not None:
+        raise XvoeError(f"{path}: row {longer} (line {longer + 1}) has more fields than the header names")
     missing = [c for c in needed if c not in rows[0]]
     if missing:
-        hint = "" if data is not None else " (or give --data, the scored split, to join its labels)"
         raise XvoeError(f"{path} is not a scores file: no column(s) {', '.join(missing)}{hint}")
     columns: dict[str, np.ndarray] = {}
     for name in rows[0]:
@@ -92,12 +107,63 @@ def read_scores(path: str | Path, data: str | Path | None = None) -> dict[str, n
                     bad = next(v for v in values if not _is_number(v))
                     raise XvoeError(f"{path}: {name} holds {bad!r}, not a number") from None
                 columns[name] = np.array(values)
-    if data is not None:
-        columns = _join_labels(path, columns, data)
-    problem = score_problem(columns)
-    if problem:
-        raise XvoeError(f"{path}: {problem}")
+    if "model" in columns:
+        _check_one_model(path, columns["model"])
     return columns
+
+
+def _check_one_model(path: Path, names: np.ndarray) -> None:
+    """One model's scores per file, under a usable name (`model_name_problem`): two names in one
+    file are refused rather than reported under the first (docs/decisions.md, "One model per
+    score file")."""
+    for number, name in enumerate(map(str, names), 1):
+        problem = model_name_problem(name)
+        if problem:
+            raise XvoeError(f"{path}: row {number}'s model name {problem}")
+        if name != names[0]:
+            raise XvoeError(f"{path} holds the scores of two models, {str(names[0])!r} and {name!r} (row {number}); "
+                            "give each model a file of its own")
+
+
+def scores_digest(path: str | Path) -> str:
+    """A digest of a scores CSV's columns as read (names, labels and values; not its bytes, so
+    that a file saved again with a byte-order mark or other line ends keeps it), which its curves
+    file records: curves beside another score file, or beside scores edited since, are told apart."""
+    digest = hashlib.sha256()
+    for name, values in read_columns(Path(path), ("index", "score")).items():
+        digest.update(name.encode() + b"\0")
+        if values.dtype.kind in "fb":
+            digest.update(np.ascontiguousarray(values, dtype="<f8").tobytes())
+        else:
+            digest.update("\0".join(map(str, values)).encode() + b"\0")
+    return digest.hexdigest()
+
+
+@dataclass(frozen=True)
+class ScoreTable:
+    """A score file as `xvoe.score` returns it: its path (the table stands for it wherever a
+    path is taken: `open`, `Path`, `xvoe.report`) and its columns as read, one row per video."""
+
+    path: Path
+
+    def __fspath__(self) -> str:
+        return str(self.path)
+
+    def __str__(self) -> str:
+        return str(self.path)
+
+    @property
+    def columns(self) -> dict[str, np.ndarray]:
+        """name -> (N,) values, as `read_scores` reads them (a shard's part too: not checked whole)."""
+        return read_columns(self.path, ("index", "score"))
+
+    @property
+    def rows(self) -> list[dict]:
+        """One dict per video, the columns' values as Python numbers (index, pair and member whole) and text."""
+        columns = self.columns
+        whole = {name for name in ("index", "pair", "member") if name in columns}
+        return [{name: int(values[i]) if name in whole else values[i].item() for name, values in columns.items()}
+                for i in range(len(columns["index"]))]
 
 
 def _is_number(text: str) -> bool:
@@ -255,7 +321,7 @@ def _relative_right(scores: dict[str, np.ndarray], scenario: str, setting: str,
     """For each video of a setting whose S1 pair is scored: 1 if judged rightly against the S1
     pair's mean (a tie one half), with its pair index and member."""
     pairs_s1, first, second = pairs_table(scores, scenario, "S1", column)
-    threshold = dict(zip(pairs_s1, (first + second) / 2))
+    threshold = dict(zip(pairs_s1, first / 2 + second / 2))    # halved first: 1e308 + 1e308 overflows
     mask = (scores["scenario"] == scenario) & (scores["setting"] == setting)
     pair, member = scores["pair"][mask].astype(int), scores["member"][mask].astype(int)
     known = np.array([p in threshold for p in pair], dtype=bool)
@@ -338,6 +404,19 @@ def _row(model, metric, column, scenario, setting, estimate: Estimate, ideal: fl
     return {"model": model, "metric": metric, "column": column, "scenario": scenario, "setting": setting,
             "value": estimate.value, "low": estimate.low, "high": estimate.high, "count": estimate.count,
             "ideal": ideal, "p": estimate.p}
+
+
+def model_name_problem(name: str) -> str | None:
+    """What makes `name` unusable as a model's name, in a few words, or None: a name is a CSV
+    field, a line of a report and part of its figures' file names (components-NAME.png), so it
+    is one line of printable text, not empty, with no path separator."""
+    if not name.strip():
+        return "is empty"
+    if not name.isprintable():
+        return f"holds a control character ({name!r}); a name is one line of printable text"
+    if "/" in name or "\\" in name:
+        return f"holds a path separator ({name!r}); a name is part of a report's file names"
+    return None
 
 
 def model_name(path: str | Path, scores: dict[str, np.ndarray]) -> str:

@@ -55,8 +55,8 @@ def read_held_out(data: str | Path, videos: int, image_size: int) -> HeldOut:
         check_size(file, image_size, "the perception")
         count = min(videos, file["rgbd"].shape[0])
         return HeldOut(store.read_frames(file, "rgbd", 0, count), store.read_frames(file, "ids", 0, count),
-                       file["states"][:count], file["kind"][:count], list(file["states"].attrs["state_columns"]),
-                       list(file.attrs["kind_names"]))
+                       store.read_states(file, 0, count), file["kind"][:count],
+                       list(file["states"].attrs["state_columns"]), list(file.attrs["kind_names"]))
 
 
 def psnr(error_sum: float | np.ndarray, count: float | np.ndarray) -> float | np.ndarray:

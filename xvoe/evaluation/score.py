@@ -10,9 +10,11 @@ error of its one-step prediction summed over pixels (0 at frame 0). It is writte
 s_dyn column and curve; s_img is all zeros for it.
 
 A model answering `surprise(videos)` (`SurpriseModel`: PhyDNet, the random agent, a model of
-your own) has one term, written in the s_dyn column; its per-frame curve is stored under the
+your own) has one term: its score file holds the score column alone (PhyDNet's keeps it in
+s_dyn too, beside an s_img of zeros, `own_surprise`); its per-frame curve is stored under the
 model's own name for it (`curve_of`), and it passes the harness of xvoe.evaluation.checks
-before anything is written.
+before anything is written. Being the user's code, it runs under a time limit per batch, and
+whatever it raises or returns wrong ends the run in one line naming it (`checked_surprise`).
 """
 from __future__ import annotations
 
@@ -23,7 +25,9 @@ import importlib.util
 import json
 import os
 import re
+import signal
 import sys
+import threading
 import warnings
 import zipfile
 from collections.abc import Iterator
@@ -38,6 +42,7 @@ import torch
 from torch import Tensor
 
 from ..benchmark import store
+from ..domains import TIME_LIMIT
 from ..errors import XvoeError
 from ..identity import arrays_hash, describe_split, file_hash, split_identity
 from ..models.config import to_dict
@@ -55,7 +60,7 @@ from ..training.perception import load_perception
 from ..training.phydnet import load_phydnet
 from ..training.xpl import load_xpl, nll_settings_of
 from .checks import check_batches, check_finite, check_spread, sample_rows
-from .metrics import excess
+from .metrics import excess, model_name_problem, scores_digest
 from .surprise import DrawnScene, aggregate, draw_scene, every_explanation
 
 # score, s_img and s_dyn: the default verdict (for XPL, the better of two explanations); paper_score:
@@ -144,6 +149,8 @@ class Scorer:
     # what `load_model` was given (a shipped name, an absolute path, package.module:name), for
     # `xvoe verify` to load the model again; None for a model made in memory
     source: str | None = None
+    # seconds a `custom` model's surprise may take for one batch (None: no limit)
+    time_limit: float | None = TIME_LIMIT
 
     @property
     def is_random(self) -> bool:
@@ -189,7 +196,7 @@ def load_model(model: str, device: str | torch.device = "cpu") -> Scorer:
         return Scorer("random", None, None, custom=RandomAgent(), source="random")
     if names_code(model):
         custom = load_surprise_model(model)
-        return Scorer(str(custom.name), None, None, custom=custom, source=_absolute_reference(model))
+        return Scorer(custom.name, None, None, custom=custom, source=_absolute_reference(model))
 
     path = Path(model)
     if model in SHIPPED and not path.exists():
@@ -259,17 +266,26 @@ def _module_identity(scorer: Scorer) -> dict:
     return {"module": f"{where}:{name}", "file_hash": file_hash(origin) if origin and Path(origin).is_file() else None}
 
 
+def own_surprise(scorer: Scorer) -> bool:
+    """Whether a scorer's surprise is one term of its own (a model of your own, the random agent),
+    whose score file holds the score column alone: PhyDNet's is its prediction error, kept in
+    s_dyn beside an s_img of zeros as the MSE's terms are."""
+    return scorer.custom is not None and scorer.phydnet is None
+
+
 def surprise_definitions(scorer: Scorer, how: str) -> dict:
     """The surprise definitions behind a score file's columns, with their settings (the NLL's are
     added beside them by its `ExtraColumns`)."""
     if scorer.custom is not None:
-        return {"own": f"the model's per-frame surprise (in s_dyn), {how} over frames"}
+        kept = " (in s_dyn)" if scorer.phydnet is not None else ""
+        return {"own": f"the model's per-frame surprise{kept}, {how} over frames"}
     return {"mse": {"score": "better", "paper_score": "proposal", "aggregate": how}}
 
 
 def load_surprise_model(reference: str) -> SurpriseModel:
     """The object `name` of `package.module:name` or `path/to/file.py:name`; a class or another
-    factory is called with no arguments. A one-line error for anything that is not a model."""
+    factory is called with no arguments. A one-line error for anything that is not a model, and
+    for a module or factory that fails in any way (an exception, or sys.exit)."""
     where, _, name = reference.rpartition(":")
     try:
         if where.endswith(".py"):
@@ -282,17 +298,48 @@ def load_surprise_model(reference: str) -> SurpriseModel:
             module = importlib.import_module(where)
     except XvoeError:
         raise
-    except Exception as error:  # noqa: BLE001 - a user's module may fail in any way; say which and where
-        raise XvoeError(f"cannot import {where} for the model {reference}: {type(error).__name__}: {error}") from None
+    except (Exception, SystemExit) as error:  # noqa: BLE001 - a user's module may fail in any way; say which and where
+        raise XvoeError(f"cannot import {where} for the model {reference}: {one_line(error)}") from None
     found = getattr(module, name, None)
     if found is None:
         raise XvoeError(f"{where} has no {name!r} for the model {reference}")
-    model = found() if isinstance(found, type) or (callable(found) and not hasattr(found, "surprise")) else found
-    if not callable(getattr(model, "surprise", None)) or not isinstance(getattr(model, "name", None), str):
+    if isinstance(found, type) or (callable(found) and not hasattr(found, "surprise")):
+        try:
+            found = found()
+        except (Exception, SystemExit) as error:  # noqa: BLE001 - a user's constructor may fail in any way
+            raise XvoeError(f"the model {reference} could not be made: {name}() raised {one_line(error)}") from None
+    return checked_model(found, reference)
+
+
+def checked_model(model: object, reference: str) -> SurpriseModel:
+    """`model` if it answers the protocol (`SurpriseModel`): a `surprise` method, a name that is
+    one line of printable text, a valid `curve`; else a one-line error naming `reference`."""
+    name = getattr(model, "name", None)
+    if not callable(getattr(model, "surprise", None)) or not isinstance(name, str):
         raise XvoeError(f"{reference} is not a surprise model: it needs a name (str) and a surprise(videos) "
                         "method (docs/evaluate-your-model.md)")
+    problem = model_name_problem(name)
+    if problem is not None:
+        raise XvoeError(f"the model {reference}'s name {problem}")
     curve_of(model)
     return model
+
+
+def as_scorer(model: str | Scorer | SurpriseModel, device: str | torch.device = "cpu") -> Scorer:
+    """A model as `score` and `explain` take it: a name or path (`load_model`), a `Scorer`, or an
+    object of your own answering `surprise(videos)` (`SurpriseModel`), scored on the CPU as given."""
+    if isinstance(model, str):
+        return load_model(model, device)
+    if isinstance(model, Scorer):
+        return model
+    custom = checked_model(model, type(model).__name__)
+    return Scorer(custom.name, None, None, custom=custom)
+
+
+def one_line(error: BaseException) -> str:
+    """An exception of a user's code as one line: its type and its message, whitespace collapsed."""
+    message = " ".join(str(error).split())
+    return f"{type(error).__name__}: {message[:300]}" if message else type(error).__name__
 
 
 def curve_of(model: SurpriseModel) -> tuple[str, str]:
@@ -315,15 +362,103 @@ def custom_surprise(scorer: Scorer, file, start: int, stop: int) -> np.ndarray:
 
 
 def checked_surprise(scorer: Scorer, videos: Videos) -> np.ndarray:
-    """`scorer.custom.surprise(videos)` as floats (B, T), refused in one line unless of that shape and finite."""
-    found = scorer.custom.surprise(videos)
-    values = np.asarray(found.detach().cpu() if isinstance(found, Tensor) else found, dtype=float)
-    expected = videos.rgbd.shape[:2]
-    if values.shape != expected:
-        raise XvoeError(f"the model {scorer.name} gave surprise of shape {values.shape} for {expected[0]} videos "
-                        f"of {expected[1]} frames; expected {expected}")
+    """`scorer.custom.surprise(videos)` as floats (B, T), within the scorer's time limit, refused in
+    one line naming the model (and the first video at fault) unless it returns, returns real
+    numbers of that shape, and every one is finite; an exception of the model's is named too."""
+    values = _real_values(run_model(scorer, "surprise", videos), videos, scorer.name)
     check_finite(values, videos.index, scorer.name)
     return values
+
+
+def run_model(scorer: Scorer, method: str, videos: Videos) -> object:
+    """`scorer.custom.METHOD(videos)` (`surprise`, `explain`) within the scorer's time limit; what
+    it raises (an exception, or sys.exit) or a batch past the limit ends in one line naming the
+    model and the videos."""
+    batch = _batch_name(videos.index)
+    try:
+        with _time_limit(scorer.time_limit):
+            return getattr(scorer.custom, method)(videos)
+    except _OutOfTime:
+        raise XvoeError(f"the model {scorer.name} gave no {method} for {batch} within {scorer.time_limit:g} s; "
+                        "--time-limit sets the limit per batch") from None
+    except XvoeError:
+        raise
+    except (Exception, SystemExit) as error:  # noqa: BLE001 - a user's model may fail in any way; say which and where
+        raise XvoeError(f"the model {scorer.name} failed on {batch}: {method} raised {one_line(error)}") from None
+
+
+def _batch_name(index: np.ndarray) -> str:
+    """Videos of a batch as a message names them: one, a run of them, or the first few."""
+    if len(index) == 1:
+        return f"video {index[0]}"
+    if np.array_equal(index, np.arange(index[0], index[0] + len(index))):
+        return f"videos {index[0]}..{index[-1]}"
+    return f"videos {', '.join(map(str, index[:3]))}, ... ({len(index)} videos)"
+
+
+def _real_values(found: object, videos: Videos, name: str) -> np.ndarray:
+    """A model's surprise (B, T) as float64, or a one-line error naming the first video whose row
+    is not T real numbers (text, complex numbers, a ragged row), or the shape found."""
+    expected = videos.rgbd.shape[:2]
+    if isinstance(found, Tensor):
+        found = found.detach().cpu()
+        found = found if found.is_complex() else found.double()
+    try:
+        values = np.asarray(found)
+    except (ValueError, TypeError):
+        values = None
+    numbers = values is not None and values.dtype.kind in "biuf"
+    if numbers and values.shape == expected:
+        return values.astype(float)
+    rows = found if not numbers and (isinstance(found, (list, tuple)) or getattr(found, "ndim", 0) > 0) else ()
+    for row, video in zip(rows, videos.index):
+        problem = _row_problem(row, expected[1])
+        if problem:
+            raise XvoeError(f"the model {name} gave {problem} for video {video}; surprise(videos) returns "
+                            f"real numbers of shape (videos, frames), {expected}")
+    shape = values.shape if values is not None else type(found).__name__
+    raise XvoeError(f"the model {name} gave surprise of shape {shape} for {expected[0]} videos of {expected[1]} "
+                    f"frames; expected {expected}")
+
+
+def _row_problem(row: object, frames: int) -> str | None:
+    """What makes one video's row of a model's surprise not `frames` real numbers, or None."""
+    try:
+        values = np.asarray(row)
+    except (ValueError, TypeError):
+        return "a ragged row"
+    if values.dtype.kind == "c":
+        return "complex numbers"
+    if values.dtype.kind not in "biuf":
+        return f"values of type {values.dtype} (not numbers)"
+    if values.shape != (frames,):
+        return f"a row of shape {values.shape}, not ({frames},)"
+    return None
+
+
+class _OutOfTime(BaseException):
+    """Raised into a model's surprise when its time is up: not an Exception, so that a model that
+    catches every Exception cannot swallow it."""
+
+
+@contextmanager
+def _time_limit(seconds: float | None) -> Iterator[None]:
+    """`_OutOfTime` raised after `seconds` of wall time (a timer signal: the main thread only;
+    elsewhere, or with None, no limit)."""
+    if seconds is None or threading.current_thread() is not threading.main_thread():
+        yield
+        return
+
+    def expire(number: int, frame) -> None:
+        raise _OutOfTime
+
+    previous = signal.signal(signal.SIGALRM, expire)
+    signal.setitimer(signal.ITIMER_REAL, seconds)
+    try:
+        yield
+    finally:
+        signal.setitimer(signal.ITIMER_REAL, 0)
+        signal.signal(signal.SIGALRM, previous)
 
 
 def check_model(scorer: Scorer, file, first: int, last: int) -> None:
@@ -368,7 +503,8 @@ class ExtraColumns(Protocol):
 def score_split(model: str | Scorer, data: str, out: str, *, how: str = "sum", videos_per_batch: int = 16,
                 extra: ExtraColumns | None = None, score_column: str = "score", shard: tuple[int, int] = (0, 1),
                 checks: bool = True, overwrite: bool = False, progress: bool = True,
-                device: str | torch.device = "cpu", cache: str | os.PathLike | bool = True) -> Path:
+                device: str | torch.device = "cpu", cache: str | os.PathLike | bool = True,
+                time_limit: float | None = TIME_LIMIT) -> Path:
     """One CSV row per test video, and the per-frame surprise curves (s_img, s_dyn: (N, T);
     s_rec too for a model with a perception module) in an .npz beside it, with the header
     (`score_header`). Models with a perception module also get the columns s_rec and excess
@@ -380,12 +516,15 @@ def score_split(model: str | Scorer, data: str, out: str, *, how: str = "sum", v
     skips all but the finite check. `device`: where a model given by name runs (a `Scorer` runs
     where it was loaded). `cache`: the latent cache of the split that a model with a perception
     module reads instead of encoding its frames (`latent_cache`): True, the split's beside it;
-    a path; False, none (every batch encoded here)."""
+    a path; False, none (every batch encoded here). `time_limit`: seconds a model answering
+    `surprise(videos)` may take for one batch before the run ends in one line (None: none)."""
     if how not in ("sum", "max"):
         raise XvoeError(f"--aggregate must be sum or max, not {how!r}")
     if score_column != "score" and (extra is None or score_column not in extra.names):
         raise XvoeError(f"the score column must be 'score' or one of the extra columns, not {score_column!r}")
-    scorer = load_model(model, device) if isinstance(model, str) else model
+    if time_limit is not None and not time_limit > 0:
+        raise XvoeError(f"--time-limit must be a number of seconds above 0, not {time_limit}")
+    scorer = replace(as_scorer(model, device), time_limit=time_limit)
     if extra is not None:
         extra.check(scorer)
     with open_test_split(scorer, data) as file:
@@ -416,15 +555,17 @@ def score_split(model: str | Scorer, data: str, out: str, *, how: str = "sum", v
         own, header["curve_label"] = curve_of(scorer.custom)
         named, header["curve"] = {own: curves[1]}, own
     # the CSV and its curves are one result: the CSV, which names the curves, is renamed last
-    with atomic_paths(curves_path, out) as (curves_tmp, tmp), open(tmp, "w", newline="") as handle:
+    with atomic_paths(curves_path, out) as (curves_tmp, tmp):
+        with open(tmp, "w", newline="") as handle:
+            writer = csv.writer(handle)
+            writer.writerow(SCORE_COLUMNS[:7] + tuple(columns))
+            for row, i in enumerate(range(first, last)):
+                writer.writerow([i, scorer.name, labels["scenario"][i], labels["setting"][i], int(labels["pair"][i]),
+                                 int(labels["member"][i]), bool(labels["possible"][i])]
+                                + [float(values[row]) for values in columns.values()])
+        header["scores_digest"] = scores_digest(tmp)
         with open(curves_tmp, "wb") as curves_file:
             np.savez_compressed(curves_file, header=np.array(json.dumps(header, sort_keys=True)), **named)
-        writer = csv.writer(handle)
-        writer.writerow(SCORE_COLUMNS[:7] + tuple(columns))
-        for row, i in enumerate(range(first, last)):
-            writer.writerow([i, scorer.name, labels["scenario"][i], labels["setting"][i], int(labels["pair"][i]),
-                             int(labels["member"][i]), bool(labels["possible"][i])]
-                            + [float(values[row]) for values in columns.values()])
     return out
 
 
@@ -460,11 +601,14 @@ def score_rows(scorer: Scorer, file, first: int, last: int, videos_per_batch: in
 def row_columns(scorer: Scorer, curves: np.ndarray, added: np.ndarray, how: str, extra: ExtraColumns | None,
                 score_column: str = "score") -> dict[str, np.ndarray]:
     """The numeric columns of a score file after its labels (score, s_img, s_dyn, paper_score,
-    then s_rec and excess for a model with a perception module, then `extra`'s), per video,
-    from the curves and the extra columns of `score_rows`."""
+    then s_rec and excess for a model with a perception module, then `extra`'s; a model of your
+    own's score alone, `own_surprise`), per video, from the curves and the extra columns of
+    `score_rows`."""
+    total = aggregate(torch.from_numpy(curves[:2].sum(0)), how).numpy()
+    if own_surprise(scorer):
+        return {"score": total}
     s_img, s_dyn, s_rec = (aggregate(torch.from_numpy(c), how).numpy() for c in curves[:3])
     paper = aggregate(torch.from_numpy(curves[3:].sum(0)), how).numpy()
-    total = aggregate(torch.from_numpy(curves[:2].sum(0)), how).numpy()
     columns = {"score": total, "s_img": s_img, "s_dyn": s_dyn, "paper_score": paper}
     if scorer.vae is not None:
         columns |= {"s_rec": s_rec, "excess": aggregate(torch.from_numpy(excess(*curves[:3])), how).numpy()}
@@ -474,20 +618,69 @@ def row_columns(scorer: Scorer, curves: np.ndarray, added: np.ndarray, how: str,
     return columns
 
 
-def score_header(path: str | Path) -> dict:
+def stored_columns(saved: dict[str, np.ndarray], header: dict) -> dict[str, np.ndarray]:
+    """The columns of a score file that its stored curves (`curves_arrays`) reduce to, by the
+    aggregation its header records: score, s_img, s_dyn, s_rec, paper_score and excess, each
+    where its curves are stored, and nll, -log p(video), the sum of its curve whatever the
+    aggregation (the sequential Monte Carlo's; importance sampling stores none). The NLL's other
+    columns are not sums of curves: `xvoe verify` rescores them."""
+    how, own = header.get("aggregate", "sum"), header.get("curve")
+
+    def reduced(curve: np.ndarray) -> np.ndarray:
+        return aggregate(torch.from_numpy(np.asarray(curve, float)), how).numpy()
+
+    found = {name: reduced(saved[name]) for name in ("s_img", "s_dyn", "s_rec") if name in saved}
+    if {"paper_s_img", "paper_s_dyn"} <= set(saved):
+        found["paper_score"] = reduced(saved["paper_s_img"] + saved["paper_s_dyn"])
+    if {"s_img", "s_dyn", "s_rec"} <= set(saved):
+        found["excess"] = reduced(excess(saved["s_img"], saved["s_dyn"], saved["s_rec"]))
+    if "nll" in saved:
+        found["nll"] = np.asarray(saved["nll"], float).sum(axis=1)
+    score = header.get("score", "score")
+    if score == "score" and own in saved:
+        found["score"] = reduced(saved[own])
+    elif score == "score" and {"s_img", "s_dyn"} <= set(saved):
+        found["score"] = reduced(saved["s_img"] + saved["s_dyn"])
+    elif score in found:
+        found["score"] = found[score]
+    return found
+
+
+def score_header(path: str | Path, check: bool = True) -> dict:
     """What a score file was made with, kept in its curves file: the package version (`xvoe`),
     the model's name and identity (`model_identity`), the split's identity (`split`,
     `xvoe.identity.split_identity`) and the path it was read from (`data`), the score column,
-    the aggregation over frames, the surprise definitions (`surprise`) and, for the NLL, its
-    settings and seed (`nll`, `nll_seed`)."""
+    the aggregation over frames, the surprise definitions (`surprise`), for the NLL its
+    settings and seed (`nll`, `nll_seed`), and the digest of the scores it was written with
+    (`scores_digest`). `check`: refuse, in one line, curves written with other scores
+    (`check_curves_of`)."""
     curves = Path(path).with_suffix(".curves.npz")
     if not curves.is_file():
         raise XvoeError(f"{path} has no curves file beside it ({curves.name}), which holds its header")
-    found = curves_arrays(curves)
+    header = _header_of(curves, curves_arrays(curves))
+    if check:
+        check_curves_of(path, curves, header)
+    return header
+
+
+def _header_of(curves: Path, saved: dict[str, np.ndarray]) -> dict:
     try:
-        return json.loads(str(found["header"])) if "header" in found else {}
+        header = json.loads(str(saved["header"])) if "header" in saved else {}
     except ValueError:
-        raise XvoeError(f"{curves} is not a curves file of xvoe score (its header is not JSON)") from None
+        header = None
+    if not isinstance(header, dict):
+        raise XvoeError(f"{curves} is not a curves file of xvoe score (its header is not a JSON object)")
+    return header
+
+
+def check_curves_of(scores: str | Path, curves: str | Path, header: dict) -> None:
+    """Refuse curves whose header records the digest of other scores than the file `scores`: the
+    curves of another score file put beside it, or scores edited since they were written (a
+    header that records none, an older xvoe's, is taken as it is)."""
+    recorded = header.get("scores_digest")
+    if recorded is not None and recorded != scores_digest(scores):
+        raise XvoeError(f"{curves} was written with other scores than {scores} holds: the curves of another score "
+                        f"file, or scores edited since (xvoe verify {scores} names the rows)")
 
 
 class UncheckedScores(UserWarning):
@@ -499,7 +692,7 @@ class UncheckedScores(UserWarning):
 def scored_split(path: str | Path) -> dict | None:
     """The identity of the split a score file was scored on (`xvoe.identity.split_identity`), or
     None for a file that records none (`warn_unchecked` says so, once the file has been read)."""
-    header = score_header(path) if Path(path).with_suffix(".curves.npz").is_file() else {}
+    header = score_header(path, check=False) if Path(path).with_suffix(".curves.npz").is_file() else {}
     return header.get("split")
 
 
@@ -520,7 +713,7 @@ def check_same_split(path: str | Path, identity: dict, data: str | Path) -> None
 
 def check_scored_by(path: str | Path, scorer: Scorer) -> None:
     """Refuse a score file that another model made (its weights and configs, wherever they lie)."""
-    recorded = score_header(path).get("model_identity")
+    recorded = score_header(path, check=False).get("model_identity")
     if recorded is None:
         raise XvoeError(f"{path} does not record the model it was made with: rescore it with this xvoe")
     loaded = model_identity(scorer)
@@ -557,14 +750,17 @@ def curves_arrays(path: str | Path) -> dict[str, np.ndarray]:
         raise XvoeError(f"{path} is not a curves file of xvoe score ({error})") from None
 
 
-def read_curves(path: str | Path, videos: int) -> Curves:
-    """The curves file `path` (.curves.npz) of a score file of `videos` rows; a one-line error
-    for a missing file, one that is not a curves file or one of another score file."""
+def read_curves(path: str | Path, videos: int, scores: str | Path | None = None) -> Curves:
+    """The curves file `path` (.curves.npz) of a score file of `videos` rows (`scores`, where
+    known, whose digest it must record: `check_curves_of`); a one-line error for a missing
+    file, one that is not a curves file or one of another score file."""
     path = Path(path)
     if not path.is_file():
         raise XvoeError(f"{path}: no such file; xvoe score writes the curves beside the CSV")
     saved = curves_arrays(path)
-    header = json.loads(str(saved["header"])) if "header" in saved else {}
+    header = _header_of(path, saved)
+    if scores is not None:
+        check_curves_of(scores, path, header)
     own = header.get("curve")
     needed = {own} if own else {"s_img", "s_dyn"}
     if not needed <= set(saved):
@@ -622,17 +818,28 @@ def merge_scores(parts: list[str | Path], out: str | Path, overwrite: bool = Fal
             raise XvoeError(f"the parts do not follow each other: {part} starts at video {first}, not {expected}")
         expected += len(lines) - 1
         rows += lines[1:]
-        for name, values in curves_arrays(part.with_suffix(".curves.npz")).items():
-            arrays.setdefault(name, []).append(values)
+        saved = curves_arrays(part.with_suffix(".curves.npz"))
+        check_curves_of(part, part.with_suffix(".curves.npz"), _header_of(part, saved))
+        for name, values in saved.items():
+            arrays.setdefault(name, []).append(_without_digest(values) if name == "header" else values)
         if len({str(header) for header in arrays.get("header", [])}) > 1:
             raise XvoeError(f"{part} was scored with other settings than {found[0][1]} (their headers differ)")
     with atomic_paths(curves_path, out) as (curves_tmp, tmp):
-        with open(curves_tmp, "wb") as curves_file:
-            np.savez_compressed(curves_file, **{name: a[0] if name == "header" else np.concatenate(a)
-                                                for name, a in arrays.items()})
         with open(tmp, "w", newline="") as handle:
             handle.writelines([header, *rows])
+        digest = {"scores_digest": scores_digest(tmp)}     # the whole file's, where each part recorded its own
+        merged = {name: np.array(json.dumps(json.loads(a[0]) | digest, sort_keys=True)) if name == "header"
+                  else np.concatenate(a) for name, a in arrays.items()}
+        with open(curves_tmp, "wb") as curves_file:
+            np.savez_compressed(curves_file, **merged)
     return out
+
+
+def _without_digest(header: np.ndarray) -> str:
+    """A part's header without its own scores' digest: what the parts of one run share."""
+    found = json.loads(str(header))
+    found.pop("scores_digest", None)
+    return json.dumps(found, sort_keys=True)
 
 
 def read_videos(file, start: int, stop: int) -> Videos:

@@ -210,7 +210,7 @@ def airborne(file: h5py.File, start: int, stop: int) -> np.ndarray:
     """(videos, T) bool: frames of rows [start, stop) in which a visible ball or cube's lowest
     point is at least its own half-size above the floor (states are in pixels, y downwards)."""
     columns = list(file["states"].attrs["state_columns"])
-    states = file["states"][start:stop]
+    states = store.read_states(file, start, stop)
     y, size = states[..., columns.index("y")], states[..., columns.index("size")]
     kinds = list(file.attrs["kind_names"])
     movable = np.isin(file["kind"][start:stop], [kinds.index("ball"), kinds.index("cube")])[:, None, :]

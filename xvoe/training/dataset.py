@@ -40,7 +40,7 @@ class SplitDataset(Dataset):
         file = self._open()
         item = {"index": index, "rgbd": torch.from_numpy(store.read_frames(file, "rgbd", index)),
                 "ids": torch.from_numpy(store.read_frames(file, "ids", index)),
-                "states": torch.from_numpy(file["states"][index]),
+                "states": torch.from_numpy(store.read_states(file, index)),
                 "kind": torch.from_numpy(file["kind"][index])}
         for name in self.labels:
             value = file[name][index]

@@ -368,7 +368,7 @@ def object_places(latents: str, start: int, stop: int) -> np.ndarray:
     per frame, from the split file the cache was encoded from."""
     with store.open_dataset(source_split(latents, "outside_refill")) as file:
         columns = list(file["states"].attrs["state_columns"])
-        states = file["states"][start:stop][..., [columns.index(c) for c in ("x", "y", "size")]]
+        states = store.read_states(file, start, stop)[..., [columns.index(c) for c in ("x", "y", "size")]]
         scale = WORLD / file["rgbd"].shape[2]
     states = states * scale
     states[..., 1] = WORLD - states[..., 1]
