@@ -26,7 +26,7 @@ import nbformat
 
 ROOT = Path(__file__).resolve().parent.parent
 # The top-level directories a bare path in prose is read against (from the repository's root).
-TOP = ("xvoe", "docs", "benchmarks", "examples", "inference", "tests", "notebooks")
+TOP = ("xvoe", "docs", "benchmarks", "inference", "tests", "notebooks")
 # Paths the docs name that running something writes, not files of the repository.
 GENERATED = ("notebooks/notebook-data",)
 
@@ -146,7 +146,7 @@ def repository_texts(root: Path = ROOT) -> tuple[Text, ...]:
         texts += markdown_texts(path.read_text(), path, relative(path))
     for path in sorted((root / "notebooks").glob("*.ipynb")):
         texts += notebook_texts(path)
-    for pattern in ("xvoe/**/*.py", "inference/**/*.py", "benchmarks/*.py", "examples/*.py"):
+    for pattern in ("xvoe/**/*.py", "inference/**/*.py", "benchmarks/*.py"):
         for path in sorted(root.glob(pattern)):
             texts += python_texts(path)
     return tuple(texts)

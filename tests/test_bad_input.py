@@ -42,7 +42,7 @@ from xvoe.training.config import TrainConfig
 from xvoe.training.latents import Latents, write_latents
 from xvoe.training.xpl import fingerprint
 
-EXAMPLES = Path(__file__).resolve().parent.parent / "examples"
+EXAMPLES = Path(__file__).resolve().parent.parent / "xvoe" / "examples"
 
 
 def snapshot(root: Path) -> dict[str, str]:

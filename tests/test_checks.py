@@ -11,7 +11,7 @@ import xvoe
 from xvoe.apps.cli import main
 
 matplotlib.use("Agg")
-EXAMPLES = Path(__file__).resolve().parent.parent / "examples"
+EXAMPLES = Path(__file__).resolve().parent.parent / "xvoe" / "examples"
 
 PLANTED = '''
 import numpy as np

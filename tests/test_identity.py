@@ -18,7 +18,7 @@ from xvoe.errors import XvoeError
 from xvoe.identity import arrays_hash, sampled_videos, split_identity
 from xvoe.training.checkpoints import shipped_path
 
-EXAMPLES = Path(__file__).resolve().parent.parent / "examples"
+EXAMPLES = Path(__file__).resolve().parent.parent / "xvoe" / "examples"
 
 
 def identity_of(path: Path) -> dict:

@@ -26,7 +26,8 @@ LAYERS = {
     "xvoe.inference": 5,        # the same folder as it is imported (xvoe/inference links to it)
     "xvoe.apps": 6,
     "xvoe.__main__": 6,
-    "xvoe": 6,          # the package itself: the public API, the top
+    "xvoe": 6,          # the package itself: the public API
+    "xvoe.examples": 7,         # models of one's own over the public API, the top
 }
 
 

@@ -9,7 +9,7 @@ import pytest
 import xvoe
 from xvoe.apps.cli import main
 
-EXAMPLES = Path(__file__).resolve().parent.parent / "examples"
+EXAMPLES = Path(__file__).resolve().parent.parent / "xvoe" / "examples"
 
 
 @pytest.mark.parametrize("reference, curve", [("frame_change.py:FrameChange", "frame_change"),

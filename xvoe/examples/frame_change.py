@@ -4,7 +4,7 @@ It knows nothing of objects or walls, so it is surprised by every motion alike. 
 benchmark it shows what pixel change alone separates: the pairs whose impossible member moves
 more, or differently, in plain view.
 
-    xvoe score --model examples/frame_change.py:FrameChange --data test.h5 --out change.csv
+    xvoe score --model xvoe.examples.frame_change:FrameChange --data test.h5 --out change.csv
 """
 import numpy as np
 

@@ -6,7 +6,7 @@ no physics: it cannot tell a ball that should have stopped from one that did. Wa
 nearest slots (dark in the depth channel); an object leaving view behind a wall is
 remembered, and missed if the wall goes and it is not there.
 
-    xvoe score --model examples/object_tracker.py:ObjectTracker --data test.h5 --out tracker.csv
+    xvoe score --model xvoe.examples.object_tracker:ObjectTracker --data test.h5 --out tracker.csv
 """
 import numpy as np
 
