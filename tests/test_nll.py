@@ -1,5 +1,6 @@
 """The NLL surprise through the real model's code path, with tiny untrained networks."""
 import json
+import shutil
 import warnings
 
 import numpy as np
@@ -29,6 +30,7 @@ from xvoe.models.perception import ComponentVAE, PerceptionConfig
 from xvoe.models.reasoning import ReasoningConfig
 from xvoe.models.slots import push_behind
 from xvoe.models.xpl import XPL, XPLConfig
+from xvoe.training.checkpoints import WEIGHTS, load_checkpoint, save_checkpoint
 
 T, K, D = 5, 4, 6
 
@@ -220,12 +222,59 @@ def test_the_nll_settings_reach_every_video_and_its_excess(tmp_path):
     curves = np.load(tmp_path / "b.curves.npz")
     reference = reference_nll(curves["s_rec"], 4 * scorer.image_size ** 2, 1.0)
     np.testing.assert_allclose(wide["nll_excess"], wide["nll"] - reference, rtol=1e-9, atol=1e-6)
-    # each file says what it was made with: the model's own settings (its recipe's) with the changes
+    # each file says what it was made with: the model's own settings (the shipped xpl.pt stores none:
+    # the defaults) with the changes
     header = xvoe.score_header(tmp_path / "b.csv")
-    assert header["nll"] == json.loads(json.dumps({**to_dict(scorer.nll), "pixel_sigma": 1.0, "particles": 8}))
+    assert header["nll"] == json.loads(json.dumps({**to_dict(InferenceConfig()), "pixel_sigma": 1.0, "particles": 8}))
     assert header["model"] == "xpl"
-    assert xvoe.score_header(tmp_path / "a.csv")["nll"]["pixel_sigma"] == scorer.nll.pixel_sigma == 0.5
+    assert xvoe.score_header(tmp_path / "a.csv")["nll"]["pixel_sigma"] == 0.5
     assert xvoe.nll_settings(["pixel_sigma=1", "smc_pilot=8"]) == {"pixel_sigma": 1.0, "smc_pilot": 8}
+
+
+@pytest.fixture(scope="module")
+def stored_settings(tmp_path_factory):
+    """A run directory whose xpl.pt stores NLL settings other than the defaults (the shipped
+    weights, whose checkpoint stores none, with settings added as the xpl stage stores them), and
+    a split of one pair per setting (the tests score a shard of two videos)."""
+    folder = tmp_path_factory.mktemp("stored")
+    state = load_checkpoint(WEIGHTS / "xpl.pt")
+    state["config"]["nll"] = to_dict(InferenceConfig(pixel_sigma=0.7, smc_pilot=8))
+    save_checkpoint(folder / "xpl.pt", state)
+    for name in ("perception.pt", "proposal.pt"):
+        shutil.copy(WEIGHTS / name, folder / name)
+    data = generate(GenerateConfig("test", pairs=1, size=32, seed=5), folder / "t.h5", workers=1, progress=False)
+    return folder, data
+
+
+def test_a_score_takes_the_checkpoints_nll_settings_and_the_command_line_wins(stored_settings, tmp_path):
+    """Checkpoint first, then an explicit override; the header says where each setting came from."""
+    folder, data = stored_settings
+    xvoe.score(str(folder), str(data), str(tmp_path / "s.csv"), surprise="nll", particles=4,
+               nll_settings={"smc_pilot": 2}, videos_per_batch=2, shard=(0, 11), progress=False)
+    header = xvoe.score_header(tmp_path / "s.csv")
+    assert header["nll"] == json.loads(json.dumps(to_dict(InferenceConfig(pixel_sigma=0.7, smc_pilot=2, particles=4))))
+    source = header["nll_source"]
+    assert {name for name, where in source.items() if where == "command line"} == {"smc_pilot", "particles"}
+    assert set(source.values()) == {"checkpoint", "command line"} and set(source) == set(header["nll"])
+
+
+def test_a_checkpoint_without_nll_settings_is_scored_with_the_defaults_in_one_line(stored_settings, tmp_path,
+                                                                                   capsys):
+    """The shipped xpl.pt stores no NLL settings: `xvoe score` says in one line which it used."""
+    _, data = stored_settings
+    out = tmp_path / "s.csv"
+    assert main(["score", "--model", "xpl", "--data", str(data), "--surprise", "nll", "--particles", "4",
+                 "--batch", "2", "--shard", "0/11", "--out", str(out), "--quiet"]) == 0
+    lines = capsys.readouterr().err.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("xvoe score: warning: xpl stores no NLL settings; scored with "
+                                                   "InferenceConfig's defaults, particles from the command line: ")
+    assert {"pixel_sigma=0.5", "particles=4", "smc_proposal_widening=3.0,10.0"} <= set(lines[0].split())
+    source = xvoe.score_header(out)["nll_source"]
+    assert source.pop("particles") == "command line" and set(source.values()) == {"defaults"}
+    with warnings.catch_warnings():     # a checkpoint that stores them is scored without a word
+        warnings.simplefilter("error")
+        xvoe.score(str(stored_settings[0]), str(data), str(tmp_path / "t.csv"), surprise="nll", particles=4,
+                   videos_per_batch=2, shard=(0, 11), progress=False)
 
 
 def test_the_scene_steps_the_dynamics_frame_by_frame_as_a_full_run_does():

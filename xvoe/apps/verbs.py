@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import os
 import shutil
+import warnings
 from concurrent.futures import ProcessPoolExecutor
 from dataclasses import replace
 from multiprocessing import get_context
@@ -17,7 +18,7 @@ from typing import Any
 import torch
 
 from inference.explain import explain_nll
-from inference.score import NLLColumns
+from inference.score import DefaultNLLSettings, NLLColumns
 
 from ..benchmark import store
 from ..benchmark.display import DISPLAY_SIZE, check_display_size, display_video, hidden_silhouettes
@@ -117,6 +118,7 @@ def _score_in_workers(model: str | Scorer, scorer: Scorer, data: str | Path, out
 
 def _worker_threads(threads: int, parent: int) -> None:
     end_with_parent(parent)
+    warnings.simplefilter("ignore", DefaultNLLSettings)     # the parent has said it once
     os.environ["OMP_NUM_THREADS"] = str(threads)
     torch.set_num_threads(threads)
 
