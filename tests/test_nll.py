@@ -20,6 +20,7 @@ from inference.surprise import BRANCH_SAMPLES, AdamSteps, defensive, hidden_post
 from inference.xpl_scene import XPLScene
 from xvoe.apps.cli import main
 from xvoe.apps.figures import plot_explanation
+from xvoe.apps.report import header_lines
 from xvoe.apps.zoo import available_models
 from xvoe.benchmark import store
 from xvoe.benchmark.generate import GenerateConfig, generate
@@ -257,6 +258,7 @@ def test_a_score_takes_the_checkpoints_nll_settings_and_the_command_line_wins(st
     source = header["nll_source"]
     assert {name for name, where in source.items() if where == "command line"} == {"smc_pilot", "particles"}
     assert set(source.values()) == {"checkpoint", "command line"} and set(source) == set(header["nll"])
+    assert "  - from the command line: particles, smc_pilot" in header_lines(header)     # as a report shows it
 
 
 def test_a_checkpoint_without_nll_settings_is_scored_with_the_defaults_in_one_line(stored_settings, tmp_path,
