@@ -6,9 +6,11 @@
 The `inference/` package of git commit COMMIT is read with `git show` (nothing is checked out)
 and imported beside this tree's as a package of its own; both estimate the NLL of the same
 encoded and drawn videos (the first N of the split, as `xvoe score --surprise nll` draws them,
-encoding excluded) with the same seed, in alternating rounds, so that other jobs on the machine
-slow both alike. The ratio of the two is the figure to read on a shared machine.
-Last line: before_videos_per_s=N.NN after_videos_per_s=N.NN speedup=N.NN max_nll_difference=N.Ne-N
+encoding excluded) with the same seed, interleaved batch by batch (the first of the two
+alternating), so that other jobs on the machine slow both alike. The ratios of the two, of wall
+and of CPU time, are the figures to read on a shared machine.
+Last line: before_videos_per_s=N.NN after_videos_per_s=N.NN speedup=N.NN cpu_speedup=N.NN
+max_nll_difference=N.Ne-N
 """
 from __future__ import annotations
 
@@ -69,12 +71,11 @@ def drawn_batches(scorer, data: str, videos: int) -> list[tuple[dict, object]]:
     return batches
 
 
-def timed(estimate, scorer, batches, config: InferenceConfig, seed: int) -> tuple[float, np.ndarray, np.ndarray]:
-    """Seconds for every video's NLL, the NLLs (N,) and the per-frame curves (N, T)."""
-    tick = time.perf_counter()
-    found = [f for batch, scene in batches for f in estimate(scorer, batch, config, seed, scene)]
-    seconds = time.perf_counter() - tick
-    return seconds, np.array([f.nll for f in found]), np.stack([f.frame_nll.numpy() for f in found])
+def timed(estimate, scorer, batch: dict, scene, config: InferenceConfig, seed: int) -> tuple[float, float, list]:
+    """Wall and CPU seconds for one batch's NLLs, and the estimates."""
+    tick, cpu = time.perf_counter(), time.process_time()
+    found = estimate(scorer, batch, config, seed, scene)
+    return time.perf_counter() - tick, time.process_time() - cpu, found
 
 
 def main() -> None:
@@ -101,28 +102,45 @@ def run(args: argparse.Namespace) -> None:
     batches = drawn_batches(scorer, args.data, args.videos)
     videos = sum(len(batch["mean"]) for batch, _ in batches)
     with tempfile.TemporaryDirectory() as folder:
-        before = inference_at(args.before, Path(folder)).xpl_nll
-        seconds, found = {"before": [], "after": []}, {}
+        estimates = {"before": inference_at(args.before, Path(folder)).xpl_nll, "after": xpl_nll}
+        # (rounds, 2): wall and CPU seconds of each round's pass over every video
+        spent = {name: np.zeros((args.rounds, 2)) for name in estimates}
+        found: dict[str, list] = {}
         for round_ in range(args.rounds):
-            order = [("before", before), ("after", xpl_nll)]
-            for name, estimate in order if round_ % 2 == 0 else order[::-1]:
-                spent, *found[name] = timed(estimate, scorer, batches, config, args.seed)
-                seconds[name].append(spent)
-            print(f"round {round_ + 1}: before {videos / seconds['before'][-1]:.2f}, after "
-                  f"{videos / seconds['after'][-1]:.2f} videos/s ({seconds['before'][-1] / seconds['after'][-1]:.2f}x)")
-    (nll_a, curves_a), (nll_b, curves_b) = found["before"], found["after"]
-    difference = np.abs(nll_b - nll_a)
-    relative = difference / np.abs(nll_a)
-    ratios = np.array(seconds["before"]) / np.array(seconds["after"])
-    rate_before, rate_after = videos / np.median(seconds["before"]), videos / np.median(seconds["after"])
+            for number, (batch, scene) in enumerate(batches):     # interleaved batch by batch, first one then the other
+                names = list(estimates) if (round_ + number) % 2 == 0 else list(estimates)[::-1]
+                for name in names:
+                    wall, cpu, estimate = timed(estimates[name], scorer, batch, scene, config, args.seed)
+                    spent[name][round_] += (wall, cpu)
+                    if round_ == 0:
+                        found.setdefault(name, []).extend(estimate)
+            before, after = spent["before"][round_], spent["after"][round_]
+            print(f"round {round_ + 1}: before {videos / before[0]:.2f}, after {videos / after[0]:.2f} videos/s "
+                  f"({before[0] / after[0]:.2f}x wall, {before[1] / after[1]:.2f}x CPU)")
+    report(args, config, videos, spent, found)
+
+
+def report(args: argparse.Namespace, config: InferenceConfig, videos: int, spent: dict[str, np.ndarray],
+           found: dict[str, list]) -> None:
+    """Print the figures; the last line is the summary."""
+    nll = {name: np.array([f.nll for f in estimates]) for name, estimates in found.items()}
+    curves = {name: np.stack([f.frame_nll.numpy() for f in estimates]) for name, estimates in found.items()}
+    difference = np.abs(nll["after"] - nll["before"])
+    relative = difference / np.abs(nll["before"])
+    wall = spent["before"][:, 0] / spent["after"][:, 0]
+    cpu = spent["before"][:, 1] / spent["after"][:, 1]
+    rate = {name: videos / np.median(seconds[:, 0]) for name, seconds in spent.items()}
+    cpu_rate = {name: videos / np.median(seconds[:, 1]) for name, seconds in spent.items()}
     print(f"model {args.model}, {args.data}: {videos} videos, {config.particles} particles, seed {args.seed}, "
           f"{args.threads} thread(s), before = {args.before}")
-    print(f"median of {args.rounds} rounds: before {rate_before:.2f}, after {rate_after:.2f} videos/s; "
-          f"per-round speedups {', '.join(f'{r:.2f}' for r in ratios)} (median {np.median(ratios):.2f})")
+    print(f"median of {args.rounds} rounds: before {rate['before']:.2f}, after {rate['after']:.2f} videos/s "
+          f"({cpu_rate['before']:.2f} and {cpu_rate['after']:.2f} per CPU-second); speedup per round "
+          f"{', '.join(f'{r:.2f}' for r in wall)} wall, {', '.join(f'{r:.2f}' for r in cpu)} CPU")
     print(f"|NLL after - NLL before| per video: largest {difference.max():.2e} nats (relative {relative.max():.1e}), "
-          f"median {np.median(difference):.1e}; per-frame curves: largest {np.abs(curves_b - curves_a).max():.2e}")
-    print(f"before_videos_per_s={rate_before:.2f} after_videos_per_s={rate_after:.2f} "
-          f"speedup={np.median(ratios):.2f} max_nll_difference={difference.max():.1e}")
+          f"median {np.median(difference):.1e}, {int((difference == 0).sum())} of {videos} the same bits; "
+          f"per-frame curves: largest {np.abs(curves['after'] - curves['before']).max():.2e}")
+    print(f"before_videos_per_s={rate['before']:.2f} after_videos_per_s={rate['after']:.2f} "
+          f"speedup={np.median(wall):.2f} cpu_speedup={np.median(cpu):.2f} max_nll_difference={difference.max():.1e}")
 
 
 if __name__ == "__main__":

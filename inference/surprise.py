@@ -153,21 +153,12 @@ def refine_out_of_sight(scene: XPLScene, loc: Tensor, frames: Tensor, config: In
         pixels = extra.clamp_min(0.0).sum(dim=(1, 2, 3)) / (2 * config.pixel_sigma ** 2)
         return pixels + drawing_cost(config, drawing)
 
-    if config.refine_steps == 0:
+    chosen = every[extra_cost(loc, every) > config.refine_tolerance]
+    if len(chosen) == 0:
         return loc
-    # one pass over every frame picks the frames to move and takes the first step: each frame's
-    # cost is its own latent's, so the gradient of the chosen frames' sum is theirs alone
-    with torch.enable_grad():
-        latents = loc.clone().requires_grad_(True)
-        cost = extra_cost(latents, every)
-        over = cost.detach() > config.refine_tolerance
-        if not over.any():
-            return loc
-        gradient, = torch.autograd.grad(cost[over].sum(), latents)    # not the networks' weights
-    chosen = every[over]
+    moved = loc[chosen].clone()
     adam = AdamSteps(config.refine_rate)
-    moved = adam.step(loc[chosen], gradient[chosen])
-    for _ in range(config.refine_steps - 1):
+    for _ in range(config.refine_steps):
         with torch.enable_grad():
             latents = moved.requires_grad_(True)
             cost = extra_cost(latents, chosen)

@@ -283,7 +283,8 @@ def test_a_checkpoint_without_nll_settings_is_scored_with_the_defaults_in_one_li
 @pytest.mark.parametrize("changes", [{}, {"decoder_extra_convs": 1, "broadcast_size": 4}])
 def test_the_folded_decoder_draws_the_decoders_pictures(changes):
     """FoldedDecoder is the decoder's function with its sums in another order: the same pictures
-    and gradients to float32 rounding, in chunks where many latents are drawn at once."""
+    to float32 rounding, in chunks where many latents are drawn at once; under autograd it is
+    the decoder itself."""
     torch.manual_seed(0)
     vae = ComponentVAE(PerceptionConfig(image_size=16, latent_dim=D, cnn_channels=(8, 8), cnn_hidden=16,
                                         decoder_channels=8, **changes)).eval()
@@ -291,14 +292,12 @@ def test_the_folded_decoder_draws_the_decoders_pictures(changes):
         vae.decoder.out.weight.mul_(10.0)
     folded = FoldedDecoder(vae)
     assert folded.folded
-    latents = torch.randn(70, D, requires_grad=True)
-    plain, mine = vae.decode(latents), folded(latents)
+    latents = torch.randn(70, D)        # 70 > DECODE_CHUNK: drawn in two chunks
+    with torch.no_grad():
+        plain, mine = vae.decode(latents), folded(latents)
     torch.testing.assert_close(mine, plain, rtol=1e-5, atol=1e-5)
-    weights = torch.randn_like(plain)
-    grads = [torch.autograd.grad((picture * weights).sum(), latents)[0] for picture in (plain, mine)]
-    torch.testing.assert_close(grads[1], grads[0], rtol=1e-4, atol=1e-4)
-    with torch.no_grad():       # 70 > DECODE_CHUNK: drawn in two chunks
-        torch.testing.assert_close(folded(latents), plain, rtol=1e-5, atol=1e-5)
+    assert not torch.equal(mine, plain)         # the other path was taken
+    assert torch.equal(folded(latents[:3]), vae.decode(latents[:3]))
 
 
 def test_the_nll_with_the_folded_decoder_is_the_nll_with_the_decoder(monkeypatch):
@@ -585,7 +584,8 @@ def test_moving_the_proposal_out_of_sight_lowers_its_cost_and_leaves_hidden_fram
     torch.manual_seed(3)
     loc = torch.randn(T, D)
     before = extra_nats(scene, loc, frames, 0.1)
-    tolerance = float(before.median())                  # frames at or under it count as out of sight
+    # frames under it count as out of sight: three of the five, none within float rounding of it
+    tolerance = float(before.sort().values[2:4].mean())
     config = InferenceConfig(pixel_sigma=0.1, refine_steps=20, refine_rate=0.1, refine_tolerance=tolerance,
                              exposure_penalty=0.0)
     moved = refine_out_of_sight(scene, loc, frames, config)
