@@ -116,12 +116,12 @@ class NLLColumns:
 
     def check(self, scorer: Scorer) -> None:
         """The model's own NLL settings, with this run's changes; a one-line warning where the
-        checkpoint stores none."""
+        checkpoint stores none and a default is used."""
         if scorer.xpl is None or not scorer.xpl.config.use_reasoning:
             raise XvoeError(f"the NLL surprise needs an XPL model with reasoning; {scorer.name} has none")
         self.config = nll_config(scorer.nll or InferenceConfig(), self.particles, self.changes)
         self.sources = nll_sources(scorer.nll, self.overridden)
-        if scorer.nll is None:
+        if "defaults" in self.sources.values():      # a run that sets every field (xvoe verify) takes none
             given = f", {' and '.join(sorted(self.overridden))} from the command line" if self.overridden else ""
             warnings.warn(f"{scorer.name} stores no NLL settings; scored with InferenceConfig's defaults{given}: "
                           + " ".join(f"{name}={_typed(value)}" for name, value in to_dict(self.config).items()),

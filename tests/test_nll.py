@@ -274,6 +274,8 @@ def test_a_checkpoint_without_nll_settings_is_scored_with_the_defaults_in_one_li
     assert {"pixel_sigma=0.5", "particles=4", "smc_proposal_widening=3.0,10.0"} <= set(lines[0].split())
     source = xvoe.score_header(out)["nll_source"]
     assert source.pop("particles") == "command line" and set(source.values()) == {"defaults"}
+    assert main(["verify", str(out), "--rows", "1"]) == 0      # it scores with the file's settings, every one given
+    assert "NLL settings" not in capsys.readouterr().err
     with warnings.catch_warnings():     # a checkpoint that stores them is scored without a word
         warnings.simplefilter("error")
         xvoe.score(str(stored_settings[0]), str(data), str(tmp_path / "t.csv"), surprise="nll", particles=4,
