@@ -3,7 +3,7 @@ object), p(two identical objects), and the NLL less that of a reference drawing 
 seen."""
 from __future__ import annotations
 
-from dataclasses import replace
+from dataclasses import fields, replace
 from typing import Any
 
 import numpy as np
@@ -81,25 +81,57 @@ def xpl_nll(scorer: Scorer, batch: dict[str, Tensor], config: InferenceConfig, s
             for i in range(len(batch["mean"]))]
 
 
+def nll_sources(stored: InferenceConfig | None, overridden: set[str]) -> dict[str, str]:
+    """Where each NLL setting came from, for a score file's header: "command line" for those
+    overridden (`--particles`, `--nll-set`, or `score`'s particles and nll_settings), else
+    "checkpoint" where the model stores its settings, else "defaults"."""
+    fallback = "checkpoint" if stored is not None else "defaults"
+    return {f.name: "command line" if f.name in overridden else fallback for f in fields(InferenceConfig)}
+
+
+def nll_defaults_note(header: dict) -> str | None:
+    """One line saying which NLL settings a score file's model took from InferenceConfig's
+    defaults because its checkpoint stores none (one made before they were stored), or None:
+    what `xvoe score` prints after such a run; from Python the header's `nll_source` says it."""
+    sources = header.get("nll_source") or {}
+    if "defaults" not in sources.values():      # a run that sets every field (xvoe verify) takes none
+        return None
+    given = sorted(name for name, where in sources.items() if where == "command line")
+    given_text = f", {' and '.join(given)} from the command line" if given else ""
+    return (f"{header['model']} stores no NLL settings; scored with InferenceConfig's defaults{given_text}: "
+            + " ".join(f"{name}={_typed(value)}" for name, value in header["nll"].items()))
+
+
+def _typed(value: Any) -> str:
+    """A setting as `--nll-set` takes it (a tuple's items joined by commas)."""
+    return ",".join(map(str, value)) if isinstance(value, (tuple, list)) else str(value)
+
+
 class NLLColumns:
     """The columns nll, ess, p_hidden, p_two and nll_excess of a score file (xvoe.evaluation.score's
     ExtraColumns), and the curve nll, -log p(x_t | x_<t) (the SMC's; importance sampling keeps
-    none): one Pyro estimate per video, from the batch the MSE score encoded and drew."""
+    none): one Pyro estimate per video, from the batch the MSE score encoded and drew. The
+    settings are the checkpoint's, each changed where this run overrides it."""
 
     names = ("nll", "ess", "p_hidden", "p_two", "nll_excess")
 
     def __init__(self, particles: int | None = None, seed: int = 0, settings: dict[str, Any] | None = None):
         self.particles, self.changes, self.seed = particles, settings, seed
         self.config = nll_config(InferenceConfig(), particles, settings)     # bad settings fail before any work
+        self.overridden = set(settings or ()) | ({"particles"} if particles is not None else set())
+        self.sources = nll_sources(None, self.overridden)
 
     def check(self, scorer: Scorer) -> None:
-        """The model's own NLL settings, with this run's changes."""
+        """The model's own NLL settings, with this run's changes; where the checkpoint stores none,
+        InferenceConfig's defaults, which the header records (`nll_defaults_note` says so)."""
         if scorer.xpl is None or not scorer.xpl.config.use_reasoning:
             raise XvoeError(f"the NLL surprise needs an XPL model with reasoning; {scorer.name} has none")
         self.config = nll_config(scorer.nll or InferenceConfig(), self.particles, self.changes)
+        self.sources = nll_sources(scorer.nll, self.overridden)
 
     def settings(self) -> dict:
-        return {"nll": to_dict(self.config), "nll_seed": self.seed}
+        """The header's record: the settings, where each came from, and the seed."""
+        return {"nll": to_dict(self.config), "nll_source": self.sources, "nll_seed": self.seed}
 
     @property
     def curve_names(self) -> tuple[str, ...]:

@@ -20,6 +20,7 @@ from xvoe.models.perception import ComponentVAE
 from xvoe.models.slots import nearest_wall, push_behind, scene_layers
 from xvoe.models.xpl import XPL
 
+from .decoder import FoldedDecoder
 from .identity import Identity
 from .model import Drawing, Step
 
@@ -39,6 +40,7 @@ class XPLScene(nn.Module):
         `refined`, where they are drawn already (the MSE score's: inference.surprise.hidden_object_scene)."""
         super().__init__()
         self.vae, self.xpl, self.hidden, self.identity = vae, xpl, hidden, identity
+        self.decode = FoldedDecoder(vae)      # the hidden slot's pictures, drawn for every particle
         self.versions, self.frames, self.slots, self.dim = refined.shape
         self.register_buffer("refined", refined)
         self.register_buffer("background", background)
@@ -118,7 +120,7 @@ class XPLScene(nn.Module):
         exposure (F,): how many pixels it holds in front of everything else, where the encoder
         would have seen it, and its area (F,). Only the hidden latents are decoded, and added to
         the softmax the fixed layers left (`_partial_composite`)."""
-        pictures = self.vae.decode(latents)
+        pictures = self.decode(latents)
         version = torch.zeros_like(frames) if version is None else version
         return Drawing(*self._composite_hidden(push_behind(pictures, self.walls[frames]), frames, version),
                        self.area(pictures, frames))

@@ -1,5 +1,6 @@
 """The NLL surprise through the real model's code path, with tiny untrained networks."""
 import json
+import shutil
 import warnings
 
 import numpy as np
@@ -13,11 +14,13 @@ from pyro.util import check_model_guide_match
 import xvoe
 from xvoe.apps.cli import main
 from xvoe.apps.figures import plot_explanation
+from xvoe.apps.report import header_lines
 from xvoe.apps.zoo import available_models
 from xvoe.benchmark import store
 from xvoe.benchmark.generate import GenerateConfig, generate
 from xvoe.evaluation.metrics import read_scores
 from xvoe.evaluation.score import encode_videos, load_model
+from xvoe.inference.decoder import FoldedDecoder
 from xvoe.inference.explain import nll_explanation
 from xvoe.inference.model import Drawing, HiddenObjectModel, InferenceConfig, Proposal, drawing_cost
 from xvoe.inference.score import reference_nll
@@ -36,6 +39,7 @@ from xvoe.models.perception import ComponentVAE, PerceptionConfig
 from xvoe.models.reasoning import ReasoningConfig
 from xvoe.models.slots import push_behind
 from xvoe.models.xpl import XPL, XPLConfig
+from xvoe.training.checkpoints import WEIGHTS, load_checkpoint, save_checkpoint
 
 T, K, D = 5, 4, 6
 
@@ -227,12 +231,103 @@ def test_the_nll_settings_reach_every_video_and_its_excess(tmp_path):
     curves = np.load(tmp_path / "b.curves.npz")
     reference = reference_nll(curves["s_rec"], 4 * scorer.image_size ** 2, 1.0)
     np.testing.assert_allclose(wide["nll_excess"], wide["nll"] - reference, rtol=1e-9, atol=1e-6)
-    # each file says what it was made with: the model's own settings (its recipe's) with the changes
+    # each file says what it was made with: the model's own settings (the shipped xpl.pt stores none:
+    # the defaults) with the changes
     header = xvoe.score_header(tmp_path / "b.csv")
-    assert header["nll"] == json.loads(json.dumps({**to_dict(scorer.nll), "pixel_sigma": 1.0, "particles": 8}))
+    assert header["nll"] == json.loads(json.dumps({**to_dict(InferenceConfig()), "pixel_sigma": 1.0, "particles": 8}))
     assert header["model"] == "xpl"
-    assert xvoe.score_header(tmp_path / "a.csv")["nll"]["pixel_sigma"] == scorer.nll.pixel_sigma == 0.5
+    assert xvoe.score_header(tmp_path / "a.csv")["nll"]["pixel_sigma"] == 0.5
     assert xvoe.nll_settings(["pixel_sigma=1", "smc_pilot=8"]) == {"pixel_sigma": 1.0, "smc_pilot": 8}
+
+
+@pytest.fixture(scope="module")
+def stored_settings(tmp_path_factory):
+    """A run directory whose xpl.pt stores NLL settings other than the defaults (the shipped
+    weights, whose checkpoint stores none, with settings added as the xpl stage stores them), and
+    a split of one pair per setting (the tests score a shard of two videos)."""
+    folder = tmp_path_factory.mktemp("stored")
+    state = load_checkpoint(WEIGHTS / "xpl.pt")
+    state["config"]["nll"] = to_dict(InferenceConfig(pixel_sigma=0.7, smc_pilot=8))
+    save_checkpoint(folder / "xpl.pt", state)
+    for name in ("perception.pt", "proposal.pt"):
+        shutil.copy(WEIGHTS / name, folder / name)
+    data = generate(GenerateConfig("test", pairs=1, size=32, seed=5), folder / "t.h5", workers=1, progress=False)
+    return folder, data
+
+
+def test_a_score_takes_the_checkpoints_nll_settings_and_the_command_line_wins(stored_settings, tmp_path):
+    """Checkpoint first, then an explicit override; the header says where each setting came from."""
+    folder, data = stored_settings
+    xvoe.score(str(folder), str(data), str(tmp_path / "s.csv"), surprise="nll", particles=4,
+               nll_settings={"smc_pilot": 2}, videos_per_batch=2, shard=(0, 11), progress=False)
+    header = xvoe.score_header(tmp_path / "s.csv")
+    assert header["nll"] == json.loads(json.dumps(to_dict(InferenceConfig(pixel_sigma=0.7, smc_pilot=2, particles=4))))
+    source = header["nll_source"]
+    assert {name for name, where in source.items() if where == "command line"} == {"smc_pilot", "particles"}
+    assert set(source.values()) == {"checkpoint", "command line"} and set(source) == set(header["nll"])
+    assert "  - from the command line: particles, smc_pilot" in header_lines(header)     # as a report shows it
+
+
+def test_a_checkpoint_without_nll_settings_is_scored_with_the_defaults_in_one_line(stored_settings, tmp_path,
+                                                                                   capsys):
+    """The shipped xpl.pt stores no NLL settings: `xvoe score` says in one line which it used."""
+    _, data = stored_settings
+    out = tmp_path / "s.csv"
+    assert main(["score", "--model", "xpl", "--data", str(data), "--surprise", "nll", "--particles", "4",
+                 "--batch", "2", "--shard", "0/11", "--out", str(out), "--quiet"]) == 0
+    lines = capsys.readouterr().err.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("xvoe score: warning: xpl stores no NLL settings; scored with "
+                                                   "InferenceConfig's defaults, particles from the command line: ")
+    assert {"pixel_sigma=0.5", "particles=4", "smc_proposal_widening=3.0,10.0"} <= set(lines[0].split())
+    source = xvoe.score_header(out)["nll_source"]
+    assert source.pop("particles") == "command line" and set(source.values()) == {"defaults"}
+    assert main(["verify", str(out), "--rows", "1"]) == 0      # it scores with the file's settings, every one given
+    assert "NLL settings" not in capsys.readouterr().err
+    with warnings.catch_warnings():     # a checkpoint that stores them is scored without a word
+        warnings.simplefilter("error")
+        xvoe.score(str(stored_settings[0]), str(data), str(tmp_path / "t.csv"), surprise="nll", particles=4,
+                   videos_per_batch=2, shard=(0, 11), progress=False)
+
+
+@pytest.mark.parametrize("changes", [{}, {"decoder_extra_convs": 1, "broadcast_size": 4}])
+def test_the_folded_decoder_draws_the_decoders_pictures(changes):
+    """FoldedDecoder is the decoder's function with its sums in another order: the same pictures
+    to float32 rounding, in chunks where many latents are drawn at once; under autograd it is
+    the decoder itself."""
+    torch.manual_seed(0)
+    vae = ComponentVAE(PerceptionConfig(image_size=16, latent_dim=D, cnn_channels=(8, 8), cnn_hidden=16,
+                                        decoder_channels=8, **changes)).eval()
+    with torch.no_grad():       # weights away from the blank start, as a trained decoder's are
+        vae.decoder.out.weight.mul_(10.0)
+    folded = FoldedDecoder(vae)
+    assert folded.folded
+    latents = torch.randn(70, D)        # 70 > DECODE_CHUNK: drawn in two chunks
+    with torch.no_grad():
+        plain, mine = vae.decode(latents), folded(latents)
+    torch.testing.assert_close(mine, plain, rtol=1e-5, atol=1e-5)
+    assert not torch.equal(mine, plain)         # the other path was taken
+    assert torch.equal(folded(latents[:3]), vae.decode(latents[:3]))
+
+
+def test_the_nll_with_the_folded_decoder_is_the_nll_with_the_decoder(monkeypatch):
+    """The speed-up changes no estimate: from one seed, each video's NLL, its per-frame curve, the
+    hidden-object branch's evidence (which the decoder draws) and p_hidden agree with those drawn
+    by the decoder itself to a relative 1e-6."""
+    vae, xpl = tiny_models()
+    with torch.no_grad():
+        vae.decoder.out.weight.mul_(10.0)
+    randomise_dynamics_head(xpl.dynamics)
+    config = InferenceConfig(particles=16, smc_pilot=0)
+    found = [nll_surprise(vae, xpl, *video(hidden_free), config, seed=3) for hidden_free in (True, False)]
+    monkeypatch.setattr("xvoe.inference.xpl_scene.FoldedDecoder", lambda vae: vae.decode)
+    plain = [nll_surprise(vae, xpl, *video(hidden_free), config, seed=3) for hidden_free in (True, False)]
+    for mine, theirs in zip(found, plain):
+        assert mine.nll == pytest.approx(theirs.nll, rel=1e-6)
+        torch.testing.assert_close(mine.frame_nll, theirs.frame_nll, rtol=1e-6, atol=1e-6)
+        assert mine.p_hidden == pytest.approx(theirs.p_hidden, rel=1e-6, abs=1e-9)
+    hidden, plain_hidden = found[0].estimate.log_evidence_hidden, plain[0].estimate.log_evidence_hidden
+    assert np.isfinite(hidden) and hidden == pytest.approx(plain_hidden, rel=1e-6) and hidden != plain_hidden
+    torch.testing.assert_close(found[0].estimate.trajectories, plain[0].estimate.trajectories, rtol=1e-4, atol=1e-4)
 
 
 def test_the_scene_steps_the_dynamics_frame_by_frame_as_a_full_run_does():
@@ -434,7 +529,7 @@ def test_moving_the_proposal_out_of_sight_hides_it_behind_the_wall():
     """With the exposure penalty the steps also take the object out of plain view: an object
     astride the wall's edge (the wall covers the left half) is moved behind it."""
     scene, frames = hand_made_scene()
-    scene.vae.decode = blob_decoder
+    scene.decode = blob_decoder
     loc = torch.zeros(T, D)
     loc[:, 0] = 0.3                         # centred at x = 9.2, the wall ends at x = 8
     config = InferenceConfig(pixel_sigma=100.0, refine_steps=30, refine_rate=0.1, refine_tolerance=0.0,
@@ -460,7 +555,7 @@ def test_moving_the_proposal_out_of_sight_keeps_it_an_object():
     """Fading is also a way out of plain view; with the shortfall of an object's area in the
     steps' cost the object astride the wall's edge keeps its size, and without it fades."""
     scene, frames = hand_made_scene()
-    scene.vae.decode = fading_blob_decoder
+    scene.decode = fading_blob_decoder
     loc = torch.zeros(T, D)
     loc[:, 0] = 0.3
     common = dict(pixel_sigma=100.0, refine_steps=60, refine_rate=0.1, refine_tolerance=0.0, exposure_penalty=1.0,
@@ -498,7 +593,8 @@ def test_moving_the_proposal_out_of_sight_lowers_its_cost_and_leaves_hidden_fram
     torch.manual_seed(3)
     loc = torch.randn(T, D)
     before = extra_nats(scene, loc, frames, 0.1)
-    tolerance = float(before.median())                  # frames at or under it count as out of sight
+    # frames under it count as out of sight: three of the five, none within float rounding of it
+    tolerance = float(before.sort().values[2:4].mean())
     config = InferenceConfig(pixel_sigma=0.1, refine_steps=20, refine_rate=0.1, refine_tolerance=tolerance,
                              exposure_penalty=0.0)
     moved = refine_out_of_sight(scene, loc, frames, config)

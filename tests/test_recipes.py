@@ -39,7 +39,8 @@ def test_a_changed_setting_is_a_difference():
 
 def test_the_nll_settings_are_the_recipes_and_a_changed_one_is_a_difference():
     """xpl.pt holds the NLL settings its recipe gives it (one shipped before they were stored reads
-    as its recipe's), so that a score file can be made again from the checkpoint it names."""
+    as InferenceConfig's defaults, which the default recipe writes out), so that a score file can
+    be made again from the checkpoint it names."""
     state = load_checkpoint(WEIGHTS / "xpl.pt")
     stored = {**state, "config": {**state["config"], "nll": {**to_dict(recipe(DEFAULT_RECIPE).nll)}}}
     assert recipe_differences(stored) == []

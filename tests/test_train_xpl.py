@@ -8,6 +8,7 @@ from xvoe.benchmark import store
 from xvoe.benchmark.world import WORLD
 from xvoe.errors import XvoeError
 from xvoe.models.dynamics import DynamicsConfig
+from xvoe.models.nll import InferenceConfig
 from xvoe.models.reasoning import ReasoningConfig
 from xvoe.models.xpl import XPL, XPLConfig
 from xvoe.training.config import TrainConfig
@@ -19,6 +20,7 @@ from xvoe.training.xpl import (
     ProposalNetworks,
     bridge_hidden,
     load_xpl,
+    nll_settings_of,
     object_places,
     outside_picture,
     train_proposal,
@@ -124,6 +126,26 @@ def test_a_recipe_can_train_plato_longer_than_xpl(cache, tmp_path, monkeypatch):
     ablation = torch.load(train_xpl(cache, tmp_path, stage="xpl-noresidual", progress=False), weights_only=True)
     assert (plato["step"], plato["train"]["lr"]) == (7, 2e-3)
     assert (ablation["step"], ablation["train"]["lr"]) == (3, xpl_train.lr)
+
+
+def test_the_xpl_checkpoint_stores_its_recipes_nll_settings_as_plain_data(cache, tmp_path, monkeypatch):
+    """The recipe's NLL settings, written into xpl.pt and read back as they were (a resumed run
+    keeps them); the other stages store none."""
+    from dataclasses import replace
+
+    import xvoe.training.xpl as stage
+
+    settings = InferenceConfig(pixel_sigma=0.7, smc_pilot=(4, 8), smc_proposal_widening=2.0, method="importance")
+    chosen = replace(stage.recipe("cpu-short"), nll=settings)
+    monkeypatch.setattr(stage, "recipe", lambda name: chosen)
+    path = train_xpl(cache, tmp_path, progress=False, **{**TINY, "steps": 2})
+    stored = torch.load(path, weights_only=True)["config"]
+    assert nll_settings_of(stored) == settings
+    assert all(isinstance(value, (str, int, float, bool, tuple)) for value in stored["nll"].values())
+    train_xpl(cache, tmp_path, progress=False, resume=True, **{**TINY, "steps": 3})
+    assert nll_settings_of(torch.load(path, weights_only=True)["config"]) == settings
+    plato = train_xpl(cache, tmp_path, stage="plato", progress=False, **{**TINY, "steps": 2})
+    assert nll_settings_of(torch.load(plato, weights_only=True)["config"]) is None
 
 
 def test_batches_do_not_depend_on_the_process_count(cache):

@@ -48,7 +48,7 @@ _HOMES = {
     "xvoe.evaluation.metrics": ("ScoreTable", "read_scores", "metric_rows", "comparative", "holistic", "relative",
                                 "disagreements", "onset", "onset_pairs"),
     "xvoe.apps.verbs": ("score", "explain", "with_display"),
-    "xvoe.inference.score": ("nll_settings",),
+    "xvoe.inference.score": ("nll_settings", "nll_defaults_note"),
     "xvoe.apps.report": ("report",),
     "xvoe.apps.verify": ("verify",),
     "xvoe.apps.zoo": ("available_models", "ship"),

@@ -173,11 +173,15 @@ def cmd_score(args: argparse.Namespace) -> None:
         return
     if args.model is None or args.data is None:
         raise XvoeError("--model and --data are required (unless --merge joins the parts of a sharded run)")
-    print(xvoe.score(args.model, args.data, args.out, surprise=args.surprise, particles=args.particles,
-                     seed=args.seed, nll_settings=xvoe.nll_settings(args.nll_set), how=args.aggregate,
-                     shard=args.shard, videos_per_batch=args.batch, workers=args.workers,
-                     checks=not args.no_checks, overwrite=args.overwrite, progress=not args.quiet,
-                     device=args.device, cache=args.cache or True, time_limit=args.time_limit))
+    table = xvoe.score(args.model, args.data, args.out, surprise=args.surprise, particles=args.particles,
+                       seed=args.seed, nll_settings=xvoe.nll_settings(args.nll_set), how=args.aggregate,
+                       shard=args.shard, videos_per_batch=args.batch, workers=args.workers,
+                       checks=not args.no_checks, overwrite=args.overwrite, progress=not args.quiet,
+                       device=args.device, cache=args.cache or True, time_limit=args.time_limit)
+    note = xvoe.nll_defaults_note(xvoe.score_header(table.path)) if args.surprise != "mse" else None
+    if note:
+        print(f"xvoe score: warning: {note}", file=sys.stderr)
+    print(table)
 
 
 @claim_scope()

@@ -160,6 +160,9 @@ def header_lines(header: dict) -> list[str]:
                  f"`{header.get('score')}`, {header.get('aggregate')} over frames")
     if "nll" in header:
         lines.append(f"- NLL settings (seed {header.get('nll_seed')}): {json.dumps(header['nll'], sort_keys=True)}")
+        sources = header.get("nll_source", {})
+        for source in sorted(set(sources.values())):
+            lines.append(f"  - from the {source}: {', '.join(sorted(k for k, v in sources.items() if v == source))}")
     return lines
 
 

@@ -144,7 +144,8 @@ class Scorer:
     # the MSE score's explanation (xvoe.evaluation.surprise): "better", the better of Transformer 2's
     # proposal and nothing hidden (the default verdict), or "proposal", always Transformer 2's (the paper's)
     explanation: str = "better"
-    # the NLL surprise's settings the model was made with (its recipe's; XPL only)
+    # the NLL surprise's settings its checkpoint stores (its recipe's; XPL with reasoning only). None:
+    # it stores none, and the NLL takes InferenceConfig's defaults and says so
     nll: InferenceConfig | None = None
     # what `load_model` was given (a shipped name, an absolute path, package.module:name), for
     # `xvoe verify` to load the model again; None for a model made in memory

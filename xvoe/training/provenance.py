@@ -9,6 +9,7 @@ checkpoint.
 from __future__ import annotations
 
 from ..models.config import from_dict, to_dict
+from ..models.nll import InferenceConfig
 from ..models.xpl import XPLConfig
 from .config import TrainConfig
 from .recipes import recipe, recipe_of
@@ -46,7 +47,7 @@ def recipe_differences(state: dict) -> list[str]:
     entry = stage(state["stage"])
     stored[entry.config_key] = to_dict(from_dict(entry.config, config[entry.config_key]))
     if entry.name == "xpl":
-        stored["nll"] = to_dict(nll_settings_of(config))
+        stored["nll"] = to_dict(nll_settings_of(config) or InferenceConfig())     # as a score reads it
     lines = _differences(stored, model, "") + _differences(to_dict(from_dict(TrainConfig, state["train"])), train,
                                                           "train.")
     if "step" in state and state["step"] != train["steps"]:     # a run stopped, or still going, inside its last phase

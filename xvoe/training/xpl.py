@@ -188,15 +188,17 @@ def train_xpl(latents: str | os.PathLike | None, run_dir: str | os.PathLike, *, 
             part.requires_grad_(False)
     stored = {"recipe": recipe_name, "xpl": to_dict(model_config)}
     if stage == "xpl":      # the model the NLL surprise runs on keeps its recipe's settings of it
-        stored["nll"] = to_dict(nll_settings_of(state["config"]) if resume and ckpt.exists() else chosen.nll)
+        resumed = nll_settings_of(state["config"]) if resume and ckpt.exists() else None
+        stored["nll"] = to_dict(resumed or recipe(recipe_name).nll)
     job = Job(stage, model, batches.batch, stored,
               meta={"latents": str(Path(latents).resolve())})
     return fit(job, config, run_dir, place=place, resume=resume, overwrite=overwrite, progress=progress)
 
 
-def nll_settings_of(config: dict) -> InferenceConfig:
-    """The NLL settings an xpl checkpoint's config stores; its recipe's where it stores none."""
-    return from_dict(InferenceConfig, config["nll"]) if "nll" in config else recipe(recipe_of(config)).nll
+def nll_settings_of(config: dict) -> InferenceConfig | None:
+    """The NLL settings an xpl checkpoint's config stores; None where it stores none (made before
+    they were stored: a score then takes InferenceConfig's defaults and says so)."""
+    return from_dict(InferenceConfig, config["nll"]) if "nll" in config else None
 
 
 def latent_cache_for(data: str | os.PathLike, run_dir: str | os.PathLike, perception: str | None = None,

@@ -8,6 +8,7 @@ were weakest in (docs/decisions.md, "The default recipe").
 """
 from dataclasses import replace
 
+from ...models.nll import InferenceConfig
 from ...models.perception import PerceptionConfig
 from ...models.phydnet import PhyDNetConfig
 from ...models.xpl import XPLConfig
@@ -26,12 +27,27 @@ PHYDNET = TrainConfig(steps=9_000, batch_size=8, lr=2e-3, warmup_steps=100, deca
 LATER = replace(PHYDNET, decay_steps=10_000)      # the later phases' rates halve every 10,000 steps
 
 
+# the NLL surprise's settings, chosen on the validation split for this recipe's models (docs/decisions.md,
+# "The NLL's settings"); the xpl stage stores them in its checkpoint. InferenceConfig's defaults are
+# the same, so that a checkpoint made before they were stored is scored as its recipe says
+NLL = InferenceConfig(
+    prior_hidden=0.5, prior_two=0.1,
+    pixel_sigma=0.5, motion_sigma=0.2, transition_sigma=0.1,
+    exposure_penalty=12.0, presence_penalty=12.0, object_area=0.008,
+    method="smc", particles=64, resample_threshold=0.5,
+    smc_pilot=16, smc_pilot_margin=30.0, smc_pilot_skip_exists=0.5,
+    proposal_widening=3.0, smc_proposal_widening=(3.0, 10.0),
+    refine_steps=5, refine_rate=0.1, refine_tolerance=1.0,
+)
+
+
 def phydnet_phase(steps: int, lr: float, focus: str, share: float, **changes) -> tuple[str, TrainConfig]:
     return "phydnet", replace(LATER, steps=steps, lr=lr, focus_group=focus, focus_share=share, **changes)
 
 
 RECIPE = Recipe(
     name="cpu-short",
+    nll=NLL,
     train_videos=10_000,
     perception=PerceptionConfig(),
     # a quarter of each batch shows a ball or cube off the floor (docs/decisions.md, "Frames of

@@ -1,5 +1,6 @@
 """The paper's scale (its appendix tables): 128x128, ViT encoder, D=32, 64-channel decoder; for GPUs."""
 from ...models.dynamics import DynamicsConfig
+from ...models.nll import InferenceConfig
 from ...models.perception import PerceptionConfig
 from ...models.phydnet import PhyDNetConfig
 from ...models.reasoning import ReasoningConfig
@@ -9,6 +10,8 @@ from .recipe import Recipe
 
 RECIPE = Recipe(
     name="paper",
+    # the NLL's defaults: none has been chosen on a validation split at this scale
+    nll=InferenceConfig(),
     train_videos=10_000,
     perception=PerceptionConfig(image_size=128, latent_dim=32, encoder="vit", decoder_channels=64,
                                 decoder_extra_convs=1),

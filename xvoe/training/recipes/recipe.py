@@ -23,6 +23,9 @@ class Recipe:
     """Everything needed to make every model from nothing: `xvoe pipeline --recipe NAME`."""
 
     name: str
+    # the NLL surprise's settings for the models it makes, written in each recipe's file: the xpl
+    # stage stores them in its checkpoint, and a score reads them back from there
+    nll: InferenceConfig
     train_videos: int = 10_000      # the training split the pipeline generates (frames: perception.image_size)
     perception: PerceptionConfig = field(default_factory=PerceptionConfig)
     perception_train: TrainConfig = field(default_factory=TrainConfig)
@@ -43,8 +46,6 @@ class Recipe:
     # phases that continue a stage's run, in order: (stage, its training from there on), each
     # resumed from the checkpoint the phase before left, to `steps` in all
     phases: tuple[tuple[str, TrainConfig], ...] = ()
-    # the NLL surprise's settings for the models it makes (stored in their xpl.pt)
-    nll: InferenceConfig = field(default_factory=InferenceConfig)
 
     def phases_of(self, stage: str) -> tuple[TrainConfig, ...]:
         return tuple(train for name, train in self.phases if name == stage)
