@@ -17,7 +17,10 @@ the call that took it returns (`claim_scope`), or with the process.
 """
 from __future__ import annotations
 
+import errno
 import fcntl
+import glob
+import hashlib
 import os
 import re
 import shutil
@@ -42,9 +45,12 @@ def claim_file(path: str | os.PathLike, overwrite: bool = False, *, what: str = 
     run that holds it, rather than refuse (a shared cache that one run makes for all)."""
     if str(path).strip() == "":
         raise XvoeError(f"{what} is empty; give a file name")
+    if str(path).endswith(("/", os.sep)):
+        raise XvoeError(f"{path} ends in a slash, as a directory does; {what} needs a file name")
     path = Path(path)
     if path.is_dir():
         raise XvoeError(f"{path} is a directory; {what} needs a file name")
+    check_name_length(path, what)
     if path.exists() and not overwrite:
         raise XvoeError(f"{path} exists; pass --overwrite to replace it")
     _writable_directory(path.parent)
@@ -105,9 +111,36 @@ def claim_directory(path: str | os.PathLike, *, what: str = "--out", make: bool 
     return path
 
 
+def check_name_length(path: Path, what: str = "--out") -> None:
+    """Refuse, before the work, a name longer than its file system takes (255 bytes on most)."""
+    existing = next((folder for folder in [path.parent, *path.parent.parents] if folder.is_dir()), Path("."))
+    try:
+        limit = os.pathconf(existing, "PC_NAME_MAX")
+    except (OSError, ValueError):
+        limit = 255
+    length = len(os.fsencode(path.name))
+    if length > limit:
+        raise XvoeError(f"{what} {path.name[:24]}...: a name of {length} bytes, past the {limit} the file system "
+                        "takes; give a shorter name")
+
+
+def _hidden_name(path: Path, kind: str) -> Path:
+    """`path`'s hidden companion of `kind` (claim, tmp-PID, old-PID, parts-PID): .NAME.KIND where
+    that is short, so that a name the file system takes has companions it takes too; a long NAME
+    is cut and a hash of it keeps companions of different names apart."""
+    name = path.name
+    if len(os.fsencode(name)) > _NAME_KEPT:
+        name = os.fsencode(name)[:_NAME_KEPT - 9].decode(errors="ignore") + "~" + \
+            hashlib.sha256(os.fsencode(path.name)).hexdigest()[:8]
+    return path.with_name(f".{name}.{kind}")
+
+
+_NAME_KEPT = 200        # bytes of an output's name kept in its companions' names (room for .tmp-PID)
+
+
 def _claim_name(path: Path) -> Path:
     """The file whose lock holds `path`: beside a file, inside a directory."""
-    return path / ".claim" if path.is_dir() else path.with_name(f".{path.name}.claim")
+    return path / ".claim" if path.is_dir() else _hidden_name(path, "claim")
 
 
 def hold(path: str | os.PathLike, *, wait: bool = False) -> bool:
@@ -214,31 +247,31 @@ def _writable_directory(directory: Path, make: bool = True) -> None:
 
 def parts_folder(path: Path) -> Path:
     """The folder beside `path` where this process writes the parts it joins into `path`."""
-    return path.with_name(f".{path.name}.parts-{os.getpid()}")
+    return _hidden_name(path, f"parts-{os.getpid()}")
 
 
 def temporary_name(path: Path) -> Path:
     """The name a file is written under before it takes `path`'s place (this process's)."""
-    return path.with_name(f".{path.name}.tmp-{os.getpid()}")
+    return _hidden_name(path, f"tmp-{os.getpid()}")
 
 
 def _aside_name(path: Path) -> Path:
     """The name the old file at `path` is moved to while the new one takes its place."""
-    return path.with_name(f".{path.name}.old-{os.getpid()}")
+    return _hidden_name(path, f"old-{os.getpid()}")
 
 
 def remove_stale_temporaries(path: Path) -> None:
-    """Delete the temporary files and parts folders of `path` left by processes that are gone
-    (killed with -9); an old file such a process had moved aside goes back where nothing took
-    its place."""
-    pattern = re.compile(rf"^\.{re.escape(path.name)}\.(tmp|old|parts)-(\d+)$")
-    for candidate in path.parent.glob(f".{path.name}.*-*"):
+    """Delete the temporary files and folders of `path` left by processes that are gone (killed
+    with -9); an old file such a process had moved aside goes back where nothing took its place."""
+    stem = _hidden_name(path, "").name
+    pattern = re.compile(rf"^{re.escape(stem)}(tmp|old|parts)-(\d+)$")
+    for candidate in path.parent.glob(f"{glob.escape(stem)}*-*"):
         match = pattern.match(candidate.name)
         if not match or _alive(int(match.group(2))):
             continue
         if match.group(1) == "old" and not os.path.lexists(path):
             os.replace(candidate, path)
-        elif match.group(1) == "parts":
+        elif candidate.is_dir() and not candidate.is_symlink():
             shutil.rmtree(candidate, ignore_errors=True)
         else:
             candidate.unlink(missing_ok=True)
@@ -265,11 +298,58 @@ def atomic_paths(*paths: Path) -> Iterator[list[Path]]:
             remove_stale_temporaries(path)
         temporaries = [temporary_name(path) for path in paths]
         try:
-            yield temporaries
-            replace_together(temporaries, list(paths))
+            with writing(paths[-1]):
+                yield temporaries
+                replace_together(temporaries, list(paths))
         finally:
             for temporary in temporaries:
-                temporary.unlink(missing_ok=True)
+                if temporary.is_dir() and not temporary.is_symlink():
+                    shutil.rmtree(temporary, ignore_errors=True)
+                else:
+                    temporary.unlink(missing_ok=True)
+
+
+# what a write meets on a full disk (or past a quota, or past the size limit of a process's files)
+_NO_SPACE = {errno.ENOSPC: "no space left on device", errno.EDQUOT: "disk quota exceeded",
+             errno.EFBIG: "file too large for this process or file system"}
+
+
+def no_space(error: BaseException) -> str | None:
+    """What is full, where `error` is a write that found no room, else None. HDF5 names the
+    errno only in its message, and a failed flush as it closes a file is a RuntimeError."""
+    if isinstance(error, OSError) and error.errno in _NO_SPACE:
+        return _NO_SPACE[error.errno]
+    if isinstance(error, (OSError, RuntimeError)):
+        return next((what for number, what in _NO_SPACE.items() if f"errno = {number}," in str(error)), None)
+    return None
+
+
+def nearly_full(folder: Path) -> bool:
+    """Whether `folder`'s file system has under a megabyte left: what a writer in another
+    process (the video encoder) that stopped without saying why most likely met."""
+    try:
+        usage = os.statvfs(folder)
+    except OSError:
+        return False
+    return usage.f_bavail * usage.f_frsize < 2**20
+
+
+@contextmanager
+def writing(path: str | os.PathLike) -> Iterator[None]:
+    """A full disk met in the block is named in one line, by the output it was writing: its
+    final name, not a temporary's, and where blocks nest (a report's figures), the outermost's."""
+    _writing.append(Path(path))
+    try:
+        yield
+    except (OSError, RuntimeError) as error:
+        if (what := no_space(error)) is None:
+            raise
+        raise XvoeError(f"{what} writing {_writing[0]}") from None
+    finally:
+        _writing.pop()
+
+
+_writing: list[Path] = []      # the outputs whose `writing` blocks this process is in, outermost first
 
 
 def replace_together(temporaries: list[Path], paths: list[Path]) -> None:

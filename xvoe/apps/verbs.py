@@ -27,7 +27,7 @@ from ..evaluation.explain import explain as explain_mse
 from ..evaluation.score import Scorer, load_model, merge_scores, prepare_latents, score_split
 from ..evaluation.surprise import EXPLANATIONS
 from ..models.devices import resolve_device
-from ..outputs import claim_file, claim_scope, parts_folder
+from ..outputs import claim_file, claim_scope, parts_folder, writing
 from ..processes import end_with_parent
 
 SURPRISES = ("mse", "nll", "both")
@@ -106,13 +106,19 @@ def _score_in_workers(model: str | Scorer, scorer: Scorer, data: str | Path, out
         parts = [parts_dir / f"part{index}.csv" for index in range(workers)]
         with ProcessPoolExecutor(workers, mp_context=get_context("spawn"), initializer=_worker_threads,
                                  initargs=(threads, os.getpid())) as pool:
-            running = [pool.submit(score, model, data, part, shard=(index, workers), progress=progress and index == 0,
-                                   **settings) for index, part in enumerate(parts)]
+            running = [pool.submit(_score_part, out, model, data, part, shard=(index, workers),
+                                   progress=progress and index == 0, **settings) for index, part in enumerate(parts)]
             for done in running:
                 done.result()
         return merge_scores(parts, out, overwrite=overwrite)
     finally:
         shutil.rmtree(parts_dir, ignore_errors=True)
+
+
+def _score_part(out: Path, *args, **kwargs) -> Path:
+    """A worker's `score` of its shard: a full disk is named by the output the parts join into."""
+    with writing(out):
+        return score(*args, **kwargs)
 
 
 def _worker_threads(threads: int, parent: int) -> None:

@@ -104,10 +104,12 @@ class Writer:
 @contextmanager
 def atomic_file(path: str | os.PathLike, overwrite: bool = False) -> Iterator[h5py.File]:
     """An HDF5 file open for writing under a temporary name, renamed to `path` on success;
-    `path` is held from the claim to the rename (xvoe.outputs)."""
+    `path` is held from the claim to the rename (xvoe.outputs). With no chunk cache: each chunk
+    is written whole as it comes, so a full disk fails that write; a cached chunk whose write
+    fails as the dataset closes leaves HDF5 to crash the process at the file's close."""
     with claim_scope():
         path = claim_file(path, overwrite)
-        with atomic_paths(path) as (tmp,), h5py.File(tmp, "w", track_order=False) as file:
+        with atomic_paths(path) as (tmp,), h5py.File(tmp, "w", track_order=False, rdcc_nbytes=0) as file:
             yield file
 
 

@@ -13,6 +13,7 @@ one process that holds all the shards.
 from __future__ import annotations
 
 import csv
+import io
 import os
 import random
 import signal
@@ -180,27 +181,31 @@ class WeightAverage:
 
 
 class CsvLog:
-    """Loss rows beside the checkpoint, one every `every` steps and one where a session ends.
+    """Loss rows beside the checkpoint, one every `every` steps and one where a session ends,
+    written with each checkpoint (`data`), so that the two always agree: an interrupted or
+    failed session leaves the log of its last checkpoint, never rows that no checkpoint holds.
 
     On resume, rows after the checkpoint's step and the row of the session's end are dropped,
     so the log reads as if the run had never stopped.
     """
 
     def __init__(self, path: Path, columns: list[str], resume_step: int | None, every: int):
-        self.path, self.columns = path, columns
-        rows = []
+        self.path, self.columns, self.rows = path, columns, []
         if resume_step is not None and path.exists():
             with open(path, newline="") as handle:
-                rows = [row for row in csv.DictReader(handle)
-                        if int(row["step"]) <= resume_step and int(row["step"]) % every == 0]
-        with open(path, "w", newline="") as handle:
-            writer = csv.DictWriter(handle, columns, extrasaction="ignore")
-            writer.writeheader()
-            writer.writerows(rows)
+                self.rows = [row for row in csv.DictReader(handle)
+                             if int(row["step"]) <= resume_step and int(row["step"]) % every == 0]
 
     def write(self, row: dict) -> None:
-        with open(self.path, "a", newline="") as handle:
-            csv.DictWriter(handle, self.columns, extrasaction="ignore").writerow(row)
+        self.rows.append(row)
+
+    def data(self) -> bytes:
+        """The log as a CSV file's bytes."""
+        text = io.StringIO(newline="")
+        writer = csv.DictWriter(text, self.columns, extrasaction="ignore")
+        writer.writeheader()
+        writer.writerows(self.rows)
+        return text.getvalue().encode()
 
 
 class _Meter:
@@ -304,7 +309,8 @@ def fit(job: Job, config: TrainConfig, run_dir: str | os.PathLike, *, place: Dis
                                    **weights, "optimizer": optimiser.state_dict(),
                                    "rng": rng_state(), "meta": job.meta, "world": place.world,
                                    "kernels": torch.backends.cpu.get_cpu_capability(),
-                                   "meter": {"sums": meter.sums, "count": meter.count}})
+                                   "meter": {"sums": meter.sums, "count": meter.count}},
+                            beside={log: table.data()} if table else None)
 
     table = None
     precision = mixed_precision(place.device)
