@@ -47,10 +47,10 @@ def claim_file(path: str | os.PathLike, overwrite: bool = False, *, what: str = 
         raise XvoeError(f"{what} is empty; give a file name")
     if str(path).endswith(("/", os.sep)):
         raise XvoeError(f"{path} ends in a slash, as a directory does; {what} needs a file name")
+    check_name_length(path, what)
     path = Path(path)
     if path.is_dir():
         raise XvoeError(f"{path} is a directory; {what} needs a file name")
-    check_name_length(path, what)
     if path.exists() and not overwrite:
         raise XvoeError(f"{path} exists; pass --overwrite to replace it")
     _writable_directory(path.parent)
@@ -84,8 +84,11 @@ def refuse_overlap(inputs: list[str | os.PathLike], output: str | os.PathLike, s
     symbolic link at the output is replaced itself, never its target, so a link is refused only
     where it leads to an input."""
     out = Path(output)
-    if str(output).strip() == "" or out.is_dir():
-        return      # claim_file names an empty name or a directory
+    if str(output).strip() == "":
+        return      # claim_file names an empty name
+    check_name_length(out, what)
+    if out.is_dir():
+        return      # claim_file names a directory
     for source in inputs:
         if Path(source).resolve() == out.resolve():
             raise XvoeError(f"{what} {out} is the input {source}; write the result to another file")
@@ -102,6 +105,7 @@ def claim_directory(path: str | os.PathLike, *, what: str = "--out", make: bool 
     other processes, is held stage by stage instead (each stage's checkpoint)."""
     if str(path).strip() == "":
         raise XvoeError(f"{what} is empty; give a directory")
+    check_name_length(path, what)
     path = Path(path)
     if path.exists() and not path.is_dir():
         raise XvoeError(f"{path} is a file; {what} needs a directory")
@@ -111,17 +115,19 @@ def claim_directory(path: str | os.PathLike, *, what: str = "--out", make: bool 
     return path
 
 
-def check_name_length(path: Path, what: str = "--out") -> None:
-    """Refuse, before the work, a name longer than its file system takes (255 bytes on most)."""
-    existing = next((folder for folder in [path.parent, *path.parent.parents] if folder.is_dir()), Path("."))
+def check_name_length(path: str | os.PathLike, what: str = "--out") -> None:
+    """Refuse, before the work (and before any look at the path, which such a name makes fail),
+    a name longer than its file system takes: 255 bytes on most."""
+    path = Path(path)
+    existing = next((folder for folder in [path, *path.parents] if os.path.isdir(folder)), Path("."))
     try:
         limit = os.pathconf(existing, "PC_NAME_MAX")
     except (OSError, ValueError):
         limit = 255
-    length = len(os.fsencode(path.name))
-    if length > limit:
-        raise XvoeError(f"{what} {path.name[:24]}...: a name of {length} bytes, past the {limit} the file system "
-                        "takes; give a shorter name")
+    for part in path.parts:
+        if (length := len(os.fsencode(part))) > limit:
+            raise XvoeError(f"{what} holds a name of {length} bytes ({part[:16]}...), past the {limit} its file "
+                            "system takes; give a shorter name")
 
 
 def _hidden_name(path: Path, kind: str) -> Path:

@@ -126,9 +126,9 @@ def write_attributes(file: h5py.File, split: str, config: dict, seed: int) -> No
 def open_hdf5(path: str | os.PathLike) -> h5py.File:
     """An HDF5 file open for reading, or a one-line error if it is missing or not HDF5."""
     path = Path(path)
-    if path.is_dir():
+    if os.path.isdir(path):     # os.path's answers, not pathlib's: a name too long to exist is no file either
         raise XvoeError(f"{path} is a directory, not a file")
-    if not path.is_file():
+    if not os.path.isfile(path):
         raise XvoeError(f"{path}: no such file")
     try:
         return h5py.File(path, "r")
