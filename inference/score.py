@@ -16,7 +16,7 @@ from xvoe.evaluation.surprise import DrawnScene
 from xvoe.models.config import field_type, parse_field, split_assignment, to_dict
 
 from .model import InferenceConfig, pixel_log_normaliser
-from .surprise import NLLSurprise, nll_surprise
+from .surprise import NLLSurprise, check_particles, nll_surprise
 
 
 def nll_config(base: InferenceConfig, particles: int | None = None,
@@ -97,6 +97,7 @@ class NLLColumns:
         if scorer.xpl is None or not scorer.xpl.config.use_reasoning:
             raise XvoeError(f"the NLL surprise needs an XPL model with reasoning; {scorer.name} has none")
         self.config = nll_config(scorer.nll or InferenceConfig(), self.particles, self.changes)
+        check_particles(self.config.particles)
 
     def settings(self) -> dict:
         return {"nll": to_dict(self.config), "nll_seed": self.seed}

@@ -2,7 +2,6 @@
 from __future__ import annotations
 
 import argparse
-import os
 import re
 import signal
 import sys
@@ -20,6 +19,7 @@ from ..models.config import parse_field, parse_value
 from ..models.devices import DEVICES, parse_device, resolve_device
 from ..models.nll import InferenceConfig
 from ..outputs import claim_directory, claim_file, claim_scope, refuse_overlap
+from ..resources import cores
 from ..training.config import TrainConfig
 from ..training.data import check_focus
 from ..training.loop import pin_kernels
@@ -91,7 +91,7 @@ def _add_device(parser: argparse.ArgumentParser, what: str) -> None:
 
 
 def _default_workers() -> int:
-    return max(1, min(8, len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1))
+    return min(8, cores())
 
 
 def cmd_generate(args: argparse.Namespace) -> None:

@@ -29,6 +29,7 @@ from ..evaluation.surprise import EXPLANATIONS
 from ..models.devices import resolve_device
 from ..outputs import claim_file, claim_scope, parts_folder, writing
 from ..processes import end_with_parent
+from ..resources import check_workers, cores
 
 SURPRISES = ("mse", "nll", "both")
 
@@ -67,6 +68,7 @@ def score(model: str | Scorer, data: str | Path, out: str | Path, *, surprise: s
         raise XvoeError(f"--surprise must be mse, nll or both, not {surprise!r}")
     if workers < 1:
         raise XvoeError(f"--workers must be at least 1, not {workers}")
+    check_workers(workers)
     extra = NLLColumns(particles, seed, nll_settings) if surprise != "mse" else None   # bad settings fail here
     resolve_device(device)      # an absent device too, before any work
     if workers > 1 and shard != (0, 1):
@@ -99,7 +101,7 @@ def _score_in_workers(model: str | Scorer, scorer: Scorer, data: str | Path, out
     run to `out` removes if this one was killed before it could."""
     out = claim_file(out, overwrite)      # refused before any work, as one run would be
     settings["cache"] = prepare_latents(scorer, data, settings["cache"], progress=progress) or False
-    threads = max(1, len(os.sched_getaffinity(0)) // workers)
+    threads = max(1, cores() // workers)
     parts_dir = parts_folder(out)
     parts_dir.mkdir()
     try:

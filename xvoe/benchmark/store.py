@@ -62,6 +62,12 @@ def _label_dtype(name: str):
     return np.int8
 
 
+def held_per_video(frames: int) -> int:
+    """Bytes a `Writer` holds in memory per video until it finishes (the states, kinds, colours
+    and labels; the frames go to disk as they come), for a size to be checked before the work."""
+    return frames * MAX_SLOTS * len(STATE_COLUMNS) * 4 + MAX_SLOTS * 4 + 8 * 64
+
+
 class Writer:
     """Fills the datasets of one split file, video by video, in index order."""
 

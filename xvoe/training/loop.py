@@ -36,6 +36,7 @@ from ..errors import XvoeError
 from ..models.config import override, to_dict
 from ..models.devices import mixed_precision, resolve_device
 from ..outputs import claim_directory, claim_file, claim_scope
+from ..resources import check_memory, cores
 from .checkpoints import CHECKPOINT_FORMAT, first_not_finite, load_checkpoint, load_weights, save_checkpoint
 from .config import TrainConfig
 
@@ -50,6 +51,7 @@ class Job:
     config: dict                                  # the stage's model config, stored in the checkpoint
     items: Callable[[Any], int] = len             # images (or videos) in a local batch, for throughput
     meta: dict = field(default_factory=dict)      # e.g. the data file, stored in the checkpoint
+    item_bytes: int = 0                           # bytes of one item of a batch as the model reads it (0: unknown)
 
 
 @dataclass
@@ -84,9 +86,8 @@ def setup_distributed(device: str | torch.device = "cpu") -> Dist:
 def set_threads(config: TrainConfig, local_world: int) -> None:
     """Share the cores between the processes of this machine: config.threads, else
     OMP_NUM_THREADS when set (torchrun sets it), else the cores divided by the processes."""
-    cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
     threads = config.threads or int(os.environ.get("OMP_NUM_THREADS", "0") or 0)
-    torch.set_num_threads(threads or max(1, cores // max(1, local_world)))
+    torch.set_num_threads(threads or max(1, cores() // max(1, local_world)))
 
 
 def learning_rate(config: TrainConfig, step: int) -> float:
@@ -244,6 +245,8 @@ def fit(job: Job, config: TrainConfig, run_dir: str | os.PathLike, *, place: Dis
     """
     place = place or Dist()
     check_config(config)        # a config built in Python, not through override, is checked too
+    # a batch's float copy for the model, at the least: a size past the machine is named before any step
+    check_memory(job.item_bytes * config.batch_size, f"--batch-size {config.batch_size}")
     if config.airborne_share and job.stage != "perception":
         raise XvoeError(f"airborne_share picks the perception stage's frames; the {job.stage} stage has none")
     if config.lstm_kernel and job.stage != "phydnet":
