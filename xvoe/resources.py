@@ -59,12 +59,19 @@ def gigabytes(count: float) -> str:
     return f"{value:.3g} GB" if value < 100 else f"{value:,.0f} GB"
 
 
+def memory_problem(needed: float) -> str | None:
+    """"need N GB of memory, ..." where `needed` bytes are more than this machine has free, else None."""
+    available = available_memory()
+    if needed <= available:
+        return None
+    return f"need {gigabytes(needed)} of memory, this machine has {gigabytes(available)} free"
+
+
 def check_memory(needed: float, what: str) -> None:
     """Refuse, in one line before the work, `what` (a phrase: "--particles 10^9") where its
     `needed` bytes are more than this machine has free."""
-    available = available_memory()
-    if needed > available:
-        raise XvoeError(f"{what} needs {gigabytes(needed)} of memory, this machine has {gigabytes(available)} free")
+    if problem := memory_problem(needed):
+        raise XvoeError(f"{what} {problem.replace('need ', 'needs ', 1)}")
 
 
 def check_workers(workers: int, what: str = "--workers") -> None:

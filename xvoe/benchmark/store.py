@@ -22,6 +22,7 @@ import numpy as np
 
 from ..errors import XvoeError
 from ..outputs import atomic_paths, claim_file, claim_scope
+from ..resources import memory_problem
 from .render import DEPTH_FAR, STATE_COLUMNS, Video
 from .scenes import SCENARIOS, TRAINING_GROUPS
 from .world import KIND_NAMES, MAX_SLOTS, WALL_KINDS
@@ -197,6 +198,8 @@ def schema_problem(file: h5py.File) -> str | None:
     count, frames, height, width, channels = file["rgbd"].shape
     if channels != 4 or height != width:
         return f"holds {height}x{width} frames of {channels} channels; xvoe frames are square RGBD (4)"
+    if height == 0 or frames == 0:
+        return f"holds videos of {frames} frames of {height}x{width} pixels; a video has frames with pixels"
     slots = file["kind"].shape[1]
     expected = {"ids": (count, frames, height, width), "states": (count, frames, slots), "kind": (count, slots),
                 "color": (count, slots, 3)}
@@ -211,7 +214,20 @@ def schema_problem(file: h5py.File) -> str | None:
         if file[name].shape != (count,) or found != LABEL_KINDS[name]:
             return (f"has a {name} label of shape {file[name].shape} and type {file[name].dtype}; "
                     f"expected one per video ({count}) of kind {LABEL_KINDS[name]}")
-    return None
+    return labels_memory_problem(file, labels)
+
+
+def labels_memory_problem(file: h5py.File, labels: tuple[str, ...]) -> str | None:
+    """Whether the states and labels, which commands read whole, fit in this machine's memory:
+    a split declaring more videos than it could hold is refused on opening, not at the read."""
+    arrays = sum(file[name].size * file[name].dtype.itemsize for name in ("states", "kind", "color"))
+    texts = sum(_TEXT_BYTES * file[name].size for name in labels if h5py.check_string_dtype(file[name].dtype))
+    needed = arrays + texts + sum(file[name].size * file[name].dtype.itemsize for name in labels)
+    problem = memory_problem(needed)
+    return problem and f"declares {file['rgbd'].shape[0]:,} videos, whose states and labels {problem}"
+
+
+_TEXT_BYTES = 64        # a label's text, read as a Python string
 
 
 def value_problem(file: h5py.File) -> str | None:
