@@ -16,7 +16,7 @@ terminal) after a delay drawn (seeded) between 0 and that time. Each trial check
 
 Run by hand: python tests/interruptions.py WORKDIR [--times N] [--seed S] [--commands a,b];
 it prints one JSON line per command with its counts and exits 1 if any check failed.
-tests/test_bad_input.py runs it with N=1 on the same tiny inputs.
+tests/test_interruptions.py runs it once per signal and command.
 """
 from __future__ import annotations
 
