@@ -1077,3 +1077,14 @@ def test_a_randomly_broken_scores_file_is_read_whole_or_refused_in_one_line(labe
         assert "\n" not in str(error)
     else:
         assert score_problem(scores) is None
+
+
+def test_a_name_the_file_system_takes_is_written_however_long(tmp_path, capsys):
+    """A 250-byte name is legal: its temporaries and claim, beside it, are shorter than it."""
+    out = tmp_path / ("g" * 247 + ".h5")
+    picture = tmp_path / ("p" * 246 + ".png")
+    assert run(["generate", "--split", "test", "--pairs", "1", "--size", "16", "--out", str(out), "--quiet"],
+               capsys)[0] == 0
+    assert run(["show", str(out), "--out", str(picture)], capsys)[0] == 0
+    assert sorted(p.name for p in tmp_path.iterdir()) == sorted([out.name, picture.name])
+    store.open_dataset(out).close()
