@@ -9,7 +9,8 @@ terminal) after a delay drawn (seeded) between 0 and that time. Each trial check
 - no process of the run is left (its process group is empty within 20 s);
 - no broken file under a final name: each output is absent or the same bytes as the whole
   run's (a training run: its checkpoint loads and its loss CSV ends at the checkpoint's step);
-- a Ctrl-C ends the command with exit code 130 (or 0 where it had finished) and no traceback;
+- a Ctrl-C ends the command with exit code 130 (or 0 where it had finished) and at most one
+  line on stderr, no traceback;
 - the rerun (the same command with --overwrite; a training run with --resume) gives the same
   bytes as the whole run (a training run: the same weights and losses; its time columns
   differ) and leaves nothing else in the folder: no temporary, claim or parts folder.
@@ -203,7 +204,9 @@ def trial(command: Command, how: str, delay: float, out: Path, inputs: Path, who
         for pid in stray:
             with contextlib.suppress(ProcessLookupError):
                 os.kill(pid, signal.SIGKILL)
-    if how == "SIGINT" and (process.returncode not in (0, 130) or "Traceback" in err):
+    # killed by the SIGINT itself (-2) is what a shell reports as 130 too: CPython ends so where a
+    # Ctrl-C met C code that runs Python source (as torch's import does), even once it was handled
+    if how == "SIGINT" and (process.returncode not in (0, 130, -signal.SIGINT) or len(err.splitlines()) > 1):
         tally.problems.append(f"{said}: exit {process.returncode}, {err.strip()[-300:]!r}")
     tally.problems += [f"{said}: {problem}" for problem in partial_problems(command, out, whole)]
     if finished and process.returncode == 0 and contents(out, command) == whole:

@@ -28,7 +28,7 @@ from ..evaluation.score import Scorer, load_model, merge_scores, prepare_latents
 from ..evaluation.surprise import EXPLANATIONS
 from ..models.devices import resolve_device
 from ..outputs import claim_file, claim_scope, parts_folder, writing
-from ..processes import end_with_parent
+from ..processes import end_with_parent, interrupts_held
 from ..resources import check_workers, cores
 
 SURPRISES = ("mse", "nll", "both")
@@ -108,8 +108,10 @@ def _score_in_workers(model: str | Scorer, scorer: Scorer, data: str | Path, out
         parts = [parts_dir / f"part{index}.csv" for index in range(workers)]
         with ProcessPoolExecutor(workers, mp_context=get_context("spawn"), initializer=_worker_threads,
                                  initargs=(threads, os.getpid())) as pool:
-            running = [pool.submit(_score_part, out, model, data, part, shard=(index, workers),
-                                   progress=progress and index == 0, **settings) for index, part in enumerate(parts)]
+            with interrupts_held():     # each submit starts a worker
+                running = [pool.submit(_score_part, out, model, data, part, shard=(index, workers),
+                                       progress=progress and index == 0, **settings)
+                           for index, part in enumerate(parts)]
             for done in running:
                 done.result()
         return merge_scores(parts, out, overwrite=overwrite)
