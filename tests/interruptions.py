@@ -148,8 +148,8 @@ def partial_problems(command: Command, out: Path, whole: dict[str, str]) -> list
     problems = []
     for path in sorted(out.rglob("*")):
         name = str(path.relative_to(out))
-        if path.is_dir() or name in command.copies or path.name.startswith("."):
-            continue        # hidden: a temporary or claim, which the next run removes
+        if path.is_dir() or name in command.copies or any(part.startswith(".") for part in Path(name).parts):
+            continue        # hidden, or in a hidden folder: a temporary or claim, which the next run removes
         if command.trained:
             problems += trained_problems(path)
         elif name not in whole or hashlib.sha256(path.read_bytes()).hexdigest() != whole[name]:
