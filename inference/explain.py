@@ -16,7 +16,7 @@ from xvoe.models.perception import to_uint8
 
 from .identity import two_objects
 from .model import InferenceConfig
-from .surprise import explain_surprise, hidden_posterior
+from .surprise import check_particles, explain_surprise, hidden_posterior
 
 
 @dataclass
@@ -25,7 +25,7 @@ class NLLExplanation(Explanation):
     p_two: float = 0.0          # posterior probability that a seen object is two identical ones
     ess: float = 0.0            # effective sample size of the importance weights
     nll: float = 0.0            # the video's surprise, -log p(video), nats
-    particles: int = 0          # importance samples drawn
+    particles: int = 0          # importance samples drawn (a pilot's, where a pilot sufficed)
     holding: int = 0            # of them, those that held a hidden object
     holding_ess: float = 0.0    # the effective sample size among those
     # the heaviest distinct hypotheses of what is hidden, each decoded alone: (label, frames)
@@ -84,8 +84,9 @@ def explain_nll(scorer: Scorer, data: str, index: int, particles: int | None = N
     """What `xvoe explain --surprise nll` draws: the Pyro model's explanation posterior."""
     if not scorer.is_random and (scorer.xpl is None or not scorer.xpl.config.use_reasoning):
         raise XvoeError(f"the NLL explanation needs an XPL model with reasoning; {scorer.name} has none")
-    video, rgbd, title = _read_video(scorer, data, index)
     config = scorer.nll or InferenceConfig()
+    check_particles(particles or config.particles)
+    video, rgbd, title = _read_video(scorer, data, index)
     return nll_explanation(scorer.vae, scorer.xpl, video, particles or config.particles, title, rgbd, seed,
                            hypotheses, config)
 
@@ -128,6 +129,8 @@ def nll_explanation(vae, xpl, video: dict, particles: int, title: str = "", obse
     heading += f"NLL {result.nll:.0f} nats, p(hidden object) = {result.p_hidden:.2f}"
     if result.identity is not None:
         heading += f", p(two identical objects) = {result.p_two:.2f}"
+    if result.estimate.particles != particles:     # a pilot run sufficed (inference.smc.hidden_run): say so
+        heading += f"\nfrom a pilot of {result.estimate.particles} particles, not the {particles:,} asked"
     holding = (posterior.holding, posterior.ess) if posterior is not None else (0, 0.0)
     drawn = []
     if posterior is not None and found.hypotheses is not None:
@@ -144,7 +147,7 @@ def nll_explanation(vae, xpl, video: dict, particles: int, title: str = "", obse
             if options.disagree:
                 heading += f"; the hypotheses differ most at frames {', '.join(map(str, options.disagree[:3]))}"
     return NLLExplanation(observed, behind, alone, result.hidden_slot, heading, result.p_hidden, result.p_two,
-                          result.ess, result.nll, particles, *holding, drawn,
+                          result.ess, result.nll, result.estimate.particles, *holding, drawn,
                           behind_empty=empty if slot >= 0 else None, **two)
 
 

@@ -16,7 +16,7 @@ from xvoe.evaluation.surprise import DrawnScene
 from xvoe.models.config import field_type, parse_field, split_assignment, to_dict
 
 from .model import InferenceConfig, pixel_log_normaliser
-from .surprise import NLLSurprise, nll_surprise
+from .surprise import NLLSurprise, check_particles, nll_surprise
 
 
 def nll_config(base: InferenceConfig, particles: int | None = None,
@@ -128,6 +128,7 @@ class NLLColumns:
             raise XvoeError(f"the NLL surprise needs an XPL model with reasoning; {scorer.name} has none")
         self.config = nll_config(scorer.nll or InferenceConfig(), self.particles, self.changes)
         self.sources = nll_sources(scorer.nll, self.overridden)
+        check_particles(self.config.particles)
 
     def settings(self) -> dict:
         """The header's record: the settings, where each came from, and the seed."""

@@ -4,10 +4,12 @@ from __future__ import annotations
 
 import contextlib
 import csv
+import gzip
 import hashlib
 import json
 import os
 import shutil
+import struct
 import subprocess
 import sys
 import tempfile
@@ -621,10 +623,152 @@ def split_cases(files, tmp: Path) -> list[tuple[list[str], str]]:
     ]
 
 
-def test_every_bad_input_gets_one_line_exit_2_and_changes_nothing(files, tmp_path, capsys, monkeypatch):
+def no_pixels(file: h5py.File) -> None:
+    """Frames of 0x0 pixels, the split's shapes otherwise kept."""
+    for name in ("rgbd", "ids"):
+        shape = file[name].shape
+        _replace(file, name, np.zeros((*shape[:2], 0, 0, *shape[4:]), np.uint8))
+
+
+def declaring(source: Path, target: Path, videos: int) -> Path:
+    """A copy of split `source` whose every dataset declares `videos` rows: its first video
+    stored, the rest never written (HDF5 keeps unwritten chunks off the disk)."""
+    shutil.copy(source, target)
+    with h5py.File(target, "r+") as file:
+        for name in [name for name in file if file[name].ndim]:
+            first, attrs, dtype, shape = file[name][:1], dict(file[name].attrs), file[name].dtype, file[name].shape
+            del file[name]
+            chunks = (1, *shape[1:]) if len(shape) > 1 else (1 << 16,)
+            grown = file.create_dataset(name, (videos, *shape[1:]), dtype, chunks=chunks, compression="gzip")
+            grown[:1] = first
+            grown.attrs.update(attrs)
+    return target
+
+
+def release_with(root: Path, record: bytes) -> Path:
+    """A release (tests/test_import.py's writer) whose first collision file holds `record` alone."""
+    from test_import import write_release
+
+    write_release(root)
+    with gzip.open(root / "test" / "collision" / "eval-part-000.tfrecord", "wb") as out:
+        out.write(record)
+    return root
+
+
+def limit_cases(files, tmp: Path) -> list[tuple[list[str], str]]:
+    """Names past the file system's limit, and sizes and counts past the machine's memory and
+    cores: refused before any work."""
+    from test_import import example, field, framed, masked_crc
+
+    test, train = str(files["test-32"]), str(files["train-32"])
+    long = "n" * 300
+    zero = mutate(files["test-32"], tmp / "zero.h5", no_pixels)
+    many = declaring(files["test-32"], tmp / "many.h5", 10**8)
+    header = struct.pack("<Q", 2**62)
+    huge_record = release_with(tmp / "huge-record", header + struct.pack("<I", masked_crc(header)) + bytes(64))
+    shape = b"".join(field(2, field(1, size)) for size in (10**6, 512, 512, 4))
+    splat = field(1, 4) + field(2, shape) + field(7, 7)      # one value standing for all, as TensorFlow may write
+    huge_tensor = release_with(tmp / "huge-tensor", framed(example({"raw_image": splat, "mask": splat, "slot": [0.0]})))
+    beyond = str(len(os.sched_getaffinity(0)) + 1)
+    nll = ["--model", "xpl", "--data", test, "--surprise", "nll", "--particles", str(10**9)]
+    return [
+        (["generate", "--split", "test", "--out", str(tmp / f"{long}.h5")], "holds a name of 303 bytes"),
+        (["generate", "--split", "test", "--out", str(tmp / "g.h5") + "/"], "ends in a slash"),
+        (["show", test, "--out", str(tmp / f"{long}.png")], "holds a name of 304 bytes"),
+        (["show", str(tmp / f"{long}.h5"), "--out", str(tmp / "s.png")], "no such file"),
+        (["score", "--model", "random", "--data", test, "--out", str(tmp / f"{long[:246]}.csv")],
+         "the curves beside --out holds a name of 257 bytes"),
+        (["metrics", str(tmp / "ours.csv"), "--out", str(tmp / long)], "holds a name of 300 bytes"),
+        (["train", "perception", "--data", train, "--out", str(tmp / long), "--quiet"], "holds a name of 300 bytes"),
+        (["encode", "--model", "xpl", "--data", train, "--out", str(tmp / long)], "holds a name of 300 bytes"),
+        (["generate", "--split", "test", "--pairs", str(10**12), "--out", str(tmp / "g.h5")],
+         "a split of 22,000,000,000,000 videos needs"),
+        (["generate", "--split", "train", "--videos", str(10**15), "--out", str(tmp / "g.h5")],
+         "a split of 1,000,000,000,000,000 videos needs"),
+        (["generate", "--split", "test", "--workers", str(10**6), "--out", str(tmp / "g.h5")],
+         f"--workers {10**6} is more than this machine's"),
+        (["generate", "--split", "test", "--workers", beyond, "--out", str(tmp / "g.h5")],
+         f"--workers {beyond} is more than this machine's"),
+        (["score", "--model", "random", "--data", test, "--workers", beyond, "--out", str(tmp / "s.csv")],
+         f"--workers {beyond} is more than this machine's"),
+        (["train", "perception", "--data", train, "--out", str(tmp / "run"), "--batch-size", str(10**9),
+          "--set", "airborne_share=0", "--quiet"],
+         "--batch-size 1000000000 needs"),
+        (["train", "phydnet", "--data", train, "--out", str(tmp / "run"), "--batch-size", str(10**9), "--quiet"],
+         "--batch-size 1000000000 needs"),
+        (["score", *nll, "--out", str(tmp / "n.csv")], "--particles 1,000,000,000 needs"),
+        (["explain", *nll, "--out", str(tmp / "n.png")], "--particles 1,000,000,000 needs"),
+        (["show", str(many), "--out", str(tmp / "s.png")], "declares 100,000,000 videos, whose states and labels need"),
+        (["score", "--model", "random", "--data", str(many), "--out", str(tmp / "s.csv")], "declares 100,000,000"),
+        (["show", str(zero), "--out", str(tmp / "s.png")], "frames of 0x0 pixels"),
+        (["score", "--model", "random", "--data", str(zero), "--out", str(tmp / "s.csv")], "frames of 0x0 pixels"),
+        (["import", str(huge_record), "--split", "test", "--out", str(tmp / "i.h5"), "--quiet"],
+         "claims a record of 4,611,686,018,427,387,904 bytes"),
+        (["import", str(huge_tensor), "--split", "test", "--out", str(tmp / "i.h5"), "--quiet"],
+         "a tensor declares shape (1000000, 512, 512, 4)"),
+    ]
+
+
+@pytest.fixture
+def full_disk(tmp_path):
+    """A file system with no room left inside the test's folder (a small tmpfs, filled once the
+    cases have put their files there), or None where none can be mounted (not as root)."""
+    folder = tmp_path / "full"
+    folder.mkdir()
+    mounted = os.geteuid() == 0 and subprocess.run(["mount", "-t", "tmpfs", "-o", "size=1m", "tmpfs", str(folder)],
+                                                   capture_output=True).returncode == 0
+    if not mounted:
+        folder.rmdir()
+    yield folder if mounted else None
+    if mounted:
+        subprocess.run(["umount", str(folder)], check=True)
+
+
+def fill(folder: Path) -> None:
+    """Write zeros into `folder` until its file system refuses another byte."""
+    descriptor = os.open(folder / "filler", os.O_WRONLY | os.O_CREAT)
+    try:
+        for size in (1 << 16, 1 << 12, 1):
+            with contextlib.suppress(OSError):
+                while True:
+                    os.write(descriptor, bytes(size))
+    finally:
+        os.close(descriptor)
+
+
+def full_disk_cases(files, full: Path | None) -> list[tuple[list[str], str]]:
+    """Every verb that writes, on a file system with no room: one line naming the output, and
+    nothing left (the old scores of --overwrite as they were)."""
+    if full is None:
+        return []
+    test, train = str(files["test-32"]), str(files["train-32"])
+    old = full / "old.csv"
+    assert main(["score", "--model", "random", "--data", test, "--out", str(old), "--quiet"]) == 0
+    fill(full)
+    full_name = "no space left on device writing"
+    return [
+        (["generate", "--split", "test", "--pairs", "1", "--size", "32", "--out", str(full / "g.h5"), "--quiet"],
+         f"{full_name} {full / 'g.h5'}"),
+        (["score", "--model", "random", "--data", test, "--out", str(full / "s.csv"), "--quiet"],
+         f"{full_name} {full / 's.csv'}"),
+        (["score", "--model", "random", "--data", test, "--out", str(old), "--seed", "1", "--overwrite", "--quiet"],
+         f"{full_name} {old}"),
+        (["train", "perception", "--data", train, "--out", str(full / "run"), "--steps", "1", "--set",
+          "airborne_share=0", "--quiet"],
+         f"{full_name} {full / 'run' / 'perception.pt'}"),
+        (["metrics", str(old), "--rounds", "20", "--out", str(full / "r")], f"{full_name} {full / 'r'}"),
+        (["show", test, "--out", str(full / "s.png")], f"{full_name} {full / 's.png'}"),
+        (["show", test, "--out", str(full / "s.mp4")], f"{full_name} {full / 's.mp4'}"),
+        (["encode", "--model", "xpl", "--data", train, "--out", str(full / "enc"), "--quiet"],
+         f"{full_name} {full / 'enc' / 'latents-train-32.h5'}"),
+    ]
+
+
+def test_every_bad_input_gets_one_line_exit_2_and_changes_nothing(files, tmp_path, capsys, monkeypatch, full_disk):
     monkeypatch.chdir(tmp_path)
     tried = 0
-    for args, needle in case_lines(files, tmp_path):
+    full = full_disk_cases(files, full_disk)
+    for args, needle in case_lines(files, tmp_path) + limit_cases(files, tmp_path) + full:
         before = snapshot(tmp_path)
         code, err = run(args, capsys)
         assert code == 2, (args, err)
@@ -632,7 +776,9 @@ def test_every_bad_input_gets_one_line_exit_2_and_changes_nothing(files, tmp_pat
         assert "Traceback" not in err
         assert snapshot(tmp_path) == before, args
         tried += 1
-    assert tried == 6 * len(MALFORMED) + 2 * len(MALFORMED_TRAIN) + 40 + 31 + 14 + 6 + 7 + 7 + 17 + 14 + 6 + 5
+    assert tried == 6 * len(MALFORMED) + 2 * len(MALFORMED_TRAIN) + 40 + 31 + 14 + 6 + 7 + 7 + 17 + 14 + 6 + 5 + 23 \
+        + len(full)
+    assert full or full_disk is None
 
 
 CONFIGS = (TrainConfig, PerceptionConfig, XPLConfig, ReasoningConfig, DynamicsConfig, PhyDNetConfig, InferenceConfig,
@@ -1110,3 +1256,14 @@ def test_a_randomly_broken_scores_file_is_read_whole_or_refused_in_one_line(labe
         assert "\n" not in str(error)
     else:
         assert score_problem(scores) is None
+
+
+def test_a_name_the_file_system_takes_is_written_however_long(tmp_path, capsys):
+    """A 250-byte name is legal: its temporaries and claim, beside it, are shorter than it."""
+    out = tmp_path / ("g" * 247 + ".h5")
+    picture = tmp_path / ("p" * 246 + ".png")
+    assert run(["generate", "--split", "test", "--pairs", "1", "--size", "16", "--out", str(out), "--quiet"],
+               capsys)[0] == 0
+    assert run(["show", str(out), "--out", str(picture)], capsys)[0] == 0
+    assert sorted(p.name for p in tmp_path.iterdir()) == sorted([out.name, picture.name])
+    store.open_dataset(out).close()

@@ -15,6 +15,7 @@ LAYERS = {
     "xvoe.allocator": 0,
     "xvoe.outputs": 0,
     "xvoe.processes": 0,
+    "xvoe.resources": 0,
     "xvoe.domains": 0,
     "xvoe.progress": 0,
     "xvoe.benchmark": 1,

@@ -331,7 +331,8 @@ from xvoe.training.launch import on_cores
 from xvoe.training.perception import train_perception
 if __name__ == "__main__":
     on_cores(train_perception, 2, data=sys.argv[1], run_dir=sys.argv[2], steps=100_000, model_overrides={tiny!r},
-             progress=False, batch_size=8, log_every=2, warmup_steps=2, data_shards=2, airborne_share=0.0)
+             progress=False, batch_size=8, log_every=2, warmup_steps=2, data_shards=2, airborne_share=0.0,
+             checkpoint_minutes=0.01)
 """
 
 

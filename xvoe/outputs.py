@@ -17,7 +17,10 @@ the call that took it returns (`claim_scope`), or with the process.
 """
 from __future__ import annotations
 
+import errno
 import fcntl
+import glob
+import hashlib
 import os
 import re
 import shutil
@@ -42,6 +45,9 @@ def claim_file(path: str | os.PathLike, overwrite: bool = False, *, what: str = 
     run that holds it, rather than refuse (a shared cache that one run makes for all)."""
     if str(path).strip() == "":
         raise XvoeError(f"{what} is empty; give a file name")
+    if str(path).endswith(("/", os.sep)):
+        raise XvoeError(f"{path} ends in a slash, as a directory does; {what} needs a file name")
+    check_name_length(path, what)
     path = Path(path)
     if path.is_dir():
         raise XvoeError(f"{path} is a directory; {what} needs a file name")
@@ -78,8 +84,11 @@ def refuse_overlap(inputs: list[str | os.PathLike], output: str | os.PathLike, s
     symbolic link at the output is replaced itself, never its target, so a link is refused only
     where it leads to an input."""
     out = Path(output)
-    if str(output).strip() == "" or out.is_dir():
-        return      # claim_file names an empty name or a directory
+    if str(output).strip() == "":
+        return      # claim_file names an empty name
+    check_name_length(out, what)
+    if out.is_dir():
+        return      # claim_file names a directory
     for source in inputs:
         if Path(source).resolve() == out.resolve():
             raise XvoeError(f"{what} {out} is the input {source}; write the result to another file")
@@ -96,6 +105,7 @@ def claim_directory(path: str | os.PathLike, *, what: str = "--out", make: bool 
     other processes, is held stage by stage instead (each stage's checkpoint)."""
     if str(path).strip() == "":
         raise XvoeError(f"{what} is empty; give a directory")
+    check_name_length(path, what)
     path = Path(path)
     if path.exists() and not path.is_dir():
         raise XvoeError(f"{path} is a file; {what} needs a directory")
@@ -105,9 +115,38 @@ def claim_directory(path: str | os.PathLike, *, what: str = "--out", make: bool 
     return path
 
 
+def check_name_length(path: str | os.PathLike, what: str = "--out") -> None:
+    """Refuse, before the work (and before any look at the path, which such a name makes fail),
+    a name longer than its file system takes: 255 bytes on most."""
+    path = Path(path)
+    existing = next((folder for folder in [path, *path.parents] if os.path.isdir(folder)), Path("."))
+    try:
+        limit = os.pathconf(existing, "PC_NAME_MAX")
+    except (OSError, ValueError):
+        limit = 255
+    for part in path.parts:
+        if (length := len(os.fsencode(part))) > limit:
+            raise XvoeError(f"{what} holds a name of {length} bytes ({part[:16]}...), past the {limit} its file "
+                            "system takes; give a shorter name")
+
+
+def _hidden_name(path: Path, kind: str) -> Path:
+    """`path`'s hidden companion of `kind` (claim, tmp-PID, old-PID, parts-PID): .NAME.KIND where
+    that is short, so that a name the file system takes has companions it takes too; a long NAME
+    is cut and a hash of it keeps companions of different names apart."""
+    name = path.name
+    if len(os.fsencode(name)) > _NAME_KEPT:
+        name = os.fsencode(name)[:_NAME_KEPT - 9].decode(errors="ignore") + "~" + \
+            hashlib.sha256(os.fsencode(path.name)).hexdigest()[:8]
+    return path.with_name(f".{name}.{kind}")
+
+
+_NAME_KEPT = 200        # bytes of an output's name kept in its companions' names (room for .tmp-PID)
+
+
 def _claim_name(path: Path) -> Path:
     """The file whose lock holds `path`: beside a file, inside a directory."""
-    return path / ".claim" if path.is_dir() else path.with_name(f".{path.name}.claim")
+    return path / ".claim" if path.is_dir() else _hidden_name(path, "claim")
 
 
 def hold(path: str | os.PathLike, *, wait: bool = False) -> bool:
@@ -214,31 +253,31 @@ def _writable_directory(directory: Path, make: bool = True) -> None:
 
 def parts_folder(path: Path) -> Path:
     """The folder beside `path` where this process writes the parts it joins into `path`."""
-    return path.with_name(f".{path.name}.parts-{os.getpid()}")
+    return _hidden_name(path, f"parts-{os.getpid()}")
 
 
 def temporary_name(path: Path) -> Path:
     """The name a file is written under before it takes `path`'s place (this process's)."""
-    return path.with_name(f".{path.name}.tmp-{os.getpid()}")
+    return _hidden_name(path, f"tmp-{os.getpid()}")
 
 
 def _aside_name(path: Path) -> Path:
     """The name the old file at `path` is moved to while the new one takes its place."""
-    return path.with_name(f".{path.name}.old-{os.getpid()}")
+    return _hidden_name(path, f"old-{os.getpid()}")
 
 
 def remove_stale_temporaries(path: Path) -> None:
-    """Delete the temporary files and parts folders of `path` left by processes that are gone
-    (killed with -9); an old file such a process had moved aside goes back where nothing took
-    its place."""
-    pattern = re.compile(rf"^\.{re.escape(path.name)}\.(tmp|old|parts)-(\d+)$")
-    for candidate in path.parent.glob(f".{path.name}.*-*"):
+    """Delete the temporary files and folders of `path` left by processes that are gone (killed
+    with -9); an old file such a process had moved aside goes back where nothing took its place."""
+    stem = _hidden_name(path, "").name
+    pattern = re.compile(rf"^{re.escape(stem)}(tmp|old|parts)-(\d+)$")
+    for candidate in path.parent.glob(f"{glob.escape(stem)}*-*"):
         match = pattern.match(candidate.name)
         if not match or _alive(int(match.group(2))):
             continue
         if match.group(1) == "old" and not os.path.lexists(path):
             os.replace(candidate, path)
-        elif match.group(1) == "parts":
+        elif candidate.is_dir() and not candidate.is_symlink():
             shutil.rmtree(candidate, ignore_errors=True)
         else:
             candidate.unlink(missing_ok=True)
@@ -265,11 +304,58 @@ def atomic_paths(*paths: Path) -> Iterator[list[Path]]:
             remove_stale_temporaries(path)
         temporaries = [temporary_name(path) for path in paths]
         try:
-            yield temporaries
-            replace_together(temporaries, list(paths))
+            with writing(paths[-1]):
+                yield temporaries
+                replace_together(temporaries, list(paths))
         finally:
             for temporary in temporaries:
-                temporary.unlink(missing_ok=True)
+                if temporary.is_dir() and not temporary.is_symlink():
+                    shutil.rmtree(temporary, ignore_errors=True)
+                else:
+                    temporary.unlink(missing_ok=True)
+
+
+# what a write meets on a full disk (or past a quota, or past the size limit of a process's files)
+_NO_SPACE = {errno.ENOSPC: "no space left on device", errno.EDQUOT: "disk quota exceeded",
+             errno.EFBIG: "file too large for this process or file system"}
+
+
+def no_space(error: BaseException) -> str | None:
+    """What is full, where `error` is a write that found no room, else None. HDF5 names the
+    errno only in its message, and a failed flush as it closes a file is a RuntimeError."""
+    if isinstance(error, OSError) and error.errno in _NO_SPACE:
+        return _NO_SPACE[error.errno]
+    if isinstance(error, (OSError, RuntimeError)):
+        return next((what for number, what in _NO_SPACE.items() if f"errno = {number}," in str(error)), None)
+    return None
+
+
+def nearly_full(folder: Path) -> bool:
+    """Whether `folder`'s file system has under a megabyte left: what a writer in another
+    process (the video encoder) that stopped without saying why most likely met."""
+    try:
+        usage = os.statvfs(folder)
+    except OSError:
+        return False
+    return usage.f_bavail * usage.f_frsize < 2**20
+
+
+@contextmanager
+def writing(path: str | os.PathLike) -> Iterator[None]:
+    """A full disk met in the block is named in one line, by the output it was writing: its
+    final name, not a temporary's, and where blocks nest (a report's figures), the outermost's."""
+    _writing.append(Path(path))
+    try:
+        yield
+    except (OSError, RuntimeError) as error:
+        if (what := no_space(error)) is None:
+            raise
+        raise XvoeError(f"{what} writing {_writing[0]}") from None
+    finally:
+        _writing.pop()
+
+
+_writing: list[Path] = []      # the outputs whose `writing` blocks this process is in, outermost first
 
 
 def replace_together(temporaries: list[Path], paths: list[Path]) -> None:

@@ -7,7 +7,6 @@ from __future__ import annotations
 
 import argparse
 import importlib
-import os
 import re
 import signal
 import sys
@@ -34,6 +33,7 @@ from ..errors import XvoeError
 from ..models.config import parse_field, parse_value
 from ..models.nll import InferenceConfig
 from ..outputs import claim_directory, claim_file, claim_scope, refuse_overlap
+from ..resources import cores
 from ..training.config import DEFAULT_RECIPE, RECIPE_NAMES, TrainConfig
 
 # what the verbs need of the layers that import torch, loaded when a verb runs or a value is
@@ -121,7 +121,7 @@ def _add_device(parser: argparse.ArgumentParser, what: str) -> None:
 
 
 def _default_workers() -> int:
-    return max(1, min(8, len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1))
+    return min(8, cores())
 
 
 def cmd_generate(args: argparse.Namespace) -> None:

@@ -8,6 +8,7 @@ frames alone) above what the model sees, its own frames enlarged without blur
 """
 from __future__ import annotations
 
+import errno
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -31,7 +32,7 @@ from ..evaluation.score import MSE_LABEL, check_same_split, read_curves, warn_un
 from ..identity import split_identity
 from ..models.devices import device_of
 from ..models.perception import normalise, to_uint8
-from ..outputs import atomic_paths, claim_file, claim_scope
+from ..outputs import atomic_paths, claim_file, claim_scope, nearly_full
 from ..training.data import perception_batch
 from ..training.phydnet import load_phydnet
 
@@ -238,13 +239,20 @@ def save_video(file: h5py.File, index: int, out: str | Path, scores: str | Path 
         plt.close(fig)
     height, width = pictures[0].shape[:2]
     with atomic_paths(Path(out)) as (tmp,):
-        # the container is named, not read off the temporary file's name
-        writer = imageio_ffmpeg.write_frames(str(tmp), (width, height), fps=fps, codec="libx264",
-                                             pix_fmt_out="yuv420p", macro_block_size=1, output_params=["-f", "mp4"])
-        writer.send(None)
-        for picture in pictures:
-            writer.send(np.ascontiguousarray(picture))
-        writer.close()
+        try:
+            # the container is named, not read off the temporary file's name; the encoder is quiet,
+            # its failure is named here in one line
+            writer = imageio_ffmpeg.write_frames(str(tmp), (width, height), fps=fps, codec="libx264",
+                                                 pix_fmt_out="yuv420p", macro_block_size=1,
+                                                 output_params=["-f", "mp4"], ffmpeg_log_level="quiet")
+            writer.send(None)
+            for picture in pictures:
+                writer.send(np.ascontiguousarray(picture))
+            writer.close()
+        except (OSError, RuntimeError):     # the encoder ended early: its pipe broke
+            if nearly_full(tmp.parent):
+                raise OSError(errno.ENOSPC, "No space left on device", str(tmp)) from None
+            raise XvoeError(f"the video encoder (ffmpeg) stopped before it wrote {out}") from None
     return Path(out)
 
 

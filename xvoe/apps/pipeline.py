@@ -35,6 +35,7 @@ from ..models.config import to_dict
 from ..models.devices import resolve_device
 from ..outputs import claim_directory, claim_scope
 from ..processes import end_with_parent
+from ..resources import check_workers, cores
 from ..training.config import TrainConfig
 from ..training.data import process_counts
 from ..training.latents import encode_split
@@ -126,6 +127,7 @@ class Stages:
 def run_pipeline(config: PipelineConfig) -> Path:
     """Everything, end to end; returns the path of report.md."""
     chosen = recipe(config.recipe)
+    check_workers(config.workers)
     size, train_videos = chosen.perception.image_size, config.train_videos or chosen.train_videos
     run_dir = claim_directory(config.out, whole=True)     # one pipeline in a run directory at a time
     (run_dir / "data").mkdir(exist_ok=True)
@@ -138,8 +140,7 @@ def run_pipeline(config: PipelineConfig) -> Path:
     stages.run("generate-test", lambda: generate(
         GenerateConfig("test", pairs=config.pairs, size=size, seed=config.seed + 1), test_data,
         workers=config.workers, overwrite=True, progress=config.progress))
-    cores = len(os.sched_getaffinity(0))
-    processes = config.train_processes or cores
+    processes = config.train_processes or cores()
     on_device = resolve_device(config.device).type != "cpu"
     if on_device:       # lanes and one-thread processes share out CPU cores; one process drives a device
         processes = 1
@@ -153,9 +154,9 @@ def run_pipeline(config: PipelineConfig) -> Path:
                                                         progress=config.progress, device=config.device))
     (run_dir / "scores").mkdir(exist_ok=True)
     heavy = sorted((m for m in config.models if m != "random"), key=LANE_ORDER.index)
-    lanes = 1 if on_device else min(config.jobs or cores, len(heavy))
+    lanes = 1 if on_device else min(config.jobs or cores(), len(heavy))
     if lanes > 1:       # one model's training per lane, the cores shared out: two 1-thread runs beat one 2-thread run
-        threads = max(1, cores // lanes)
+        threads = max(1, cores() // lanes)
         context = multiprocessing.get_context("spawn")
         with ProcessPoolExecutor(lanes, mp_context=context, initializer=end_with_parent,
                                  initargs=(os.getpid(),)) as pool:

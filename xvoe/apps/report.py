@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import csv
 import json
+import shutil
 from pathlib import Path
 
 import numpy as np
@@ -27,7 +28,14 @@ from ..evaluation.metrics import (
 )
 from ..evaluation.score import check_same_split, read_curves, score_header, scored_split, warn_unchecked
 from ..identity import describe_split, split_identity
-from ..outputs import claim_directory, claim_scope
+from ..outputs import (
+    claim_directory,
+    claim_scope,
+    remove_stale_temporaries,
+    replace_together,
+    temporary_name,
+    writing,
+)
 from . import figures
 from .table import STYLES, paper_table
 
@@ -87,8 +95,28 @@ def report(paths: list[str | Path], out_dir: str | Path, rounds: int = 1000, see
     earlier = [p for pattern in REPORT_FILES for p in out_dir.glob(pattern)]
     if earlier and not overwrite:
         raise XvoeError(f"{out_dir} holds a report already ({earlier[0].name}); pass --overwrite to replace it")
-    for path in earlier:
+    # written whole in a folder of this run's first, then put in place together: a full disk
+    # or an interruption leaves the last report or none, never part of a new one
+    staging = temporary_name(out_dir / "report")
+    remove_stale_temporaries(out_dir / "report")
+    staging.mkdir()
+    try:
+        with writing(out_dir):
+            written = _write_report(staging, paths, rows, names, compared, verdicts, timing, timed_pairs, data,
+                                    members, table)
+            placed = [out_dir / path.name for path in written]
+            replace_together(written, placed)
+    finally:
+        shutil.rmtree(staging, ignore_errors=True)
+    for path in set(earlier) - set(placed):
         path.unlink()
+    return placed
+
+
+def _write_report(out_dir: Path, paths: list[str | Path], rows: list[dict], names: list[str], compared: dict,
+                  verdicts: dict, timing: list[dict], timed_pairs: dict, data: str | Path | None,
+                  members: dict, table: str | None) -> list[Path]:
+    """Every file of the report, written into `out_dir`."""
     written = list(write_table(rows, out_dir))
     written.append(write_headers(paths, names, out_dir / "headers.json"))
     if table is not None:

@@ -29,8 +29,9 @@ from ..evaluation.metrics import ScoreTable
 from ..evaluation.score import Scorer, SurpriseModel, as_scorer, merge_scores, prepare_latents, score_split
 from ..evaluation.surprise import EXPLANATIONS
 from ..models.devices import resolve_device
-from ..outputs import claim_file, claim_scope, parts_folder
-from ..processes import end_with_parent
+from ..outputs import claim_file, claim_scope, parts_folder, writing
+from ..processes import end_with_parent, interrupts_held
+from ..resources import check_workers, cores
 
 SURPRISES = ("mse", "nll", "both")
 
@@ -73,6 +74,7 @@ def score(model: str | Scorer | SurpriseModel, data: str | Path, out: str | Path
         raise XvoeError(f"--surprise must be mse, nll or both, not {surprise!r}")
     if workers < 1:
         raise XvoeError(f"--workers must be at least 1, not {workers}")
+    check_workers(workers)
     extra = NLLColumns(particles, seed, nll_settings) if surprise != "mse" else None   # bad settings fail here
     resolve_device(device)      # an absent device too, before any work
     if workers > 1 and shard != (0, 1):
@@ -106,20 +108,28 @@ def _score_in_workers(model: str | Scorer, scorer: Scorer, data: str | Path, out
     run to `out` removes if this one was killed before it could."""
     out = claim_file(out, overwrite)      # refused before any work, as one run would be
     settings["cache"] = prepare_latents(scorer, data, settings["cache"], progress=progress) or False
-    threads = max(1, len(os.sched_getaffinity(0)) // workers)
+    threads = max(1, cores() // workers)
     parts_dir = parts_folder(out)
     parts_dir.mkdir()
     try:
         parts = [parts_dir / f"part{index}.csv" for index in range(workers)]
         with ProcessPoolExecutor(workers, mp_context=get_context("spawn"), initializer=_worker_threads,
                                  initargs=(threads, os.getpid())) as pool:
-            running = [pool.submit(score, model, data, part, shard=(index, workers), progress=progress and index == 0,
-                                   **settings) for index, part in enumerate(parts)]
+            with interrupts_held():     # each submit starts a worker
+                running = [pool.submit(_score_part, out, model, data, part, shard=(index, workers),
+                                       progress=progress and index == 0, **settings)
+                           for index, part in enumerate(parts)]
             for done in running:
                 done.result()
         return merge_scores(parts, out, overwrite=overwrite)
     finally:
         shutil.rmtree(parts_dir, ignore_errors=True)
+
+
+def _score_part(out: Path, *args, **kwargs) -> Path:
+    """A worker's `score` of its shard: a full disk is named by the output the parts join into."""
+    with writing(out):
+        return score(*args, **kwargs)
 
 
 def _worker_threads(threads: int, parent: int) -> None:

@@ -23,6 +23,7 @@ from ..domains import COUNT, SEED, Domain, check_config, within
 from ..errors import XvoeError
 from ..processes import end_with_parent
 from ..progress import progress_bar
+from ..resources import check_memory, check_workers
 from . import store
 from .render import Video, render
 from .scenes import SCENARIOS, TEST_SETTINGS, TRAINING_GROUPS
@@ -105,8 +106,10 @@ def generate(config: GenerateConfig, out: str | Path, workers: int = 1, shard: t
     """Write the split (or one shard of it) to `out`; returns the path."""
     if workers < 1:
         raise XvoeError(f"workers must be at least 1, not {workers}")
+    check_workers(workers)
     units = shard_units(config, shard)
     count = len(units) * config.videos_per_unit
+    check_memory(count * store.held_per_video(config.frames), f"a split of {count:,} videos")
     with store.atomic_file(out, overwrite) as file:
         store.write_attributes(file, config.split, config.to_dict(), config.seed)
         if shard != (0, 1):

@@ -22,6 +22,7 @@ import numpy as np
 
 from ..errors import XvoeError
 from ..outputs import atomic_paths, claim_file, claim_scope
+from ..resources import memory_problem
 from .render import DEPTH_FAR, STATE_COLUMNS, Video
 from .scenes import SCENARIOS, TRAINING_GROUPS
 from .world import KIND_NAMES, MAX_SLOTS, WALL_KINDS
@@ -60,6 +61,12 @@ def _label_dtype(name: str):
     if name in ("pair", "event_frame"):
         return np.int32
     return np.int8
+
+
+def held_per_video(frames: int) -> int:
+    """Bytes a `Writer` holds in memory per video until it finishes (the states, kinds, colours
+    and labels; the frames go to disk as they come), for a size to be checked before the work."""
+    return frames * MAX_SLOTS * len(STATE_COLUMNS) * 4 + MAX_SLOTS * 4 + 8 * 64
 
 
 class Writer:
@@ -104,10 +111,12 @@ class Writer:
 @contextmanager
 def atomic_file(path: str | os.PathLike, overwrite: bool = False) -> Iterator[h5py.File]:
     """An HDF5 file open for writing under a temporary name, renamed to `path` on success;
-    `path` is held from the claim to the rename (xvoe.outputs)."""
+    `path` is held from the claim to the rename (xvoe.outputs). With no chunk cache: each chunk
+    is written whole as it comes, so a full disk fails that write; a cached chunk whose write
+    fails as the dataset closes leaves HDF5 to crash the process at the file's close."""
     with claim_scope():
         path = claim_file(path, overwrite)
-        with atomic_paths(path) as (tmp,), h5py.File(tmp, "w", track_order=False) as file:
+        with atomic_paths(path) as (tmp,), h5py.File(tmp, "w", track_order=False, rdcc_nbytes=0) as file:
             yield file
 
 
@@ -124,9 +133,9 @@ def write_attributes(file: h5py.File, split: str, config: dict, seed: int) -> No
 def open_hdf5(path: str | os.PathLike) -> h5py.File:
     """An HDF5 file open for reading, or a one-line error if it is missing or not HDF5."""
     path = Path(path)
-    if path.is_dir():
+    if os.path.isdir(path):     # os.path's answers, not pathlib's: a name too long to exist is no file either
         raise XvoeError(f"{path} is a directory, not a file")
-    if not path.is_file():
+    if not os.path.isfile(path):
         raise XvoeError(f"{path}: no such file")
     try:
         return h5py.File(path, "r")
@@ -189,6 +198,8 @@ def schema_problem(file: h5py.File) -> str | None:
     count, frames, height, width, channels = file["rgbd"].shape
     if channels != 4 or height != width:
         return f"holds {height}x{width} frames of {channels} channels; xvoe frames are square RGBD (4)"
+    if height == 0 or frames == 0:
+        return f"holds videos of {frames} frames of {height}x{width} pixels; a video has frames with pixels"
     slots = file["kind"].shape[1]
     expected = {"ids": (count, frames, height, width), "states": (count, frames, slots), "kind": (count, slots),
                 "color": (count, slots, 3)}
@@ -203,7 +214,20 @@ def schema_problem(file: h5py.File) -> str | None:
         if file[name].shape != (count,) or found != LABEL_KINDS[name]:
             return (f"has a {name} label of shape {file[name].shape} and type {file[name].dtype}; "
                     f"expected one per video ({count}) of kind {LABEL_KINDS[name]}")
-    return None
+    return labels_memory_problem(file, labels)
+
+
+def labels_memory_problem(file: h5py.File, labels: tuple[str, ...]) -> str | None:
+    """Whether the states and labels, which commands read whole, fit in this machine's memory:
+    a split declaring more videos than it could hold is refused on opening, not at the read."""
+    arrays = sum(file[name].size * file[name].dtype.itemsize for name in ("states", "kind", "color"))
+    texts = sum(_TEXT_BYTES * file[name].size for name in labels if h5py.check_string_dtype(file[name].dtype))
+    needed = arrays + texts + sum(file[name].size * file[name].dtype.itemsize for name in labels)
+    problem = memory_problem(needed)
+    return problem and f"declares {file['rgbd'].shape[0]:,} videos, whose states and labels {problem}"
+
+
+_TEXT_BYTES = 64        # a label's text, read as a Python string
 
 
 def value_problem(file: h5py.File) -> str | None:

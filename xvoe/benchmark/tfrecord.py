@@ -9,6 +9,7 @@ one-line error (`TFRecordError`) instead of wrong arrays.
 from __future__ import annotations
 
 import gzip
+import math
 import os
 import struct
 import zlib
@@ -20,6 +21,7 @@ import crc32c
 import numpy as np
 
 from ..errors import XvoeError
+from ..resources import memory_problem
 
 GZIP_MAGIC = b"\x1f\x8b"
 MASK_DELTA = 0xA282EAD8
@@ -48,13 +50,24 @@ def _open(path: Path) -> BinaryIO:
 
 
 def _read_exactly(stream: BinaryIO, size: int, path: Path, what: str, offset: int) -> bytes:
+    """`size` bytes, read a block at a time: a header claiming more than the file holds is
+    found truncated, not met with a buffer of that size; one claiming more than this machine's
+    memory is refused before the read."""
+    if problem := memory_problem(size):
+        raise TFRecordError(f"{path} claims {what} of {size:,} bytes at byte {offset}, which would {problem}")
+    parts, left = [], size
     try:
-        data = stream.read(size)
+        while left and (block := stream.read(min(left, _BLOCK))):
+            parts.append(block)
+            left -= len(block)
     except (EOFError, OSError, zlib.error) as error:    # a gzip stream cut short or corrupt
         raise TFRecordError(f"{path} is truncated or damaged: {what} at byte {offset}: {error}") from None
-    if len(data) != size:
-        raise TFRecordError(f"{path} is truncated: {what} at byte {offset} has {len(data)} of {size} bytes")
-    return data
+    if left:
+        raise TFRecordError(f"{path} is truncated: {what} at byte {offset} has {size - left} of {size} bytes")
+    return b"".join(parts)
+
+
+_BLOCK = 1 << 26       # bytes read at a time (64 MiB)
 
 
 def records(path: str | os.PathLike) -> Iterator[bytes]:
@@ -199,7 +212,9 @@ def parse_tensor(serialized: bytes) -> np.ndarray:
         raise TFRecordError(f"a tensor is not a serialized TensorProto ({error})") from None
     if dtype not in DTYPES:
         raise TFRecordError(f"a tensor has TensorFlow dtype {dtype}, which this reader does not know")
-    count = int(np.prod(shape)) if shape else 1
+    count = math.prod(shape) if shape else 1       # Python's integers: a declared size never overflows
+    if problem := memory_problem(count * np.dtype(DTYPES[dtype]).itemsize):
+        raise TFRecordError(f"a tensor declares shape {tuple(shape)}, which would {problem}")
     if content is not None:
         array = np.frombuffer(content, dtype=np.dtype(DTYPES[dtype]).newbyteorder("<"))
     else:       # written value by value; a single value stands for all (TensorFlow's splat)

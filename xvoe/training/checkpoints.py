@@ -6,6 +6,7 @@ name such as `xpl` resolves wherever a run directory does.
 """
 from __future__ import annotations
 
+import io
 import os
 import pickle
 from pathlib import Path
@@ -16,6 +17,7 @@ import torch
 from ..errors import XvoeError
 from ..models.config import from_dict
 from ..models.devices import on_cpu
+from ..outputs import atomic_paths
 from .config import TrainConfig
 from .stages import SCORED, STAGES
 
@@ -27,16 +29,19 @@ SHIPPED = SCORED         # every model a checkpoint holds ships under its stage'
 _NUMPY_ARRAYS = [np.ndarray(0).__reduce__()[0], np.ndarray, np.dtype, type(np.dtype(np.uint32))]
 
 
-def save_checkpoint(path: Path, state: dict) -> None:
-    """Write to a temporary name and rename: an interrupted save never leaves a broken checkpoint.
-    Its tensors are saved from the CPU, so that a checkpoint names no device and loads on any."""
-    tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
-    try:
-        torch.save(on_cpu(state), tmp)
-        os.replace(tmp, path)
-    finally:
-        if tmp.exists():
-            tmp.unlink()
+def save_checkpoint(path: Path, state: dict, beside: dict[Path, bytes] | None = None) -> None:
+    """Write `path` and the files `beside` it (a stage's loss CSV) under temporary names and
+    rename them together (xvoe.outputs.atomic_paths): an interrupted save leaves the last
+    checkpoint and its files, never a broken one or a mismatched pair. Serialised in memory
+    first, so that a full disk fails a plain write, named in one line, not torch's archive
+    writer. Its tensors are saved from the CPU, so that a checkpoint names no device and loads
+    on any."""
+    buffer = io.BytesIO()
+    torch.save(on_cpu(state), buffer)
+    files = {**(beside or {}), Path(path): buffer.getvalue()}
+    with atomic_paths(*files) as temporaries:
+        for temporary, data in zip(temporaries, files.values()):
+            temporary.write_bytes(data)
 
 
 def load_checkpoint(path: str | os.PathLike, stage: str | None = None, device: str | torch.device = "cpu") -> dict:

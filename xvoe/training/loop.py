@@ -13,6 +13,7 @@ one process that holds all the shards.
 from __future__ import annotations
 
 import csv
+import io
 import os
 import random
 import signal
@@ -35,6 +36,7 @@ from ..models.config import override, to_dict
 from ..models.devices import mixed_precision, resolve_device
 from ..outputs import claim_directory, claim_file, claim_scope
 from ..progress import progress_bar
+from ..resources import check_memory, cores
 from .checkpoints import CHECKPOINT_FORMAT, first_not_finite, load_checkpoint, load_weights, save_checkpoint
 from .config import TrainConfig
 
@@ -49,6 +51,7 @@ class Job:
     config: dict                                  # the stage's model config, stored in the checkpoint
     items: Callable[[Any], int] = len             # images (or videos) in a local batch, for throughput
     meta: dict = field(default_factory=dict)      # e.g. the data file, stored in the checkpoint
+    item_bytes: int = 0                           # bytes of one item of a batch as the model reads it (0: unknown)
 
 
 @dataclass
@@ -83,9 +86,8 @@ def setup_distributed(device: str | torch.device = "cpu") -> Dist:
 def set_threads(config: TrainConfig, local_world: int) -> None:
     """Share the cores between the processes of this machine: config.threads, else
     OMP_NUM_THREADS when set (torchrun sets it), else the cores divided by the processes."""
-    cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
     threads = config.threads or int(os.environ.get("OMP_NUM_THREADS", "0") or 0)
-    torch.set_num_threads(threads or max(1, cores // max(1, local_world)))
+    torch.set_num_threads(threads or max(1, cores() // max(1, local_world)))
 
 
 def learning_rate(config: TrainConfig, step: int) -> float:
@@ -180,27 +182,31 @@ class WeightAverage:
 
 
 class CsvLog:
-    """Loss rows beside the checkpoint, one every `every` steps and one where a session ends.
+    """Loss rows beside the checkpoint, one every `every` steps and one where a session ends,
+    written with each checkpoint (`data`), so that the two always agree: an interrupted or
+    failed session leaves the log of its last checkpoint, never rows that no checkpoint holds.
 
     On resume, rows after the checkpoint's step and the row of the session's end are dropped,
     so the log reads as if the run had never stopped.
     """
 
     def __init__(self, path: Path, columns: list[str], resume_step: int | None, every: int):
-        self.path, self.columns = path, columns
-        rows = []
+        self.path, self.columns, self.rows = path, columns, []
         if resume_step is not None and path.exists():
             with open(path, newline="") as handle:
-                rows = [row for row in csv.DictReader(handle)
-                        if int(row["step"]) <= resume_step and int(row["step"]) % every == 0]
-        with open(path, "w", newline="") as handle:
-            writer = csv.DictWriter(handle, columns, extrasaction="ignore")
-            writer.writeheader()
-            writer.writerows(rows)
+                self.rows = [row for row in csv.DictReader(handle)
+                             if int(row["step"]) <= resume_step and int(row["step"]) % every == 0]
 
     def write(self, row: dict) -> None:
-        with open(self.path, "a", newline="") as handle:
-            csv.DictWriter(handle, self.columns, extrasaction="ignore").writerow(row)
+        self.rows.append(row)
+
+    def data(self) -> bytes:
+        """The log as a CSV file's bytes."""
+        text = io.StringIO(newline="")
+        writer = csv.DictWriter(text, self.columns, extrasaction="ignore")
+        writer.writeheader()
+        writer.writerows(self.rows)
+        return text.getvalue().encode()
 
 
 class _Meter:
@@ -239,6 +245,8 @@ def fit(job: Job, config: TrainConfig, run_dir: str | os.PathLike, *, place: Dis
     """
     place = place or Dist()
     check_config(config)        # a config built in Python, not through override, is checked too
+    # a batch's float copy for the model, at the least: a size past the machine is named before any step
+    check_memory(job.item_bytes * config.batch_size, f"--batch-size {config.batch_size}")
     if config.airborne_share and job.stage != "perception":
         raise XvoeError(f"airborne_share picks the perception stage's frames; the {job.stage} stage has none")
     if config.lstm_kernel and job.stage != "phydnet":
@@ -304,7 +312,8 @@ def fit(job: Job, config: TrainConfig, run_dir: str | os.PathLike, *, place: Dis
                                    **weights, "optimizer": optimiser.state_dict(),
                                    "rng": rng_state(), "meta": job.meta, "world": place.world,
                                    "kernels": torch.backends.cpu.get_cpu_capability(),
-                                   "meter": {"sums": meter.sums, "count": meter.count}})
+                                   "meter": {"sums": meter.sums, "count": meter.count}},
+                            beside={log: table.data()} if table else None)
 
     table = None
     precision = mixed_precision(place.device)

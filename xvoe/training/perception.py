@@ -65,5 +65,6 @@ def train_perception(data: str | os.PathLike | None, run_dir: str | os.PathLike,
                            world=place.world, max_videos=config.max_videos, seed=config.seed,
                            airborne_share=config.airborne_share)
     job = Job("perception", model, frames.batch, {"recipe": recipe_name, "perception": to_dict(model_config)},
-              items=lambda batch: batch.images, meta={"data": str(Path(data).resolve())})
+              items=lambda batch: batch.images, meta={"data": str(Path(data).resolve())},
+              item_bytes=4 * 4 * model_config.image_size ** 2)
     return fit(job, config, run_dir, place=place, resume=resume, overwrite=overwrite, progress=progress)

@@ -97,7 +97,8 @@ def train_phydnet(data: str | os.PathLike | None, run_dir: str | os.PathLike, *,
                            max_videos=config.max_videos, seed=config.seed, focus_group=config.focus_group,
                            focus_share=config.focus_share)
     job = Job(STAGE, PhyDNetObjective(PhyDNet(model_config)), batches.batch,
-              {"recipe": recipe_name, "phydnet": to_dict(model_config)}, meta={"data": str(Path(data).resolve())})
+              {"recipe": recipe_name, "phydnet": to_dict(model_config)}, meta={"data": str(Path(data).resolve())},
+              item_bytes=4 * batches.rgbd[:1].numel())
     return fit(job, config, run_dir, place=place, resume=resume, overwrite=overwrite, progress=progress)
 
 

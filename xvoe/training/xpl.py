@@ -87,6 +87,11 @@ class LatentBatches:
         self.start, self.seed, self.object_share = owned.start, seed, object_share
         self.slots = self.mean.shape[2]
 
+    @property
+    def item_bytes(self) -> int:
+        """Bytes of one video's latents and visibility in a batch."""
+        return int(self.mean[:1].nbytes + self.visible[:1].nbytes)
+
     def batch(self, step: int) -> LatentBatch:
         video, order, hidden, refill = self.draw(step)
         return LatentBatch(self.mean[video], self.visible[video], order, hidden, refill, self.walls[video],
@@ -190,8 +195,8 @@ def train_xpl(latents: str | os.PathLike | None, run_dir: str | os.PathLike, *, 
     if stage == "xpl":      # the model the NLL surprise runs on keeps its recipe's settings of it
         resumed = nll_settings_of(state["config"]) if resume and ckpt.exists() else None
         stored["nll"] = to_dict(resumed or recipe(recipe_name).nll)
-    job = Job(stage, model, batches.batch, stored,
-              meta={"latents": str(Path(latents).resolve())})
+    job = Job(stage, model, batches.batch, stored, meta={"latents": str(Path(latents).resolve())},
+              item_bytes=batches.item_bytes)
     return fit(job, config, run_dir, place=place, resume=resume, overwrite=overwrite, progress=progress)
 
 
@@ -440,7 +445,8 @@ def train_proposal(run_dir: str | os.PathLike, latents: str | os.PathLike | None
     meta = {"latents": str(Path(latents).resolve()), "xpl": str(xpl_path.resolve()),
             "xpl_fingerprint": fingerprint(xpl_state["model"])}
     networks = ProposalNetworks(xpl.to(place.device), batches.empty)
-    job = Job("proposal", networks, batches.batch, {"recipe": recipe_name, "xpl": to_dict(xpl.config)}, meta=meta)
+    job = Job("proposal", networks, batches.batch, {"recipe": recipe_name, "xpl": to_dict(xpl.config)}, meta=meta,
+              item_bytes=batches.item_bytes)
     return fit(job, config, run_dir, place=place, resume=resume, overwrite=overwrite, progress=progress)
 
 
