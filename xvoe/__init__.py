@@ -19,6 +19,7 @@ import importlib
 from typing import Any
 
 from .allocator import follow as _follow_allocator
+from .processes import interrupts_held as _interrupts_held
 from .progress import quiet_widget_warning as _quiet_widget_warning
 
 _follow_allocator()     # a worker of a tuned process keeps its malloc settings; else glibc's stay (xvoe/allocator.py)
@@ -64,12 +65,11 @@ __all__ = sorted([*_HOME_OF, *_MODULES])
 
 
 def __getattr__(name: str) -> Any:
-    if name in _MODULES:
-        value = importlib.import_module(_MODULES[name])
-    elif name in _HOME_OF:
-        value = getattr(importlib.import_module(_HOME_OF[name]), name)
-    else:
+    if name not in _MODULES and name not in _HOME_OF:
         raise AttributeError(f"module 'xvoe' has no attribute {name!r}")
+    with _interrupts_held():    # a Ctrl-C inside torch's extension modules' import aborts the process
+        module = importlib.import_module(_MODULES.get(name) or _HOME_OF[name])
+    value = module if name in _MODULES else getattr(module, name)
     globals()[name] = value
     return value
 

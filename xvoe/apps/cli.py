@@ -33,6 +33,7 @@ from ..errors import XvoeError
 from ..models.config import parse_field, parse_value
 from ..models.nll import InferenceConfig
 from ..outputs import claim_directory, claim_file, claim_scope, refuse_overlap
+from ..processes import interrupts_held
 from ..resources import cores
 from ..training.config import DEFAULT_RECIPE, RECIPE_NAMES, TrainConfig
 
@@ -44,7 +45,8 @@ _LATE = {"parse_device": "xvoe.models.devices", "resolve_device": "xvoe.models.d
 
 
 def _late(name: str) -> Callable[..., Any]:
-    return getattr(importlib.import_module(_LATE[name]), name)
+    with interrupts_held():     # a Ctrl-C inside torch's extension modules' import aborts the process
+        return getattr(importlib.import_module(_LATE[name]), name)
 
 
 class _Parser(argparse.ArgumentParser):
