@@ -16,6 +16,7 @@ import argparse
 import time
 
 from xvoe.apps.rows import ROW_COLUMNS, explanation_rows
+from xvoe.errors import XvoeError
 from xvoe.evaluation.explain import DRAW_THRESHOLD
 
 
@@ -26,7 +27,10 @@ def main() -> None:
     parser.add_argument("--model", default="xpl", help="the model that scored it (default xpl)")
     args = parser.parse_args()
     start = time.perf_counter()
-    found = explanation_rows(args.model, args.data, args.scores, progress=True)
+    try:
+        found = explanation_rows(args.model, args.data, args.scores, progress=True)
+    except XvoeError as error:
+        raise SystemExit(f"explanation_rows.py: error: {error}") from None
     print(f"{len(found)} figures in {time.perf_counter() - start:.0f} s; a row is drawn where its p > {DRAW_THRESHOLD}")
     for kind, column in ROW_COLUMNS.items():
         drawn = sum(rows.drawn[kind] for rows in found)

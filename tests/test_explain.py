@@ -132,3 +132,6 @@ def test_every_nll_figure_of_a_fresh_split_draws_its_rows_where_the_score_file_p
     flipped = [DrawnRows(rows.index, {kind: 1 - p for kind, p in rows.probability.items()}, rows.drawn)
                for rows in found]
     assert all(rows.disagree for rows in flipped)       # a figure against the opposite numbers is named
+    mse = xvoe.score("random", data, tmp_path / "random.csv", progress=False)
+    with pytest.raises(xvoe.XvoeError, match="has no NLL columns"):
+        explanation_rows("xpl", data, mse)
