@@ -94,7 +94,7 @@ def explain_nll(scorer: Scorer, data: str, index: int, particles: int | None = N
 @torch.no_grad()
 def nll_explanation(vae, xpl, video: dict, particles: int, title: str = "", observed: np.ndarray | None = None,
                     seed: int = 0, hypotheses: int = 3, config: InferenceConfig | None = None) -> NLLExplanation:
-    """The explanation posterior of one encoded video (`encode_videos` of one video): the
+    """The explanation posterior of one encoded video (`encode_video`, a batch of one): the
     importance-weighted mean of the particles that hold a hidden object, decoded frame by
     frame. The mean, not the best particle: where one particle takes all the weight (a broad
     proposal) the two are the same, and where many share it the mean does not hang on one

@@ -20,7 +20,7 @@ from ..errors import XvoeError
 from ..models.perception import to_uint8
 from ..models.slots import composite, decode_slots
 from ..training.data import check_size
-from .score import Scorer, encode_videos, read_videos, run_model
+from .score import Scorer, encode_video, read_videos, run_model
 from .surprise import explained_latents, mse_surprise
 
 # A hypothesis of the NLL's posterior below this probability is not drawn as the model's belief:
@@ -103,14 +103,15 @@ def explain_drawn(scorer: Scorer, data: str, index: int) -> DrawnExplanation:
 
 
 def _read_video(scorer: Scorer, data: str, index: int) -> tuple[dict, np.ndarray, str]:
-    """Video `index` of a split file, encoded for the scorer; its frames (T, H, W, 4); its title."""
+    """Video `index` of a split file, encoded for the scorer as its score encodes it, so that an
+    explanation is of the score's own latents; its frames (T, H, W, 4); its title."""
     if scorer.is_random:
         raise XvoeError("the random agent explains nothing; give a trained model")
     with store.open_dataset(data) as file:
         check_index(file, index)
         check_size(file, scorer.vae.config.image_size, f"the model {scorer.name}")
         frames = store.read_frames(file, "rgbd", index)
-        return encode_videos(scorer, file, index, index + 1), frames, describe(file, index)
+        return encode_video(scorer, file, index), frames, describe(file, index)
 
 
 def _pictures(vae, refined: torch.Tensor, occupied: torch.Tensor, video: dict,

@@ -55,7 +55,15 @@ from ..outputs import atomic_paths, claim_file, claim_scope
 from ..progress import progress_bar
 from ..training.checkpoints import SHIPPED, shipped_path
 from ..training.data import check_size, visible_threshold
-from ..training.latents import check_cache, encode_frames, encode_with, encoder_key, open_latents, split_cache
+from ..training.latents import (
+    LATENT_CHUNK,
+    check_cache,
+    encode_frames,
+    encode_with,
+    encoder_key,
+    open_latents,
+    split_cache,
+)
 from ..training.perception import load_perception
 from ..training.phydnet import load_phydnet
 from ..training.xpl import load_xpl, nll_settings_of
@@ -917,6 +925,16 @@ def encode_videos(scorer: Scorer, file, start: int, stop: int, latents: h5py.Fil
     return on_device(scorer, videos, torch.from_numpy(latents["mean"][start:stop]),
                      torch.from_numpy(latents["visible"][start:stop]),
                      torch.from_numpy(latents["background_mean"][start:stop]))
+
+
+def encode_video(scorer: Scorer, file, index: int) -> dict[str, Tensor]:
+    """Video `index` of an open test split, encoded as its score encodes it (a batch of one):
+    among the videos of its latent cache chunk (LATENT_CHUNK from 0), as the split's latent
+    cache and an uncached score at the default batch encode them. Alone, the encoder's passes
+    hold other images and float rounding moves its latents (and its NLL by up to 6e-4 nats)."""
+    start = index - index % LATENT_CHUNK
+    batch = encode_videos(scorer, file, start, min(start + LATENT_CHUNK, len(file["rgbd"])))
+    return {name: value[index - start:index - start + 1] for name, value in batch.items()}
 
 
 def encode(scorer: Scorer, videos: Videos) -> dict[str, Tensor]:

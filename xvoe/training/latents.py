@@ -87,7 +87,7 @@ def write_latents(path: str | os.PathLike, latents: Latents, overwrite: bool = F
     return Path(path)
 
 
-LATENT_CHUNK = 16      # videos per compressed chunk: a scoring batch reads one
+LATENT_CHUNK = 16      # videos per compressed chunk and per encoder batch: a scoring batch reads one
 
 
 def compressed(array: np.ndarray) -> dict:
@@ -150,7 +150,7 @@ def encode_means(model, rgbd: np.ndarray, ids: np.ndarray, slots: int) -> tuple[
 
 
 def encode_split(model_ref: str | os.PathLike, data: str | os.PathLike, out: str | os.PathLike, *,
-                 videos_per_batch: int = 16, overwrite: bool = False, progress: bool = True,
+                 videos_per_batch: int = LATENT_CHUNK, overwrite: bool = False, progress: bool = True,
                  device: str | torch.device = "cpu") -> Path:
     """What `xvoe encode` does: encode every frame of a split into a latent cache, on `device`."""
     model, state = load_perception(model_ref, resolve_device(device))
@@ -162,7 +162,7 @@ def encode_split(model_ref: str | os.PathLike, data: str | os.PathLike, out: str
 
 @claim_scope()
 def encode_with(model: ComponentVAE, data: str | os.PathLike, out: str | os.PathLike, origin: dict | None = None, *,
-                videos_per_batch: int = 16, overwrite: bool = False, progress: bool = True,
+                videos_per_batch: int = LATENT_CHUNK, overwrite: bool = False, progress: bool = True,
                 identity: dict | None = None) -> Path:
     """A split encoded by a loaded perception module into a latent cache, keyed by the split's
     identity and the module's (`check_cache`). `origin`: the checkpoint it was loaded from
