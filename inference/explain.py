@@ -10,7 +10,7 @@ import numpy as np
 import torch
 
 from xvoe.errors import XvoeError
-from xvoe.evaluation.explain import DRAW_THRESHOLD, Explanation, _pictures, _read_video
+from xvoe.evaluation.explain import DRAW_THRESHOLD, Explanation, _pictures, _read_video, look_alike, masked
 from xvoe.evaluation.score import Scorer
 from xvoe.models.perception import to_uint8
 
@@ -56,27 +56,46 @@ class NLLExplanation(Explanation):
         mixed = self.p_hidden * with_hidden.astype(np.float32) + (1 - self.p_hidden) * without.astype(np.float32)
         return np.round(mixed).astype(np.uint8)
 
+    def shown_hypotheses(self) -> tuple[list[tuple[str, np.ndarray]], list[str]]:
+        """The hypotheses that draw differently from the mean and from each heavier one, masked
+        (`masked`), and the names of those left out as looking the same."""
+        shown, same, seen = [], [], [self.hidden_object]
+        for label, frames in self.hypotheses:
+            if any(look_alike(frames, other) for other in seen):
+                same.append(label.split(":")[0])
+            else:
+                shown.append((label, masked(frames)))
+                seen.append(frames)
+        return shown, same
+
     def figure_rows(self) -> list[tuple[str, str, np.ndarray]]:
         rows = [("observed", "observed", self.observed)]
         two = self.two_objects is not None
         if not two or 1.0 - self.p_two > DRAW_THRESHOLD:
-            label = f"behind the wall,\none object, not two\nidentical ones:\np = {1.0 - self.p_two:.2f}" if two \
-                else "behind the wall"
+            label = (f"behind the wall,\none object, not two\nidentical ones:\np(one object) = {1.0 - self.p_two:.2f}"
+                     if two else "behind the wall")
             rows.append(("behind the wall", label, self._story(self.behind_wall, self.behind_empty)))
         if two and self.p_two > DRAW_THRESHOLD:
-            rows.append(("two objects", f"behind the wall,\ntwo identical\nobjects: p = {self.p_two:.2f}\n"
-                                        f"(the second drawn\nfrom frame {self.twin_from},\nwhere it is seen)",
+            rows.append(("two objects", f"behind the wall, two\nidentical objects:\np(two objects) = {self.p_two:.2f}"
+                                        f"\n(the second drawn from\nframe {self.twin_from}, where it is seen)",
                          self._story(self.two_objects, self.two_objects_empty)))
         if self.believed:
-            rows.append(("hidden object", f"hidden object alone,\nif it exists: mean\nof the {self.holding} samples\n"
-                                          f"holding one\n(their ESS {self.holding_ess:.1f})", self.hidden_object))
-            rows += [("hypothesis", label, frames) for label, frames in self.hypotheses]
+            label = (f"hidden object alone,\nif it exists: mean\nof the {self.holding} samples\n"
+                     f"holding one\n(their ESS {self.holding_ess:.1f})")
+            rows.append(("hidden object", label, masked(self.hidden_object)))
+            rows += [("hypothesis", label, frames) for label, frames in self.shown_hypotheses()[0]]
         return rows
 
     def notes(self) -> list[str]:
         if not self.believed:
-            return [f"no hidden object (p = {self.p_hidden:.2f})"]
-        return [f"hidden object: p = {self.p_hidden:.2f}; the rows behind the wall draw it at that opacity"]
+            return [f"no hidden object: p(hidden object) = {self.p_hidden:.2f}"]
+        stories = sum(kind in ("behind the wall", "two objects") for kind, _, _ in self.figure_rows())
+        rows = "rows behind the wall draw" if stories > 1 else "row behind the wall draws"
+        lines = [f"p(hidden object) = {self.p_hidden:.2f}: the {rows} it at that opacity"]
+        same = self.shown_hypotheses()[1]
+        if same:
+            lines.append(f"{', '.join(same)}: drawn as the mean or a heavier hypothesis, not shown again")
+        return lines
 
 
 def explain_nll(scorer: Scorer, data: str, index: int, particles: int | None = None, seed: int = 0,
@@ -144,8 +163,12 @@ def nll_explanation(vae, xpl, video: dict, particles: int, title: str = "", obse
                           f"an object{seen}", picture))
         if result.p_hidden > DRAW_THRESHOLD:     # the ESS that matters for a hidden object: among those holding one
             heading += f"\nESS {posterior.ess:.1f} of the {posterior.holding} samples holding an object"
+            # the two explanations each draw their own particles: the samples are counted over both
+            if result.identity is not None:
+                heading += f" (drawn {particles} for each explanation: one object, two identical ones)"
             if options.disagree:
-                heading += f"; the hypotheses differ most at frames {', '.join(map(str, options.disagree[:3]))}"
+                heading += (f"; the hypotheses' latents differ most at frames "
+                            f"{', '.join(map(str, options.disagree[:3]))}")
     return NLLExplanation(observed, behind, alone, result.hidden_slot, heading, result.p_hidden, result.p_two,
                           result.ess, result.nll, result.estimate.particles, *holding, drawn,
                           behind_empty=empty if slot >= 0 else None, **two)

@@ -122,7 +122,7 @@ def test_the_sheet_and_the_gif_draw_the_scene_above_the_model_frames(splits, tmp
 
 def test_the_explanation_is_drawn_onto_the_scene():
     """The decoded object (an 8x8 square at 32x32) is half-blended in and outlined in magenta
-    where its enlarged picture stands; the true object's outline, just outside it, is dashed
+    where its enlarged picture stands; the true object's outline, a pixel outside it, is dashed
     black and white."""
     frames = 3
     hidden = np.full((frames, 32, 32, 4), 255, np.uint8)
@@ -139,7 +139,8 @@ def test_the_explanation_is_drawn_onto_the_scene():
     assert magenta[:, 28:34].any(axis=1).all() and magenta[:, 60:68].any(axis=1).all()   # enlarged four times
     assert not magenta[:, 36:58].any() and not magenta[:, :26].any()
     assert (drawn[:, 10, 10] == 100).all()                              # elsewhere the scene
-    edge = drawn[:, 79, 80:100]                                          # just outside the true object
+    assert (drawn[:, 79, 80:100] == 100).all()                          # a pixel's gap round the true object,
+    edge = drawn[:, 78, 80:100]                                          # then its outline
     assert {tuple(c) for c in edge.reshape(-1, 3)} == {(0, 0, 0), (255, 255, 255)}
     assert (drawn[:, 90, 90] == 100).all() and (drawn[:, 80, 80] == 100).all()
     nothing, colour = explanation_overlay(Explanation(scene[:, ::4, ::4], scene[:, ::4, ::4], hidden, -1, "t",
@@ -151,6 +152,7 @@ def test_the_explanation_is_drawn_onto_the_scene():
     # a hand-made event's display is its 32x32 frames enlarged, and is called that
     enlarged = plot_explanation(replace(explanation, display_resimulated=False))
     assert enlarged.drawn_rows[0][1].startswith("model's 32x32,\nenlarged")
+    assert "observed" not in [kind for kind, _ in enlarged.drawn_rows]     # the scene row is that row already
 
 
 def test_a_display_size_outside_its_domain_is_refused(splits, tmp_path):

@@ -42,20 +42,21 @@ def _frames(value: int, frames: int = 3, size: int = 8) -> np.ndarray:
     return np.full((frames, size, size, 4), value, np.uint8)
 
 
-def _object(frames: int = 3, size: int = 8) -> np.ndarray:
-    """A decoded slot that draws a 3x3 square on the blank."""
+def _object(frames: int = 3, size: int = 8, at: int = 2) -> np.ndarray:
+    """A decoded slot that draws a 3x3 square on the blank, from pixel (at, at)."""
     pictures = _frames(255, frames, size)
-    pictures[:, 2:5, 2:5] = (200, 0, 0, 0)
+    pictures[:, at:at + 3, at:at + 3] = (200, 0, 0, 0)
     return pictures
 
 
-def _nll(p_hidden: float, p_two: float, display: bool = False):
+def _nll(p_hidden: float, p_two: float, display: bool = False, hypotheses=None):
     from xvoe.inference.explain import NLLExplanation
     scene = _frames(100)
     two = {"two_objects": _frames(90), "two_objects_empty": _frames(80), "twin_from": 2} if p_two is not None else {}
     extra = {"display": np.full((3, 32, 32, 4), 100, np.uint8)} if display else {}
     return NLLExplanation(scene, _frames(120), _object(), 3, "hand-made", p_hidden, p_two or 0.0, 5.0, 100.0, 64,
-                          40, 7.5, [("hypothesis 1", _object()), ("hypothesis 2", _object())],
+                          40, 7.5, hypotheses or [("hypothesis 1: 0.50", _object(at=3)),
+                                                  ("hypothesis 2: 0.40", _object(at=4))],
                           behind_empty=_frames(110), **two, **extra)
 
 
@@ -81,7 +82,7 @@ def test_the_figure_draws_each_hypothesis_exactly_where_its_probability_exceeds_
     assert ("two objects" in kinds) == (p_two is not None and p_two > DRAW_THRESHOLD)
     assert ("behind the wall" in kinds) == (p_two is None or 1 - p_two > DRAW_THRESHOLD)
     assert kinds[0] == "observed"
-    assert ("no hidden object (p = 0.00)" in explanation.notes()) == (not hidden)
+    assert ("no hidden object: p(hidden object) = 0.00" in explanation.notes()) == (not hidden)
     if not hidden:      # the scene without the hidden object, no label counting samples
         rows = {kind: (label, frames) for kind, label, frames in explanation.figure_rows()}
         if "behind the wall" in rows:
@@ -93,6 +94,17 @@ def test_the_figure_draws_each_hypothesis_exactly_where_its_probability_exceeds_
         if "behind the wall" in rows:
             assert (rows["behind the wall"][1] == 119).all()           # 0.9 * 120 + 0.1 * 110
         assert "the 40 samples" in rows["hidden object"][0] and "ESS 7.5" in rows["hidden object"][0]
+
+
+def test_hypotheses_that_draw_like_the_mean_are_named_not_drawn_and_rows_are_masked():
+    haze = _object(at=4)
+    haze[:, :2, :2] = (250, 250, 0, 250)      # the decoder's colour where its depth says nothing is drawn
+    explanation = _nll(0.9, None, hypotheses=[("hypothesis 1: 0.50", _object()), ("hypothesis 2: 0.40", haze)])
+    rows = [(kind, frames) for kind, _, frames in explanation.figure_rows()]
+    assert [kind for kind, _ in rows].count("hypothesis") == 1
+    assert "hypothesis 1: drawn as the mean or a heavier hypothesis, not shown again" in explanation.notes()
+    drawn = dict(rows)["hypothesis"]
+    assert (drawn[:, :2, :2] == 255).all() and (drawn[:, 4:7, 4:7, 0] == 200).all()
 
 
 def test_the_scene_outlines_a_hidden_object_only_above_the_threshold():

@@ -351,3 +351,36 @@ def test_violation_onset_on_hand_made_curves():
     noise = per_frame.copy()
     noise[1, 0] += 0.3      # under a tenth of the peak difference (8): no rise yet
     assert onset_pairs(scores, noise, event)[0]["timely"]
+
+
+# --- the metric charts say what they draw ----------------------------------------------------
+
+def _chart_rows(models: list[str], column: str = "score") -> list[dict]:
+    return [{"model": model, "metric": "comparative", "column": column, "scenario": "blocking", "setting": setting,
+             "value": 1.0, "low": 0.51, "high": 1.0, "count": 4, "ideal": ideal, "p": 1.0}
+            for model in models for setting, ideal in (("S1", 1.0), ("S2", 0.5))]
+
+
+def test_the_ideal_is_a_dashed_line_across_each_group_and_a_column_keeps_its_colour():
+    """Not short black dashes, which read as the intervals' caps; the NLL in the same colour in
+    a chart of variants and in one of components."""
+    import matplotlib.pyplot as plt
+    from matplotlib.colors import to_rgba
+
+    from xvoe.apps.figures import COLUMN_COLORS, IDEAL_COLOR, plot_comparative, plot_components
+
+    figure = plot_comparative(_chart_rows(["score (MSE, sum)", "nll (NLL)"]))
+    top = figure.axes[0]
+    ideal = [c for c in top.collections if c.get_label() == "ideal"][0]
+    segments = ideal.get_segments()
+    assert [s[0][1] for s in segments] == [100, 50] and all(s[1][0] - s[0][0] >= 0.8 for s in segments)
+    assert to_rgba(ideal.get_color()[0]) == to_rgba(IDEAL_COLOR) and ideal.get_linestyle()[0][1] is not None
+    assert "(score)" not in top.get_title()
+    nll_bar = top.patches[-1]       # the last series' last bar
+    assert to_rgba(nll_bar.get_facecolor()) == to_rgba(COLUMN_COLORS["nll"])
+    rows = [{**row, "model": "xpl", "column": row["model"].split(" (")[0]}
+            for row in _chart_rows(["score (MSE, sum)", "nll (NLL)"])]
+    components = plot_components(rows, "xpl")
+    assert to_rgba(components.axes[0].patches[-1].get_facecolor()) == to_rgba(COLUMN_COLORS["nll"])
+    plt.close(figure)
+    plt.close(components)

@@ -129,7 +129,7 @@ def test_nll_explanation_shapes_and_probabilities(hidden_free):
     else:
         assert explanation.hypotheses == []
     figure = plot_explanation(explanation)
-    shown = 2 + (1 + len(explanation.hypotheses) if explanation.believed else 0)
+    shown = 2 + (1 + len(explanation.shown_hypotheses()[0]) if explanation.believed else 0)
     assert len(figure.axes[0].get_yticklabels()) == len(figure.drawn_rows) == shown
     plt.close(figure)
 

@@ -40,6 +40,9 @@ ID_COLORS = (np.array(plt.get_cmap("tab10").colors) * 255).astype(np.uint8)
 ID_PALETTE = np.vstack([[[0, 0, 0]], ID_COLORS[:9]]).astype(np.uint8)   # 0 = background
 # The outline of the model's hidden object: scene colours are drawn at random from all of RGB
 # (xvoe.benchmark.world.sample_colors), so each figure takes the one of these farthest from its scene's.
+# Text of the sheets of frames, in points: readable at the notebooks' 72 dpi as at a saved PNG's 100,
+# where a sheet 16 inches wide is shown shrunk to a page's width.
+SHEET_FONT = 10
 OUTLINE_COLORS = {"magenta": (255, 0, 255), "cyan": (0, 255, 255), "orange": (255, 128, 0), "blue": (0, 0, 255),
                   "red": (255, 0, 0), "yellow": (255, 255, 0), "green": (0, 160, 0), "purple": (128, 0, 255)}
 
@@ -89,16 +92,16 @@ def contact_sheet(rgbd: np.ndarray, ids: np.ndarray, titles: list[str],
             y, x = row_top[r] + title_gap, t * (width + gap)
             mosaic[y:y + height, x:x + width] = row[t]
     scale = min(0.9 / 64, 1.1 / width)         # inches per pixel: a display frame about an inch wide
-    fig, ax = plt.subplots(figsize=(max(4.0, mosaic.shape[1] * scale), mosaic.shape[0] * scale + 0.5 * videos))
+    fig, ax = plt.subplots(figsize=(max(4.0, mosaic.shape[1] * scale), mosaic.shape[0] * scale + 0.6 * videos))
     ax.imshow(mosaic, interpolation="nearest")
     ax.set_xticks([t * (width + gap) + width / 2 for t in range(frames)], [str(t) for t in range(frames)])
     ax.set_yticks([top + title_gap + height / 2 for top in row_top], names * videos)
-    ax.tick_params(length=0, labelsize=7)
+    ax.tick_params(length=0, labelsize=SHEET_FONT)
     for spine in ax.spines.values():
         spine.set_visible(False)
     for m in range(videos):
         y0 = row_top[per_video * m] + title_gap
-        ax.text(0, y0 - 2 * gap, titles[m], fontsize=8, va="bottom")
+        ax.text(0, y0 - 2 * gap, titles[m], fontsize=SHEET_FONT + 1, va="bottom")
         event = (event_frames or [-1] * videos)[m]
         if event >= 0:
             ax.add_patch(Rectangle((event * (width + gap) - 0.5, y0 - 0.5), width,
@@ -361,13 +364,28 @@ def _models(rows: list[dict]) -> list[str]:
     return list(dict.fromkeys(r["model"] for r in rows))
 
 
+# One colour per score column in every chart, so that a colour means one quantity throughout:
+# a series named after a column ("nll", or "nll (NLL)") takes its colour, any other the next
+# colour no column holds.
+COLUMN_COLORS = {"score": "tab:blue", "paper_score": "tab:orange", "excess": "tab:red", "nll": "tab:purple",
+                 "nll_excess": "tab:brown", "s_img": "tab:olive", "s_dyn": "tab:cyan"}
+_FREE_COLORS = ("tab:green", "tab:gray", "gold", "navy", "lime", "teal")
+IDEAL_COLOR = "magenta"     # the ideal's dashed line: no bar, cap or interval is drawn in it
+
+
+def _series_colors(names: list[str]) -> list[str]:
+    """The colour of each series: its column's (COLUMN_COLORS), else the next free one."""
+    free = iter(_FREE_COLORS * (1 + len(names) // len(_FREE_COLORS)))
+    return [COLUMN_COLORS.get(name.split(" (")[0]) or next(free) for name in names]
+
+
 def _bars(ax, groups: list[str], models: list[str], lookup, width: float = 0.8) -> None:
     """Grouped bars with 95% intervals: lookup(model, group) -> row or None. Each bar's value is
     also marked by a dash in its colour, so that a bar of height 0 is seen; each group's tick
     says how many units (pairs, or videos) its bars rest on."""
     step = width / max(1, len(models))
     counts: dict[int, set[int]] = {}
-    for m, model in enumerate(models):
+    for m, (model, colour) in enumerate(zip(models, _series_colors(models))):
         xs, values, errors = [], [], [[], []]
         for g, group in enumerate(groups):
             row = lookup(model, group)
@@ -380,11 +398,26 @@ def _bars(ax, groups: list[str], models: list[str], lookup, width: float = 0.8) 
             errors[1].append(max(0.0, 100 * (row["high"] - row["value"])))
             if row.get("count"):
                 counts.setdefault(g, set()).add(int(row["count"]))
-        bars = ax.bar(xs, values, step * 0.95, yerr=errors, capsize=2, label=model)
-        ax.scatter(xs, values, marker="_", s=(72 * step * 0.9) ** 2 / 4, linewidths=2, zorder=3,
-                   color=bars.patches[0].get_facecolor() if bars.patches else None)
+        ax.bar(xs, values, step * 0.95, yerr=errors, capsize=2, label=model, color=colour)
+        ax.scatter(xs, values, marker="_", s=(72 * step * 0.9) ** 2 / 4, linewidths=2, zorder=3, color=colour)
     ax.set_xticks(range(len(groups)), [f"{group}\n(n={'/'.join(map(str, sorted(counts[g])))})" if g in counts
                                        else group for g, group in enumerate(groups)])
+
+
+def _ideal_lines(ax, ideals: list[float], width: float = 0.8) -> None:
+    """Each group's ideal (a share) as a dashed line across the whole group, in a colour no bar
+    or interval has: short black dashes would read as the intervals' caps."""
+    groups = np.arange(len(ideals))
+    ax.hlines(100 * np.asarray(ideals), groups - width / 2 - 0.05, groups + width / 2 + 0.05, colors=IDEAL_COLOR,
+              linestyles="--", linewidth=1.8, zorder=4, label="ideal")
+
+
+def _title_column(column: str) -> str:
+    """The column in a chart's title: none for `score`, which a legend of variants renames."""
+    return "" if column == "score" else f" ({column})"
+
+
+HOLISTIC_N = "n: pair indices, each pooling the scenario's settings (S1-S3)"
 
 
 def _legend_outside(ax, **kwargs) -> None:
@@ -399,11 +432,11 @@ def plot_holistic(rows: list[dict], column: str = "score") -> plt.Figure:
     index = {(r["model"], r["scenario"]): r for r in chosen}
     fig, ax = plt.subplots(figsize=(1.6 + 1.3 * len(scenarios), 3.2))
     _bars(ax, scenarios, _models(chosen), lambda m, s: index.get((m, s)))
-    ax.axhline(100, color="black", linestyle="--", linewidth=1, label="ideal")
+    ax.axhline(100, color=IDEAL_COLOR, linestyle="--", linewidth=1.8, label="ideal")
     ax.axhline(50, color="grey", linestyle=":", linewidth=1, label="chance")
     ax.set_ylim(-4, 105)      # below 0: a bar at 0 shows its dash
     ax.set_ylabel("holistic accuracy (%)")
-    ax.set_title(f"Holistic metric ({column}), 95% intervals; n: pairs", fontsize=9)
+    ax.set_title(f"Holistic metric{_title_column(column)}, 95% intervals;\n{HOLISTIC_N}", fontsize=9)
     _legend_outside(ax)
     fig.tight_layout()
     return fig
@@ -420,11 +453,10 @@ def plot_comparative(rows: list[dict], column: str = "score") -> plt.Figure:
     fig, (top, bottom) = plt.subplots(2, 1, figsize=(1.5 + 0.75 * len(settings), 5.2), sharex=True,
                                       gridspec_kw={"height_ratios": [2, 1]})
     _bars(top, settings, models, lambda m, s: index.get((m, s)))
-    top.scatter(range(len(settings)), [100 * ideal[s] for s in settings], marker="_", s=300, color="black",
-                zorder=3, label="ideal")
+    _ideal_lines(top, [ideal[s] for s in settings])
     top.set_ylim(-4, 105)
     top.set_ylabel("comparative accuracy (%)")
-    top.set_title(f"Comparative metric ({column}), 95% Wilson intervals; n: pairs", fontsize=9)
+    top.set_title(f"Comparative metric{_title_column(column)}, 95% Wilson intervals; n: pairs", fontsize=9)
     _legend_outside(top)
 
     def difference(model, setting):
@@ -451,9 +483,12 @@ def plot_components(rows: list[dict], model: str, metric: str = "comparative") -
     columns = list(dict.fromkeys(r["column"] for r in chosen))
     fig, ax = plt.subplots(figsize=(1.5 + 0.75 * len(groups), 3.2))
     _bars(ax, groups, columns, lambda c, g: index.get((c, g)))
+    ideals = {key(r): r["ideal"] for r in chosen}
+    _ideal_lines(ax, [ideals[g] for g in groups])
     ax.set_ylim(-4, 105)
     ax.set_ylabel(f"{metric} accuracy (%)")
-    ax.set_title(f"Score components: {model}, 95% intervals", fontsize=9)
+    n = HOLISTIC_N if metric == "holistic" else "n: pairs"
+    ax.set_title(f"Score components: {model}, 95% intervals; {n}", fontsize=9)
     ax.tick_params(axis="x", labelrotation=45, labelsize=8)
     _legend_outside(ax)
     fig.tight_layout()
@@ -478,13 +513,13 @@ def draw_frame_rows(ax, videos: list[np.ndarray], labels: list[str], title: str,
     ax.imshow(mosaic, interpolation="nearest")
     ax.set_xticks([t * (width + gap) + width / 2 for t in range(frames)], [str(n) for n in numbers])
     ax.set_yticks([r * (height + gap) + height / 2 for r in range(len(videos))], labels)
-    ax.tick_params(length=0, labelsize=7)
+    ax.tick_params(length=0, labelsize=SHEET_FONT)
     for spine in ax.spines.values():
         spine.set_visible(False)
     if marked in numbers:
         ax.add_patch(Rectangle((numbers.index(marked) * (width + gap) - 0.5, -0.5), width,
                                len(videos) * (height + gap) - gap, fill=False, edgecolor="red", linewidth=1.5))
-    ax.set_title(title, fontsize=8)
+    ax.set_title(title, fontsize=SHEET_FONT + 1)
 
 
 def plot_onset(pairs: dict[str, list[dict]]) -> plt.Figure:
@@ -517,22 +552,25 @@ def plot_explanation(explanation: Explanation) -> plt.Figure:
     exceeds DRAW_THRESHOLD), so the MSE and the NLL explanations draw alike, and its notes as
     text under them. With the scene at a display size (`xvoe.apps.verbs.with_display`), it comes
     first with the explanation drawn onto it (`explanation_overlay`), and the model's rows are
-    enlarged to its size. The figure's `drawn_rows` lists the (kind, label) of each row drawn."""
+    enlarged to its size (where the scene is the model's frames enlarged, it stands for the
+    observed row). The figure's `drawn_rows` lists the (kind, label) of each row drawn."""
     rows = explanation.figure_rows()
     if explanation.display is not None:
         size = explanation.display.shape[1]
         scene, colour = explanation_overlay(explanation)
+        # a display that is the model's frames enlarged is the observed row already, outlined
+        shown = [row for row in rows if explanation.display_resimulated or row[0] != "observed"]
         rows = [("scene", _scene_label(explanation, size, colour), scene),
-                *((kind, name, enlarge(video, size)) for kind, name, video in rows)]
+                *((kind, name, enlarge(video, size)) for kind, name, video in shown)]
     frames = explanation.observed.shape[0]
     title_lines = explanation.title.count("\n") + 1
     notes = explanation.notes()
     cell = _cell_inches(rows[0][2].shape[1])
-    fig, ax = plt.subplots(figsize=(max(4.0, frames * cell), len(rows) * cell + 0.2 + 0.2 * title_lines
-                                    + 0.2 * len(notes)))
+    fig, ax = plt.subplots(figsize=(max(4.0, frames * cell), len(rows) * cell + 0.3 + 0.25 * title_lines
+                                    + 0.25 * len(notes)))
     draw_frame_rows(ax, [video for _, _, video in rows], [name for _, name, _ in rows], explanation.title)
     if notes:
-        ax.set_xlabel("\n".join(notes), fontsize=8, labelpad=6)
+        ax.set_xlabel("\n".join(notes), fontsize=SHEET_FONT, labelpad=6)
     fig.tight_layout()
     fig.drawn_rows = [(kind, name) for kind, name, _ in rows]     # what was drawn, for a reader to check
     return fig
@@ -562,7 +600,7 @@ def explanation_overlay(explanation: Explanation) -> tuple[np.ndarray, str | Non
     object, enlarged (bilinear), is blended in where it stands and outlined inside its edge in
     the colour of OUTLINE_COLORS farthest from the scene's, both at an opacity of its
     probability (`Explanation.p_drawn`; nothing below DRAW_THRESHOLD); the true never-seen
-    objects are outlined just outside theirs, dashed black and white, so that the two lines stay
+    objects are outlined a pixel outside theirs, thin, dashed black and white, so that the two lines stay
     apart where they agree; both are seen through the wall, as the model sees the object."""
     scene = explanation.display[..., :3].copy()
     size = scene.shape[1]
@@ -578,7 +616,8 @@ def explanation_overlay(explanation: Explanation) -> tuple[np.ndarray, str | Non
         blended[edge] += p * (np.asarray(line, np.float32) - blended[edge])
         scene = np.round(blended).astype(np.uint8)
     if explanation.true_hidden is not None:
-        edge = outline(~explanation.true_hidden)        # the ring just outside it
+        # a thin ring one pixel out from it: the model's outline, inside its own edge, stays seen
+        edge = outline(~explanation.true_hidden, 2) & ~outline(~explanation.true_hidden, 1)
         rows, columns = np.indices((size, size))
         light = ((rows + columns) // 4) % 2 == 0                  # dashes of four pixels
         scene[edge & light] = 255
@@ -630,19 +669,21 @@ def plot_disagreements(file: h5py.File, rows: list[dict], examples: int = 4,
         videos, labels = [], []
         for member in (0, 1):
             index = row[f"index_{member}"]
-            label = "possible" if file["possible"][index] else "impossible"
-            labels.append(f"member {member} ({label})\nscore {row[f'score_{member}']:.4g}\n"
-                          f"nll {row[f'nll_{member}']:.4g}")
             stored = store.read_frames(file, "rgbd", index)
+            # whole numbers: both are sums of hundreds of terms, and a gap of tens must show
+            label = (f"member {member} ({'possible' if file['possible'][index] else 'impossible'})\n"
+                     f"MSE score {row[f'score_{member}']:.0f}\nNLL {row[f'nll_{member}']:.0f} nats")
             if display_size is None:
                 videos.append(stored)
+                labels.append(label)
             else:
                 videos += [display_video(file, index, display_size).rgbd, enlarge(stored, display_size)]
-                labels.append("the model's frames")
+                labels += [f"{label}:\nscene {display_size}x{display_size}",
+                           f"the model's\n{stored.shape[1]}x{stored.shape[2]}"]
         right = f"; right: {row['right']}" if row["right"] else ""
         title = (f"{row['scenario']} {row['setting']} pair {row['pair']}: the score says {row['score_says']}, "
                  f"the NLL says {row['nll_says']}{right}")
-        draw_frame_rows(ax, videos, labels, title)
+        draw_frame_rows(ax, videos, labels, title, marked=int(file["event_frame"][row["index_1"]]))
     fig.tight_layout()
     return fig
 
@@ -808,7 +849,8 @@ def animate_pair(scores: str | Path, data: str | Path, scenario: str, setting: s
         scenes = [display_video(file, index, display_size).rgbd[..., :3] for index in videos]
     curves = definition_curves(found.curves, found.own, found.label)
     labels = _member_labels(found.possible)
-    fig = plt.figure(figsize=(2.2 * max(2, len(curves)) + 0.6, 4.6), dpi=50)
+    # drawn at its size: a player is not enlarged by the page, so its text is large enough here
+    fig = plt.figure(figsize=(2.4 * max(2, len(curves)) + 0.8, 5.0), dpi=64)
     grid = fig.add_gridspec(2, 2 * len(curves), height_ratios=[1.2, 1])
     cursors, colours = [], []
     for column, (name, (unit, values)) in enumerate(curves.items()):
@@ -816,19 +858,19 @@ def animate_pair(scores: str | Path, data: str | Path, scenario: str, setting: s
         draw_pair_curves(ax, values, labels, found.events, found.lowered)
         colours = [line.get_color() for line in ax.get_lines()[-len(labels):]]
         cursors.append(ax.axvline(0, color="black", linewidth=1.2))
-        ax.set_title(name, fontsize=8)
-        ax.set_xlabel("frame", fontsize=7)
-        ax.set_ylabel(unit, fontsize=7)
-        ax.tick_params(labelsize=6)
+        ax.set_title(name, fontsize=11)
+        ax.set_xlabel("frame", fontsize=10)
+        ax.set_ylabel(unit, fontsize=10)
+        ax.tick_params(labelsize=9)
     pictures = []
     for m, (scene, label) in enumerate(zip(scenes, labels)):
         ax = fig.add_subplot(grid[0, m * len(curves):(m + 1) * len(curves)])
         pictures.append(ax.imshow(scene[0], interpolation="nearest"))
-        ax.set_title(label, fontsize=8, color=colours[m])       # the colour of its curve below
+        ax.set_title(label, fontsize=11, color=colours[m])       # the colour of its curve below
         ax.set_axis_off()
-    caption = fig.suptitle("", fontsize=9)
-    fig.text(0.5, 0.005, "red dotted: event frame; grey: the wall stands; black line: the frame shown",
-             ha="center", va="bottom", fontsize=7)
+    caption = fig.suptitle("", fontsize=12)
+    fig.text(0.5, 0.005, "red dotted: event frame; grey: the wall stands (lighter: it moves);\n"
+             "black line: the frame shown", ha="center", va="bottom", fontsize=10)
 
     def draw(t: int) -> list:
         for picture, scene in zip(pictures, scenes):
@@ -838,7 +880,7 @@ def animate_pair(scores: str | Path, data: str | Path, scenario: str, setting: s
         caption.set_text(f"{scenario} {setting} pair {pair}, frame {t}" + (" (the event)" if t in found.events else ""))
         return [*pictures, *cursors, caption]
 
-    fig.tight_layout(rect=(0, 0.04, 1, 1))
+    fig.tight_layout(rect=(0, 0.08, 1, 1))
     animation = FuncAnimation(fig, draw, frames=len(scenes[0]), interval=300)
     plt.close(fig)       # drawn by its player, not again as a still below it
     return animation
@@ -882,7 +924,7 @@ def frame_rows(rows: list[tuple[str, np.ndarray]], title: str = "") -> plt.Figur
         raise XvoeError(f"rows differ in shape: {sorted(shapes)}")
     frames = shapes.pop()[0]
     lines = title.count("\n") + 1 if title else 0
-    fig, ax = plt.subplots(figsize=(max(4.0, frames * 0.8), len(rows) * 0.8 + 0.3 + 0.2 * lines))
+    fig, ax = plt.subplots(figsize=(max(4.0, frames * 0.8), len(rows) * 0.8 + 0.4 + 0.25 * lines))
     draw_frame_rows(ax, [video for _, video in rows], [name for name, _ in rows], title)
     fig.tight_layout()
     return fig

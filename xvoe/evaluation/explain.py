@@ -62,7 +62,7 @@ class Explanation:
         alone = ("hidden object", "the hidden object\nalone") if self.draws_hidden else ("nothing hidden",
                                                                                        "nothing hidden")
         return [("observed", "observed", self.observed), ("behind the wall", "behind the wall", self.behind_wall),
-                (*alone, self.hidden_object)]
+                (*alone, masked(self.hidden_object))]
 
     def rows(self) -> list[tuple[str, np.ndarray]]:
         """What a figure draws, one labelled row of frames each."""
@@ -150,6 +150,27 @@ DRAWN_SHARE = 0.002     # of a frame's pixels: a slot drawing fewer in every fra
 def drawn_pixels(pictures: np.ndarray) -> np.ndarray:
     """Where decoded uint8 pictures (..., H, W, 4) draw an object (T, H, W) bool."""
     return pictures[..., 3] < (OBJECT_DEPTH_LIMIT + 1.0) * 127.5       # normalised units to uint8
+
+
+def masked(pictures: np.ndarray) -> np.ndarray:
+    """Decoded uint8 pictures (..., H, W, 4) of one slot white wherever it draws nothing: the
+    decoder's colours outside its mask are a haze no composite shows."""
+    out = pictures.copy()
+    out[~drawn_pixels(pictures)] = 255
+    return out
+
+
+SAME_PIXELS = 3     # a decoded object differing from another in fewer pixels of every frame looks the same
+
+
+def look_alike(a: np.ndarray, b: np.ndarray) -> bool:
+    """Whether two decoded uint8 pictures (T, H, W, 4) of one slot draw the same to the eye: in
+    every frame fewer than SAME_PIXELS pixels are drawn by one alone or differ by more than a
+    fifth of the colour range."""
+    drawn_a, drawn_b = drawn_pixels(a), drawn_pixels(b)
+    colour = np.abs(a[..., :3].astype(np.int16) - b[..., :3].astype(np.int16)).max(axis=-1) > 51
+    differ = (drawn_a != drawn_b) | (drawn_a & drawn_b & colour)
+    return int(differ.sum(axis=(-2, -1)).max(initial=0)) < SAME_PIXELS
 
 
 def draws_something(pictures: np.ndarray) -> bool:
