@@ -827,8 +827,9 @@ def merge_scores(parts: list[str | Path], out: str | Path, overwrite: bool = Fal
             raise XvoeError(f"the parts do not follow each other: {part} starts at video {first}, not {expected}")
         expected += len(lines) - 1
         rows += lines[1:]
-        saved = curves_arrays(part.with_suffix(".curves.npz"))
-        check_curves_of(part, part.with_suffix(".curves.npz"), _header_of(part, saved))
+        curves = part.with_suffix(".curves.npz")
+        saved = curves_arrays(curves)
+        check_curves_of(part, curves, _header_of(curves, saved))
         for name, values in saved.items():
             arrays.setdefault(name, []).append(_without_digest(values) if name == "header" else values)
         if len({str(header) for header in arrays.get("header", [])}) > 1:
