@@ -23,11 +23,11 @@ import numpy as np
 import torch
 
 import xvoe
-from xvoe.benchmark import store
 from xvoe.evaluation import explanation_quality as quality
 from xvoe.evaluation.score import Scorer, encode_videos
 from xvoe.evaluation.surprise import dynamics_composites, explained_latents
 from xvoe.models.slots import composite, scene_layers
+from xvoe.scenes import store
 
 
 @torch.no_grad()

@@ -21,10 +21,10 @@ import torch
 from tqdm.auto import tqdm
 
 import xvoe
-from xvoe.benchmark import store
 from xvoe.evaluation.metrics import excess
 from xvoe.evaluation.score import encode_videos
 from xvoe.evaluation.surprise import EXPLANATIONS, every_explanation
+from xvoe.scenes import store
 
 LABELS = ("scenario", "setting", "pair", "member", "possible")
 COLUMNS = ("score", "s_img", "s_dyn", "s_rec", "excess")       # one explanation's, as its own file's score columns

@@ -15,7 +15,7 @@ import tempfile
 import time
 from pathlib import Path
 
-from xvoe.benchmark.generate import GenerateConfig, generate
+from xvoe.scenes.generate import GenerateConfig, generate
 
 
 def cpu_seconds() -> float:

@@ -36,7 +36,6 @@ from tqdm.auto import tqdm
 
 import xvoe
 from xvoe import allocator
-from xvoe.benchmark import store
 from xvoe.errors import XvoeError
 from xvoe.evaluation.explanation_quality import ground_truth
 from xvoe.evaluation.metrics import comparative, holistic
@@ -45,6 +44,7 @@ from xvoe.evaluation.surprise import mse_surprise
 from xvoe.inference.score import nll_config, reference_nll
 from xvoe.inference.surprise import nll_surprise
 from xvoe.models.nll import InferenceConfig
+from xvoe.scenes import store
 from xvoe.training.data import check_size
 
 SETTINGS = [(scenario, setting) for setting in ("S1", "S3")

@@ -27,12 +27,12 @@ import numpy as np
 import torch
 
 import xvoe
-from xvoe.benchmark import store
 from xvoe.errors import XvoeError
 from xvoe.evaluation.score import encode_videos
 from xvoe.evaluation.surprise import draw_scene
 from xvoe.inference.score import nll_config, xpl_nll
 from xvoe.models.nll import InferenceConfig
+from xvoe.scenes import store
 from xvoe.training.data import check_size
 
 ROOT = Path(__file__).resolve().parent.parent

@@ -15,10 +15,10 @@ from __future__ import annotations
 import argparse
 
 import xvoe
-from xvoe.benchmark import store
 from xvoe.evaluation.metrics import comparative, holistic
 from xvoe.evaluation.scorecard import identity_lines
 from xvoe.inference.score import under_prior_two
+from xvoe.scenes import store
 
 
 def main() -> None:

@@ -34,8 +34,8 @@ import numpy as np
 import torch
 
 import xvoe
-from xvoe.benchmark import store
 from xvoe.evaluation import scorecard
+from xvoe.scenes import store
 
 
 def timed_scores(model, data: str, out: Path, **options) -> tuple[dict, float]:

@@ -20,9 +20,9 @@ import numpy as np
 import torch
 
 import xvoe
-from xvoe.benchmark import store
 from xvoe.evaluation.explanation_quality import hidden_explanations, pick
 from xvoe.evaluation.metrics import VERDICTS
+from xvoe.scenes import store
 
 ORDER = [("collision", "S1"), ("collision", "S2"), ("collision", "S3"), ("blocking", "S1"), ("blocking", "S2"),
          ("blocking", "S3"), ("permanence", "S1"), ("permanence", "S2"), ("continuity", "S1"),

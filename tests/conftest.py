@@ -10,8 +10,8 @@ from xvoe.training.loop import KERNELS
 # those trained in the processes the pipeline starts (xvoe.training.loop.pin_kernels).
 os.environ.update({name: os.environ.get(name, value) for name, value in KERNELS.items()})
 
-from xvoe.benchmark import store
-from xvoe.benchmark.generate import GenerateConfig, generate
+from xvoe.scenes import store
+from xvoe.scenes.generate import GenerateConfig, generate
 
 # Property tests draw the same examples on every run: a red CI run can be replayed.
 settings.register_profile("xvoe", derandomize=True, deadline=None, database=None)

@@ -15,7 +15,7 @@ from pathlib import Path
 import torch
 
 from xvoe.apps.pipeline import PipelineConfig, run_pipeline
-from xvoe.identity import arrays_hash
+from xvoe.fingerprints import arrays_hash
 from xvoe.training.checkpoints import load_checkpoint
 from xvoe.training.recipes import DEFAULT_RECIPE, RECIPES
 

@@ -107,7 +107,7 @@ def contents(folder: Path, command: Command) -> dict[str, str]:
 def trained_digest(path: Path) -> str:
     """A checkpoint's step and weights, a loss log's rows without the clock's columns."""
     if path.suffix == ".pt":
-        from xvoe.identity import arrays_hash
+        from xvoe.fingerprints import arrays_hash
         from xvoe.training.checkpoints import load_checkpoint
 
         state = load_checkpoint(path)

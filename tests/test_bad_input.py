@@ -27,8 +27,6 @@ from hypothesis import settings as hypothesis_settings
 from hypothesis import strategies as st
 
 from xvoe.apps.cli import main
-from xvoe.benchmark import store
-from xvoe.benchmark.generate import GenerateConfig, generate
 from xvoe.errors import XvoeError
 from xvoe.evaluation.metrics import read_scores, score_problem
 from xvoe.models.config import domain_of, field_type, override, parse_field
@@ -39,6 +37,8 @@ from xvoe.models.phydnet import PhyDNetConfig
 from xvoe.models.reasoning import ReasoningConfig
 from xvoe.models.xpl import XPLConfig
 from xvoe.outputs import atomic_paths, remove_stale_temporaries
+from xvoe.scenes import store
+from xvoe.scenes.generate import GenerateConfig, generate
 from xvoe.training.checkpoints import shipped_path
 from xvoe.training.config import TrainConfig
 from xvoe.training.latents import Latents, write_latents

@@ -2,10 +2,10 @@
 import numpy as np
 import pytest
 
-from xvoe.benchmark import custom, store
-from xvoe.benchmark.render import STATE_COLUMNS
-from xvoe.benchmark.videos import find_pair
 from xvoe.errors import XvoeError
+from xvoe.scenes import custom, store
+from xvoe.scenes.render import STATE_COLUMNS
+from xvoe.scenes.videos import find_pair
 
 SPEED = 50.0
 

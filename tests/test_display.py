@@ -9,12 +9,12 @@ from PIL import Image
 import xvoe
 from xvoe.apps.cli import main
 from xvoe.apps.figures import OUTLINE_COLORS, explanation_overlay, plot_explanation, save_gif, sheet_rows
-from xvoe.benchmark import custom, store
-from xvoe.benchmark.display import LENGTHS, display_video, enlarge, hidden_silhouettes, outline
-from xvoe.benchmark.generate import GenerateConfig, generate
-from xvoe.benchmark.render import STATE_COLUMNS
 from xvoe.errors import XvoeError
 from xvoe.evaluation.explain import Explanation
+from xvoe.scenes import custom, store
+from xvoe.scenes.display import LENGTHS, display_video, enlarge, hidden_silhouettes, outline
+from xvoe.scenes.generate import GenerateConfig, generate
+from xvoe.scenes.render import STATE_COLUMNS
 
 
 @pytest.fixture(scope="module")

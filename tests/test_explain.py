@@ -2,9 +2,9 @@
 import numpy as np
 import pytest
 
-from xvoe.benchmark.render import STATE_COLUMNS
-from xvoe.benchmark.videos import silhouette
 from xvoe.evaluation.explain import decoded_mask, iou
+from xvoe.scenes.render import STATE_COLUMNS
+from xvoe.scenes.videos import silhouette
 
 
 def test_silhouette_matches_the_rendered_ids(test_data):

@@ -2,9 +2,9 @@
 import numpy as np
 import pytest
 
-from xvoe.benchmark import store
-from xvoe.benchmark.videos import silhouette
 from xvoe.evaluation.explanation_quality import expected_videos, ground_truth, pick, principal_spread, video_iou
+from xvoe.scenes import store
+from xvoe.scenes.videos import silhouette
 
 
 def square(size, top, left, side):

@@ -13,9 +13,9 @@ import pytest
 
 import xvoe
 from xvoe.apps.cli import main
-from xvoe.benchmark import store
 from xvoe.errors import XvoeError
-from xvoe.identity import arrays_hash, sampled_videos, split_identity
+from xvoe.fingerprints import arrays_hash, sampled_videos, split_identity
+from xvoe.scenes import store
 from xvoe.training.checkpoints import shipped_path
 
 EXAMPLES = Path(__file__).resolve().parent.parent / "xvoe" / "examples"

@@ -12,9 +12,9 @@ import numpy as np
 import pytest
 
 from xvoe.apps.cli import main
-from xvoe.benchmark import store
-from xvoe.benchmark.released import BLOCKS, TEST_FILES, downsample, ids_of
-from xvoe.benchmark.tfrecord import masked_crc, parse_example, parse_tensor, records
+from xvoe.scenes import store
+from xvoe.scenes.released import BLOCKS, TEST_FILES, downsample, ids_of
+from xvoe.scenes.tfrecord import masked_crc, parse_example, parse_tensor, records
 
 FRAMES, SIZE, SLOTS, PAIRS = 3, 8, 8, 2
 

@@ -6,9 +6,9 @@ import numpy as np
 import pytest
 import torch
 
-from xvoe.benchmark.generate import GenerateConfig, generate
 from xvoe.errors import XvoeError
 from xvoe.models.perception import normalise
+from xvoe.scenes.generate import GenerateConfig, generate
 from xvoe.training.data import masked_inputs, visible_threshold
 from xvoe.training.latents import encode_split, open_latents, read_latents, sha256_of
 from xvoe.training.perception import load_perception, train_perception

@@ -18,8 +18,8 @@ LAYERS = {
     "xvoe.resources": 0,
     "xvoe.domains": 0,
     "xvoe.progress": 0,
-    "xvoe.benchmark": 1,
-    "xvoe.identity": 1,         # hashes splits, read through the store
+    "xvoe.scenes": 1,
+    "xvoe.fingerprints": 1,         # hashes splits, read through the store
     "xvoe.models": 2,
     "xvoe.training": 3,
     "xvoe.evaluation": 4,
@@ -151,7 +151,7 @@ def test_an_import_inside_a_function_and_a_cycle_are_caught(tmp_path):
 
 
 def test_the_benchmark_layer_runs_without_torch():
-    code = ("import sys; import xvoe.benchmark.generate, xvoe.benchmark.custom, xvoe.benchmark.videos; "
+    code = ("import sys; import xvoe.scenes.generate, xvoe.scenes.custom, xvoe.scenes.videos; "
             "print('torch' in sys.modules)")
     done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True, cwd=ROOT)
     assert done.stdout.strip() == "False"

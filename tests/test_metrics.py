@@ -10,7 +10,6 @@ from hypothesis import strategies as st
 from scipy.stats import mannwhitneyu
 
 from xvoe.apps.report import report
-from xvoe.benchmark.generate import GenerateConfig, generate
 from xvoe.errors import XvoeError
 from xvoe.evaluation.metrics import (
     VERDICTS,
@@ -25,6 +24,7 @@ from xvoe.evaluation.metrics import (
     side_by_side,
 )
 from xvoe.evaluation.resampling import chance_p, values_interval, wilson
+from xvoe.scenes.generate import GenerateConfig, generate
 
 
 def table(rows):

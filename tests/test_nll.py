@@ -16,8 +16,6 @@ from xvoe.apps.cli import main
 from xvoe.apps.figures import plot_explanation
 from xvoe.apps.report import header_lines
 from xvoe.apps.zoo import available_models
-from xvoe.benchmark import store
-from xvoe.benchmark.generate import GenerateConfig, generate
 from xvoe.evaluation.metrics import read_scores
 from xvoe.evaluation.score import encode_videos, load_model
 from xvoe.inference.decoder import FoldedDecoder
@@ -39,6 +37,8 @@ from xvoe.models.perception import ComponentVAE, PerceptionConfig
 from xvoe.models.reasoning import ReasoningConfig
 from xvoe.models.slots import push_behind
 from xvoe.models.xpl import XPL, XPLConfig
+from xvoe.scenes import store
+from xvoe.scenes.generate import GenerateConfig, generate
 from xvoe.training.checkpoints import WEIGHTS, load_checkpoint, save_checkpoint
 
 T, K, D = 5, 4, 6

@@ -11,7 +11,6 @@ from conftest import interrupt_during
 from xvoe.apps.cli import main
 from xvoe.apps.figures import plot_predictions, predicted_frames
 from xvoe.apps.pipeline import PipelineConfig, run_pipeline
-from xvoe.benchmark.generate import GenerateConfig, generate
 from xvoe.errors import XvoeError
 from xvoe.evaluation.score import SCORE_COLUMNS, load_model
 from xvoe.models.perception import normalise, to_uint8
@@ -23,6 +22,7 @@ from xvoe.models.phydnet import (
     kernel_moments,
     kernels_with_moments,
 )
+from xvoe.scenes.generate import GenerateConfig, generate
 from xvoe.training.config import TrainConfig
 from xvoe.training.loop import Dist
 from xvoe.training.phydnet import VideoBatches, load_phydnet, train_phydnet, widen_checkpoint

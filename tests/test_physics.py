@@ -3,7 +3,7 @@ import numpy as np
 import pytest
 from conftest import column, videos_of
 
-from xvoe.benchmark.scenes import TEST_SETTINGS
+from xvoe.scenes.scenarios import TEST_SETTINGS
 
 TOLERANCE = 0.5   # pixels at 64x64: how far one substep may carry a ball into another
 

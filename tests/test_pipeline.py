@@ -6,10 +6,10 @@ import pytest
 import xvoe
 from xvoe.apps import pipeline
 from xvoe.apps.pipeline import PipelineConfig, Stages, compare_models, run_pipeline
-from xvoe.benchmark import store
 from xvoe.errors import XvoeError
 from xvoe.inference.model import InferenceConfig
 from xvoe.inference.score import reference_nll
+from xvoe.scenes import store
 from xvoe.training.checkpoints import load_checkpoint
 from xvoe.training.config import TrainConfig
 from xvoe.training.recipes import DEFAULT_RECIPE, RECIPES

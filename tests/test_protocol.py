@@ -114,7 +114,7 @@ def test_the_split_as_a_pytorch_dataset_reads_the_same_in_loader_workers(test_fi
     from torch.utils.data import DataLoader
 
     import xvoe
-    from xvoe.benchmark import store
+    from xvoe.scenes import store
 
     dataset = xvoe.SplitDataset(test_file)
     assert len(dataset) == 176 and dataset[-1]["index"] == 175

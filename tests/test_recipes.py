@@ -7,9 +7,9 @@ from dataclasses import replace
 import pytest
 
 from xvoe.apps.pipeline import stage_processes
-from xvoe.benchmark.generate import GenerateConfig
 from xvoe.errors import XvoeError
 from xvoe.models.config import to_dict
+from xvoe.scenes.generate import GenerateConfig
 from xvoe.training.checkpoints import WEIGHTS, load_checkpoint
 from xvoe.training.config import TrainConfig
 from xvoe.training.provenance import RUN_FIELDS, recipe_differences

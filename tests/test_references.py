@@ -90,7 +90,7 @@ def test_planted_dead_references_in_python_comments_and_docstrings(tmp_path):
     module = tmp_path / "module.py"
     module.write_text('''"""A module.
 
-Its figures: `xvoe.viz.plot_surprise_curves`, drawn from xvoe/benchmark/no_such.py.
+Its figures: `xvoe.viz.plot_surprise_curves`, drawn from xvoe/scenes/no_such.py.
 """
 
 
@@ -101,7 +101,7 @@ def f():
 ''')
     assert reported(refs.python_texts(module)) == {
         (f"{module}:3", "xvoe.viz.plot_surprise_curves"),
-        (f"{module}:3", "xvoe/benchmark/no_such.py"),
+        (f"{module}:3", "xvoe/scenes/no_such.py"),
         (f"{module}:8", "xvoe score --model xpl --data t.h5 --out s.csv --surprise mse2"),
         (f"{module}:9", 'docs/decisions.md, "A heading that no longer exists"'),
     }

@@ -14,8 +14,8 @@ import pytest
 from test_import import example, serialize_tensor, write_tfrecord
 
 from xvoe.apps.cli import main
-from xvoe.benchmark import store
-from xvoe.benchmark.released import TEST_FILES
+from xvoe.scenes import store
+from xvoe.scenes.released import TEST_FILES
 
 FRAMES, SIZE, SLOTS, PAIRS = 15, 128, 8, 2
 UNEVEN = {"collision": (3, 1, 2, 2, 2, 2)}     # records per file: blocks of 2 across file boundaries

@@ -3,9 +3,9 @@ import numpy as np
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from xvoe.benchmark.render import render
-from xvoe.benchmark.scenes import SCENARIOS, TEST_SETTINGS, TRAINING_GROUPS, behind, continuity, permanence
-from xvoe.benchmark.world import FLOOR, MAX_SLOTS, OBJECT_SIZE, WORLD, ball, frame_time, wall_fraction
+from xvoe.scenes.render import render
+from xvoe.scenes.scenarios import SCENARIOS, TEST_SETTINGS, TRAINING_GROUPS, behind, continuity, permanence
+from xvoe.scenes.world import FLOOR, MAX_SLOTS, OBJECT_SIZE, WORLD, ball, frame_time, wall_fraction
 
 seeds = st.integers(0, 2**32 - 1)
 frame_counts = st.integers(10, 40)

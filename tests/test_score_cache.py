@@ -12,8 +12,6 @@ from conftest import randomise_dynamics_head
 
 import xvoe
 from xvoe.apps.cli import main
-from xvoe.benchmark import store
-from xvoe.benchmark.generate import GenerateConfig, generate
 from xvoe.evaluation import score as scoring
 from xvoe.evaluation.metrics import read_scores
 from xvoe.inference.model import InferenceConfig
@@ -22,6 +20,8 @@ from xvoe.models.dynamics import DynamicsConfig
 from xvoe.models.perception import ComponentVAE, PerceptionConfig
 from xvoe.models.reasoning import ReasoningConfig
 from xvoe.models.xpl import XPL, XPLConfig
+from xvoe.scenes import store
+from xvoe.scenes.generate import GenerateConfig, generate
 from xvoe.training import latents
 from xvoe.training.checkpoints import shipped_path
 from xvoe.training.latents import check_cache, encoder_key, perception_identity, split_cache

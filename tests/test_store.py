@@ -6,11 +6,11 @@ import h5py
 import numpy as np
 import pytest
 
-from xvoe.benchmark import store
-from xvoe.benchmark.generate import GenerateConfig, generate, merge
-from xvoe.benchmark.render import STATE_COLUMNS
-from xvoe.benchmark.scenes import TEST_SETTINGS
 from xvoe.errors import XvoeError
+from xvoe.scenes import store
+from xvoe.scenes.generate import GenerateConfig, generate, merge
+from xvoe.scenes.render import STATE_COLUMNS
+from xvoe.scenes.scenarios import TEST_SETTINGS
 
 
 def sha256(path):
@@ -145,7 +145,7 @@ def test_existing_output_is_refused_and_kept(tmp_path):
 
 
 def test_a_crash_leaves_no_file(tmp_path, monkeypatch):
-    import xvoe.benchmark.generate as gen
+    import xvoe.scenes.generate as gen
 
     calls = {"n": 0}
     real = gen.make_unit

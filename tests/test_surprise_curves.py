@@ -4,8 +4,8 @@ import numpy as np
 import pytest
 
 import xvoe
-from xvoe.benchmark import custom, store, videos
 from xvoe.errors import XvoeError
+from xvoe.scenes import custom, store, videos
 
 matplotlib.use("Agg")
 

@@ -10,10 +10,10 @@ from conftest import interrupt_during
 from torch import nn
 
 from xvoe.apps.cli import main
-from xvoe.benchmark.generate import GenerateConfig, generate
 from xvoe.errors import XvoeError
 from xvoe.models.config import from_dict, override
 from xvoe.models.perception import ComponentVAE, PerceptionConfig
+from xvoe.scenes.generate import GenerateConfig, generate
 from xvoe.training.checkpoints import load_checkpoint
 from xvoe.training.config import TrainConfig
 from xvoe.training.data import ShardedFrames

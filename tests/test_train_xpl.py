@@ -4,13 +4,13 @@ import pytest
 import torch
 
 from xvoe.apps.zoo import KEPT
-from xvoe.benchmark import store
-from xvoe.benchmark.world import WORLD
 from xvoe.errors import XvoeError
 from xvoe.models.dynamics import DynamicsConfig
 from xvoe.models.nll import InferenceConfig
 from xvoe.models.reasoning import ReasoningConfig
 from xvoe.models.xpl import XPL, XPLConfig
+from xvoe.scenes import store
+from xvoe.scenes.world import WORLD
 from xvoe.training.config import TrainConfig
 from xvoe.training.latents import Latents, write_latents
 from xvoe.training.recipes import RECIPES

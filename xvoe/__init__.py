@@ -9,7 +9,7 @@ The public API, one import for notebooks, scripts and the command line alike:
     xvoe.report(["xpl.csv"], "report")                    # the paper's metrics and figures
     xvoe.plot_explanation(xvoe.explain(scorer, "test.h5", 160))
 
-The layers underneath (xvoe.benchmark, models, training, evaluation, inference, xvoe.apps)
+The layers underneath (xvoe.scenes, models, training, evaluation, inference, xvoe.apps)
 are importable too; this table names what a user needs. Names load on first use, so that
 `import xvoe` and the benchmark layer stay free of torch.
 """
@@ -29,12 +29,12 @@ __version__ = "0.1.0"
 
 _HOMES = {
     "xvoe.errors": ("XvoeError",),
-    "xvoe.benchmark.generate": ("GenerateConfig", "generate", "merge"),
-    "xvoe.benchmark.scenes": ("SCENARIOS", "TEST_SETTINGS"),
-    "xvoe.benchmark.store": ("open_dataset",),
-    "xvoe.benchmark.released": ("import_released",),
-    "xvoe.benchmark.videos": ("describe", "find_pair", "list_videos", "true_objects"),
-    "xvoe.benchmark.display": ("DISPLAY_SIZE", "display_video"),
+    "xvoe.scenes.generate": ("GenerateConfig", "generate", "merge"),
+    "xvoe.scenes.scenarios": ("SCENARIOS", "TEST_SETTINGS"),
+    "xvoe.scenes.store": ("open_dataset",),
+    "xvoe.scenes.released": ("import_released",),
+    "xvoe.scenes.videos": ("describe", "find_pair", "list_videos", "true_objects"),
+    "xvoe.scenes.display": ("DISPLAY_SIZE", "display_video"),
     "xvoe.training.recipes": ("DEFAULT_RECIPE", "RECIPES", "recipe", "stage_settings"),
     "xvoe.training.stages": ("STAGES",),
     "xvoe.training.provenance": ("recipe_differences",),
@@ -45,7 +45,7 @@ _HOMES = {
     "xvoe.training.dataset": ("SplitDataset",),
     "xvoe.evaluation.score": ("Scorer", "load_model", "SurpriseModel", "Videos", "merge_scores", "score_header",
                               "model_identity", "check_scored_by", "check_same_split"),
-    "xvoe.identity": ("split_identity",),
+    "xvoe.fingerprints": ("split_identity",),
     "xvoe.evaluation.metrics": ("ScoreTable", "read_scores", "metric_rows", "comparative", "holistic", "relative",
                                 "disagreements", "onset", "onset_pairs"),
     "xvoe.apps.verbs": ("score", "explain", "with_display"),
@@ -59,7 +59,7 @@ _HOMES = {
                           "plot_disagreements", "plot_surprise_curves", "plot_surprise_definitions",
                           "plot_predictions", "plot_onset", "plot_settings", "animate_pair"),
 }
-_MODULES = {"custom": "xvoe.benchmark.custom"}     # make your own VoE event: xvoe.custom.make_pair(...)
+_MODULES = {"custom": "xvoe.scenes.custom"}     # make your own VoE event: xvoe.custom.make_pair(...)
 _HOME_OF = {name: module for module, names in _HOMES.items() for name in names}
 __all__ = sorted([*_HOME_OF, *_MODULES])
 

@@ -42,7 +42,7 @@ COUNT = Domain(1)
 SHARE = Domain(0, 1)
 SEED = Domain(0, 2**63 - 1)     # what numpy's and torch's generators take, with room for seed + 1
 PICTURE_SIZE = Domain(16, 512)  # pixels a side of a rendered or displayed frame
-DISPLAY_SIZE = 128               # pixels a side of the scene drawn for people (xvoe/benchmark/display.py)
+DISPLAY_SIZE = 128               # pixels a side of the scene drawn for people (xvoe/scenes/display.py)
 DEVICES = "cpu, cuda, cuda:N or mps"     # the devices a user may name (xvoe/models/devices.py)
 # seconds a model of your own may take for one batch (xvoe score --time-limit): generous, so
 # that only a hang ends a run; here, below torch, for the command line's default

@@ -4,7 +4,7 @@ Everything here takes arrays or an open split file and returns a matplotlib Figu
 writes a GIF), so notebooks, the command line and the tests draw the same pictures. Pictures of
 videos draw the scene at a display size (`display_size`, 128 by default; None: the stored
 frames alone) above what the model sees, its own frames enlarged without blur
-(xvoe.benchmark.display).
+(xvoe.scenes.display).
 """
 from __future__ import annotations
 
@@ -21,25 +21,25 @@ from matplotlib.animation import FuncAnimation
 from matplotlib.patches import Rectangle
 from PIL import Image, ImageDraw
 
-from ..benchmark import store
-from ..benchmark.display import DISPLAY_SIZE, check_display_size, display_video, enlarge, outline
-from ..benchmark.scenes import SCENARIOS
-from ..benchmark.videos import _labels_of, _pair_rows, check_index, describe, find_pair, video_indices, wall_lowered
 from ..errors import XvoeError
 from ..evaluation.explain import DRAW_THRESHOLD, Explanation, drawn_pixels
 from ..evaluation.metrics import excess, read_scores
 from ..evaluation.score import MSE_LABEL, check_same_split, read_curves, warn_unchecked
-from ..identity import split_identity
+from ..fingerprints import split_identity
 from ..models.devices import device_of
 from ..models.perception import normalise, to_uint8
 from ..outputs import atomic_paths, claim_file, claim_scope, nearly_full
+from ..scenes import store
+from ..scenes.display import DISPLAY_SIZE, check_display_size, display_video, enlarge, outline
+from ..scenes.scenarios import SCENARIOS
+from ..scenes.videos import _labels_of, _pair_rows, check_index, describe, find_pair, video_indices, wall_lowered
 from ..training.data import perception_batch
 from ..training.phydnet import load_phydnet
 
 ID_COLORS = (np.array(plt.get_cmap("tab10").colors) * 255).astype(np.uint8)
 ID_PALETTE = np.vstack([[[0, 0, 0]], ID_COLORS[:9]]).astype(np.uint8)   # 0 = background
 # The outline of the model's hidden object: scene colours are drawn at random from all of RGB
-# (xvoe.benchmark.world.sample_colors), so each figure takes the one of these farthest from its scene's.
+# (xvoe.scenes.world.sample_colors), so each figure takes the one of these farthest from its scene's.
 # Text of the sheets of frames, in points: readable at the notebooks' 72 dpi as at a saved PNG's 100,
 # where a sheet 16 inches wide is shown shrunk to a page's width.
 SHEET_FONT = 10

@@ -26,8 +26,6 @@ from pathlib import Path
 import matplotlib.pyplot as plt
 import torch
 
-from ..benchmark import store
-from ..benchmark.generate import GenerateConfig, generate
 from ..errors import XvoeError
 from ..evaluation.explain import explain
 from ..evaluation.score import load_model, score_split
@@ -36,6 +34,8 @@ from ..models.devices import resolve_device
 from ..outputs import claim_directory, claim_scope
 from ..processes import end_with_parent
 from ..resources import check_workers, cores
+from ..scenes import store
+from ..scenes.generate import GenerateConfig, generate
 from ..training.config import TrainConfig
 from ..training.data import process_counts
 from ..training.latents import encode_split

@@ -9,7 +9,6 @@ from pathlib import Path
 
 import numpy as np
 
-from ..benchmark import store
 from ..errors import XvoeError
 from ..evaluation.metrics import (
     ONSET_FIELDS,
@@ -27,7 +26,7 @@ from ..evaluation.metrics import (
     side_by_side,
 )
 from ..evaluation.score import check_same_split, read_curves, score_header, scored_split, warn_unchecked
-from ..identity import describe_split, split_identity
+from ..fingerprints import describe_split, split_identity
 from ..outputs import (
     claim_directory,
     claim_scope,
@@ -36,6 +35,7 @@ from ..outputs import (
     temporary_name,
     writing,
 )
+from ..scenes import store
 from . import figures
 from .table import STYLES, paper_table
 

@@ -11,16 +11,16 @@ from pathlib import Path
 
 import matplotlib.pyplot as plt
 
-from ..benchmark import store
-from ..benchmark.display import DISPLAY_SIZE
 from ..errors import XvoeError
 from ..evaluation.explain import DRAW_THRESHOLD
 from ..evaluation.metrics import read_scores
 from ..evaluation.score import Scorer, as_scorer, check_same_split, check_scored_by, score_header
-from ..identity import split_identity
+from ..fingerprints import split_identity
 from ..models.config import from_dict
 from ..models.nll import InferenceConfig
 from ..progress import progress_bar
+from ..scenes import store
+from ..scenes.display import DISPLAY_SIZE
 from .figures import plot_explanation
 from .verbs import explain
 

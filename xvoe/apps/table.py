@@ -9,9 +9,9 @@ from __future__ import annotations
 
 import math
 
-from ..benchmark.scenes import SCENARIOS
 from ..errors import XvoeError
 from ..evaluation.metrics import OFFICIAL_RELATIVE, Estimate
+from ..scenes.scenarios import SCENARIOS
 
 STYLES = {"md": "table.md", "latex": "table.tex"}     # each style and the file it is written to
 SETTING_NAMES = {"S1": "S1 predictive", "S2": "S2 hypothetical", "S3": "S3 explicative"}

@@ -19,8 +19,6 @@ import torch
 from xvoe.inference.explain import explain_nll
 from xvoe.inference.score import NLLColumns
 
-from ..benchmark import store
-from ..benchmark.display import DISPLAY_SIZE, check_display_size, display_video, hidden_silhouettes
 from ..domains import TIME_LIMIT
 from ..errors import XvoeError
 from ..evaluation.explain import Explanation, explain_drawn
@@ -32,6 +30,8 @@ from ..models.devices import resolve_device
 from ..outputs import claim_file, claim_scope, parts_folder, writing
 from ..processes import end_with_parent, interrupts_held
 from ..resources import check_workers, cores
+from ..scenes import store
+from ..scenes.display import DISPLAY_SIZE, check_display_size, display_video, hidden_silhouettes
 
 SURPRISES = ("mse", "nll", "both")
 

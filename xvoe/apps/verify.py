@@ -18,7 +18,6 @@ import numpy as np
 
 from xvoe.inference.score import NLLColumns
 
-from ..benchmark import store
 from ..errors import XvoeError
 from ..evaluation.metrics import read_columns, scores_digest
 from ..evaluation.score import (
@@ -33,9 +32,10 @@ from ..evaluation.score import (
     score_rows,
     stored_columns,
 )
-from ..identity import split_identity
+from ..fingerprints import split_identity
 from ..models.config import from_dict, to_dict
 from ..models.nll import InferenceConfig
+from ..scenes import store
 
 # a video scored alone against the batch it was scored in: the float sums differ in the last digits
 TOLERANCE = {"rtol": 1e-4, "atol": 1e-6}

@@ -14,11 +14,11 @@ from dataclasses import dataclass, field
 import numpy as np
 import torch
 
-from ..benchmark import store
-from ..benchmark.videos import check_index, describe
 from ..errors import XvoeError
 from ..models.perception import to_uint8
 from ..models.slots import composite, decode_slots
+from ..scenes import store
+from ..scenes.videos import check_index, describe
 from ..training.data import check_size
 from .score import Scorer, encode_video, read_videos, run_model
 from .surprise import explained_latents, mse_surprise

@@ -17,11 +17,11 @@ import h5py
 import numpy as np
 import torch
 
-from ..benchmark import store
-from ..benchmark.scenes import SCENARIOS
-from ..benchmark.videos import silhouette
 from ..models.reasoning import hide_slot
 from ..models.slots import composite, decode_slots
+from ..scenes import store
+from ..scenes.scenarios import SCENARIOS
+from ..scenes.videos import silhouette
 from .explain import decoded_mask, iou
 from .score import Scorer, encode_videos
 from .surprise import mse_surprise

@@ -32,9 +32,9 @@ from typing import TypeVar
 
 import numpy as np
 
-from ..benchmark import store
-from ..benchmark.scenes import SCENARIOS
 from ..errors import XvoeError
+from ..scenes import store
+from ..scenes.scenarios import SCENARIOS
 from .resampling import chance_p, interval, pairwise_win, wilson
 
 REQUIRED = ("index", "scenario", "setting", "pair", "member", "possible")

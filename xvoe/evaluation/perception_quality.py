@@ -21,9 +21,9 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from ..benchmark import store
 from ..models.devices import device_of
 from ..models.perception import ComponentVAE, to_uint8
+from ..scenes import store
 from ..training.data import check_size, perception_batch, visible_threshold
 from ..training.latents import encode_means
 from .resampling import interval

@@ -41,10 +41,9 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from ..benchmark import store
 from ..domains import TIME_LIMIT
 from ..errors import XvoeError
-from ..identity import arrays_hash, describe_split, file_hash, split_identity
+from ..fingerprints import arrays_hash, describe_split, file_hash, split_identity
 from ..models.config import to_dict
 from ..models.devices import device_of, mixed_precision, resolve_device
 from ..models.nll import InferenceConfig
@@ -53,6 +52,7 @@ from ..models.phydnet import PhyDNet
 from ..models.xpl import XPL
 from ..outputs import atomic_paths, claim_file, claim_scope
 from ..progress import progress_bar
+from ..scenes import store
 from ..training.checkpoints import SHIPPED, shipped_path
 from ..training.data import check_size, visible_threshold
 from ..training.latents import (
@@ -658,7 +658,7 @@ def stored_columns(saved: dict[str, np.ndarray], header: dict) -> dict[str, np.n
 def score_header(path: str | Path, check: bool = True) -> dict:
     """What a score file was made with, kept in its curves file: the package version (`xvoe`),
     the model's name and identity (`model_identity`), the split's identity (`split`,
-    `xvoe.identity.split_identity`) and the path it was read from (`data`), the score column,
+    `xvoe.fingerprints.split_identity`) and the path it was read from (`data`), the score column,
     the aggregation over frames, the surprise definitions (`surprise`), for the NLL its
     settings and seed (`nll`, `nll_seed`), and the digest of the scores it was written with
     (`scores_digest`). `check`: refuse, in one line, curves written with other scores
@@ -699,7 +699,7 @@ class UncheckedScores(UserWarning):
 
 
 def scored_split(path: str | Path) -> dict | None:
-    """The identity of the split a score file was scored on (`xvoe.identity.split_identity`), or
+    """The identity of the split a score file was scored on (`xvoe.fingerprints.split_identity`), or
     None for a file that records none (`warn_unchecked` says so, once the file has been read)."""
     header = score_header(path, check=False) if Path(path).with_suffix(".curves.npz").is_file() else {}
     return header.get("split")

@@ -24,9 +24,9 @@ from pathlib import Path
 import h5py
 import numpy as np
 
-from ..benchmark.scenes import SCENARIOS
 from ..errors import XvoeError
 from ..models.perception import ComponentVAE
+from ..scenes.scenarios import SCENARIOS
 from .explanation_quality import expected_videos, ground_truth, hidden_explanations, mae_iou, pick
 from .metrics import VERDICTS, Estimate, comparative, has_both_surprises, holistic, pairs_table, pairwise_win
 from .perception_quality import (

@@ -8,7 +8,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from ..benchmark.render import DEPTH_FAR, OBJECT_DEPTH, WALL_DEPTH
+from ..scenes.render import DEPTH_FAR, OBJECT_DEPTH, WALL_DEPTH
 from .perception import ComponentVAE
 
 

@@ -14,12 +14,12 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from ..benchmark import store
-from ..benchmark.released import SOURCE_NAME
-from ..benchmark.scenes import TRAINING_GROUPS
-from ..benchmark.world import FLOOR, WORLD
 from ..errors import XvoeError
 from ..models.perception import BLANK, PerceptionBatch, normalise
+from ..scenes import store
+from ..scenes.released import SOURCE_NAME
+from ..scenes.scenarios import TRAINING_GROUPS
+from ..scenes.world import FLOOR, WORLD
 
 BLANK_SEED = 1 << 20      # the shard number of the blank input's noise (shared by all processes)
 

@@ -9,7 +9,7 @@ import h5py
 import torch
 from torch.utils.data import Dataset
 
-from ..benchmark import store
+from ..scenes import store
 
 
 class SplitDataset(Dataset):

@@ -12,7 +12,7 @@ pixels. Schema (an interface; version in the attribute `xvoe_latents`):
   float32 (N, T, D): the background component (floor and sky) that the composite needs.
 - attributes: `perception_checkpoint` (path), `perception_sha256`, `source` (data file),
   `source_split`, `config` (JSON: recipe, perception config, threshold, the data's config), and
-  the cache's key: `split_identity` (JSON, xvoe.identity.split_identity) and `perception_identity`
+  the cache's key: `split_identity` (JSON, xvoe.fingerprints.split_identity) and `perception_identity`
   (`encoder_key`: a hash of the module's weights and config, and the precision it encoded in
   where not float32). `check_cache` refuses a cache whose key is not the split's and the
   perception's at hand.
@@ -32,14 +32,14 @@ import h5py
 import numpy as np
 import torch
 
-from ..benchmark import store
 from ..errors import XvoeError
-from ..identity import arrays_hash, describe_split, split_identity
+from ..fingerprints import arrays_hash, describe_split, split_identity
 from ..models.config import to_dict
 from ..models.devices import autocast_dtype, device_of, mixed_precision, resolve_device
 from ..models.perception import ComponentVAE, normalise
 from ..outputs import claim_file, claim_scope
 from ..progress import progress_bar
+from ..scenes import store
 from .data import check_size, masked_inputs, visible_threshold
 from .perception import load_perception
 from .recipes import recipe_of
@@ -204,7 +204,7 @@ def encode_with(model: ComponentVAE, data: str | os.PathLike, out: str | os.Path
 
 def perception_identity(model: ComponentVAE) -> str:
     """A perception module's key in a latent cache: the hash of its weights and config, the same
-    for a run's perception.pt and the shipped copy of it (xvoe.identity.arrays_hash)."""
+    for a run's perception.pt and the shipped copy of it (xvoe.fingerprints.arrays_hash)."""
     arrays = {name: tensor.detach().cpu().numpy() for name, tensor in model.state_dict().items()}
     return arrays_hash(arrays, to_dict(model.config))
 

@@ -16,10 +16,10 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from ..benchmark import store
 from ..errors import XvoeError
 from ..models.config import from_dict, override, override_resumed, to_dict
 from ..models.phydnet import PhyDNet, PhyDNetConfig, PhyDNetObjective, widen_lstm_kernel
+from ..scenes import store
 from .checkpoints import load_checkpoint, load_weights, recorded_input, resolve_run, save_checkpoint
 from .config import TrainConfig
 from .data import check_size, focus_on, owned_shards

@@ -20,14 +20,14 @@ import numpy as np
 import torch
 from torch import Tensor, nn
 
-from ..benchmark import store
-from ..benchmark.world import WORLD
 from ..errors import XvoeError
 from ..models.config import from_dict, override, override_resumed, to_dict
 from ..models.devices import resolve_device
 from ..models.nll import InferenceConfig
 from ..models.reasoning import hide_slot
 from ..models.xpl import XPL, XPLConfig, permute_slots
+from ..scenes import store
+from ..scenes.world import WORLD
 from .checkpoints import load_checkpoint, load_weights, recorded_input, resolve_run
 from .config import TrainConfig
 from .data import focus_on, owned_shards

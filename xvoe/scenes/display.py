@@ -31,7 +31,7 @@ LENGTHS = ("x", "y", "size", "height", "vx", "vy")     # state columns in pixels
 
 @dataclass
 class DisplayVideo:
-    """One video at a display size, in the storage layout (xvoe.benchmark.store)."""
+    """One video at a display size, in the storage layout (xvoe.scenes.store)."""
 
     rgbd: np.ndarray        # (T, S, S, 4) uint8
     ids: np.ndarray         # (T, S, S) uint8

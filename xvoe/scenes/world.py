@@ -2,7 +2,7 @@
 
 Scenes are described in world units: the camera sees x in [0, WORLD] (left to right) and
 y in [0, WORLD] (floor at the bottom, gravity down), whatever the rendered size. A scene is
-plain data; `xvoe.benchmark.physics.simulate` runs it and `xvoe.benchmark.render.render` draws it.
+plain data; `xvoe.scenes.physics.simulate` runs it and `xvoe.scenes.render.render` draws it.
 """
 from __future__ import annotations
 

@@ -22,7 +22,7 @@ from ..outputs import claim_file, claim_scope
 from ..progress import progress_bar
 from . import store
 from .render import STATE_COLUMNS
-from .scenes import SCENARIOS
+from .scenarios import SCENARIOS
 from .tfrecord import TFRecordError, parse_example, parse_tensor, records
 from .world import KIND_NAMES, MAX_SLOTS
 

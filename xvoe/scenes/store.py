@@ -24,7 +24,7 @@ from ..errors import XvoeError
 from ..outputs import atomic_paths, claim_file, claim_scope
 from ..resources import memory_problem
 from .render import DEPTH_FAR, STATE_COLUMNS, Video
-from .scenes import SCENARIOS, TRAINING_GROUPS
+from .scenarios import SCENARIOS, TRAINING_GROUPS
 from .world import KIND_NAMES, MAX_SLOTS, WALL_KINDS
 
 SCHEMA_VERSION = 1

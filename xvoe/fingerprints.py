@@ -14,7 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .benchmark.store import read_frames
+from .scenes.store import read_frames
 
 HASH_CHARS = 16         # 64 bits of sha256: no accidental collision, short enough to read in a report
 SAMPLED_VIDEOS = 64     # videos whose frames the split's content hash reads (evenly spaced, first and last kept)

@@ -26,7 +26,7 @@ from ..progress import progress_bar
 from ..resources import check_memory, check_workers
 from . import store
 from .render import Video, render
-from .scenes import SCENARIOS, TEST_SETTINGS, TRAINING_GROUPS
+from .scenarios import SCENARIOS, TEST_SETTINGS, TRAINING_GROUPS
 
 TRAINING_VARIANTS = tuple((group, with_wall) for group in TRAINING_GROUPS for with_wall in (True, False))
 _SPLIT_CODE = {"train": 0, "test": 1}
@@ -76,7 +76,7 @@ def make_unit(config: GenerateConfig, unit: int) -> list[store.EncodedVideo]:
 
 def render_unit(config: GenerateConfig, unit: int) -> list[tuple[Video, dict]]:
     """Simulate and render the video(s) of one unit, each with its labels: at another
-    `config.size`, the same scene (xvoe.benchmark.display draws figures so)."""
+    `config.size`, the same scene (xvoe.scenes.display draws figures so)."""
     rng = unit_rng(config, unit)
     if config.split == "train":
         group, with_wall = TRAINING_VARIANTS[rng.integers(len(TRAINING_VARIANTS))]

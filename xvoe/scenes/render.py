@@ -25,7 +25,7 @@ STATE_COLUMNS = ("x", "y", "size", "height", "lane", "present", "visible", "vx",
 
 @dataclass
 class Video:
-    """One rendered video in the storage layout (see xvoe.benchmark.store)."""
+    """One rendered video in the storage layout (see xvoe.scenes.store)."""
 
     rgbd: np.ndarray     # (T, H, W, 4) uint8
     ids: np.ndarray      # (T, H, W) uint8: 0 background, k+1 slot k
