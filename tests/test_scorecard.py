@@ -111,7 +111,7 @@ def test_score_lines_carry_the_goals_of_the_role():
     baseline = {line.name: line for line in score_lines(scores, "baseline", rounds=50)}
     assert baseline["MSE verdict collision S1 comparative (%)"].target == 90.0
     assert baseline["MSE verdict collision S3 comparative (%)"].target is None
-    chance = {line.name: line for line in score_lines(scores, "random", rounds=50)}
+    chance = {line.name: line for line in score_lines(scores, "chance", rounds=50)}
     assert chance["MSE verdict collision S1 comparative (%)"].direction == "within"
     # a model with no choice of explanation writes its score twice: no second set of lines
     twice = score_lines(table(rows, [value for (*_, value) in rows]), "baseline", rounds=50)
@@ -138,7 +138,7 @@ def test_a_card_round_trips_and_prints(tmp_path):
     text = format_line(goal("S1", 95.0, 93, 97.5, 97.0), lines[0])
     assert "NOT MET" in text and "WORSE BEYOND ITS INTERVAL" in text
     assert (role_of("plato"), role_of("random"), role_of("runs/s0"), role_of("xpl")) == (
-        "baseline", "random", "xpl", "xpl")
+        "baseline", "chance", "xpl", "xpl")
 
 
 def test_the_identity_lines_count_the_videos_only_two_objects_explain_and_those_a_wall_shows_one():

@@ -29,6 +29,7 @@ import torch
 from ..errors import XvoeError
 from ..evaluation.explain import explain
 from ..evaluation.score import load_model, score_split
+from ..evaluation.scorecard import role_of
 from ..models.config import to_dict
 from ..models.devices import resolve_device
 from ..outputs import claim_directory, claim_scope
@@ -44,17 +45,13 @@ from ..training.loop import checkpoint_path
 from ..training.perception import train_perception
 from ..training.phydnet import train_phydnet
 from ..training.recipes import DEFAULT_RECIPE, RECIPES, Recipe, recipe
-from ..training.stages import SCORED, STAGES
+from ..training.stages import MODELS, RANDOM, STAGES, continued_by, resting_on
 from ..training.xpl import TRAINED_ON_LATENTS, train_proposal, train_xpl
 from .figures import plot_explanation
 from .report import header_lines, report
 from .verbs import with_display
 
-MODELS = (*SCORED, "random")
-DEFAULT_MODELS = ("xpl", "random")
-# lanes (--jobs) take the longest training first, so that the last lane does not start it late
-# (docs/decisions.md, "Pipeline lanes")
-LANE_ORDER = ("phydnet", "plato", "xpl-noresidual", "xpl")
+DEFAULT_MODELS = ("xpl", RANDOM)
 
 
 @dataclass(frozen=True)
@@ -144,7 +141,7 @@ def run_pipeline(config: PipelineConfig) -> Path:
     on_device = resolve_device(config.device).type != "cpu"
     if on_device:       # lanes and one-thread processes share out CPU cores; one process drives a device
         processes = 1
-    if any(model in TRAINED_ON_LATENTS for model in config.models):     # PhyDNet and random need no perception
+    if any(model in TRAINED_ON_LATENTS for model in config.models):     # PhyDNet and the random agent need none
         # one process with every core's thread: its convolutions use them (docs/decisions.md, "Training
         # stages on every core")
         stages.run("perception", lambda: train_perception(
@@ -153,7 +150,7 @@ def run_pipeline(config: PipelineConfig) -> Path:
         stages.run("encode-train", lambda: encode_split(run_dir, train_data, latents, overwrite=True,
                                                         progress=config.progress, device=config.device))
     (run_dir / "scores").mkdir(exist_ok=True)
-    heavy = sorted((m for m in config.models if m != "random"), key=LANE_ORDER.index)
+    heavy = sorted((m for m in config.models if m in STAGES), key=lambda m: STAGES[m].lane)
     lanes = 1 if on_device else min(config.jobs or cores(), len(heavy))
     if lanes > 1:       # one model's training per lane, the cores shared out: two 1-thread runs beat one 2-thread run
         threads = max(1, cores() // lanes)
@@ -202,34 +199,35 @@ def _model_stages(config: PipelineConfig, model: str, stages: Stages, bars: bool
                             run_dir=run_dir, stage=model, recipe_name=config.recipe, progress=bars,
                             resume=checkpoint_path(run_dir, model).exists(), device=config.device, **phase)
         _train_phases(stages, model, train, phases, config.seed)
-        if model == "xpl":
-            stages.run("train-proposal", lambda: on_cores(
-                train_proposal, stage_processes(processes, chosen.proposal_train), chosen, run_dir=run_dir,
+        for then in continued_by(model):       # the proposal stage, after xpl
+            stages.run(f"train-{then}", lambda then=then: on_cores(
+                train_proposal, stage_processes(processes, chosen.training(then)), chosen, run_dir=run_dir,
                 latents=latents, progress=bars, device=config.device,
-                resume=checkpoint_path(run_dir, "proposal").exists(), seed=config.seed))
-    if model == "phydnet":
+                resume=checkpoint_path(run_dir, then).exists(), seed=config.seed))
+    elif model in STAGES and STAGES[model].reads == "pixels":     # PhyDNet
         def train(phase: dict) -> object:
             return train_phydnet(train_data, run_dir, recipe_name=config.recipe, progress=bars,
-                                 resume=checkpoint_path(run_dir, "phydnet").exists(), device=config.device,
+                                 resume=checkpoint_path(run_dir, model).exists(), device=config.device,
                                  **phase)
         _train_phases(stages, model, train, phases, config.seed)
     if not score:
         return
-    reference = "random" if model == "random" else str(checkpoint_path(run_dir, model))
     stages.run(f"score-{model}", lambda: score_split(
-        reference, str(test_data), str(run_dir / "scores" / f"{model}.csv"), overwrite=True, progress=bars,
-        device=config.device),
+        scored_reference(run_dir, model), str(test_data), str(run_dir / "scores" / f"{model}.csv"), overwrite=True,
+        progress=bars, device=config.device),
         key=scored_steps(chosen, model))
+
+
+def scored_reference(run_dir: Path, model: str) -> str:
+    """What `load_model` takes for a model of the run: its stage's checkpoint, or the name of the
+    model no stage makes (the random agent)."""
+    return str(checkpoint_path(run_dir, model)) if model in STAGES else model
 
 
 def scored_steps(chosen: Recipe, model: str) -> str:
     """The steps of every stage a model's scores rest on ("xpl 9000, proposal 4000, perception
     4000"): a recipe that trains a stage further, in a later phase added since, is scored again."""
-    if model == "random":
-        return ""
-    stages = [model, *(["proposal"] if model == "xpl" else []),
-              *(["perception"] if STAGES[model].reads_latents else [])]
-    return ", ".join(f"{stage} {chosen.final_training(stage).steps}" for stage in stages)
+    return ", ".join(f"{stage} {chosen.final_training(stage).steps}" for stage in resting_on(model))
 
 
 def stage_processes(wanted: int, training: TrainConfig) -> int:
@@ -275,9 +273,10 @@ def _explanations(run_dir: Path, test_data: Path, models: tuple[str, ...], devic
     """The paper's Fig. 7/8 for the first pair of blocking S2 and collision S3, member 0."""
 
     _remove(run_dir / "report", "explanation-*.png")
-    if "xpl" not in models:
+    xpl = next((m for m in models if role_of(m) == "xpl"), None)
+    if xpl is None:
         return
-    scorer = load_model(str(run_dir / "xpl.pt"), device)
+    scorer = load_model(scored_reference(run_dir, xpl), device)
     with store.open_dataset(test_data) as file:
         scenario, setting = store.strings(file, "scenario"), store.strings(file, "setting")
         member = file["member"][:]
@@ -299,28 +298,30 @@ def compare_models(rows: list[dict]) -> list[str]:
     models = list(dict.fromkeys(r["model"] for r in rows))
     if len(models) < 2:
         return []
+    roles = {model: role_of(model) for model in models}
+    xpl = next((m for m in models if roles[m] == "xpl"), None)
     lines = ["## XPL against the other models", ""]
     for scenario in ("collision", "blocking"):
-        ours = value("xpl", scenario, "S3")
+        ours = value(xpl, scenario, "S3")
         if ours is None:
             continue
-        for other in (m for m in models if m not in ("xpl", "random")):
+        for other in (m for m in models if roles[m] not in ("xpl", "chance")):
             theirs = value(other, scenario, "S3")
             if theirs is not None:
                 gap = 100 * (float(ours["value"]) - float(theirs["value"]))
                 verdict = "beats" if gap > 0 else "does not beat"
                 lines.append(f"- {scenario} S3 (explicative): XPL {100 * float(ours['value']):.1f}% {verdict} "
                              f"{other} {100 * float(theirs['value']):.1f}% ({gap:+.1f} points).")
-    for model in (m for m in models if m != "random"):
+    for model in (m for m in models if roles[m] != "chance"):
         worst = min((r for r in rows if r["metric"] == "comparative" and r["model"] == model
                      and r["setting"] == "S1"), key=lambda r: float(r["value"]), default=None)
         if worst is not None:
             lines.append(f"- {model}: lowest predictive (S1) accuracy {100 * float(worst['value']):.1f}% "
                          f"({worst['scenario']}).")
-    chance = [r for r in rows if r["metric"] == "comparative" and r["model"] == "random"]
-    if chance:
+    for model in (m for m in models if roles[m] == "chance"):
+        chance = [r for r in rows if r["metric"] == "comparative" and r["model"] == model]
         inside = sum(float(r["low"]) <= 0.5 <= float(r["high"]) for r in chance)
-        lines.append(f"- random: 50% lies inside the 95% interval in {inside} of {len(chance)} settings.")
+        lines.append(f"- {model}: 50% lies inside the 95% interval in {inside} of {len(chance)} settings.")
     return lines
 
 

@@ -27,6 +27,7 @@ import numpy as np
 from ..errors import XvoeError
 from ..models.perception import ComponentVAE
 from ..scenes.scenarios import SCENARIOS
+from ..training.stages import MODEL_ROLES
 from .explanation_quality import expected_videos, ground_truth, hidden_explanations, mae_iou, pick
 from .metrics import VERDICTS, Estimate, comparative, has_both_surprises, holistic, pairs_table, pairwise_win
 from .perception_quality import (
@@ -44,8 +45,7 @@ from .score import Scorer
 LABELS = {"score": "MSE verdict", "paper_score": "paper's MSE score", "excess": "MSE excess", "nll": "NLL",
           "nll_excess": "NLL excess"}
 GAP_PREFIX = {"score": "", "nll": "NLL "}     # the paper's "gap", under the default verdict and the NLL
-ROLES = ("xpl", "baseline", "random", "reported")     # which of the goals a model's lines carry
-ROLE_OF = {"plato": "baseline", "phydnet": "baseline", "random": "random", "xpl-noresidual": "reported"}
+ROLES = ("xpl", "baseline", "chance", "reported")     # which of the goals a model's lines carry
 XPL_ACCURACY, BASELINE_ACCURACY, LEAD = 97.0, 90.0, 20.0      # percent
 LEAD_SCENARIOS = ("collision", "blocking")
 NLL_EXCESS_AUC, HIDDEN_IOU, PSNR, PROBE_R2 = 0.9, 0.6, 26.0, 0.95
@@ -117,8 +117,9 @@ def compare(candidate: list[Line], shipped: list[Line]) -> Decision:
 
 
 def role_of(model: str) -> str:
-    """The goals a shipped model's name carries; anything else (a run directory) is a candidate XPL."""
-    return ROLE_OF.get(Path(model).name, "xpl")
+    """The goals a model known by name carries (its entry in `MODEL_ROLES` of
+    xvoe.training.stages); anything else (a run directory) is a candidate XPL."""
+    return MODEL_ROLES.get(Path(model).name, "xpl")
 
 
 def _percent(name: str, estimate: Estimate, target: float | None = None, direction: str = ">=") -> Line:
@@ -133,7 +134,7 @@ def _accuracy_goal(role: str, column: str, setting: str) -> tuple[float | None, 
         return XPL_ACCURACY, ">="
     if role == "baseline" and setting == "S1":
         return BASELINE_ACCURACY, ">="
-    if role == "random":
+    if role == "chance":
         return 50.0, "within"
     return None, ">="
 

@@ -1,7 +1,10 @@
-"""The training stages, named once: what each trains, from what, and into which checkpoint.
+"""The training stages and the models scored by name, each named once: what each stage trains,
+from what, into which checkpoint, and what the scorecard expects of the model it makes.
 
-The command line, the pipeline, the model zoo, the recipes, provenance and scoring read this
-table, so that a stage's name and its facts are written nowhere else.
+The command line, the pipeline, the model zoo, the recipes, provenance, scoring and the
+scorecard read these tables, so that a stage's or a model's name and its facts are written
+nowhere else. Every model but one is a stage's checkpoint; the chance baseline (`RANDOM`) is
+drawn, not trained, and is a model of its own kind here.
 """
 from __future__ import annotations
 
@@ -23,9 +26,18 @@ class Stage:
     # one) or "xpl" (the run's xpl.pt, on that cache)
     reads: str
     train_field: str            # the Recipe field of its first training run
-    scored: bool = False        # a model `xvoe score --model NAME` scores
+    # the goals the scorecard holds the model it makes to (xvoe.evaluation.scorecard): "xpl", "baseline"
+    # or "reported"; empty for a stage that makes no model of its own (`xvoe score --model NAME` scores the others)
+    role: str = ""
+    # `xvoe pipeline --jobs` lanes start the lowest first: the longest training, so that the last lane does
+    # not start it late (docs/decisions.md, "Pipeline lanes")
+    lane: int = 0
     variant: str = ""           # XPL-family stages: the network XPL is fitted to ("xpl" or "plato")
     residual: bool = True       # ... and whether its dynamics predict a change (XPL) or the latent itself (PLATO)
+
+    @property
+    def scored(self) -> bool:
+        return bool(self.role)
 
     @property
     def config(self) -> type:
@@ -42,25 +54,31 @@ class Stage:
         return self.reads in ("latents", "xpl")
 
 
+PERCEPTION = "perception"       # the stage whose latents the others on the latent cache read
 _PERCEPTION, _XPL, _PHYDNET = ("xvoe.models.perception:PerceptionConfig", "xvoe.models.xpl:XPLConfig",
                                "xvoe.models.phydnet:PhyDNetConfig")
 STAGES: dict[str, Stage] = {stage.name: stage for stage in (
-    Stage("perception", "the Component VAE, on a training split's frames", _PERCEPTION, "perception",
+    Stage(PERCEPTION, "the Component VAE, on a training split's frames", _PERCEPTION, "perception",
           "pixels", "perception_train"),
     Stage("xpl", "Transformer 1 and the dynamics (Transformer 2 too where the recipe trains it jointly), on the "
           "latent cache (a split is encoded first)",
-          _XPL, "xpl", "latents", "xpl_train", scored=True, variant="xpl"),
+          _XPL, "xpl", "latents", "xpl_train", role="xpl", lane=3, variant="xpl"),
     Stage("proposal", "Transformer 2 and the existence head further, on hidden objects (after xpl)",
           _XPL, "xpl", "xpl", "proposal_train", variant="xpl"),
     Stage("plato", "the PLATO baseline: the dynamics alone, on the latent cache", _XPL, "xpl", "latents",
-          "plato_train", scored=True, variant="plato", residual=False),
+          "plato_train", role="baseline", lane=1, variant="plato", residual=False),
     Stage("xpl-noresidual", "XPL without the dynamics' residual (the paper's ablation), on the latent cache",
-          _XPL, "xpl", "latents", "xpl_train", scored=True, variant="xpl", residual=False),
+          _XPL, "xpl", "latents", "xpl_train", role="reported", lane=2, variant="xpl", residual=False),
     Stage("phydnet", "the PhyDNet baseline, on a training split's pixels", _PHYDNET, "phydnet", "pixels",
-          "phydnet_train", scored=True),
+          "phydnet_train", role="baseline", lane=0),
 )}
 SCORED = tuple(name for name, stage in STAGES.items() if stage.scored)     # the models a checkpoint can be
-XPL_FAMILY = tuple(name for name, stage in STAGES.items() if stage.variant)
+# the chance baseline: per-frame surprise drawn at random (xvoe.evaluation.score), scored by name like
+# any model and made by no stage: nothing to train, no checkpoint
+RANDOM = "random"
+# every model scored by name, with the goals the scorecard holds it to ("chance": 50% inside the interval)
+MODEL_ROLES: dict[str, str] = {**{name: STAGES[name].role for name in SCORED}, RANDOM: "chance"}
+MODELS = tuple(MODEL_ROLES)
 
 
 def stage(name: str) -> Stage:
@@ -68,3 +86,16 @@ def stage(name: str) -> Stage:
     if name not in STAGES:
         raise XvoeError(f"unknown stage {name!r}; choose one of {', '.join(STAGES)}")
     return STAGES[name]
+
+
+def continued_by(name: str) -> tuple[str, ...]:
+    """The stages that continue from the stage's checkpoint (xpl's proposal stage): its scores rest on them too."""
+    return tuple(other for other, entry in STAGES.items() if entry.reads == name)
+
+
+def resting_on(model: str) -> tuple[str, ...]:
+    """The stages a model's scores rest on: its own, those that continue from it, and the perception whose
+    latents it reads; none for the random agent."""
+    if model not in STAGES:
+        return ()
+    return (model, *continued_by(model), *((PERCEPTION,) if STAGES[model].reads_latents else ()))
