@@ -8,6 +8,9 @@ from ...models.xpl import XPLConfig
 from ..config import TrainConfig
 from .recipe import Recipe
 
+XPL_TRAIN = TrainConfig(steps=32_000, batch_size=500, warmup_steps=1000, decay_steps=10_000, checkpoint_minutes=10.0,
+                        log_every=100)
+
 RECIPE = Recipe(
     name="paper",
     # the NLL's defaults: none has been chosen on a validation split at this scale
@@ -17,10 +20,10 @@ RECIPE = Recipe(
                                 decoder_extra_convs=1),
     xpl=XPLConfig(reasoning=ReasoningConfig(latent_dim=32, width=256, layers=6, heads=8, mlp=256),
                   dynamics=DynamicsConfig(latent_dim=32, hidden=512, mlp_layers=3, lstm=2056, buffer_heads=8)),
-    xpl_train=TrainConfig(steps=32_000, batch_size=500, warmup_steps=1000, decay_steps=10_000,
-                          checkpoint_minutes=10.0, log_every=100),
-    proposal_train=TrainConfig(steps=32_000, batch_size=500, warmup_steps=1000, decay_steps=10_000,
-                               checkpoint_minutes=10.0, log_every=100),
+    xpl_train=XPL_TRAIN,
+    # the proposal stage and PLATO as long as XPL: neither has a run of its own chosen at this scale
+    proposal_train=XPL_TRAIN,
+    plato_train=XPL_TRAIN,
     perception_train=TrainConfig(steps=472_000, batch_size=36, lr=4e-4, warmup_steps=2000,
                                  decay_steps=100_000, checkpoint_minutes=10.0, log_every=100),
     # the original's sizes (64x64 -> 16x16 features, ConvLSTM 128-128-64), one more halving at 128x128;

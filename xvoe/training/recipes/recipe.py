@@ -1,13 +1,15 @@
 """What a recipe is: every setting of every stage that makes a model, as data.
 
 A `Recipe` holds the training data's size, one network config and one training config per
-stage, and the phases that continue a stage (a resume with a new batch focus or learning
-rate is a written phase, not a hand-run step). The recipes themselves are the modules beside
-this one.
+stage, the NLL's settings, and the phases that continue a stage (a resume with a new batch
+focus or learning rate is a written phase, not a hand-run step). Every field is written in each
+recipe's module beside this one (none has a default here but the phases, of which a recipe may
+have none): a setting is decided there, stored in the checkpoint a stage makes, and changed
+only by an explicit `--set` or `--nll-set`.
 """
 from __future__ import annotations
 
-from dataclasses import dataclass, field, fields, replace
+from dataclasses import dataclass, fields, replace
 
 from ...models.config import parse_field, split_assignment
 from ...models.nll import InferenceConfig
@@ -23,26 +25,22 @@ class Recipe:
     """Everything needed to make every model from nothing: `xvoe pipeline --recipe NAME`."""
 
     name: str
-    # the NLL surprise's settings for the models it makes, written in each recipe's file: the xpl
-    # stage stores them in its checkpoint, and a score reads them back from there
+    # the NLL surprise's settings for the models it makes: the xpl stage stores them in its
+    # checkpoint, and a score reads them back from there
     nll: InferenceConfig
-    train_videos: int = 10_000      # the training split the pipeline generates (frames: perception.image_size)
-    perception: PerceptionConfig = field(default_factory=PerceptionConfig)
-    perception_train: TrainConfig = field(default_factory=TrainConfig)
-    xpl: XPLConfig = field(default_factory=XPLConfig)
-    xpl_train: TrainConfig = field(default_factory=lambda: TrainConfig(steps=1500, batch_size=32, warmup_steps=100,
-                                                                       decay_steps=1000))
+    train_videos: int           # the training split the pipeline generates (frames: perception.image_size)
+    perception: PerceptionConfig
+    perception_train: TrainConfig
+    xpl: XPLConfig
+    xpl_train: TrainConfig
     # Transformer 2 and the existence head trained further on hidden objects (the proposal stage)
-    proposal_train: TrainConfig = field(default_factory=lambda: TrainConfig(steps=4000, batch_size=32,
-                                                                            warmup_steps=100, decay_steps=1500))
-    # the PLATO baseline's training (None: xpl_train's). Without Transformer 1 it predicts the
-    # raw latents directly, and every visible object costs its prediction error in every frame:
-    # trained no longer than XPL, that cost outweighs the violations of the predictive settings
-    plato_train: TrainConfig | None = None
-    # the PhyDNet baseline: batch_size counts videos
-    phydnet: PhyDNetConfig = field(default_factory=PhyDNetConfig)
-    phydnet_train: TrainConfig = field(default_factory=lambda: TrainConfig(steps=300, batch_size=8, lr=3e-3,
-                                                                           warmup_steps=20, decay_steps=300))
+    proposal_train: TrainConfig
+    # the PLATO baseline's training. Without Transformer 1 it predicts the raw latents directly, and
+    # every visible object costs its prediction error in every frame: trained no longer than XPL,
+    # that cost outweighs the violations of the predictive settings
+    plato_train: TrainConfig
+    phydnet: PhyDNetConfig      # the PhyDNet baseline
+    phydnet_train: TrainConfig  # ... whose batch_size counts videos
     # phases that continue a stage's run, in order: (stage, its training from there on), each
     # resumed from the checkpoint the phase before left, to `steps` in all
     phases: tuple[tuple[str, TrainConfig], ...] = ()
@@ -52,8 +50,7 @@ class Recipe:
 
     def training(self, name: str) -> TrainConfig:
         """The first phase of a stage: where a fresh run of it starts."""
-        train = getattr(self, stage(name).train_field)
-        return self.xpl_train if train is None else train
+        return getattr(self, stage(name).train_field)
 
     def final_phydnet(self) -> PhyDNetConfig:
         """The PhyDNet a finished run holds: the recipe's, its gates as wide as a phase widened them."""
