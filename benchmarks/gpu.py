@@ -4,10 +4,10 @@ time against the device's matrix-product rate. Not yet run on a GPU by the proje
 
 Two parts, both at `--recipe paper` (128x128, the ViT, the paper's widths):
   stages  a small training split (--videos) and test split (--pairs per setting) are generated;
-          perception, the latent cache, xpl, proposal, plato, xpl-noresidual and phydnet each
-          train --steps steps on the device with the recipe's batch sizes (what `xvoe train
-          STAGE --device` does), and every scored model scores the test split (xpl with the NLL
-          too, --particles); the wall time of each
+          every stage of the registry (xvoe.STAGES) and the latent cache between perception and
+          the stages on it train --steps steps on the device with the recipe's batch sizes (what
+          `xvoe train STAGE --device` does), and every scored model scores the test split (the
+          one its registry entry marks with the NLL too, --particles); the wall time of each
   steps   one training step of perception, xpl and phydnet and one MSE and one NLL scoring pass
           on random inputs of the paper's shapes (benchmarks/steps.py's, on the device), timed
           after warm-up; their multiply-accumulates counted (xvoe.evaluation.operations) and
@@ -30,19 +30,16 @@ from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
+import steps
 import torch
-from steps import UNIT, nll_step, perception_step, phydnet_step, score_step, xpl_step
 
 import xvoe
 from xvoe import allocator
-from xvoe.errors import XvoeError
 from xvoe.evaluation.operations import count_operations
 from xvoe.models.devices import resolve_device
 from xvoe.outputs import claim_directory
-from xvoe.training.recipes import recipe
 
 RECIPE = "paper"
-TRAINED = ("xpl", "plato", "xpl-noresidual")      # the stages on the latent cache, after perception
 
 
 def synchronised(device: torch.device, work: Callable[[], object]) -> float:
@@ -65,7 +62,7 @@ def matmul_rate(device: torch.device, dtype: torch.dtype, size: int = 4096, repe
 
 def stages(device: torch.device, out: Path, args: argparse.Namespace) -> None:
     """Every stage trains `args.steps` steps and every scored model scores the test split."""
-    size = recipe(RECIPE).perception.image_size
+    size = xvoe.recipe(RECIPE).perception.image_size
     train = xvoe.generate(xvoe.GenerateConfig(split="train", videos=args.videos, size=size, seed=0),
                           out / "train.h5", workers=args.workers, progress=False, overwrite=True)
     test = xvoe.generate(xvoe.GenerateConfig(split="test", pairs=args.pairs, size=size, seed=1),
@@ -76,11 +73,11 @@ def stages(device: torch.device, out: Path, args: argparse.Namespace) -> None:
             "encode": lambda: xvoe.encode_split(run, train, cache, overwrite=True, progress=False,
                                                 device=device),
             **{stage: (lambda stage=stage: xvoe.train_xpl(cache, run, stage=stage, recipe_name=RECIPE, **common))
-               for stage in TRAINED},
+               for stage, entry in xvoe.STAGES.items() if entry.reads == "latents"},
             "proposal": lambda: xvoe.train_proposal(run, **common),
             "phydnet": lambda: xvoe.train_phydnet(train, run, recipe_name=RECIPE, **common)}
-    for model in ("xpl", "plato", "xpl-noresidual", "phydnet"):
-        surprise = "both" if model == "xpl" else "mse"
+    for model in (name for name, entry in xvoe.STAGES.items() if entry.scored):
+        surprise = "both" if xvoe.STAGES[model].nll else "mse"
         work[f"score {model} ({surprise})"] = lambda model=model, surprise=surprise: xvoe.score(
             str(run / f"{model}.pt"), test, out / f"{model}.csv", surprise=surprise, particles=args.particles,
             overwrite=True, progress=False, device=str(device))
@@ -90,17 +87,18 @@ def stages(device: torch.device, out: Path, args: argparse.Namespace) -> None:
         print(f"  {name:<28} {synchronised(device, job):8.1f} s", flush=True)
 
 
-def steps(device: torch.device, args: argparse.Namespace) -> None:
+def step_rates(device: torch.device, args: argparse.Namespace) -> None:
     """Each step's time and its rate as a fraction of the matrix product's, in float32 and bfloat16."""
-    chosen = recipe(RECIPE)
+    chosen = xvoe.recipe(RECIPE)
     where = str(device)
-    builders = {"perception": lambda rng: (perception_step(chosen.perception, args.frames, rng, where), args.frames),
-                "xpl": lambda rng: (xpl_step(chosen.xpl, args.step_videos, rng, where), args.step_videos),
-                "phydnet": lambda rng: (phydnet_step(chosen.phydnet, args.phydnet_videos, rng, where),
-                                        args.phydnet_videos),
-                "score": lambda rng: (score_step(chosen.perception, chosen.xpl, args.score_videos, rng, where),
-                                      args.score_videos),
-                "nll": lambda rng: (nll_step(chosen.perception, chosen.xpl, chosen.nll, rng, where), 1)}
+    builders = {
+        "perception": lambda rng: (steps.perception_step(chosen.perception, args.frames, rng, where), args.frames),
+        "xpl": lambda rng: (steps.xpl_step(chosen.xpl, args.step_videos, rng, where), args.step_videos),
+        "phydnet": lambda rng: (steps.phydnet_step(chosen.phydnet, args.phydnet_videos, rng, where),
+                                args.phydnet_videos),
+        "score": lambda rng: (steps.score_step(chosen.perception, chosen.xpl, args.score_videos, rng, where),
+                              args.score_videos),
+        "nll": lambda rng: (steps.nll_step(chosen.perception, chosen.xpl, chosen.nll, rng, where), 1)}
     peaks = {"float32": matmul_rate(device, torch.float32), "bfloat16": matmul_rate(device, torch.bfloat16)}
     print(f"steps: a 4096x4096 matrix product runs at {peaks['float32']:.0f} GMAC/s in float32, "
           f"{peaks['bfloat16']:.0f} in bfloat16")
@@ -114,7 +112,8 @@ def steps(device: torch.device, args: argparse.Namespace) -> None:
         gmacs = count_operations(step).gmacs
         rate = gmacs / seconds
         print(f"  {name:<12} {1000 * seconds / items:9.2f} {gmacs / items:10.2f} {rate:9.0f} "
-              f"{rate / peaks['float32']:8.1%} {rate / peaks['bfloat16']:8.1%}  {items} {UNIT[name]}s", flush=True)
+              f"{rate / peaks['float32']:8.1%} {rate / peaks['bfloat16']:8.1%}  {items} {steps.UNIT[name]}s",
+              flush=True)
 
 
 def main() -> int:
@@ -141,7 +140,7 @@ def main() -> int:
         return 0
     try:
         device = resolve_device(args.device)
-    except XvoeError as error:
+    except xvoe.XvoeError as error:
         print(f"benchmarks/gpu.py: {error}", file=sys.stderr)
         return 2
     print(f"{torch.cuda.get_device_name(device)}, torch {torch.__version__}, CUDA {torch.version.cuda}, "
@@ -154,7 +153,7 @@ def main() -> int:
             with tempfile.TemporaryDirectory(prefix="xvoe-gpu-") as out:
                 stages(device, Path(out), args)
     if "steps" in parts:
-        steps(device, args)
+        step_rates(device, args)
     return 0
 
 

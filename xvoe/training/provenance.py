@@ -31,7 +31,7 @@ def expected_configs(state: dict) -> tuple[dict, dict]:
         stored = from_dict(XPLConfig, config["xpl"])
         shape = (stored.reasoning.frames, stored.reasoning.slots, stored.reasoning.latent_dim)
         model = {"xpl": to_dict(stage_config(chosen.xpl, entry.name, True, shape))}
-        if entry.name == "xpl":
+        if entry.nll:
             model["nll"] = to_dict(chosen.nll)
     model["recipe"] = chosen.name
     train = to_dict(chosen.final_training(entry.name)) | {k: state["train"][k] for k in RUN_FIELDS}
@@ -46,7 +46,7 @@ def recipe_differences(state: dict) -> list[str]:
     stored = {"recipe": recipe_of(config)}      # read as the loaders read it: a field added since takes its default
     entry = stage(state["stage"])
     stored[entry.config_key] = to_dict(from_dict(entry.config, config[entry.config_key]))
-    if entry.name == "xpl":
+    if entry.nll:
         stored["nll"] = to_dict(nll_settings_of(config) or InferenceConfig())     # as a score reads it
     lines = _differences(stored, model, "") + _differences(to_dict(from_dict(TrainConfig, state["train"])), train,
                                                           "train.")

@@ -32,6 +32,7 @@ class Stage:
     # `xvoe pipeline --jobs` lanes start the lowest first: the longest training, so that the last lane does
     # not start it late (docs/decisions.md, "Pipeline lanes")
     lane: int = 0
+    nll: bool = False           # its checkpoint stores the recipe's NLL settings: the model the NLL surprise runs on
     variant: str = ""           # XPL-family stages: the network XPL is fitted to ("xpl" or "plato")
     residual: bool = True       # ... and whether its dynamics predict a change (XPL) or the latent itself (PLATO)
 
@@ -62,7 +63,7 @@ STAGES: dict[str, Stage] = {stage.name: stage for stage in (
           "pixels", "perception_train"),
     Stage("xpl", "Transformer 1 and the dynamics (Transformer 2 too where the recipe trains it jointly), on the "
           "latent cache (a split is encoded first)",
-          _XPL, "xpl", "latents", "xpl_train", role="xpl", lane=3, variant="xpl"),
+          _XPL, "xpl", "latents", "xpl_train", role="xpl", lane=3, nll=True, variant="xpl"),
     Stage("proposal", "Transformer 2 and the existence head further, on hidden objects (after xpl)",
           _XPL, "xpl", "xpl", "proposal_train", variant="xpl"),
     Stage("plato", "the PLATO baseline: the dynamics alone, on the latent cache", _XPL, "xpl", "latents",
