@@ -45,7 +45,7 @@ from ..training.loop import checkpoint_path
 from ..training.perception import train_perception
 from ..training.phydnet import train_phydnet
 from ..training.recipes import DEFAULT_RECIPE, RECIPES, Recipe, recipe
-from ..training.stages import MODELS, RANDOM, STAGES, continued_by, resting_on
+from ..training.stages import MODELS, PERCEPTION, RANDOM, STAGES, continued_by, resting_on
 from ..training.xpl import TRAINED_ON_LATENTS, train_proposal, train_xpl
 from .figures import plot_explanation
 from .report import header_lines, report
@@ -144,9 +144,9 @@ def run_pipeline(config: PipelineConfig) -> Path:
     if any(model in TRAINED_ON_LATENTS for model in config.models):     # PhyDNet and the random agent need none
         # one process with every core's thread: its convolutions use them (docs/decisions.md, "Training
         # stages on every core")
-        stages.run("perception", lambda: train_perception(
+        stages.run(PERCEPTION, lambda: train_perception(
             train_data, run_dir, recipe_name=config.recipe, progress=config.progress,
-            resume=checkpoint_path(run_dir, "perception").exists(), seed=config.seed, device=config.device))
+            resume=checkpoint_path(run_dir, PERCEPTION).exists(), seed=config.seed, device=config.device))
         stages.run("encode-train", lambda: encode_split(run_dir, train_data, latents, overwrite=True,
                                                         progress=config.progress, device=config.device))
     (run_dir / "scores").mkdir(exist_ok=True)

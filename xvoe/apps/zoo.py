@@ -1,4 +1,4 @@
-"""Models shipped with the package: `xpl` (the default), `plato`, `xpl-noresidual`, `phydnet`.
+"""Models shipped with the package: every scored stage's (`SHIPPED`), `xpl` the default.
 
 They live in xvoe/weights/ as one run directory (a shared perception.pt and one checkpoint per
 stage), written by `xvoe ship RUN_DIR` from a run of `xvoe pipeline`: weights and configs only,
@@ -17,7 +17,7 @@ from ..errors import XvoeError
 from ..outputs import atomic_paths, claim_directory
 from ..training.checkpoints import SHIPPED, WEIGHTS, load_checkpoint, shipped_path
 from ..training.provenance import recipe_differences
-from ..training.stages import STAGES
+from ..training.stages import PERCEPTION, STAGES
 
 BUDGET_BYTES = 25 * 2**20      # all shipped checkpoints together
 KEPT = ("format", "stage", "step", "config", "model", "train", "meta")
@@ -38,18 +38,23 @@ def ship(run_dir: str | os.PathLike, out: str | os.PathLike | None = None) -> li
         raise XvoeError(f"{run_dir}: no such run directory")
     stages = [name for name, entry in STAGES.items() if (run_dir / entry.checkpoint).is_file()]
     if not stages:
-        raise XvoeError(f"{run_dir} holds no checkpoint to ship (perception.pt with xpl.pt, or phydnet.pt)")
-    if "perception" not in stages and (readers := [s for s in stages if s in READS_PERCEPTION]):
-        raise XvoeError(f"{run_dir} holds no perception.pt, whose latents its {', '.join(readers)} read; "
-                        "nothing was written")
+        readers = " or ".join(STAGES[s].checkpoint for s in READS_PERCEPTION if STAGES[s].scored)
+        others = ", ".join(entry.checkpoint for name, entry in STAGES.items()
+                           if entry.scored and name not in READS_PERCEPTION)
+        raise XvoeError(f"{run_dir} holds no checkpoint to ship ({STAGES[PERCEPTION].checkpoint} with {readers}, "
+                        f"or {others})")
+    if PERCEPTION not in stages and (readers := [s for s in stages if s in READS_PERCEPTION]):
+        raise XvoeError(f"{run_dir} holds no {STAGES[PERCEPTION].checkpoint}, whose latents its {', '.join(readers)} "
+                        "read; nothing was written")
     claim_directory(out or WEIGHTS, make=False)
-    states = {stage: load_checkpoint(run_dir / f"{stage}.pt", stage) for stage in stages}
+    states = {stage: load_checkpoint(run_dir / STAGES[stage].checkpoint, stage) for stage in stages}
     for stage, state in states.items():
         if differences := recipe_differences(state):
-            raise XvoeError(f"{run_dir / stage}.pt is not what its recipe makes ({'; '.join(differences[:3])}); "
-                            "ship runs of `xvoe pipeline --recipe NAME` as written; nothing was written")
-    if "perception" in states:      # PhyDNet reads pixels: it ships on its own
-        _check_shared_perception(states["perception"], Path(out or WEIGHTS), set(stages))
+            raise XvoeError(f"{run_dir / STAGES[stage].checkpoint} is not what its recipe makes "
+                            f"({'; '.join(differences[:3])}); ship runs of `xvoe pipeline --recipe NAME` as written; "
+                            "nothing was written")
+    if PERCEPTION in states:      # PhyDNet reads pixels: it ships on its own
+        _check_shared_perception(states[PERCEPTION], Path(out or WEIGHTS), set(stages))
     slim = {stage: _slim(state, run_dir.name) for stage, state in states.items()}
     kept = sum(p.stat().st_size for p in Path(out or WEIGHTS).glob("*.pt") if p.stem not in slim)
     total = kept + sum(len(data) for data in slim.values())
@@ -57,7 +62,7 @@ def ship(run_dir: str | os.PathLike, out: str | os.PathLike | None = None) -> li
         raise XvoeError(f"shipped checkpoints would take {total / 2**20:.1f} MB, "
                         f"over the {BUDGET_BYTES / 2**20:.0f} MB budget; nothing was written")
     out = claim_directory(out or WEIGHTS)
-    targets = [out / f"{stage}.pt" for stage in slim]
+    targets = [out / STAGES[stage].checkpoint for stage in slim]
     with atomic_paths(*targets) as temporaries:
         for temporary, data in zip(temporaries, slim.values()):
             temporary.write_bytes(data)
@@ -67,17 +72,17 @@ def ship(run_dir: str | os.PathLike, out: str | os.PathLike | None = None) -> li
 def _check_shared_perception(perception: dict, out: Path, shipping: set[str]) -> None:
     """A new perception.pt changes the latents that every XPL-family model there was trained on:
     those left behind would read latents they never saw."""
-    current = out / "perception.pt"
+    current = out / STAGES[PERCEPTION].checkpoint
     if not current.is_file():
         return
     old = load_checkpoint(current)["model"]
     if old.keys() == perception["model"].keys() and all(torch.equal(old[k], perception["model"][k]) for k in old):
         return
-    stranded = [s for s in READS_PERCEPTION if (out / f"{s}.pt").is_file() and s not in shipping]
+    stranded = [STAGES[s].checkpoint for s in READS_PERCEPTION if (out / STAGES[s].checkpoint).is_file()
+                and s not in shipping]
     if stranded:
-        names = ", ".join(f"{s}.pt" for s in stranded)
-        raise XvoeError(f"the run's perception.pt is not the shipped one, which {names} read; ship a run that "
-                        "trained them on its perception too; nothing was written")
+        raise XvoeError(f"the run's {current.name} is not the shipped one, which {', '.join(stranded)} read; ship a "
+                        "run that trained them on its perception too; nothing was written")
 
 
 def _slim(state: dict, run_name: str) -> bytes:
