@@ -4,6 +4,7 @@ import pytest
 
 from xvoe.errors import XvoeError
 from xvoe.evaluation.scorecard import (
+    ROLES,
     TWO_DENIED,
     TWO_SAID,
     Line,
@@ -18,6 +19,7 @@ from xvoe.evaluation.scorecard import (
     score_lines,
     write_card,
 )
+from xvoe.training.stages import MODEL_ROLES, RANDOM, STAGES
 
 
 def table(rows, paper=None):
@@ -139,6 +141,13 @@ def test_a_card_round_trips_and_prints(tmp_path):
     assert "NOT MET" in text and "WORSE BEYOND ITS INTERVAL" in text
     assert (role_of("plato"), role_of("random"), role_of("runs/s0"), role_of("xpl")) == (
         "baseline", "chance", "xpl", "xpl")
+
+
+def test_every_model_known_by_name_carries_a_role_of_the_scorecard():
+    """The registry's roles are the scorecard's: a model named there is held to goals that exist,
+    and the random agent, made by no stage, to chance's."""
+    assert set(MODEL_ROLES.values()) <= set(ROLES)
+    assert RANDOM not in STAGES and role_of(f"runs/{RANDOM}") == "chance"
 
 
 def test_the_identity_lines_count_the_videos_only_two_objects_explain_and_those_a_wall_shows_one():
