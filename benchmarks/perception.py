@@ -23,7 +23,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from xvoe.apps.figures import save_reconstructions
+from xvoe.apps.frames import save_reconstructions
 from xvoe.errors import XvoeError
 from xvoe.evaluation import perception_quality as quality
 from xvoe.evaluation.scorecard import PROBE_R2

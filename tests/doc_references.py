@@ -410,7 +410,7 @@ def resolve(dotted: str) -> str | None:
     """
     parts = dotted.split(".")
     if parts[0] != "xvoe" or parts[1:2] == ["viz"]:
-        return "there is no xvoe.viz: the figures are xvoe.plot_* and xvoe.show*, from xvoe.apps.figures"
+        return "there is no xvoe.viz: the figures are xvoe.plot_* and xvoe.show*, from the modules of xvoe.apps"
     import xvoe
 
     # xvoe's own table of where each public name lives, so that no name is imported to be found

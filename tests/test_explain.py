@@ -63,7 +63,7 @@ def _nll(p_hidden: float, p_two: float, display: bool = False, hypotheses=None):
 def _kinds(explanation) -> list[str]:
     import matplotlib.pyplot as plt
 
-    from xvoe.apps.figures import plot_explanation
+    from xvoe.apps.explanation_figure import plot_explanation
     figure = plot_explanation(explanation)
     kinds = [kind for kind, _ in figure.drawn_rows]
     assert len(figure.axes[0].get_yticklabels()) == len(kinds)
@@ -108,7 +108,7 @@ def test_hypotheses_that_draw_like_the_mean_are_named_not_drawn_and_rows_are_mas
 
 
 def test_the_scene_outlines_a_hidden_object_only_above_the_threshold():
-    from xvoe.apps.figures import explanation_overlay
+    from xvoe.apps.explanation_figure import explanation_overlay
     believed, colour = explanation_overlay(_nll(0.9, None, display=True))
     assert colour is not None and (believed != 100).any()
     doubted, colour = explanation_overlay(_nll(0.0, None, display=True))

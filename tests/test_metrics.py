@@ -367,7 +367,7 @@ def test_the_ideal_is_a_dashed_line_across_each_group_and_a_column_keeps_its_col
     import matplotlib.pyplot as plt
     from matplotlib.colors import to_rgba
 
-    from xvoe.apps.figures import COLUMN_COLORS, IDEAL_COLOR, plot_comparative, plot_components
+    from xvoe.apps.metric_plots import COLUMN_COLORS, IDEAL_COLOR, plot_comparative, plot_components
 
     figure = plot_comparative(_chart_rows(["score (MSE, sum)", "nll (NLL)"]))
     top = figure.axes[0]

@@ -13,7 +13,7 @@ from pyro.util import check_model_guide_match
 
 import xvoe
 from xvoe.apps.cli import main
-from xvoe.apps.figures import plot_explanation
+from xvoe.apps.explanation_figure import plot_explanation
 from xvoe.apps.report import header_lines
 from xvoe.apps.zoo import available_models
 from xvoe.evaluation.metrics import read_scores

@@ -9,7 +9,7 @@ import torch
 from conftest import interrupt_during
 
 from xvoe.apps.cli import main
-from xvoe.apps.figures import plot_predictions, predicted_frames
+from xvoe.apps.comparisons import plot_predictions, predicted_frames
 from xvoe.apps.pipeline import PipelineConfig, run_pipeline
 from xvoe.errors import XvoeError
 from xvoe.evaluation.score import SCORE_COLUMNS, load_model

@@ -54,10 +54,12 @@ _HOMES = {
     "xvoe.apps.verify": ("verify",),
     "xvoe.apps.zoo": ("available_models", "ship"),
     "xvoe.apps.pipeline": ("PipelineConfig", "run_pipeline"),
-    "xvoe.apps.figures": ("show", "show_video", "save_gif", "save_video", "save_figure", "frame_rows",
-                          "plot_explanation", "plot_comparative", "plot_components", "plot_holistic",
-                          "plot_disagreements", "plot_surprise_curves", "plot_surprise_definitions",
-                          "plot_predictions", "plot_onset", "plot_settings", "animate_pair"),
+    "xvoe.apps.frames": ("show_video", "save_gif", "save_figure", "frame_rows"),
+    "xvoe.apps.show": ("show", "save_video"),
+    "xvoe.apps.explanation_figure": ("plot_explanation",),
+    "xvoe.apps.metric_plots": ("plot_comparative", "plot_components", "plot_holistic", "plot_onset"),
+    "xvoe.apps.comparisons": ("plot_disagreements", "plot_settings", "plot_predictions"),
+    "xvoe.apps.curves": ("plot_surprise_curves", "plot_surprise_definitions", "animate_pair"),
 }
 _MODULES = {"custom": "xvoe.scenes.custom"}     # make your own VoE event: xvoe.custom.make_pair(...)
 _HOME_OF = {name: module for module, names in _HOMES.items() for name in names}

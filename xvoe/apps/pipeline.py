@@ -47,7 +47,7 @@ from ..training.phydnet import train_phydnet
 from ..training.recipes import DEFAULT_RECIPE, RECIPES, Recipe, recipe
 from ..training.stages import MODELS, PERCEPTION, RANDOM, STAGES, continued_by, resting_on
 from ..training.xpl import TRAINED_ON_LATENTS, train_proposal, train_xpl
-from .figures import plot_explanation
+from .explanation_figure import plot_explanation
 from .report import header_lines, report
 from .verbs import with_display
 

@@ -36,7 +36,9 @@ from ..outputs import (
     writing,
 )
 from ..scenes import store
-from . import figures
+from .comparisons import plot_disagreements
+from .frames import save_figure
+from .metric_plots import plot_comparative, plot_components, plot_holistic, plot_onset
 from .table import STYLES, paper_table
 
 # what a report writes, so that a rerun into the same directory leaves nothing of the last one
@@ -122,13 +124,13 @@ def _write_report(out_dir: Path, paths: list[str | Path], rows: list[dict], name
     if table is not None:
         written.append(out_dir / STYLES[table])
         written[-1].write_text(paper_table(rows, members, table))
-    drawn = {"holistic.png": figures.plot_holistic(rows), "comparative.png": figures.plot_comparative(rows)}
+    drawn = {"holistic.png": plot_holistic(rows), "comparative.png": plot_comparative(rows)}
     for name in names:
         if any(r["model"] == name and r["column"] != "score" for r in rows):
-            drawn[f"components-{name}.png"] = figures.plot_components(rows, name)
+            drawn[f"components-{name}.png"] = plot_components(rows, name)
     if timing:
         written.append(write_csv(timing, out_dir / "onset.csv", ONSET_FIELDS))
-        drawn["onset.png"] = figures.plot_onset(timed_pairs)
+        drawn["onset.png"] = plot_onset(timed_pairs)
     for name, scores in compared.items():
         differ = disagreements(scores)
         written += write_comparison(scores, rows, name, SURPRISES, out_dir, "surprise", "disagreements")
@@ -137,7 +139,7 @@ def _write_report(out_dir: Path, paths: list[str | Path], rows: list[dict], name
     for name, scores in verdicts.items():
         written += write_comparison(scores, rows, name, VERDICTS, out_dir, "verdicts", "verdicts-disagreements")
     for filename, figure in drawn.items():
-        written.append(figures.save_figure(figure, out_dir / filename, dpi=90))
+        written.append(save_figure(figure, out_dir / filename, dpi=90))
     return written
 
 
@@ -225,7 +227,7 @@ def _disagreement_figure(data: str | Path, scores: dict[str, np.ndarray], differ
     """The example figure of disagreeing pairs, from the test split the scores came from (its
     labels were checked against the scores when they were read)."""
     with store.open_dataset(data) as file:
-        return figures.plot_disagreements(file, differ)
+        return plot_disagreements(file, differ)
 
 
 def _event_frames(data: str | Path) -> np.ndarray:

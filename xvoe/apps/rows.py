@@ -21,7 +21,7 @@ from ..models.nll import InferenceConfig
 from ..progress import progress_bar
 from ..scenes import store
 from ..scenes.display import DISPLAY_SIZE
-from .figures import plot_explanation
+from .explanation_figure import plot_explanation
 from .verbs import explain
 
 # a figure's row kind -> the score file's column whose probability decides whether it is drawn

@@ -163,14 +163,19 @@ def masked(pictures: np.ndarray) -> np.ndarray:
 SAME_PIXELS = 3     # a decoded object differing from another in fewer pixels of every frame looks the same
 
 
-def look_alike(a: np.ndarray, b: np.ndarray) -> bool:
-    """Whether two decoded uint8 pictures (T, H, W, 4) of one slot draw the same to the eye: in
-    every frame fewer than SAME_PIXELS pixels are drawn by one alone or differ by more than a
-    fifth of the colour range."""
+def differing_pixels(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Per frame, how many pixels two decoded uint8 pictures (T, H, W, 4) of one slot draw
+    differently to the eye: drawn by one alone, or by both in colours more than a fifth of the
+    colour range apart."""
     drawn_a, drawn_b = drawn_pixels(a), drawn_pixels(b)
     colour = np.abs(a[..., :3].astype(np.int16) - b[..., :3].astype(np.int16)).max(axis=-1) > 51
-    differ = (drawn_a != drawn_b) | (drawn_a & drawn_b & colour)
-    return int(differ.sum(axis=(-2, -1)).max(initial=0)) < SAME_PIXELS
+    return ((drawn_a != drawn_b) | (drawn_a & drawn_b & colour)).sum(axis=(-2, -1))
+
+
+def look_alike(a: np.ndarray, b: np.ndarray) -> bool:
+    """Whether two decoded uint8 pictures (T, H, W, 4) of one slot draw the same to the eye:
+    fewer than SAME_PIXELS differing pixels (`differing_pixels`) in every frame."""
+    return int(differing_pixels(a, b).max(initial=0)) < SAME_PIXELS
 
 
 def draws_something(pictures: np.ndarray) -> bool:
