@@ -55,7 +55,7 @@ _HOMES = {
     "xvoe.apps.zoo": ("available_models", "ship"),
     "xvoe.apps.pipeline": ("PipelineConfig", "run_pipeline"),
     "xvoe.apps.frames": ("show_video", "save_gif", "save_figure", "frame_rows"),
-    "xvoe.apps.show": ("show", "save_video"),
+    "xvoe.apps.show_pair": ("show", "save_video"),
     "xvoe.apps.explanation_figure": ("plot_explanation",),
     "xvoe.apps.metric_plots": ("plot_comparative", "plot_components", "plot_holistic", "plot_onset"),
     "xvoe.apps.comparisons": ("plot_disagreements", "plot_settings", "plot_predictions"),
