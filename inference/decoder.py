@@ -19,6 +19,8 @@ from torch import Tensor, nn
 
 from xvoe.models.perception import BroadcastDecoder, ComponentVAE
 
+__all__ = ["FoldedDecoder"]
+
 
 class FoldedDecoder:
     """`vae.decode` with its first layer folded into a matrix and its last one a matrix product,

@@ -18,6 +18,8 @@ from .identity import two_objects
 from .model import InferenceConfig
 from .surprise import check_particles, explain_surprise, hidden_posterior
 
+__all__ = ["NLLExplanation", "explain_nll", "nll_explanation", "two_object_pictures"]
+
 
 @dataclass
 class NLLExplanation(Explanation):

@@ -21,6 +21,8 @@ from torch import Tensor
 
 from xvoe.models.reasoning import never_seen
 
+__all__ = ["Identity", "identity_gap", "two_objects"]
+
 
 class Identity(NamedTuple):
     """Which seen object may be two, and where its gap is."""

@@ -44,6 +44,9 @@ from torch import Tensor, nn
 
 from xvoe.models.nll import InferenceConfig
 
+__all__ = ["InferenceConfig", "State", "Drawing", "Step", "Scene", "drawing_cost", "pixel_log_normaliser",
+           "Proposal", "HiddenObjectModel"]
+
 State = dict[str, Any]     # what a particle carries from frame to frame: exists, trajectory, the dynamics' memory
 
 
@@ -107,7 +110,7 @@ def pixel_log_normaliser(pixels: int, sigma: float) -> float:
     return pixels * (math.log(sigma) + 0.5 * math.log(2 * math.pi))
 
 
-def pixel_log_density(expected: Tensor, observed: Tensor, sigma: float) -> Tensor:
+def _pixel_log_density(expected: Tensor, observed: Tensor, sigma: float) -> Tensor:
     """log N(observed | expected, sigma^2) of each leading entry of expected (n, ...) against one
     observed frame, summed in float64: a frame's thousands of pixel terms would lose in float32
     the digits that tell two videos apart."""
@@ -162,7 +165,7 @@ class HiddenObjectModel(nn.Module):
                 z = pyro.sample(f"z_{t}", dist.Normal(state["loc"], state["scale"], validate_args=False).to_event(1))
         version = state["version"]
         pyro.factor(f"x_{t}", self.frame_log_likelihood(t, z, alive, version, frame))
-        keep(state, z)
+        _keep(state, z)
         if t + 1 < self.frames:
             predicted = self.advance(state, t, z)
             sighted = self.scene.seen_motion(t + 1)
@@ -191,10 +194,10 @@ class HiddenObjectModel(nn.Module):
         sigma = self.config.pixel_sigma
         result = torch.empty(len(alive), dtype=torch.float64, device=frame.device)
         if not alive.all():
-            result[~alive] = pixel_log_density(self.scene.empty_frame(t), frame, sigma)[version[~alive]]
+            result[~alive] = _pixel_log_density(self.scene.empty_frame(t), frame, sigma)[version[~alive]]
         if alive.any():
             drawing = self.scene.draw_frame(t, latents[alive], version[alive])
-            result[alive] = pixel_log_density(drawing.frames, frame, sigma) - drawing_cost(self.config, drawing)
+            result[alive] = _pixel_log_density(drawing.frames, frame, sigma) - drawing_cost(self.config, drawing)
         return result
 
     def advance(self, state: State, t: int, latents: Tensor) -> Tensor | None:
@@ -232,7 +235,7 @@ class HiddenObjectModel(nn.Module):
             state.update(trajectory=None, memory=None)
             for t in range(self.frames):
                 z = self.guide_step(state, t, proposal, widenings)
-                keep(state, z)
+                _keep(state, z)
                 if t + 1 < self.frames:
                     self.advance(state, t, z)
         return state["exists"]
@@ -247,7 +250,7 @@ class HiddenObjectModel(nn.Module):
         if proposal is None:
             return dist.Normal(loc, scale, validate_args=False).to_event(1)
         mean, spread = proposal.loc[t].expand_as(loc), proposal.scale[t].expand_as(loc)
-        fused = [fuse(loc, scale, mean, spread * widening) for widening in widenings]
+        fused = [_fuse(loc, scale, mean, spread * widening) for widening in widenings]
         if len(fused) == 1:
             return dist.Normal(*fused[0], validate_args=False).to_event(1)
         locs, scales = torch.stack([f[0] for f in fused], dim=-2), torch.stack([f[1] for f in fused], dim=-2)
@@ -257,20 +260,20 @@ class HiddenObjectModel(nn.Module):
                                       validate_args=False)
 
 
-def keep(state: State, latents: Tensor) -> None:
+def _keep(state: State, latents: Tensor) -> None:
     """Add a frame's latents (N, D) to the particles' trajectory (N, t, D)."""
     trajectory = state["trajectory"]
     state["trajectory"] = latents[:, None] if trajectory is None else torch.cat([trajectory, latents[:, None]], 1)
 
 
-def fuse(loc_a: Tensor, scale_a: Tensor, loc_b: Tensor, scale_b: Tensor) -> tuple[Tensor, Tensor]:
+def _fuse(loc_a: Tensor, scale_a: Tensor, loc_b: Tensor, scale_b: Tensor) -> tuple[Tensor, Tensor]:
     """The normalised product of two diagonal Gaussians: precisions add, means weigh by them."""
     precision_a, precision_b = scale_a ** -2, scale_b ** -2
     precision = precision_a + precision_b
     return (loc_a * precision_a + loc_b * precision_b) / precision, precision ** -0.5
 
 
-class LinearGaussianScene(nn.Module):
+class _LinearGaussianScene(nn.Module):
     """A scene whose hidden object moves linearly and is seen through a linear camera:
     z_0 ~ N(m0, s0), z_t = A z_{t-1} + N(0, q), frame_t = background_v + exists * H z_t, with
     one background per version (V, P). Its evidence has a closed form (a Kalman filter per

@@ -23,6 +23,9 @@ from .model import InferenceConfig, Proposal, drawing_cost
 from .smc import Evidence, Hypotheses, effective_sample_size, importance_evidence, smc_evidence, top_hypotheses
 from .xpl_scene import XPLScene
 
+__all__ = ["NLLSurprise", "Seed", "check_particles", "nll_surprise", "HiddenPosterior", "hidden_posterior",
+           "Surprise", "explain_surprise"]
+
 
 @dataclass
 class NLLSurprise:
@@ -49,7 +52,7 @@ class NLLSurprise:
 Seed = int | torch.Generator | None
 
 
-def generator_from(seed: Seed) -> torch.Generator:
+def _generator_from(seed: Seed) -> torch.Generator:
     """A generator of its own for a seed (None: 0); a generator is used as it is. On the CPU
     whatever the device: the resampling's uniforms are drawn there and moved, and Pyro's global
     state (the CPU's, or the CUDA device's) is seeded from it."""
@@ -58,25 +61,25 @@ def generator_from(seed: Seed) -> torch.Generator:
     return torch.Generator().manual_seed(0 if seed is None else int(seed))
 
 
-BRANCH_SAMPLES = 8     # particles each value of `exists` expects at the least
+_BRANCH_SAMPLES = 8     # particles each value of `exists` expects at the least
 # memory a particle takes through a video's NLL, at the least: the shipped model's run on a
 # 32 px test video held 1.0 GB more at 8,192 particles than at 256
-PARTICLE_BYTES = 100_000
+_PARTICLE_BYTES = 100_000
 
 
 def check_particles(particles: int) -> None:
     """Refuse, before any work, a particle count whose run cannot fit in this machine's memory."""
-    check_memory(particles * PARTICLE_BYTES, f"--particles {particles:,}")
+    check_memory(particles * _PARTICLE_BYTES, f"--particles {particles:,}")
 
 
 
-def defensive(p_exists: Tensor, particles: int) -> Tensor:
+def _defensive(p_exists: Tensor, particles: int) -> Tensor:
     """The guide's existence probability, kept off 0 and 1 so that each branch expects at
     least BRANCH_SAMPLES particles. Every particle without a hidden object has the same,
     exactly computed weight, and the two branches' likelihoods differ by thousands of nats: a
     run that draws no particle of one branch misses it whole (with a 0.98 clamp and 64
     particles, one run in four did), and its NLL and p_hidden swing with the seed."""
-    floor = min(0.5, BRANCH_SAMPLES / particles)
+    floor = min(0.5, _BRANCH_SAMPLES / particles)
     return p_exists.clamp(floor, 1.0 - floor)
 
 
@@ -86,22 +89,22 @@ def nll_surprise(vae: ComponentVAE, xpl: XPL, frames: Tensor, mean: Tensor, visi
                  seed: Seed = 0, drawn: DrawnScene | None = None) -> NLLSurprise:
     """One video: frames (T, 4, H, W) in [-1, 1]; mean (T, K, D); visible (T, K) bool;
     background (T, D) latents; occluder (K,) bool. The guide proposes the hidden object's
-    trajectory from Transformer 2's mean (moved out of sight, `refine_out_of_sight`) and scale,
+    trajectory from Transformer 2's mean (moved out of sight, `_refine_out_of_sight`) and scale,
     and (importance sampling) its existence from XPL's amortised existence probability.
 
     method: "smc" or "importance" (None: config.method). seed: an int or a torch.Generator;
     the global random state is neither read nor changed. drawn: this video's scene as the MSE
-    score drew it (`hidden_object_scene`)."""
+    score drew it (`_hidden_object_scene`)."""
     method = config.method if method is None else method
     if method not in ("smc", "importance"):
         raise ValueError(f"method must be smc or importance, not {method!r}")
-    generator = generator_from(seed)
-    scene, loc, spread, free = hidden_object_scene(vae, xpl, mean, visible, background, occluder, config, drawn)
+    generator = _generator_from(seed)
+    scene, loc, spread, free = _hidden_object_scene(vae, xpl, mean, visible, background, occluder, config, drawn)
     hidden = scene.hidden
     p_exists = torch.sigmoid(xpl.existence_logit(loc[None], spread[None]))[0] if free else mean.new_zeros(())
     if free and config.refine_steps:
-        loc = refine_out_of_sight(scene, loc, frames, config)
-    proposal = Proposal(defensive(p_exists, config.particles) if free else p_exists, loc, spread)
+        loc = _refine_out_of_sight(scene, loc, frames, config)
+    proposal = Proposal(_defensive(p_exists, config.particles) if free else p_exists, loc, spread)
     if method == "smc":
         found = smc_evidence(scene, frames, config, proposal, generator, free)
         return NLLSurprise(found.nll, found.ess, found.p_hidden, hidden if free else -1, found,
@@ -113,7 +116,7 @@ def nll_surprise(vae: ComponentVAE, xpl: XPL, frames: Tensor, mean: Tensor, visi
                        scene.identity)
 
 
-def hidden_object_scene(vae: ComponentVAE, xpl: XPL, mean: Tensor, visible: Tensor, background: Tensor,
+def _hidden_object_scene(vae: ComponentVAE, xpl: XPL, mean: Tensor, visible: Tensor, background: Tensor,
                         occluder: Tensor, config: InferenceConfig,
                         drawn: DrawnScene | None = None) -> tuple[XPLScene, Tensor, Tensor, bool]:
     """One video's scene for the Pyro model (arguments as `nll_surprise`'s), with the
@@ -141,7 +144,7 @@ def hidden_object_scene(vae: ComponentVAE, xpl: XPL, mean: Tensor, visible: Tens
     return scene, loc, spread, bool(unseen.any())
 
 
-def refine_out_of_sight(scene: XPLScene, loc: Tensor, frames: Tensor, config: InferenceConfig) -> Tensor:
+def _refine_out_of_sight(scene: XPLScene, loc: Tensor, frames: Tensor, config: InferenceConfig) -> Tensor:
     """Transformer 2's mean trajectory (T, D), moved by a few gradient steps that take its
     pictures out of sight where they spoil the frames. Transformer 2 learned the latents of
     objects that were partly seen, and its mean for a never-seen one can show where no wall
@@ -167,7 +170,7 @@ def refine_out_of_sight(scene: XPLScene, loc: Tensor, frames: Tensor, config: In
     if len(chosen) == 0:
         return loc
     moved = loc[chosen].clone()
-    adam = AdamSteps(config.refine_rate)
+    adam = _AdamSteps(config.refine_rate)
     for _ in range(config.refine_steps):
         with torch.enable_grad():
             latents = moved.requires_grad_(True)
@@ -181,7 +184,7 @@ def refine_out_of_sight(scene: XPLScene, loc: Tensor, frames: Tensor, config: In
     return refined
 
 
-class AdamSteps:
+class _AdamSteps:
     """Adam's update (torch.optim.Adam's defaults) of one tensor. Written out because the first
     torch.optim optimiser of a process imports torch._dynamo, which the first NLL score or
     explanation of a notebook would wait for, for five small steps (measured in

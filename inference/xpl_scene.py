@@ -24,6 +24,8 @@ from .decoder import FoldedDecoder
 from .identity import Identity
 from .model import Drawing, Step
 
+__all__ = ["XPLScene"]
+
 
 class XPLScene(nn.Module):
     def __init__(self, vae: ComponentVAE, xpl: XPL, refined: Tensor, background: Tensor, visible: Tensor,
@@ -37,7 +39,7 @@ class XPLScene(nn.Module):
         (xvoe.models.slots.scene_layers), a wall is drawn only where it was seen, and an object not
         seen in a frame stands behind the walls there: the seen objects' fills, and the hidden
         object in every frame. layers: those pictures (V, T, K, 4, H, W), `scene_layers` of
-        `refined`, where they are drawn already (the MSE score's: inference.surprise.hidden_object_scene)."""
+        `refined`, where they are drawn already (the MSE score's: inference.surprise._hidden_object_scene)."""
         super().__init__()
         self.vae, self.xpl, self.hidden, self.identity = vae, xpl, hidden, identity
         self.decode = FoldedDecoder(vae)      # the hidden slot's pictures, drawn for every particle

@@ -29,7 +29,7 @@ print(allocator.tuned(), *found)
 
 
 def run_loop(**env: str) -> tuple[bool, int, int]:
-    clean = {k: v for k, v in os.environ.items() if k not in ("GLIBC_TUNABLES", allocator.ENV)
+    clean = {k: v for k, v in os.environ.items() if k not in ("GLIBC_TUNABLES", allocator._ENV)
              and not k.startswith("MALLOC_")}
     out = subprocess.run([sys.executable, "-c", LOOP], env=clean | env, capture_output=True, text=True,
                          check=True).stdout.split()
@@ -53,7 +53,7 @@ def test_import_leaves_the_allocator_alone_and_a_tuned_parent_is_followed():
 def test_the_command_line_tunes():
     code = ("import os; from xvoe.apps.cli import main; from xvoe import allocator; "
             "main(['metrics', 'missing.csv', '--out', 'report']); print(allocator.tuned(), os.environ['XVOE_MALLOC'])")
-    clean = {k: v for k, v in os.environ.items() if k != allocator.ENV}
+    clean = {k: v for k, v in os.environ.items() if k != allocator._ENV}
     out = subprocess.run([sys.executable, "-c", code], env=clean, capture_output=True, text=True, check=True)
     assert out.stdout.split() == ["True", "tuned"] and "missing.csv: no such file" in out.stderr
 

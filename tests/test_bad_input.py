@@ -29,7 +29,7 @@ from hypothesis import strategies as st
 from xvoe.apps.cli import main
 from xvoe.errors import XvoeError
 from xvoe.evaluation.metrics import read_scores, score_problem
-from xvoe.models.config import domain_of, field_type, override, parse_field
+from xvoe.models.config import _domain_of, field_type, override, parse_field
 from xvoe.models.dynamics import DynamicsConfig
 from xvoe.models.nll import InferenceConfig
 from xvoe.models.perception import PerceptionConfig
@@ -41,7 +41,7 @@ from xvoe.scenes import store
 from xvoe.scenes.generate import GenerateConfig, generate
 from xvoe.training.checkpoints import shipped_path
 from xvoe.training.config import TrainConfig
-from xvoe.training.latents import Latents, write_latents
+from xvoe.training.latents import _Latents, _write_latents
 from xvoe.training.xpl import fingerprint
 
 EXAMPLES = Path(__file__).resolve().parent.parent / "xvoe" / "examples"
@@ -658,14 +658,16 @@ def release_with(root: Path, record: bytes) -> Path:
 def limit_cases(files, tmp: Path) -> list[tuple[list[str], str]]:
     """Names past the file system's limit, and sizes and counts past the machine's memory and
     cores: refused before any work."""
-    from test_import import example, field, framed, masked_crc
+    from test_import import example, field, framed
+
+    from xvoe.scenes.tfrecord import _masked_crc
 
     test, train = str(files["test-32"]), str(files["train-32"])
     long = "n" * 300
     zero = mutate(files["test-32"], tmp / "zero.h5", no_pixels)
     many = declaring(files["test-32"], tmp / "many.h5", 10**8)
     header = struct.pack("<Q", 2**62)
-    huge_record = release_with(tmp / "huge-record", header + struct.pack("<I", masked_crc(header)) + bytes(64))
+    huge_record = release_with(tmp / "huge-record", header + struct.pack("<I", _masked_crc(header)) + bytes(64))
     shape = b"".join(field(2, field(1, size)) for size in (10**6, 512, 512, 4))
     splat = field(1, 4) + field(2, shape) + field(7, 7)      # one value standing for all, as TensorFlow may write
     huge_tensor = release_with(tmp / "huge-tensor", framed(example({"raw_image": splat, "mask": splat, "slot": [0.0]})))
@@ -794,14 +796,14 @@ NUMERIC = [(cls, item.name) for cls in CONFIGS for item in fields(cls) if _numer
 
 def test_every_numeric_field_declares_its_domain():
     assert len(NUMERIC) > 60
-    assert [f"{cls.__name__}.{name}" for cls, name in NUMERIC if domain_of(cls, name) is None] == []
+    assert [f"{cls.__name__}.{name}" for cls, name in NUMERIC if _domain_of(cls, name) is None] == []
 
 
 @hypothesis_settings(max_examples=300, deadline=None)
 @given(field=st.sampled_from(NUMERIC), value=st.one_of(st.floats(), st.integers(-2**80, 2**80)))
 def test_any_number_in_any_field_is_in_its_domain_or_refused_by_name(field, value):
     cls, name = field
-    domain = domain_of(cls, name)
+    domain = _domain_of(cls, name)
     try:
         parsed = parse_field(cls, name, repr(value))
     except XvoeError as error:
@@ -952,7 +954,7 @@ def test_a_stale_latent_cache_of_another_split_is_refused(files, tmp_path, capsy
     arrays = {name: np.zeros((2, 1, 1), np.float32) for name in ("mean", "std", "visible", "present", "pixels",
                                                                    "background_mean", "background_std")}
     config = '{"data": {"split": "train", "videos": 7}}'
-    write_latents(run_dir / "latents-train.h5", Latents(**arrays, attrs={"source": "/elsewhere/train.h5",
+    _write_latents(run_dir / "latents-train.h5", _Latents(**arrays, attrs={"source": "/elsewhere/train.h5",
                                                                           "source_split": "train",
                                                                           "config": config}))
     before = snapshot(tmp_path)

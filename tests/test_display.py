@@ -13,7 +13,7 @@ from xvoe.apps.frames import save_gif, sheet_rows
 from xvoe.errors import XvoeError
 from xvoe.evaluation.explain import Explanation
 from xvoe.scenes import custom, store
-from xvoe.scenes.display import LENGTHS, display_video, enlarge, hidden_silhouettes, outline
+from xvoe.scenes.display import _LENGTHS, display_video, enlarge, hidden_silhouettes, outline
 from xvoe.scenes.generate import GenerateConfig, generate
 from xvoe.scenes.render import STATE_COLUMNS
 
@@ -51,7 +51,7 @@ def test_the_display_downsampled_is_the_stored_video(splits):
             np.testing.assert_array_equal(display.rgbd, again.rgbd)        # deterministic
             for name in STATE_COLUMNS:
                 column = STATE_COLUMNS.index(name)
-                factor = 4 if name in LENGTHS else 1
+                factor = 4 if name in _LENGTHS else 1
                 np.testing.assert_array_equal(display.states[..., column], stored[..., column] * factor)
             blocks = display.ids.reshape(15, 32, 4, 32, 4)
             colours = display.rgbd[..., :3].reshape(15, 32, 4, 32, 4, 3)

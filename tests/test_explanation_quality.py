@@ -2,7 +2,7 @@
 import numpy as np
 import pytest
 
-from xvoe.evaluation.explanation_quality import expected_videos, ground_truth, pick, principal_spread, video_iou
+from xvoe.evaluation.explanation_quality import _video_iou, expected_videos, ground_truth, pick, principal_spread
 from xvoe.scenes import store
 from xvoe.scenes.videos import silhouette
 
@@ -16,11 +16,11 @@ def square(size, top, left, side):
 def test_iou_of_hand_drawn_masks():
     # two 2x2 squares one column apart: they share 2 pixels of 6
     first, second = square(4, 0, 0, 2), square(4, 0, 1, 2)
-    assert video_iou(first[None], second[None]) == pytest.approx(2 / 6)
+    assert _video_iou(first[None], second[None]) == pytest.approx(2 / 6)
     # a frame where both draw nothing counts 1: the mean over the two frames is (1/3 + 1) / 2
     empty = np.zeros((4, 4), dtype=bool)
-    assert video_iou(np.stack([first, empty]), np.stack([second, empty])) == pytest.approx(2 / 3)
-    assert video_iou(first[None], square(4, 2, 2, 2)[None]) == 0.0
+    assert _video_iou(np.stack([first, empty]), np.stack([second, empty])) == pytest.approx(2 / 3)
+    assert _video_iou(first[None], square(4, 2, 2, 2)[None]) == 0.0
 
 
 def test_iou_of_a_cube_silhouette_shifted_by_two_pixels():
@@ -30,7 +30,7 @@ def test_iou_of_a_cube_silhouette_shifted_by_two_pixels():
     drawn = silhouette(states, columns, "cube", 12)
     assert np.array_equal(drawn[0], square(12, 3, 3, 4))
     # 4x4 against the same moved two columns: 8 shared pixels of 24
-    assert video_iou(drawn[:1], drawn[1:]) == pytest.approx(8 / 24)
+    assert _video_iou(drawn[:1], drawn[1:]) == pytest.approx(8 / 24)
 
 
 def test_principal_spread_closed_form():

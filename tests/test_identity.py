@@ -14,7 +14,7 @@ import pytest
 import xvoe
 from xvoe.apps.cli import main
 from xvoe.errors import XvoeError
-from xvoe.fingerprints import arrays_hash, sampled_videos, split_identity
+from xvoe.fingerprints import _sampled_videos, arrays_hash, split_identity
 from xvoe.scenes import store
 from xvoe.training.checkpoints import shipped_path
 
@@ -65,10 +65,10 @@ def test_one_pixel_label_or_state_changed_is_another_split(test_file, tmp_path, 
 
 
 def test_the_sample_of_frames_holds_the_first_and_last_video():
-    assert list(sampled_videos(5)) == [0, 1, 2, 3, 4]
-    rows = sampled_videos(22_000)
+    assert list(_sampled_videos(5)) == [0, 1, 2, 3, 4]
+    rows = _sampled_videos(22_000)
     assert len(rows) == 64 and rows[0] == 0 and rows[-1] == 21_999
-    assert len(sampled_videos(0)) == 0
+    assert len(_sampled_videos(0)) == 0
 
 
 def test_arrays_hash_follows_names_values_types_and_settings():

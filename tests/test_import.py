@@ -13,8 +13,8 @@ import pytest
 
 from xvoe.apps.cli import main
 from xvoe.scenes import store
-from xvoe.scenes.released import BLOCKS, TEST_FILES, downsample, ids_of
-from xvoe.scenes.tfrecord import masked_crc, parse_example, parse_tensor, records
+from xvoe.scenes.released import _BLOCKS, _TEST_FILES, _downsample, _ids_of
+from xvoe.scenes.tfrecord import _masked_crc, parse_example, parse_tensor, records
 
 FRAMES, SIZE, SLOTS, PAIRS = 3, 8, 8, 2
 
@@ -55,7 +55,7 @@ def example(features: dict[str, bytes | list[float]]) -> bytes:
 
 def framed(record: bytes) -> bytes:
     length = struct.pack("<Q", len(record))
-    return length + struct.pack("<I", masked_crc(length)) + record + struct.pack("<I", masked_crc(record))
+    return length + struct.pack("<I", _masked_crc(length)) + record + struct.pack("<I", _masked_crc(record))
 
 
 def write_tfrecord(path: Path, records_: list[bytes]) -> None:
@@ -82,7 +82,7 @@ def write_release(root: Path, seed: int = 0) -> dict[tuple[str, int], tuple[np.n
     """test/SCENARIO/eval-part-NNN.tfrecord, one block of PAIRS videos per file, and the videos
     by (scenario, record index)."""
     rng, videos = np.random.default_rng(seed), {}
-    for scenario, files in TEST_FILES.items():
+    for scenario, files in _TEST_FILES.items():
         for part in range(files):
             found = []
             for pair in range(PAIRS):
@@ -127,12 +127,12 @@ def test_overlapping_masks_go_to_the_nearest_slot():
     masks[0, 0, 0, 3] = 1         # slot 0 claims no pixel alone: behind the others wherever it is
     depth = np.array([[[20, 80, 80, 80]]], np.uint8)
     depth[0, 0, 0] = 20
-    ids, shared = ids_of(masks, depth)
+    ids, shared = _ids_of(masks, depth)
     np.testing.assert_array_equal(ids, [[[3, 3, 3, 3]]])
     assert shared == 3
     masks[0, 2, 0, 0], masks[0, 1, 0, 0] = 0, 1     # now slot 1 alone at pixel 0, the wall alone nowhere
     depth[0, 0, 0] = 10
-    ids, shared = ids_of(masks, depth)
+    ids, shared = _ids_of(masks, depth)
     np.testing.assert_array_equal(ids, [[[2, 2, 2, 2]]])
     assert shared == 3
 
@@ -149,7 +149,7 @@ def test_downsampling_keeps_a_small_object_and_averages_colour():
     image[0, 1, 1] = (200, 0, 0, 40)
     ids[0, 4, 3:5] = 2                  # an object straddling the wall's edge: one pixel in each of two blocks
     image[0, 4, 3:5, 3] = 10
-    rgbd, small = downsample(image, ids, 4)
+    rgbd, small = _downsample(image, ids, 4)
     assert small.shape == (1, 4, 4) and rgbd.shape == (1, 4, 4, 4)
     assert small[0, 0, 0] == 1 and rgbd[0, 0, 0, 3] == 40       # kept, at its own depth, not the background's
     np.testing.assert_array_equal(rgbd[0, 0, 0, :3], np.rint([(3 * 100 + 200) / 4, 75, 75]))   # area average
@@ -170,7 +170,7 @@ def test_the_test_split_round_trips_with_the_references_labels(release, tmp_path
         assert len(labels["pair"]) == len(videos)
         for (scenario, index), (image, ids) in videos.items():
             block, pair = divmod(index, PAIRS)
-            setting, member, possible = BLOCKS[block]
+            setting, member, possible = _BLOCKS[block]
             row = np.flatnonzero((labels["scenario"] == scenario) & (labels["setting"] == setting)
                                  & (labels["pair"] == pair) & (labels["member"] == member))
             assert len(row) == 1
@@ -178,7 +178,7 @@ def test_the_test_split_round_trips_with_the_references_labels(release, tmp_path
             np.testing.assert_array_equal(file["rgbd"][row[0]], image)
             np.testing.assert_array_equal(file["ids"][row[0]], ids)
         # the schema's order: scenario by scenario, setting by setting, pair by pair, member 0 then 1
-        assert list(dict.fromkeys(labels["scenario"])) == list(TEST_FILES)
+        assert list(dict.fromkeys(labels["scenario"])) == list(_TEST_FILES)
         assert list(labels["member"][:4]) == [0, 1, 0, 1] and list(labels["pair"][:4]) == [0, 0, 1, 1]
         assert list(labels["setting"][:2 * PAIRS * 3:2 * PAIRS]) == ["S1", "S2", "S3"]
         assert (labels["event_frame"] == -1).all()

@@ -10,7 +10,7 @@ import torch
 from pyro import poutine
 from pyro.util import check_model_guide_match
 
-from xvoe.inference.model import HiddenObjectModel, InferenceConfig, LinearGaussianScene, Proposal, fuse
+from xvoe.inference.model import HiddenObjectModel, InferenceConfig, Proposal, _fuse, _LinearGaussianScene
 from xvoe.inference.smc import importance_evidence
 
 pytestmark = pytest.mark.usefixtures("double_precision")     # these checks compare to 1e-4
@@ -31,7 +31,7 @@ def settings(widening: float = 1.0, particles: int = 64) -> InferenceConfig:
 
 
 def linear_scene():
-    return LinearGaussianScene(T, M_0, S_0, A, H, BACKGROUND)
+    return _LinearGaussianScene(T, M_0, S_0, A, H, BACKGROUND)
 
 
 def linear_model(widening: float = 1.0):
@@ -148,7 +148,7 @@ def test_a_widened_proposal_becomes_the_models_own_prior():
 
 
 def test_fuse_is_the_product_of_two_gaussians():
-    loc, scale = fuse(torch.tensor([0.0, 1.0]), torch.tensor([1.0, 0.1]), torch.tensor([2.0, 1.0]),
+    loc, scale = _fuse(torch.tensor([0.0, 1.0]), torch.tensor([1.0, 0.1]), torch.tensor([2.0, 1.0]),
                       torch.tensor([1.0, 0.3]))
     torch.testing.assert_close(loc, torch.tensor([1.0, 1.0]))
     torch.testing.assert_close(scale, torch.tensor([0.5 ** 0.5, (1 / (100 + 1 / 0.09)) ** 0.5]))

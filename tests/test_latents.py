@@ -10,7 +10,7 @@ from xvoe.errors import XvoeError
 from xvoe.models.perception import normalise
 from xvoe.scenes.generate import GenerateConfig, generate
 from xvoe.training.data import masked_inputs, visible_threshold
-from xvoe.training.latents import encode_split, open_latents, read_latents, sha256_of
+from xvoe.training.latents import _read_latents, _sha256_of, encode_split, open_latents
 from xvoe.training.perception import load_perception, train_perception
 
 TINY = dict(image_size=16, broadcast_size=4, latent_dim=4, cnn_channels=(8, 8), cnn_hidden=16, decoder_channels=8)
@@ -28,7 +28,7 @@ def trained(tmp_path_factory):
 def test_cache_round_trip(trained, tmp_path):
     data, run_dir = trained
     path = encode_split(run_dir, data, tmp_path / "latents.h5", videos_per_batch=2, progress=False)
-    cache = read_latents(path)
+    cache = _read_latents(path)
     with h5py.File(data) as file:
         ids, states = file["ids"][:], file["states"][:]
         columns = list(file["states"].attrs["state_columns"])
@@ -53,7 +53,7 @@ def test_cache_round_trip(trained, tmp_path):
     np.testing.assert_allclose(cache.mean[0][parts["object_frame"].numpy(), parts["object_slot"].numpy()],
                                mean.numpy(), rtol=1e-5, atol=1e-6)
     assert cache.attrs["xvoe_latents"] == 1
-    assert cache.attrs["perception_sha256"] == sha256_of(run_dir / "perception.pt")
+    assert cache.attrs["perception_sha256"] == _sha256_of(run_dir / "perception.pt")
     assert cache.attrs["perception_checkpoint"] == str((run_dir / "perception.pt").resolve())
     assert cache.attrs["source"] == str(data.resolve()) and cache.attrs["source_split"] == "train"
     assert json.loads(cache.attrs["config"])["perception"]["latent_dim"] == 4

@@ -23,12 +23,12 @@ from xvoe.inference.explain import nll_explanation
 from xvoe.inference.model import Drawing, HiddenObjectModel, InferenceConfig, Proposal, drawing_cost
 from xvoe.inference.score import reference_nll
 from xvoe.inference.surprise import (
-    BRANCH_SAMPLES,
-    AdamSteps,
-    defensive,
+    _BRANCH_SAMPLES,
+    _AdamSteps,
+    _defensive,
+    _refine_out_of_sight,
     hidden_posterior,
     nll_surprise,
-    refine_out_of_sight,
 )
 from xvoe.inference.xpl_scene import XPLScene
 from xvoe.models.config import to_dict
@@ -91,10 +91,10 @@ def test_without_a_free_slot_no_hidden_object_is_proposed():
 
 
 def test_the_guide_leaves_samples_to_both_branches_of_existence():
-    assert float(defensive(torch.tensor(0.999), 64)) == pytest.approx(1 - BRANCH_SAMPLES / 64)
-    assert float(defensive(torch.tensor(0.0001), 64)) == pytest.approx(BRANCH_SAMPLES / 64)
-    assert float(defensive(torch.tensor(0.3), 64)) == pytest.approx(0.3)
-    assert float(defensive(torch.tensor(0.9), 4)) == 0.5         # too few particles: a fair coin
+    assert float(_defensive(torch.tensor(0.999), 64)) == pytest.approx(1 - _BRANCH_SAMPLES / 64)
+    assert float(_defensive(torch.tensor(0.0001), 64)) == pytest.approx(_BRANCH_SAMPLES / 64)
+    assert float(_defensive(torch.tensor(0.3), 64)) == pytest.approx(0.3)
+    assert float(_defensive(torch.tensor(0.9), 4)) == 0.5         # too few particles: a fair coin
 
 
 def encoded(hidden_free=True):
@@ -536,7 +536,7 @@ def test_moving_the_proposal_out_of_sight_hides_it_behind_the_wall():
                              exposure_penalty=1.0)
     with torch.no_grad():
         before = draw_all(scene, loc[None]).exposure[0]
-        moved = refine_out_of_sight(scene, loc, frames, config)
+        moved = _refine_out_of_sight(scene, loc, frames, config)
         after = draw_all(scene, moved[None]).exposure[0]
     assert (before > 5.0).all()
     assert (after < 0.2 * before).all() and (moved[:, 0] < loc[:, 0]).all()
@@ -562,8 +562,8 @@ def test_moving_the_proposal_out_of_sight_keeps_it_an_object():
                   object_area=0.06)
     with torch.no_grad():
         whole = draw_all(scene, loc[None]).area[0]
-        kept = draw_all(scene, refine_out_of_sight(scene, loc, frames, InferenceConfig(**common))[None])
-        faded = refine_out_of_sight(scene, loc, frames, InferenceConfig(**common, presence_penalty=0.0))
+        kept = draw_all(scene, _refine_out_of_sight(scene, loc, frames, InferenceConfig(**common))[None])
+        faded = _refine_out_of_sight(scene, loc, frames, InferenceConfig(**common, presence_penalty=0.0))
         faded = draw_all(scene, faded[None])
     assert (whole > 0.06 * 256).all()
     assert (kept.area[0] > 0.9 * 0.06 * 256).all() and (kept.exposure[0] < 1.0).all()
@@ -597,7 +597,7 @@ def test_moving_the_proposal_out_of_sight_lowers_its_cost_and_leaves_hidden_fram
     tolerance = float(before.sort().values[2:4].mean())
     config = InferenceConfig(pixel_sigma=0.1, refine_steps=20, refine_rate=0.1, refine_tolerance=tolerance,
                              exposure_penalty=0.0)
-    moved = refine_out_of_sight(scene, loc, frames, config)
+    moved = _refine_out_of_sight(scene, loc, frames, config)
     after = extra_nats(scene, moved, frames, 0.1)
     kept = before <= tolerance
     assert kept.sum() == 3 and torch.equal(moved[kept], loc[kept])
@@ -610,7 +610,7 @@ def test_the_refinement_steps_are_torch_adams():
     target = torch.tensor([[0.0, 1.0], [2.0, -1.0]])
     reference = start.clone().requires_grad_(True)
     optimiser = torch.optim.Adam([reference], lr=0.1)
-    adam, ours = AdamSteps(0.1), start.clone()
+    adam, ours = _AdamSteps(0.1), start.clone()
     for _ in range(6):
         optimiser.zero_grad()
         ((reference - target) ** 4).sum().backward()

@@ -4,7 +4,7 @@ import torch
 
 from xvoe.errors import XvoeError
 from xvoe.models.config import from_dict, to_dict
-from xvoe.models.perception import BLANK, BLANK_DEPTH, ComponentVAE, PerceptionConfig, normalise
+from xvoe.models.perception import _BLANK_DEPTH, BLANK, ComponentVAE, PerceptionConfig, normalise
 from xvoe.training.data import masked_inputs, perception_batch
 from xvoe.training.recipes import recipe
 
@@ -51,12 +51,12 @@ def test_compositing_picks_the_nearest_slot():
     layers = torch.zeros(1, 3, 4, 16, 16)
     layers[0, 0, :3], layers[0, 0, 3] = -0.5, 1.0            # background, far
     layers[0, 1, :3], layers[0, 1, 3] = 0.25, 0.2            # an object
-    layers[0, 2, :3], layers[0, 2, 3] = 0.75, BLANK_DEPTH     # empty slot: blank beyond the far plane
+    layers[0, 2, :3], layers[0, 2, 3] = 0.75, _BLANK_DEPTH     # empty slot: blank beyond the far plane
     layers[0, 2, :3, :8], layers[0, 2, 3, :8] = 0.9, -0.3     # a nearer object on the top half
     out = model.composite(layers)[0]
     assert torch.allclose(out[:3, :8], torch.full((3, 8, 16), 0.9))
     assert torch.allclose(out[:3, 8:], torch.full((3, 8, 16), 0.25))
-    layers[0, 1, 3] = BLANK_DEPTH                             # the object leaves: background shows
+    layers[0, 1, 3] = _BLANK_DEPTH                             # the object leaves: background shows
     assert torch.allclose(model.composite(layers)[0, :3, 8:], torch.full((3, 8, 16), -0.5))
 
 

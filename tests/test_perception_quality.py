@@ -9,9 +9,9 @@ import torch
 from xvoe.evaluation.perception_quality import (
     POOLED,
     HeldOut,
+    _probe,
+    _psnr,
     position_probes,
-    probe,
-    psnr,
     read_held_out,
     reconstruction,
 )
@@ -20,9 +20,9 @@ from xvoe.models.perception import ComponentVAE, PerceptionConfig
 
 
 def test_psnr_closed_form():
-    assert psnr(255.0 ** 2 * 10, 10) == pytest.approx(0.0)
-    assert psnr(4.0, 4) == pytest.approx(20 * np.log10(255))      # an error of 1 per value: 48.13 dB
-    assert psnr(np.array([1.0, 100.0]), np.array([1, 1])) == pytest.approx([48.13, 28.13], abs=0.01)
+    assert _psnr(255.0 ** 2 * 10, 10) == pytest.approx(0.0)
+    assert _psnr(4.0, 4) == pytest.approx(20 * np.log10(255))      # an error of 1 per value: 48.13 dB
+    assert _psnr(np.array([1.0, 100.0]), np.array([1, 1])) == pytest.approx([48.13, 28.13], abs=0.01)
 
 
 class Black:
@@ -53,10 +53,10 @@ def test_probe_r_squared_by_hand():
     means = np.array([[0.0, 1.0], [2.0, 3.0], [0.0, 1.0], [2.0, 3.0]])[:, :, None, None]     # (V, T, K, D)
     targets = np.array([[1.0, 3.0], [5.0, 7.0], [2.0, 2.0], [6.0, 6.0]])[:, :, None, None]
     chosen = np.ones((4, 2, 1), dtype=bool)
-    (r2, low, high), = probe(means, targets, chosen)
+    (r2, low, high), = _probe(means, targets, chosen)
     assert r2 == pytest.approx(0.75) and np.isnan(low) and np.isnan(high)
     exact = np.array([[1.0, 3.0], [5.0, 7.0], [1.0, 3.0], [5.0, 7.0]])[:, :, None, None]
-    (r2, low, high), = probe(means, exact, chosen, rounds=50)
+    (r2, low, high), = _probe(means, exact, chosen, rounds=50)
     assert (r2, low, high) == pytest.approx((1.0, 1.0, 1.0))
 
 
@@ -87,9 +87,9 @@ def test_a_kind_whose_latent_codes_position_reads_it_and_one_whose_latent_does_n
     # one probe for both kinds: the cubes' noise pulls the fit off the balls' exact line
     assert cube.x[0] + 0.1 < pooled.x[0] < 0.9 and cube.y[0] + 0.1 < pooled.y[0] < 0.9 and pooled.objects == 48
     # the pooled probe is `probe` over every visible object, the kind's over its own
-    assert pooled.x == pytest.approx(probe(means, positions, visible, 50)[0])
+    assert pooled.x == pytest.approx(_probe(means, positions, visible, 50)[0])
     chosen = visible & (kind[:, None, :] == 1)
-    assert ball.y == pytest.approx(probe(means, positions, chosen, 50)[1])
+    assert ball.y == pytest.approx(_probe(means, positions, chosen, 50)[1])
 
 
 def test_a_kind_too_few_to_fit_or_not_named_is_nan_with_its_reason():

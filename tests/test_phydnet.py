@@ -17,15 +17,15 @@ from xvoe.models.perception import normalise, to_uint8
 from xvoe.models.phydnet import (
     PhyDNet,
     PhyDNetConfig,
-    change_mask,
-    derivative_targets,
-    kernel_moments,
-    kernels_with_moments,
+    _change_mask,
+    _derivative_targets,
+    _kernel_moments,
+    _kernels_with_moments,
 )
 from xvoe.scenes.generate import GenerateConfig, generate
 from xvoe.training.config import TrainConfig
 from xvoe.training.loop import Dist
-from xvoe.training.phydnet import VideoBatches, load_phydnet, train_phydnet, widen_checkpoint
+from xvoe.training.phydnet import _VideoBatches, _widen_checkpoint, load_phydnet, train_phydnet
 from xvoe.training.recipes import DEFAULT_RECIPE, RECIPES
 
 TINY = PhyDNetConfig(image_size=16, encoder_channels=(8, 8, 8), phycell_kernel=5, lstm_channels=(8,))
@@ -48,17 +48,17 @@ def videos(batch: int = 2, frames: int = 5, size: int = 16, seed: int = 0) -> to
 def test_moments_are_a_w_a_transpose_and_the_inverse_is_exact():
     rng = torch.Generator().manual_seed(0)
     targets = torch.randn(3, 7, 7, dtype=torch.float64, generator=rng)
-    torch.testing.assert_close(kernel_moments(kernels_with_moments(targets)), targets)
+    torch.testing.assert_close(_kernel_moments(_kernels_with_moments(targets)), targets)
     # by hand for k = 3 (offsets -1, 0, 1): M[1, 0] = sum_ij (i - 1) w[i, j]
     w = torch.arange(9, dtype=torch.float64).reshape(3, 3)
-    assert kernel_moments(w)[1, 0] == -w[0].sum() + w[2].sum()
-    assert kernel_moments(w)[0, 2] == (w[:, 0].sum() + w[:, 2].sum()) / 2
+    assert _kernel_moments(w)[1, 0] == -w[0].sum() + w[2].sum()
+    assert _kernel_moments(w)[0, 2] == (w[:, 0].sum() + w[:, 2].sum()) / 2
 
 
 def test_a_filter_with_one_hot_moments_takes_that_derivative():
     """Cross-correlating x^a y^b with the (p, q) stencil gives d^p/di^p d^q/dj^q exactly."""
     k = 5
-    stencils = kernels_with_moments(derivative_targets(k).double())
+    stencils = _kernels_with_moments(_derivative_targets(k).double())
     i, j = torch.meshgrid(torch.arange(k, dtype=torch.float64) - 2.3, torch.arange(k, dtype=torch.float64) + 0.7,
                           indexing="ij")
     field = i ** 3 * j ** 2                                   # a patch centred on (i, j) = (-0.3, 2.7)
@@ -121,7 +121,7 @@ def test_the_change_weight_counts_changed_pixels_more_in_training_only():
     frames = torch.zeros(1, 3, 4, 16, 16)
     frames[0, 1, 3, 2, 5] = 0.5           # frame 1: one pixel's depth changes (and changes back at 2)
     frames[0, 2, 0, 7, 7] = 1 / 255       # frame 2: a change below one uint8 level is not a change
-    mask = change_mask(frames)
+    mask = _change_mask(frames)
     assert mask.shape == (1, 2, 1, 16, 16) and mask.sum() == 2
     assert mask[0, 0, 0, 2, 5] == 1 and mask[0, 1, 0, 2, 5] == 1 and mask[0, 1, 0, 7, 7] == 0
 
@@ -189,8 +189,8 @@ def test_stage_trains_resumes_exactly_and_loads(splits, tmp_path, tiny_recipe):
     assert [r["loss"] for r in rows[0]] == [r["loss"] for r in rows[1]] and "moment" in rows[0][0]
     net, state = load_phydnet(tmp_path / "a")
     assert net.config == TINY and not net.training and state["config"]["recipe"] == DEFAULT_RECIPE
-    one, two = VideoBatches(str(splits[0]), image_size=16, batch_size=4, shards=2, seed=1), [
-        VideoBatches(str(splits[0]), image_size=16, batch_size=4, shards=2, rank=r, world=2, seed=1) for r in (0, 1)]
+    one, two = _VideoBatches(str(splits[0]), image_size=16, batch_size=4, shards=2, seed=1), [
+        _VideoBatches(str(splits[0]), image_size=16, batch_size=4, shards=2, rank=r, world=2, seed=1) for r in (0, 1)]
     assert torch.equal(one.batch(3), torch.cat([part.batch(3) for part in two]))
     with pytest.raises(XvoeError, match="nothing to resume"):
         train_phydnet(None, tmp_path / "c", progress=False)
@@ -207,7 +207,7 @@ def test_a_phase_that_widens_the_lstm_kernel_predicts_the_same_and_trains_on(spl
     copy = tmp_path / "b" / "phydnet.pt"
     copy.parent.mkdir()
     shutil.copy(source, copy)
-    widen_checkpoint(copy, 7, Dist())
+    _widen_checkpoint(copy, 7, Dist())
     wide, state = load_phydnet(copy)
     assert wide.config == replace(net.config, lstm_kernel=7) and state["step"] == 4
     assert state["optimizer"]["state"] == {} and "rng" in state
@@ -234,12 +234,12 @@ def test_an_interrupt_stops_after_its_step_and_the_run_resumes_exactly(splits, t
 
     straight = torch.load(train_phydnet(splits[0], tmp_path / "a", progress=False), weights_only=True)
     before = signal.getsignal(signal.SIGINT)
-    draw = interrupt_during(monkeypatch, VideoBatches, 2)
+    draw = interrupt_during(monkeypatch, _VideoBatches, 2)
     with pytest.raises(KeyboardInterrupt, match="stopped at step 3"):
         train_phydnet(splits[0], tmp_path / "b", progress=False)
     assert signal.getsignal(signal.SIGINT) is before
     assert torch.load(tmp_path / "b" / "phydnet.pt", weights_only=True)["step"] == 3
-    monkeypatch.setattr(VideoBatches, "batch", draw)
+    monkeypatch.setattr(_VideoBatches, "batch", draw)
     resumed = torch.load(train_phydnet(None, tmp_path / "b", progress=False, resume=True), weights_only=True)
     assert resumed["step"] == straight["step"] == 4
     for name, value in straight["model"].items():
@@ -259,26 +259,26 @@ def test_a_focus_group_fills_its_share_of_each_batch_with_that_groups_wall_video
         groups, walls = file["group"].asstr()[:], file["has_wall"][:].astype(bool)
     focus = np.flatnonzero((groups == "continuity") & walls)
     assert 0 < len(focus) < len(groups)
-    batches = VideoBatches(str(splits[0]), image_size=16, batch_size=4, shards=1, seed=1, focus_group="continuity",
+    batches = _VideoBatches(str(splits[0]), image_size=16, batch_size=4, shards=1, seed=1, focus_group="continuity",
                            focus_share=0.5)
     for step in range(20):
         tail = batches.batch(step)[2:]
         assert all(any(torch.equal(video, batches.rgbd[row]) for row in focus) for video in tail)
-    plain = VideoBatches(str(splits[0]), image_size=16, batch_size=4, shards=1, seed=1)
+    plain = _VideoBatches(str(splits[0]), image_size=16, batch_size=4, shards=1, seed=1)
     mixed = torch.cat([plain.batch(step) for step in range(20)])
     assert not all(any(torch.equal(video, plain.rgbd[row]) for row in focus) for video in mixed)
     with pytest.raises(XvoeError, match=r"\[0, 1\]"):
-        VideoBatches(str(splits[0]), image_size=16, batch_size=4, shards=1, focus_group="continuity", focus_share=1.5)
+        _VideoBatches(str(splits[0]), image_size=16, batch_size=4, shards=1, focus_group="continuity", focus_share=1.5)
     with pytest.raises(XvoeError, match="needs a focus_group"):
-        VideoBatches(str(splits[0]), image_size=16, batch_size=4, shards=1, focus_share=0.5)
+        _VideoBatches(str(splits[0]), image_size=16, batch_size=4, shards=1, focus_share=0.5)
     with pytest.raises(XvoeError, match="focus_group names no group 'permanance'"):
-        VideoBatches(str(splits[0]), image_size=16, batch_size=4, shards=1, focus_group="permanance", focus_share=0.5)
+        _VideoBatches(str(splits[0]), image_size=16, batch_size=4, shards=1, focus_group="permanance", focus_share=0.5)
     with pytest.raises(XvoeError, match="rounds to none"):
-        VideoBatches(str(splits[0]), image_size=16, batch_size=4, shards=1, focus_group="continuity", focus_share=0.1)
+        _VideoBatches(str(splits[0]), image_size=16, batch_size=4, shards=1, focus_group="continuity", focus_share=0.1)
     with pytest.raises(XvoeError, match="no continuity videos with a wall in rows 3 to 5"):
-        VideoBatches(str(splits[0]), image_size=16, batch_size=4, shards=2, focus_group="continuity", focus_share=0.5)
+        _VideoBatches(str(splits[0]), image_size=16, batch_size=4, shards=2, focus_group="continuity", focus_share=0.5)
     with pytest.raises(XvoeError, match="needs a train split"):
-        VideoBatches(str(splits[1]), image_size=16, batch_size=4, shards=1, focus_group="continuity", focus_share=0.5)
+        _VideoBatches(str(splits[1]), image_size=16, batch_size=4, shards=1, focus_group="continuity", focus_share=0.5)
 
 
 def test_a_focus_on_several_groups_draws_from_the_wall_videos_of_each(tmp_path):
@@ -291,12 +291,12 @@ def test_a_focus_on_several_groups_draws_from_the_wall_videos_of_each(tmp_path):
         groups, walls = file["group"].asstr()[:], file["has_wall"][:].astype(bool)
     kinds = {name: set(np.flatnonzero((groups == name) & walls)) for name in ("continuity", "permanence")}
     assert all(kinds.values()) and (walls & ~np.isin(groups, list(kinds))).any()
-    batches = VideoBatches(str(path), image_size=16, batch_size=4, shards=1, seed=1,
+    batches = _VideoBatches(str(path), image_size=16, batch_size=4, shards=1, seed=1,
                            focus_group="continuity, permanence", focus_share=0.5)
     drawn = {int(row) for step in range(40) for row in batches.focus.draw(np.random.default_rng(step), 0, 0, 10, 4)[2:]}
     assert drawn == kinds["continuity"] | kinds["permanence"]
     with pytest.raises(XvoeError, match="focus_group names no group 'permanance'"):
-        VideoBatches(str(path), image_size=16, batch_size=4, shards=1, focus_group="continuity,permanance",
+        _VideoBatches(str(path), image_size=16, batch_size=4, shards=1, focus_group="continuity,permanance",
                      focus_share=0.5)
 
 

@@ -15,7 +15,7 @@ from test_import import example, serialize_tensor, write_tfrecord
 
 from xvoe.apps.cli import main
 from xvoe.scenes import store
-from xvoe.scenes.released import TEST_FILES
+from xvoe.scenes.released import _TEST_FILES
 
 FRAMES, SIZE, SLOTS, PAIRS = 15, 128, 8, 2
 UNEVEN = {"collision": (3, 1, 2, 2, 2, 2)}     # records per file: blocks of 2 across file boundaries
@@ -47,7 +47,7 @@ def write_release(root: Path, seed: int = 0) -> None:
     """test/SCENARIO/eval-part-NNN.tfrecord as the reference's files lay out blocks: setting by
     setting, member 0 then member 1, PAIRS records each; collision's cut unevenly into files."""
     rng = np.random.default_rng(seed)
-    for scenario, files in TEST_FILES.items():
+    for scenario, files in _TEST_FILES.items():
         videos = [scene(rng, impossible=block in (1, 5)) for block in range(files) for _ in range(PAIRS)]
         records = [example({"raw_image": serialize_tensor(image), "mask": serialize_tensor(masks)})
                    for image, masks in videos]
@@ -104,7 +104,7 @@ def test_the_release_imports_at_32_and_the_shipped_model_scores_it(tmp_path, cap
         measured = {(r["metric"], r["scenario"], r["setting"]): 100.0 * float(r["value"])
                     for r in csv.DictReader(handle) if r["column"] == "score"}
     table = (report / "table.md").read_text()
-    for scenario, files in TEST_FILES.items():
+    for scenario, files in _TEST_FILES.items():
         ours = [r for r in rows if r["scenario"] == scenario]
         blocks = [np.array([float(r["score"]) for r in sorted(ours, key=lambda r: int(r["pair"]))
                             if r["setting"] == f"S{b // 2 + 1}" and int(r["member"]) == b % 2])
@@ -117,7 +117,7 @@ def test_the_release_imports_at_32_and_the_shipped_model_scores_it(tmp_path, cap
         if files == 6:
             assert (official["S3-ext"] + official["S3-sur"]) / 2 == \
                 pytest.approx(measured["relative", scenario, "S3"])
-        column = list(TEST_FILES).index(scenario) + 4       # | metric | setting | model | collision | ...
+        column = list(_TEST_FILES).index(scenario) + 4       # | metric | setting | model | collision | ...
         for name in ("S2-ext1", "S2-ext2", "S3-ext", "S3-sur")[:files - 2]:
             line = next(line for line in table.splitlines() if f"| {name} |" in line)
             assert line.split("|")[column].strip() == f"{official[name]:.1f}"

@@ -5,7 +5,7 @@ from hypothesis import strategies as st
 
 from xvoe.scenes.render import render
 from xvoe.scenes.scenarios import SCENARIOS, TEST_SETTINGS, TRAINING_GROUPS, behind, continuity, permanence
-from xvoe.scenes.world import FLOOR, MAX_SLOTS, OBJECT_SIZE, WORLD, ball, frame_time, wall_fraction
+from xvoe.scenes.world import FLOOR, MAX_SLOTS, OBJECT_SIZE, WORLD, _frame_time, ball, wall_fraction
 
 seeds = st.integers(0, 2**32 - 1)
 frame_counts = st.integers(10, 40)
@@ -21,7 +21,7 @@ def covered(thing, wall, margin=0.0):
 @given(seeds)
 def test_hidden_thing_and_meeting_point_are_behind_the_wall(seed):
     scene = behind.sample(np.random.default_rng(seed), ball)
-    incoming, hidden, wall = (scene.things[i] for i in (behind.INCOMING, behind.HIDDEN, behind.WALL))
+    incoming, hidden, wall = (scene.things[i] for i in (behind._INCOMING, behind._HIDDEN, behind._WALL))
     assert covered(hidden, wall, margin=1.0)
     meeting = type(incoming)(**{**incoming.__dict__, "x": hidden.x - 2 * OBJECT_SIZE})
     assert covered(meeting, wall, margin=1.0)
@@ -45,8 +45,8 @@ def test_colours_and_slots(seed):
 @given(seeds)
 def test_permanence_cubes_fit_behind_the_wall_apart(seed):
     scene = permanence.sample(np.random.default_rng(seed))
-    wall = scene.things[permanence.WALL]
-    cubes = [scene.things[i] for i in permanence.CUBES]
+    wall = scene.things[permanence._WALL]
+    cubes = [scene.things[i] for i in permanence._CUBES]
     xs = sorted(c.x for c in cubes)
     assert np.diff(xs).min() >= 2 * OBJECT_SIZE + 2
     assert all(abs(c.x - wall.x) + c.size + 1 <= wall.half_width for c in cubes)
@@ -57,12 +57,12 @@ def test_permanence_cubes_fit_behind_the_wall_apart(seed):
 @given(seeds)
 def test_continuity_window_shows_a_ball_and_sides_hide_it(seed):
     scene = continuity.sample(np.random.default_rng(seed))
-    wall = scene.things[continuity.WALL]
+    wall = scene.things[continuity._WALL]
     window_half, window_height = wall.window
     assert window_half > OBJECT_SIZE                          # a ball fits in the window
     assert wall.half_width - window_half >= 2 * OBJECT_SIZE   # each solid side hides a ball
     assert 2 * OBJECT_SIZE < window_height <= wall.height / 2  # the window is in the lower half
-    rolling = scene.things[continuity.BALL]
+    rolling = scene.things[continuity._BALL]
     assert 0 <= rolling.x < wall.x - wall.half_width and rolling.vx > 0
 
 
@@ -78,7 +78,7 @@ def test_events_happen_behind_a_standing_wall(seed, frames, scenario_setting):
         assert event == -1 and other.possible
         return
     assert 1 <= event < frames and other.event_frame == event
-    assert wall_fraction(expected.scene.wall_schedule, frame_time(event, frames)) == 1.0
+    assert wall_fraction(expected.scene.wall_schedule, _frame_time(event, frames)) == 1.0
     assert other.possible == (setting == "S2")
     both = [i for i, thing in enumerate(other.scene.things) if thing.exists]
     np.testing.assert_array_equal(expected.trajectory.position[:event, both], other.trajectory.position[:event, both])

@@ -5,12 +5,12 @@ import torch
 import xvoe
 from xvoe.errors import XvoeError
 from xvoe.evaluation.score import SCORE_COLUMNS
-from xvoe.evaluation.surprise import Surprise, aggregate, better_explanation, latent_surprise, mse_surprise
+from xvoe.evaluation.surprise import Surprise, _better_explanation, _latent_surprise, aggregate, mse_surprise
 from xvoe.inference.score import reference_nll
 from xvoe.models.dynamics import DynamicsConfig
 from xvoe.models.perception import ComponentVAE, PerceptionConfig
 from xvoe.models.reasoning import ReasoningConfig
-from xvoe.models.slots import BEHIND, WALL_PIXEL, behind_walls, composite, decode_slots, scene_layers
+from xvoe.models.slots import _BEHIND, _WALL_PIXEL, behind_walls, composite, decode_slots, scene_layers
 from xvoe.models.xpl import XPL, XPLConfig
 
 B, T, K, D = 2, 5, 4, 6
@@ -104,9 +104,9 @@ def test_an_explanation_that_draws_the_hidden_object_is_kept_and_one_where_nothi
     assert paper.explained_slot.tolist() == [3, 3] and paper.s_img[1].sum() > 1.0
     with pytest.raises(ValueError, match="proposal, better"):
         mse_surprise(vae, xpl, frames, mean, visible, background, occluder, explanation="best")
-    empty = latent_surprise(vae, xpl, frames, xpl.refine(mean, visible, occluder), visible.any(1), visible,
+    empty = _latent_surprise(vae, xpl, frames, xpl.refine(mean, visible, occluder), visible.any(1), visible,
                             background, occluder)
-    proposed = latent_surprise(vae, xpl, frames, mean, visible.any(1) | (torch.arange(K) == 3), visible,
+    proposed = _latent_surprise(vae, xpl, frames, mean, visible.any(1) | (torch.arange(K) == 3), visible,
                                background, occluder)
     # the explanation not chosen would have cost pixels: video 0's hidden object, video 1's object in front of nothing
     assert empty[0][0].sum() > 1.0 and proposed[0][1].sum() > 1.0
@@ -124,7 +124,7 @@ def test_the_better_explanation_is_chosen_per_video_and_the_first_on_a_tie():
     ones = torch.ones(3, 2)
     first = Surprise(ones * torch.tensor([[1.0], [2.0], [3.0]]), ones, ones * 7, torch.tensor([-1, -1, -1]))
     second = Surprise(ones * 2, ones * torch.tensor([[0.0], [1.0], [0.0]]), ones * 9, torch.tensor([4, 5, 6]))
-    chosen = better_explanation(first, second)
+    chosen = _better_explanation(first, second)
     # sums: first 4, 6, 8; second 4, 6, 4: a tie in videos 0 and 1 keeps the first
     assert chosen.explained_slot.tolist() == [-1, -1, 6]
     assert chosen.s_rec[:, 0].tolist() == [7.0, 7.0, 9.0] and chosen.s_img[:, 0].tolist() == [1.0, 2.0, 2.0]
@@ -172,10 +172,10 @@ def test_objects_unseen_in_a_frame_stay_behind_the_walls_there():
     visible = torch.tensor([[[True, False, True], [True, True, False]]])     # slot 1 unseen in frame 0, slot 2 in 1
     occluder = torch.tensor([[True, False, False]])
     out = behind_walls(layers, visible, occluder)
-    assert torch.equal(out[0, 0, 1, 3, 0], torch.full((2,), -0.5 + BEHIND))      # pushed behind the wall
+    assert torch.equal(out[0, 0, 1, 3, 0], torch.full((2,), -0.5 + _BEHIND))      # pushed behind the wall
     assert torch.equal(out[0, 0, 1, 3, 1], torch.full((2,), -0.8))               # no wall below: still shows
     assert torch.equal(out[0, 1, 1], layers[0, 1, 1]) and torch.equal(out[0, 0, 2], layers[0, 0, 2])   # seen
-    assert torch.equal(out[0, 1, 2, 3, 0], torch.full((2,), -0.5 + BEHIND))
+    assert torch.equal(out[0, 1, 2, 3, 0], torch.full((2,), -0.5 + _BEHIND))
     assert torch.equal(out[:, :, 0], layers[:, :, 0]) and torch.equal(out[..., :3, :, :], layers[..., :3, :, :])
     assert torch.equal(behind_walls(layers, visible, torch.tensor([[False, False, False]])), layers)   # no wall
 
@@ -192,7 +192,7 @@ def test_a_wall_is_drawn_only_in_the_frames_it_was_seen(models):
         layers, walls = scene_layers(vae, mean, visible.any(1), visible, occluder)
     assert torch.equal(layers[:, 3:, 0], vae.blank()[0].expand_as(layers[:, 3:, 0]))
     assert torch.equal(layers[:, :3, 0], decode_slots(vae, mean, visible.any(1))[:, :3, 0])
-    assert torch.all(walls[:, 3:] >= WALL_PIXEL)          # it covers no pixel there
+    assert torch.all(walls[:, 3:] >= _WALL_PIXEL)          # it covers no pixel there
     surprise = mse_surprise(vae, xpl, frames, mean, visible, background, occluder)
     torch.testing.assert_close(surprise.s_img, torch.zeros(B, T), atol=1e-6, rtol=0)
 
@@ -223,13 +223,13 @@ def test_the_excess_keeps_a_fill_drawn_where_nothing_was_seen(models):
         seen = torch.where(visible[..., None, None, None], decode_slots(vae, mean, visible.any(1)), vae.blank()[0])
         frames = composite(vae, pictures, seen, visible.any(1))   # what the encoder saw: slot 1 gone
         filled = mean.clone()                               # a fill: the object stays where it was
-        s_img, s_dyn, s_rec = latent_surprise(vae, xpl, frames, filled, visible.any(1), visible, background, occluder)
+        s_img, s_dyn, s_rec = _latent_surprise(vae, xpl, frames, filled, visible.any(1), visible, background, occluder)
     torch.testing.assert_close(s_rec, torch.zeros(B, T), atol=1e-6, rtol=0)
     assert torch.all(s_img[:, 3:] > 1e-3) and torch.all(s_img[:, :3].abs() < 1e-6)
     with torch.no_grad():     # noise where the fill draws nothing moves s_img and s_rec alike
         drawn = (rendered(vae, filled, torch.ones_like(visible), background) - frames).abs().amax(2, keepdim=True)
         noisy = frames + torch.where(drawn > 1e-4, 0.0, 0.3 * torch.randn_like(frames))
-        noisy_img, _, noisy_rec = latent_surprise(vae, xpl, noisy, filled, visible.any(1), visible, background,
+        noisy_img, _, noisy_rec = _latent_surprise(vae, xpl, noisy, filled, visible.any(1), visible, background,
                                                   occluder)
     assert torch.all(noisy_rec > 1)
     torch.testing.assert_close(noisy_img - noisy_rec, s_img - s_rec, atol=1e-3, rtol=1e-4)
@@ -246,7 +246,7 @@ def test_the_reference_nll_is_the_gaussian_density_of_the_seen_drawing(models):
     visible[:, 2:, 1] = False
     with torch.no_grad():
         frames = rendered(vae, mean, visible, background) + 0.2 * torch.randn(B, T, 4, 16, 16)
-        _, _, s_rec = latent_surprise(vae, xpl, frames, mean, visible.any(1), visible, background, occluder)
+        _, _, s_rec = _latent_surprise(vae, xpl, frames, mean, visible.any(1), visible, background, occluder)
         pictures = vae.decode(background.flatten(0, 1)).reshape(B, T, 4, 16, 16)
         seen = torch.where(visible[..., None, None, None], decode_slots(vae, mean, visible.any(1)), vae.blank()[0])
         drawing = composite(vae, pictures, seen, visible.any(1))

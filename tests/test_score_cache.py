@@ -24,7 +24,7 @@ from xvoe.scenes import store
 from xvoe.scenes.generate import GenerateConfig, generate
 from xvoe.training import latents
 from xvoe.training.checkpoints import shipped_path
-from xvoe.training.latents import check_cache, encoder_key, perception_identity, split_cache
+from xvoe.training.latents import _perception_identity, check_cache, encoder_key, split_cache
 from xvoe.training.perception import load_perception
 
 D, FRAMES = 4, 10
@@ -64,7 +64,7 @@ def test_scores_from_the_cache_are_the_scores_without_it(tiny_split, tmp_path, m
     nll = {"surprise": "both", "particles": 4}
     expected = {name: scored(scorer, tiny_split, tmp_path / f"{name}-alone.csv", cache=False, **settings)
                 for name, scorer, settings in (("xpl", xpl, nll), ("plato", plato, {}))}
-    cache = split_cache(tiny_split, perception_identity(xpl.vae))
+    cache = split_cache(tiny_split, _perception_identity(xpl.vae))
     assert not cache.exists()
     made = scored(xpl, tiny_split, tmp_path / "xpl-first.csv", **nll)       # makes the cache on first use
     assert cache.is_file()
@@ -135,7 +135,7 @@ def test_a_cache_of_another_split_or_another_perception_is_refused(tmp_path, cap
                              progress=False) for name, seed in (("ours", 31), ("theirs", 32)))
     # xvoe encode on a test split writes the cache where xvoe score reads it
     assert main(["encode", "--model", "plato", "--data", str(theirs), "--out", str(tmp_path), "--quiet"]) == 0
-    shipped_key = perception_identity(load_perception("plato")[0])
+    shipped_key = _perception_identity(load_perception("plato")[0])
     made = split_cache(theirs, shipped_key)
     assert made.is_file()
     score = ["score", "--out", str(tmp_path / "s.csv"), "--quiet"]
@@ -161,14 +161,14 @@ def test_a_cache_of_another_split_or_another_perception_is_refused(tmp_path, cap
     assert "was encoded by another perception module" in err and shipped_key in err
     # its own cache has a name of its own beside the split: both perceptions score the split
     assert main(score + ["--model", str(other / "plato.pt"), "--data", str(theirs)]) == 0
-    assert split_cache(theirs, perception_identity(load_perception(other)[0])).is_file()
+    assert split_cache(theirs, _perception_identity(load_perception(other)[0])).is_file()
 
 
 def test_a_cache_encoded_in_another_precision_is_another_cache(tiny_split, tmp_path, monkeypatch):
     """bfloat16 on CUDA moves the latents beyond float rounding: its cache is not read on the CPU."""
     vae = tiny_scorer("xpl", slots=8).vae
     cpu_key = encoder_key(vae)
-    assert cpu_key == perception_identity(vae)          # float32: every CPU cache keeps its name
+    assert cpu_key == _perception_identity(vae)          # float32: every CPU cache keeps its name
     monkeypatch.setattr(latents, "autocast_dtype", lambda device: torch.bfloat16)      # as on a CUDA device
     gpu_key = encoder_key(vae)
     assert gpu_key == f"{cpu_key}-bfloat16" and split_cache(tiny_split, gpu_key) != split_cache(tiny_split, cpu_key)

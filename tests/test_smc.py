@@ -7,7 +7,7 @@ import pytest
 import torch
 from pyro import poutine
 
-from xvoe.inference.model import HiddenObjectModel, InferenceConfig, LinearGaussianScene, Proposal
+from xvoe.inference.model import HiddenObjectModel, InferenceConfig, Proposal, _LinearGaussianScene
 from xvoe.inference.smc import (
     Evidence,
     ModelSteps,
@@ -98,7 +98,7 @@ BACKGROUND = torch.tensor([0.1, 0.2, -0.1], dtype=F64)
 
 
 def linear_scene():
-    return LinearGaussianScene(T, M_0, S_0, A, H, BACKGROUND)
+    return _LinearGaussianScene(T, M_0, S_0, A, H, BACKGROUND)
 
 
 def simulated_frames(seed=0):
@@ -213,7 +213,7 @@ def test_the_sum_over_two_explanations_of_what_was_seen_matches_the_closed_form(
     """Two versions of the scene (two backgrounds, the second with prior P2): the SMC sums them
     and existence out exactly; log p(x), p(two) and the per-frame curve are the closed form's."""
     other, p_two = BACKGROUND + torch.tensor([0.5, -0.4, 0.3], dtype=F64), 0.4
-    scene = LinearGaussianScene(T, M_0, S_0, A, H, torch.stack([BACKGROUND, other]))
+    scene = _LinearGaussianScene(T, M_0, S_0, A, H, torch.stack([BACKGROUND, other]))
     frames = simulated_frames(1)
     found = smc_evidence(scene, frames, config(particles=4096, smc_pilot=0, prior_two=p_two), None,
                          torch.Generator().manual_seed(4))
@@ -246,7 +246,7 @@ def test_the_pilot_skips_the_full_run_only_where_the_object_cannot_matter():
     with_object = smc_evidence(linear_scene(), frames, config(particles=64), None, torch.Generator().manual_seed(0))
     assert with_object.particles == 64         # the object branch matters here: the full run was taken
     blank = BACKGROUND.expand(T, -1) + 0.01   # no object in sight: it can only cost
-    far = LinearGaussianScene(T, M_0 + 20.0, 0.1, A, H, BACKGROUND)
+    far = _LinearGaussianScene(T, M_0 + 20.0, 0.1, A, H, BACKGROUND)
     skipped = smc_evidence(far, blank, config(particles=64, smc_pilot=8), None, torch.Generator().manual_seed(0))
     assert skipped.particles == 8 and skipped.p_hidden < 1e-10
     staged = config(particles=64, smc_pilot=(4, 16))         # the smallest pilot that settles it is kept
@@ -256,7 +256,7 @@ def test_the_pilot_skips_the_full_run_only_where_the_object_cannot_matter():
 
 def test_no_pilot_where_the_existence_head_is_sure_of_an_object():
     blank = BACKGROUND.expand(T, -1) + 0.01   # a pilot would dismiss the object branch here
-    far = LinearGaussianScene(T, M_0 + 20.0, 0.1, A, H, BACKGROUND)
+    far = _LinearGaussianScene(T, M_0 + 20.0, 0.1, A, H, BACKGROUND)
     doubtful, sure = (Proposal(torch.tensor(p), (M_0 + 20.0).expand(T, -1), torch.full((T, D), 0.6))
                       for p in (0.3, 0.9))
     gated = config(particles=64, smc_pilot=8)

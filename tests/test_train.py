@@ -257,10 +257,10 @@ def test_airborne_frames_are_those_whose_pictures_show_an_object_above_the_floor
     import h5py
     import numpy as np
 
-    from xvoe.training.data import airborne
+    from xvoe.training.data import _airborne
 
     with h5py.File(falling_file) as file:
-        lifted = airborne(file, 0, len(file["rgbd"]))
+        lifted = _airborne(file, 0, len(file["rgbd"]))
         groups, ids, kind = file["group"].asstr()[:], file["ids"][:], file["kind"][:]
         kinds = list(file.attrs["kind_names"])
     floor_row = 16 * (1 - 12 / 64)                      # the floor's top, in pixels from the top
@@ -278,12 +278,12 @@ def test_the_airborne_share_of_a_perception_batch(falling_file, tmp_path):
     frames is refused, as a batch focus on a group is in the perception stage."""
     import h5py
 
-    from xvoe.training.data import airborne
+    from xvoe.training.data import _airborne
 
     common = dict(image_size=16, latent_dim=4, batch_size=8, shards=2, seed=3, airborne_share=0.5)
     frames = ShardedFrames(str(falling_file), **common)
     with h5py.File(falling_file) as file:
-        lifted = airborne(file, 0, len(file["rgbd"]))
+        lifted = _airborne(file, 0, len(file["rgbd"]))
     video, frame = frames.picks(5)
     shards = [list(zip(video[:4], frame[:4])), list(zip(video[4:], frame[4:]))]
     assert [[bool(lifted[v, f]) for v, f in shard[2:]] for shard in shards] == [[True, True]] * 2

@@ -12,7 +12,7 @@ from xvoe.models.xpl import XPL, XPLConfig
 from xvoe.scenes import store
 from xvoe.scenes.world import WORLD
 from xvoe.training.config import TrainConfig
-from xvoe.training.latents import Latents, write_latents
+from xvoe.training.latents import _Latents, _write_latents
 from xvoe.training.recipes import RECIPES
 from xvoe.training.xpl import (
     LatentBatches,
@@ -41,10 +41,10 @@ def cache(tmp_path_factory):
     visible = np.ones((N, T, K), bool)
     visible[:, 3:5, 1] = False
     zeros = np.zeros((N, T, D), np.float32)
-    latents = Latents(mean=mean, std=np.full_like(mean, 0.01), visible=visible, present=np.ones_like(visible),
+    latents = _Latents(mean=mean, std=np.full_like(mean, 0.01), visible=visible, present=np.ones_like(visible),
                       pixels=visible.astype(np.int32) * 10, background_mean=zeros, background_std=zeros,
                       attrs={"config": "{}"})
-    return write_latents(tmp_path_factory.mktemp("cache") / "latents.h5", latents)
+    return _write_latents(tmp_path_factory.mktemp("cache") / "latents.h5", latents)
 
 
 def losses(run_dir, stage):
@@ -174,7 +174,7 @@ def test_transformer2_is_asked_for_seen_objects_often(tmp_path):
     visible[:, :, :2] = True
     mean = np.zeros((N, T, K, D), np.float32)
     zeros = np.zeros((N, T, D), np.float32)
-    path = write_latents(tmp_path / "half.h5", Latents(mean=mean, std=mean, visible=visible, present=visible,
+    path = _write_latents(tmp_path / "half.h5", _Latents(mean=mean, std=mean, visible=visible, present=visible,
                                                         pixels=visible.astype(np.int32), background_mean=zeros,
                                                         background_std=zeros, attrs={"config": "{}"}))
     batches = LatentBatches(str(path), batch_size=32, shards=1, seed=5)
@@ -300,10 +300,10 @@ def walled_cache(train_file, path):
         visible = file["states"][..., columns.index("visible")] > 0.25
     mean = np.zeros(visible.shape + (D,), np.float32)
     zeros = np.zeros(visible.shape[:2] + (D,), np.float32)
-    latents = Latents(mean=mean, std=mean, visible=visible, present=visible, pixels=visible.astype(np.int32),
+    latents = _Latents(mean=mean, std=mean, visible=visible, present=visible, pixels=visible.astype(np.int32),
                       background_mean=zeros, background_std=zeros,
                       attrs={"config": "{}", "source": str(train_file)})
-    return write_latents(path, latents)
+    return _write_latents(path, latents)
 
 
 def test_a_focus_group_fills_its_share_of_each_latent_batch(train_file, tmp_path):

@@ -17,9 +17,9 @@ from xvoe.inference.identity import Identity, identity_gap, two_objects
 from xvoe.inference.model import HiddenObjectModel, InferenceConfig, Proposal
 from xvoe.inference.score import under_prior_two
 from xvoe.inference.smc import empty_branch, smc_evidence
-from xvoe.inference.surprise import hidden_object_scene, nll_surprise
+from xvoe.inference.surprise import _hidden_object_scene, nll_surprise
 from xvoe.inference.xpl_scene import XPLScene
-from xvoe.models.slots import WALL_PIXEL
+from xvoe.models.slots import _WALL_PIXEL
 
 
 def seen(*rows: str) -> torch.Tensor:
@@ -67,7 +67,7 @@ def tiny_two_scene(prior_two=0.3):
     vae, xpl = tiny_models()
     frames, mean, visible, background, occluder = two_object_video()
     with torch.no_grad():
-        scene, _, _, _ = hidden_object_scene(vae, xpl, mean, visible, background, occluder,
+        scene, _, _, _ = _hidden_object_scene(vae, xpl, mean, visible, background, occluder,
                                              InferenceConfig(prior_two=prior_two))
     return scene, frames
 
@@ -93,12 +93,12 @@ def test_the_scene_drawn_in_a_batch_is_the_scene_drawn_for_the_video_alone():
         vae.decoder.out.weight.normal_(0, 0.5)         # pictures at the walls' depth: the unseen stand behind them
         vae.decoder.out.bias.copy_(torch.tensor([0.0, 0.0, 0.0, -0.5]))
         drawn = draw_scene(vae, xpl, *(torch.stack(parts) for parts in zip(*videos)))
-        scene, loc, spread, free = hidden_object_scene(vae, xpl, *videos[0], config, drawn.video(0))
+        scene, loc, spread, free = _hidden_object_scene(vae, xpl, *videos[0], config, drawn.video(0))
         alone = XPLScene(vae, xpl, scene.refined, scene.background, scene.visible, videos[0][3], scene.hidden,
                          scene.identity)
-        _, own_loc, own_spread, _ = hidden_object_scene(vae, xpl, *videos[0], config)
+        _, own_loc, own_spread, _ = _hidden_object_scene(vae, xpl, *videos[0], config)
     assert scene.versions == 2 and int(drawn.slot[0]) == scene.hidden != scene.identity.second and free
-    assert (alone.walls < WALL_PIXEL).any()
+    assert (alone.walls < _WALL_PIXEL).any()
     torch.testing.assert_close(scene.layers, alone.layers, rtol=0, atol=1e-6)
     torch.testing.assert_close(scene.walls, alone.walls, rtol=0, atol=1e-6)
     torch.testing.assert_close(scene.empty_frame(2), alone.empty_frame(2), rtol=0, atol=1e-6)

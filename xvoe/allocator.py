@@ -25,20 +25,22 @@ import ctypes
 import ctypes.util
 import os
 
-M_TRIM_THRESHOLD = -1
-M_MMAP_THRESHOLD = -3
-M_ARENA_MAX = -8
-MMAP_THRESHOLD = 1 << 30            # blocks up to 1 GiB come from the heap, whose pages stay
-TRIM_THRESHOLD = (1 << 31) - 1      # the largest int: free memory at the top of the heap stays
-ARENA_MAX = 1                       # one arena (a lock shared by a few threads costs nothing measurable)
-ENV = "XVOE_MALLOC"                 # "system": leave glibc's defaults; "tuned": tune at import (set by tune())
+__all__ = ["tune", "follow", "tuned"]
+
+_M_TRIM_THRESHOLD = -1
+_M_MMAP_THRESHOLD = -3
+_M_ARENA_MAX = -8
+_MMAP_THRESHOLD = 1 << 30            # blocks up to 1 GiB come from the heap, whose pages stay
+_TRIM_THRESHOLD = (1 << 31) - 1      # the largest int: free memory at the top of the heap stays
+_ARENA_MAX = 1                       # one arena (a lock shared by a few threads costs nothing measurable)
+_ENV = "XVOE_MALLOC"                 # "system": leave glibc's defaults; "tuned": tune at import (set by tune())
 
 _state: dict[str, bool] = {}
 
 
 def _user_set() -> bool:
     """Whether the user chose malloc settings of their own (or asked for the system's)."""
-    return (os.environ.get(ENV, "").strip().lower() == "system"
+    return (os.environ.get(_ENV, "").strip().lower() == "system"
             or "glibc.malloc." in os.environ.get("GLIBC_TUNABLES", "")
             or any(name in os.environ for name in ("MALLOC_MMAP_THRESHOLD_", "MALLOC_TRIM_THRESHOLD_",
                                                     "MALLOC_TOP_PAD_", "MALLOC_MMAP_MAX_", "MALLOC_ARENA_MAX")))
@@ -67,18 +69,18 @@ def tune() -> bool:
                 libc.mallopt.argtypes = [ctypes.c_int, ctypes.c_int]
                 libc.mallopt.restype = ctypes.c_int
                 # trim first: setting either one turns glibc's dynamic threshold off
-                tuned = all([libc.mallopt(M_TRIM_THRESHOLD, TRIM_THRESHOLD),
-                             libc.mallopt(M_MMAP_THRESHOLD, MMAP_THRESHOLD),
-                             libc.mallopt(M_ARENA_MAX, ARENA_MAX)])
+                tuned = all([libc.mallopt(_M_TRIM_THRESHOLD, _TRIM_THRESHOLD),
+                             libc.mallopt(_M_MMAP_THRESHOLD, _MMAP_THRESHOLD),
+                             libc.mallopt(_M_ARENA_MAX, _ARENA_MAX)])
         if tuned:
-            os.environ[ENV] = "tuned"       # the workers this process starts tune as they import xvoe
+            os.environ[_ENV] = "tuned"       # the workers this process starts tune as they import xvoe
         _state["tuned"] = tuned
     return _state["tuned"]
 
 
 def follow() -> bool:
     """Tune if the process that started this one did (XVOE_MALLOC=tuned); what `import xvoe` calls."""
-    return os.environ.get(ENV, "").strip().lower() == "tuned" and tune()
+    return os.environ.get(_ENV, "").strip().lower() == "tuned" and tune()
 
 
 def tuned() -> bool:

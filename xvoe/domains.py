@@ -11,6 +11,9 @@ from typing import Any
 
 from .errors import XvoeError
 
+__all__ = ["Domain", "POSITIVE", "NON_NEGATIVE", "COUNT", "SHARE", "SEED", "PICTURE_SIZE", "DISPLAY_SIZE",
+           "DEVICES", "TIME_LIMIT", "within", "check_config", "check_number"]
+
 
 @dataclass(frozen=True)
 class Domain:

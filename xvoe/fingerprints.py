@@ -16,15 +16,17 @@ import numpy as np
 
 from .scenes.store import read_frames
 
-HASH_CHARS = 16         # 64 bits of sha256: no accidental collision, short enough to read in a report
-SAMPLED_VIDEOS = 64     # videos whose frames the split's content hash reads (evenly spaced, first and last kept)
+__all__ = ["arrays_hash", "file_hash", "split_identity", "describe_split"]
+
+_HASH_CHARS = 16         # 64 bits of sha256: no accidental collision, short enough to read in a report
+_SAMPLED_VIDEOS = 64     # videos whose frames the split's content hash reads (evenly spaced, first and last kept)
 
 
 def _digest(update: Iterable[bytes]) -> str:
     found = hashlib.sha256()
     for chunk in update:
         found.update(chunk)
-    return found.hexdigest()[:HASH_CHARS]
+    return found.hexdigest()[:_HASH_CHARS]
 
 
 def _array_bytes(name: str, array: np.ndarray) -> Iterable[bytes]:
@@ -56,10 +58,10 @@ def file_hash(path: str | Path) -> str:
     return _digest([Path(path).read_bytes()])
 
 
-def sampled_videos(count: int) -> np.ndarray:
+def _sampled_videos(count: int) -> np.ndarray:
     """The rows whose frames `split_identity` reads: at most SAMPLED_VIDEOS, evenly spaced, the
     first and the last among them."""
-    return np.unique(np.linspace(0, count - 1, min(count, SAMPLED_VIDEOS)).round().astype(int)) if count else \
+    return np.unique(np.linspace(0, count - 1, min(count, _SAMPLED_VIDEOS)).round().astype(int)) if count else \
         np.zeros(0, int)
 
 
@@ -68,14 +70,14 @@ def split_identity(file) -> dict:
     its video count and a content hash.
 
     The content hash covers every label, `kind`, `color` and `states` whole (any change of scene
-    changes the states) and the frames (`rgbd`, `ids`) of the `sampled_videos` only, with the
+    changes the states) and the frames (`rgbd`, `ids`) of the `_sampled_videos` only, with the
     frames' shape: a pixel changed in a video outside the sample is not seen. It reads 64
     videos and the small arrays: a 1,000-pair split at 32x32 in 2 s, 5 s from a cold disk
     (docs/decisions.md, "Score files that say what they are")."""
     count = file["rgbd"].shape[0]
     labels = [name for name in ("scenario", "setting", "pair", "member", "possible", "event_frame", "group",
                                 "has_wall") if name in file]
-    rows = sampled_videos(count)
+    rows = _sampled_videos(count)
 
     def chunks() -> Iterable[bytes]:
         yield json.dumps(["rgbd", list(file["rgbd"].shape)]).encode()

@@ -14,6 +14,8 @@ import warnings
 from tqdm import TqdmWarning
 from tqdm import tqdm as _text_bar
 
+__all__ = ["quiet_widget_warning", "progress_bar"]
+
 
 def quiet_widget_warning() -> None:
     """Silence tqdm's warning that a notebook lacks ipywidgets, which `import pyro` raises (its

@@ -41,8 +41,10 @@ from .frames import save_figure
 from .metric_plots import plot_comparative, plot_components, plot_holistic, plot_onset
 from .table import STYLES, paper_table
 
+__all__ = ["report", "header_lines"]
+
 # what a report writes, so that a rerun into the same directory leaves nothing of the last one
-REPORT_FILES = ("metrics.csv", "metrics.json", "headers.json", "holistic.png", "comparative.png", "components-*.png",
+_REPORT_FILES = ("metrics.csv", "metrics.json", "headers.json", "holistic.png", "comparative.png", "components-*.png",
                 "disagreements-*.png", "surprise-*.csv", "disagreements-*.csv", "verdicts-*.csv", "onset.csv",
                 "onset.png", *STYLES.values())
 
@@ -64,7 +66,7 @@ def report(paths: list[str | Path], out_dir: str | Path, rounds: int = 1000, see
     layout of every model's metrics, in percent (xvoe/apps/table.py)."""
     if table is not None and table not in STYLES:
         raise XvoeError(f"table must be one of {', '.join(STYLES)}, not {table!r}")
-    check_one_split(paths, data)
+    _check_one_split(paths, data)
     rows = []
     names = []
     compared, verdicts, members = {}, {}, {}
@@ -94,7 +96,7 @@ def report(paths: list[str | Path], out_dir: str | Path, rounds: int = 1000, see
     if not rows:
         raise XvoeError("the scores hold no test pairs to measure")
     out_dir = claim_directory(out_dir, whole=True)
-    earlier = [p for pattern in REPORT_FILES for p in out_dir.glob(pattern)]
+    earlier = [p for pattern in _REPORT_FILES for p in out_dir.glob(pattern)]
     if earlier and not overwrite:
         raise XvoeError(f"{out_dir} holds a report already ({earlier[0].name}); pass --overwrite to replace it")
     # written whole in a folder of this run's first, then put in place together: a full disk
@@ -119,8 +121,8 @@ def _write_report(out_dir: Path, paths: list[str | Path], rows: list[dict], name
                   verdicts: dict, timing: list[dict], timed_pairs: dict, data: str | Path | None,
                   members: dict, table: str | None) -> list[Path]:
     """Every file of the report, written into `out_dir`."""
-    written = list(write_table(rows, out_dir))
-    written.append(write_headers(paths, names, out_dir / "headers.json"))
+    written = list(_write_table(rows, out_dir))
+    written.append(_write_headers(paths, names, out_dir / "headers.json"))
     if table is not None:
         written.append(out_dir / STYLES[table])
         written[-1].write_text(paper_table(rows, members, table))
@@ -129,21 +131,21 @@ def _write_report(out_dir: Path, paths: list[str | Path], rows: list[dict], name
         if any(r["model"] == name and r["column"] != "score" for r in rows):
             drawn[f"components-{name}.png"] = plot_components(rows, name)
     if timing:
-        written.append(write_csv(timing, out_dir / "onset.csv", ONSET_FIELDS))
+        written.append(_write_csv(timing, out_dir / "onset.csv", ONSET_FIELDS))
         drawn["onset.png"] = plot_onset(timed_pairs)
     for name, scores in compared.items():
         differ = disagreements(scores)
-        written += write_comparison(scores, rows, name, SURPRISES, out_dir, "surprise", "disagreements")
+        written += _write_comparison(scores, rows, name, SURPRISES, out_dir, "surprise", "disagreements")
         if data is not None and differ:
             drawn[f"disagreements-{name}.png"] = _disagreement_figure(data, scores, differ)
     for name, scores in verdicts.items():
-        written += write_comparison(scores, rows, name, VERDICTS, out_dir, "verdicts", "verdicts-disagreements")
+        written += _write_comparison(scores, rows, name, VERDICTS, out_dir, "verdicts", "verdicts-disagreements")
     for filename, figure in drawn.items():
         written.append(save_figure(figure, out_dir / filename, dpi=90))
     return written
 
 
-def check_one_split(paths: list[str | Path], data: str | Path | None) -> None:
+def _check_one_split(paths: list[str | Path], data: str | Path | None) -> None:
     """Refuse, before any work, scores whose curves were written with other scores (`score_header`),
     and scores made on another split than `data` (with `data`) or than the first scores file that
     records its split."""
@@ -167,7 +169,7 @@ def check_one_split(paths: list[str | Path], data: str | Path | None) -> None:
         first = first or (path, found)
 
 
-def write_headers(paths: list[str | Path], names: list[str], out: Path) -> Path:
+def _write_headers(paths: list[str | Path], names: list[str], out: Path) -> Path:
     """headers.json: for each model, its scores file (an absolute path, for `xvoe verify`) and
     what the file says it was made with ({} for a file that records nothing)."""
     headers = [{"model": name, "scores": str(Path(path).resolve()),
@@ -196,25 +198,25 @@ def header_lines(header: dict) -> list[str]:
     return lines
 
 
-def write_comparison(scores: dict[str, np.ndarray], rows: list[dict], name: str, columns: tuple[str, str],
+def _write_comparison(scores: dict[str, np.ndarray], rows: list[dict], name: str, columns: tuple[str, str],
                      out_dir: Path, side: str, differ: str) -> list[Path]:
     """Two score columns of one model side by side (SIDE-NAME.csv) and the pairs they judge
     differently (DIFFER-NAME.csv)."""
-    return [write_csv(side_by_side(scores, rows, name, columns), out_dir / f"{side}-{name}.csv"),
-            write_csv(disagreements(scores, columns), out_dir / f"{differ}-{name}.csv", disagreement_fields(columns))]
+    return [_write_csv(side_by_side(scores, rows, name, columns), out_dir / f"{side}-{name}.csv"),
+            _write_csv(disagreements(scores, columns), out_dir / f"{differ}-{name}.csv", disagreement_fields(columns))]
 
 
-def write_table(rows: list[dict], out_dir: str | Path) -> tuple[Path, Path]:
+def _write_table(rows: list[dict], out_dir: str | Path) -> tuple[Path, Path]:
     """metrics.csv and metrics.json in out_dir."""
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     csv_path, json_path = out_dir / "metrics.csv", out_dir / "metrics.json"
-    write_csv(rows, csv_path)
+    _write_csv(rows, csv_path)
     json_path.write_text(json.dumps(rows, indent=1))
     return csv_path, json_path
 
 
-def write_csv(rows: list[dict], path: Path, fields: tuple[str, ...] | None = None) -> Path:
+def _write_csv(rows: list[dict], path: Path, fields: tuple[str, ...] | None = None) -> Path:
     """Rows of dicts as a CSV (a header alone when there are none, from `fields`)."""
     with open(path, "w", newline="") as handle:
         writer = csv.DictWriter(handle, list(fields or rows[0]))

@@ -13,13 +13,15 @@ from ..errors import XvoeError
 from ..evaluation.metrics import OFFICIAL_RELATIVE, Estimate
 from ..scenes.scenarios import SCENARIOS
 
+__all__ = ["STYLES", "paper_table"]
+
 STYLES = {"md": "table.md", "latex": "table.tex"}     # each style and the file it is written to
-SETTING_NAMES = {"S1": "S1 predictive", "S2": "S2 hypothetical", "S3": "S3 explicative"}
+_SETTING_NAMES = {"S1": "S1 predictive", "S2": "S2 hypothetical", "S3": "S3 explicative"}
 # (metric, setting or sub-row) in the table's order; a sub-row reads the members' estimates
-LAYOUT = (("holistic", ""), ("comparative", "S1"), ("comparative", "S2"), ("comparative", "S3"),
+_LAYOUT = (("holistic", ""), ("comparative", "S1"), ("comparative", "S2"), ("comparative", "S3"),
           ("relative", "S1"), ("relative", "S2"), ("relative", "S2-ext1"), ("relative", "S2-ext2"),
           ("relative", "S3"), ("relative", "S3-ext"), ("relative", "S3-sur"))
-SUB_ROWS = frozenset(OFFICIAL_RELATIVE.values())
+_SUB_ROWS = frozenset(OFFICIAL_RELATIVE.values())
 
 
 def paper_table(rows: list[dict], members: dict[str, dict[tuple[str, str], Estimate]], style: str,
@@ -35,7 +37,7 @@ def paper_table(rows: list[dict], members: dict[str, dict[tuple[str, str], Estim
     present = {r["scenario"] for r in rows}
     scenarios = [s for s in (*SCENARIOS, "custom") if s in present]
     body, named = [], None
-    for metric, setting in LAYOUT:
+    for metric, setting in _LAYOUT:
         cells = [[values.get((model, metric, scenario, setting)) for scenario in scenarios] for model in models]
         if all(v is None for row in cells for v in row):
             continue
@@ -48,9 +50,9 @@ def paper_table(rows: list[dict], members: dict[str, dict[tuple[str, str], Estim
 
 
 def _setting(setting: str, style: str) -> str:
-    if setting in SUB_ROWS:
+    if setting in _SUB_ROWS:
         return f"\\quad {setting}" if style == "latex" else setting
-    return SETTING_NAMES.get(setting, setting)
+    return _SETTING_NAMES.get(setting, setting)
 
 
 def _percent(value: float | None, style: str) -> str:

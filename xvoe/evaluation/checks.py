@@ -4,7 +4,7 @@ A broken model otherwise looks like a weak one: scores that depend on the batch 
 order of the videos, that change on a repeat, that are NaN for some videos or the same for
 all, still give an accuracy. Each check names itself in a one-line error.
 
-The batch checks score a small seeded sample of the videos again: `SAMPLE` videos in four
+The batch checks score a small seeded sample of the videos again: `_SAMPLE` videos in four
 passes (one batch, a repeat, another order, one at a time), 32 video scorings whatever the
 split's size, in which every sampled video is seen at another place in its batch and in a
 batch of another size. The finite and spread checks read the scores of every video, which
@@ -19,21 +19,23 @@ import numpy as np
 
 from ..errors import XvoeError
 
-SAMPLE = 8          # videos scored again in other batches: enough to move each one, cheap on any split
-SEED = 0            # the sample is drawn from this seed
-RELATIVE = 1e-4     # float tolerance: a batched matrix product may round differently from a single one
-ABSOLUTE = 1e-6     # ... and relative to the largest surprise, for frames near zero
+__all__ = ["ScoreBatch", "sample_rows", "check_batches", "check_finite", "check_spread"]
+
+_SAMPLE = 8          # videos scored again in other batches: enough to move each one, cheap on any split
+_SEED = 0            # the sample is drawn from this seed
+_RELATIVE = 1e-4     # float tolerance: a batched matrix product may round differently from a single one
+_ABSOLUTE = 1e-6     # ... and relative to the largest surprise, for frames near zero
 
 # per-frame surprise (B, T) of the sample's videos at these positions, in this order, as one batch
 ScoreBatch = Callable[[np.ndarray], np.ndarray]
 
 
-def sample_rows(first: int, last: int, count: int = SAMPLE) -> np.ndarray:
-    """The rows in [first, last) the batch checks score again: `count` of them, sorted, drawn from `SEED`."""
+def sample_rows(first: int, last: int, count: int = _SAMPLE) -> np.ndarray:
+    """The rows in [first, last) the batch checks score again: `count` of them, sorted, drawn from `_SEED`."""
     rows = np.arange(first, last)
     if len(rows) <= count:
         return rows
-    return np.sort(np.random.default_rng(SEED).choice(rows, count, replace=False))
+    return np.sort(np.random.default_rng(_SEED).choice(rows, count, replace=False))
 
 
 def check_batches(score_batch: ScoreBatch, rows: np.ndarray, model: str) -> None:
@@ -68,7 +70,7 @@ def check_spread(scores: np.ndarray, model: str) -> None:
 
 def _compare(reference: np.ndarray, other: np.ndarray, rows: np.ndarray, model: str, check: str, how: str) -> None:
     scale = float(np.abs(reference).max(initial=0.0))
-    close = np.isclose(other, reference, rtol=RELATIVE, atol=ABSOLUTE * scale)
+    close = np.isclose(other, reference, rtol=_RELATIVE, atol=_ABSOLUTE * scale)
     if close.all():
         return
     worst = np.unravel_index(np.argmax(np.abs(other - reference)), reference.shape)

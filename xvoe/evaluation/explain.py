@@ -23,6 +23,9 @@ from ..training.data import check_size
 from .score import Scorer, encode_video, read_videos, run_model
 from .surprise import explained_latents, mse_surprise
 
+__all__ = ["DRAW_THRESHOLD", "Explanation", "DrawnExplanation", "explain_drawn", "explain", "drawn_pixels",
+           "masked", "look_alike", "decoded_mask", "iou"]
+
 # A hypothesis of the NLL's posterior below this probability is not drawn as the model's belief:
 # no outline, no rows of it, one line of text instead; above it, its outline's opacity is its p.
 DRAW_THRESHOLD = 0.05
@@ -47,7 +50,7 @@ class Explanation:
     def draws_hidden(self) -> bool:
         """Whether the explained slot draws something: a slot kept yet decoded to (almost) no
         pixels explains nothing, and figures and printouts call it "nothing hidden"."""
-        return self.slot >= 0 and draws_something(self.hidden_object)
+        return self.slot >= 0 and _draws_something(self.hidden_object)
 
     @property
     def p_drawn(self) -> float:
@@ -141,15 +144,15 @@ def explain(scorer: Scorer, data: str, index: int) -> Explanation:
 
 # --- measuring explanations against the ground truth --------------------------------------
 
-OBJECT_DEPTH_LIMIT = 0.75   # normalised depth: decoded objects lie near 0, the blank at 1.5
+_OBJECT_DEPTH_LIMIT = 0.75   # normalised depth: decoded objects lie near 0, the blank at 1.5
 
 
-DRAWN_SHARE = 0.002     # of a frame's pixels: a slot drawing fewer in every frame draws nothing
+_DRAWN_SHARE = 0.002     # of a frame's pixels: a slot drawing fewer in every frame draws nothing
 
 
 def drawn_pixels(pictures: np.ndarray) -> np.ndarray:
     """Where decoded uint8 pictures (..., H, W, 4) draw an object (T, H, W) bool."""
-    return pictures[..., 3] < (OBJECT_DEPTH_LIMIT + 1.0) * 127.5       # normalised units to uint8
+    return pictures[..., 3] < (_OBJECT_DEPTH_LIMIT + 1.0) * 127.5       # normalised units to uint8
 
 
 def masked(pictures: np.ndarray) -> np.ndarray:
@@ -160,10 +163,10 @@ def masked(pictures: np.ndarray) -> np.ndarray:
     return out
 
 
-SAME_PIXELS = 3     # a decoded object differing from another in fewer pixels of every frame looks the same
+_SAME_PIXELS = 3     # a decoded object differing from another in fewer pixels of every frame looks the same
 
 
-def differing_pixels(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+def _differing_pixels(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """Per frame, how many pixels two decoded uint8 pictures (T, H, W, 4) of one slot draw
     differently to the eye: drawn by one alone, or by both in colours more than a fifth of the
     colour range apart."""
@@ -174,21 +177,21 @@ def differing_pixels(a: np.ndarray, b: np.ndarray) -> np.ndarray:
 
 def look_alike(a: np.ndarray, b: np.ndarray) -> bool:
     """Whether two decoded uint8 pictures (T, H, W, 4) of one slot draw the same to the eye:
-    fewer than SAME_PIXELS differing pixels (`differing_pixels`) in every frame."""
-    return int(differing_pixels(a, b).max(initial=0)) < SAME_PIXELS
+    fewer than SAME_PIXELS differing pixels (`_differing_pixels`) in every frame."""
+    return int(_differing_pixels(a, b).max(initial=0)) < _SAME_PIXELS
 
 
-def draws_something(pictures: np.ndarray) -> bool:
+def _draws_something(pictures: np.ndarray) -> bool:
     """Whether decoded uint8 pictures (T, H, W, 4) of one slot draw at least DRAWN_SHARE of a
     frame in some frame."""
     drawn = drawn_pixels(pictures)
-    return bool(drawn.any()) and float(drawn.mean(axis=(-2, -1)).max()) >= DRAWN_SHARE
+    return bool(drawn.any()) and float(drawn.mean(axis=(-2, -1)).max()) >= _DRAWN_SHARE
 
 
 def decoded_mask(pictures: np.ndarray | torch.Tensor) -> np.ndarray:
     """Where a decoded object (..., 4, H, W), in normalised units, draws something."""
     depth = torch.as_tensor(pictures)[..., 3, :, :]
-    return (depth < OBJECT_DEPTH_LIMIT).cpu().numpy()
+    return (depth < _OBJECT_DEPTH_LIMIT).cpu().numpy()
 
 
 def iou(a: np.ndarray, b: np.ndarray) -> float:

@@ -26,6 +26,9 @@ from .explain import decoded_mask, iou
 from .score import Scorer, encode_videos
 from .surprise import mse_surprise
 
+__all__ = ["pick", "expected_videos", "ground_truth", "hidden_explanations", "hidden_fills", "perception_iou",
+           "mae_iou", "dynamics_error", "principal_spread"]
+
 
 def pick(file: h5py.File, scenario: str, setting: str, member: int, limit: int) -> list[int]:
     """The first `limit` videos of one member of a setting's pairs."""
@@ -39,12 +42,12 @@ def expected_videos(file: h5py.File, pairs: int) -> list[int]:
     return [i for scenario in SCENARIOS for i in pick(file, scenario, "S1", 0, max(1, pairs // 4))]
 
 
-def split_names(file: h5py.File) -> tuple[list[str], list[str]]:
+def _split_names(file: h5py.File) -> tuple[list[str], list[str]]:
     """The split's object kind names and state column names."""
     return list(file.attrs["kind_names"]), list(file["states"].attrs["state_columns"])
 
 
-def video_iou(masks: np.ndarray, truth: np.ndarray) -> float:
+def _video_iou(masks: np.ndarray, truth: np.ndarray) -> float:
     """The mean over frames of the IoU of two stacks of masks (T, H, W)."""
     return float(np.mean([iou(m, g) for m, g in zip(masks, truth)]))
 
@@ -52,7 +55,7 @@ def video_iou(masks: np.ndarray, truth: np.ndarray) -> float:
 def ground_truth(file: h5py.File, index: int) -> str:
     """"hidden": an object of the video is visible in no frame; "seen": every object is seen
     at some frame."""
-    names, columns = split_names(file)
+    names, columns = _split_names(file)
     visible = store.read_states(file, index)[:, :, columns.index("visible")].max(axis=0)
     objects = [k for k, kind in enumerate(file["kind"][index]) if names[kind] != "none"]
     return "hidden" if any(visible[k] == 0 for k in objects) else "seen"
@@ -76,7 +79,7 @@ def hidden_explanations(scorer: Scorer, file: h5py.File, videos: list[int]) -> d
     and Transformer 1's fill of the ball in the frames the wall hides it (`ball_fill_px`: its x
     less the true x, > 0 beyond it, median). Videos without exactly one never-seen cube are
     skipped."""
-    names, columns = split_names(file)
+    names, columns = _split_names(file)
     x = columns.index("x")
     scores, offsets, away, areas, empty, ball_fill, kept = [], [], [], [], [], [], []
     for index in videos:
@@ -96,7 +99,7 @@ def hidden_explanations(scorer: Scorer, file: h5py.File, videos: list[int]) -> d
             continue
         masks = decoded_mask(scorer.vae.decode(explained[0, :, slot[0]]))
         truth = silhouette(states[:, hidden[0]], columns, "cube", masks.shape[-1])
-        scores.append(video_iou(masks, truth))
+        scores.append(_video_iou(masks, truth))
         balls = [k for k, kind in enumerate(kinds) if kind == "ball"]
         # +1 where the ball starts right of the cube: "away from the ball" is then -x
         side = np.sign(states[0, balls[0], x] - states[0, hidden[0], x]) if balls else 0.0
@@ -131,7 +134,7 @@ def hidden_fills(scorer: Scorer, file: h5py.File, videos: list[int]) -> dict:
     that took on the wall's shape). The MSE score's dynamics term compares the frame after it
     with the prediction from that fill: a fill that is off costs the possible member at the
     reveal, and the impossible one, whose cube never shows again, does not pay it."""
-    names, columns = split_names(file)
+    names, columns = _split_names(file)
     scores, offsets, before_reveal, oversized, worst = [], [], [], [], (0, -1)
     by_distance: dict[int, list[float]] = {}    # frames before the cube is seen again: IoUs
     for index in videos:
@@ -173,7 +176,7 @@ def hidden_fills(scorer: Scorer, file: h5py.File, videos: list[int]) -> dict:
 def perception_iou(scorer: Scorer, file: h5py.File, videos: list[int]) -> float:
     """The ceiling of any explanation this perception decodes: the IoU of a wholly visible
     cube's own encoded latent, decoded, with its silhouette (all such frames of the videos)."""
-    names, columns = split_names(file)
+    names, columns = _split_names(file)
     scores = []
     for index in videos:
         kinds = [names[k] for k in file["kind"][index]]
@@ -195,7 +198,7 @@ def perception_iou(scorer: Scorer, file: h5py.File, videos: list[int]) -> float:
 def mae_iou(scorer: Scorer, file: h5py.File, videos: list[int]) -> list[float]:
     """The IoU of each ball or cube rebuilt by Transformer 2 with its silhouette, one per
     object (mae_iou is their mean)."""
-    names, columns = split_names(file)
+    names, columns = _split_names(file)
     empty = scorer.vae.posterior(scorer.vae.blank())[0][0]      # the encoder's latent of a slot with no pixels
     scores = []
     for index in videos:
@@ -212,7 +215,7 @@ def mae_iou(scorer: Scorer, file: h5py.File, videos: list[int]) -> list[float]:
             rebuilt, _ = scorer.xpl.transformer2(refined, keep)
             masks = decoded_mask(scorer.vae.decode(rebuilt[0, :, slot]))
             truth = silhouette(states[:, slot], columns, kind, masks.shape[-1])
-            scores.append(video_iou(masks, truth))
+            scores.append(_video_iou(masks, truth))
     return scores
 
 

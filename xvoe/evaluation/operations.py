@@ -3,10 +3,10 @@ leaves out registered.
 
 FlopCounterMode counts FLOPs (2 per multiply-accumulate of a matrix product or convolution) and
 only the operations in its registry. On the CPU two that carry much of our work are missing:
-the CPU flash attention (`aten._scaled_dot_product_flash_attention_for_cpu` and its backward,
+the CPU flash attention (`_aten._scaled_dot_product_flash_attention_for_cpu` and its backward,
 what `scaled_dot_product_attention` runs for the ViT, Transformers 1 and 2 and the object
-buffer) and the oneDNN LSTM layer (`aten.mkldnn_rnn_layer` and its backward, what `torch.lstm`
-runs for XPL's slot-wise LSTM). `EXTRA_FORMULAS` counts them from their shapes; elementwise work
+buffer) and the oneDNN LSTM layer (`_aten.mkldnn_rnn_layer` and its backward, what `torch.lstm`
+runs for XPL's slot-wise LSTM). `_EXTRA_FORMULAS` counts them from their shapes; elementwise work
 (activations, gates, softmax, norms) is counted by neither, as torch counts none.
 
 The same pass counts the bytes each operation reads and writes, to set a step bound by memory
@@ -27,10 +27,12 @@ from torch.utils._python_dispatch import TorchDispatchMode
 from torch.utils._pytree import tree_leaves
 from torch.utils.flop_counter import FlopCounterMode, flop_registry
 
-aten = torch.ops.aten
+__all__ = ["Operations", "count_operations"]
+
+_aten = torch.ops.aten
 
 
-def attention_macs(query: torch.Size, key: torch.Size, value: torch.Size) -> int:
+def _attention_macs(query: torch.Size, key: torch.Size, value: torch.Size) -> int:
     """Forward: scores Q K^T and their weighted sum of V, over every (query, key) pair; a mask
     does not shorten the CPU kernel's work, so none is subtracted."""
     *batch, queries, width = query
@@ -38,7 +40,7 @@ def attention_macs(query: torch.Size, key: torch.Size, value: torch.Size) -> int
     return prod(batch) * queries * keys * (width + value_width)
 
 
-def attention_backward_macs(query: torch.Size, key: torch.Size, value: torch.Size) -> int:
+def _attention_backward_macs(query: torch.Size, key: torch.Size, value: torch.Size) -> int:
     """Backward: the flash kernel recomputes the scores from the saved log-sum-exp (Q K^T), then
     forms dP = dO V^T, dV = P^T dO, dQ = dS K and dK = dS^T Q: five products of the forward's size."""
     *batch, queries, width = query
@@ -46,7 +48,7 @@ def attention_backward_macs(query: torch.Size, key: torch.Size, value: torch.Siz
     return prod(batch) * queries * keys * (3 * width + 2 * value_width)
 
 
-def rnn_layer_macs(inputs: torch.Size, weight_ih: torch.Size, weight_hh: torch.Size) -> int:
+def _rnn_layer_macs(inputs: torch.Size, weight_ih: torch.Size, weight_hh: torch.Size) -> int:
     """Forward of one recurrent layer: every time step of every sequence multiplies its input by
     W_ih (gates x I) and the previous hidden state by W_hh (gates x L)."""
     steps = prod(inputs) // inputs[-1]
@@ -58,29 +60,29 @@ def _flops(macs: int) -> int:
 
 
 def _attention(query, key, value, *args, out_shape=None, **kwargs) -> int:
-    return _flops(attention_macs(query, key, value))
+    return _flops(_attention_macs(query, key, value))
 
 
 def _attention_backward(grad_out, query, key, value, *args, out_shape=None, **kwargs) -> int:
-    return _flops(attention_backward_macs(query, key, value))
+    return _flops(_attention_backward_macs(query, key, value))
 
 
 def _rnn_layer(inputs, weight_ih, weight_hh, *args, out_shape=None, **kwargs) -> int:
-    return _flops(rnn_layer_macs(inputs, weight_ih, weight_hh))
+    return _flops(_rnn_layer_macs(inputs, weight_ih, weight_hh))
 
 
 def _rnn_layer_backward(inputs, weight_ih, weight_hh, *args, out_shape=None, **kwargs) -> int:
     """Gradients of the inputs and hidden states and of both weights: twice the forward's products
     (the saved workspace holds the gates, nothing is recomputed)."""
-    return _flops(2 * rnn_layer_macs(inputs, weight_ih, weight_hh))
+    return _flops(2 * _rnn_layer_macs(inputs, weight_ih, weight_hh))
 
 
 # FLOPs (FlopCounterMode's unit) of the operations its registry lacks, from their argument shapes
-EXTRA_FORMULAS: dict[object, Callable[..., int]] = {
-    aten._scaled_dot_product_flash_attention_for_cpu: _attention,
-    aten._scaled_dot_product_flash_attention_for_cpu_backward: _attention_backward,
-    aten.mkldnn_rnn_layer: _rnn_layer,
-    aten.mkldnn_rnn_layer_backward: _rnn_layer_backward,
+_EXTRA_FORMULAS: dict[object, Callable[..., int]] = {
+    _aten._scaled_dot_product_flash_attention_for_cpu: _attention,
+    _aten._scaled_dot_product_flash_attention_for_cpu_backward: _attention_backward,
+    _aten.mkldnn_rnn_layer: _rnn_layer,
+    _aten.mkldnn_rnn_layer_backward: _rnn_layer_backward,
 }
 
 
@@ -98,7 +100,7 @@ class _GlobalOnly:
 
 
 # name parts of the operations that multiply-accumulate: products, convolutions, attention, RNNs
-PRODUCT_NAMES = ("mm", "conv", "attention", "rnn", "lstm", "gru", "matmul", "linear", "einsum")
+_PRODUCT_NAMES = ("mm", "conv", "attention", "rnn", "lstm", "gru", "matmul", "linear", "einsum")
 
 
 class _Watch(TorchDispatchMode):
@@ -111,27 +113,27 @@ class _Watch(TorchDispatchMode):
 
     def __torch_dispatch__(self, func, types, args=(), kwargs=None):
         name = str(func.overloadpacket)
-        if func.overloadpacket not in self.registry and any(part in name for part in PRODUCT_NAMES):
+        if func.overloadpacket not in self.registry and any(part in name for part in _PRODUCT_NAMES):
             self.uncounted.add(name)
         return func(*args, **(kwargs or {}))
 
 
 # operations that only allocate: their output is written by the next operation, counted there
-ALLOCATIONS = frozenset({aten.empty, aten.empty_like, aten.empty_strided, aten.new_empty, aten.new_empty_strided})
+_ALLOCATIONS = frozenset({_aten.empty, _aten.empty_like, _aten.empty_strided, _aten.new_empty, _aten.new_empty_strided})
 
 
-def tensor_bytes(tensor: torch.Tensor) -> int:
+def _tensor_bytes(tensor: torch.Tensor) -> int:
     """Bytes of the distinct elements a tensor covers: a broadcast (stride 0) dimension once."""
     if tensor.layout != torch.strided:
         return tensor.numel() * tensor.element_size()
     return tensor.element_size() * prod(size for size, stride in zip(tensor.shape, tensor.stride()) if stride)
 
 
-def moves_data(func) -> bool:
+def _moves_data(func) -> bool:
     """False for a view (its output aliases an input it does not write) and a bare allocation."""
     aliases = (value.alias_info for value in func._schema.returns)
     is_view = any(alias is not None and not alias.is_write for alias in aliases)
-    return not is_view and func.overloadpacket not in ALLOCATIONS
+    return not is_view and func.overloadpacket not in _ALLOCATIONS
 
 
 class _Traffic(TorchDispatchMode):
@@ -144,8 +146,8 @@ class _Traffic(TorchDispatchMode):
     def __torch_dispatch__(self, func, types, args=(), kwargs=None):
         kwargs = kwargs or {}
         out = func(*args, **kwargs)
-        if moves_data(func):
-            self.bytes += sum(tensor_bytes(leaf) for leaf in tree_leaves((args, kwargs, out))
+        if _moves_data(func):
+            self.bytes += sum(_tensor_bytes(leaf) for leaf in tree_leaves((args, kwargs, out))
                               if isinstance(leaf, torch.Tensor))
         return out
 
@@ -177,7 +179,7 @@ class Operations:
 def count_operations(step: Callable[[], object]) -> Operations:
     """MACs and bytes moved of one call of `step`, forward and backward. The Transformer's fused
     inference path is switched off while counting: it runs the same products in an op no counter knows."""
-    counter = FlopCounterMode(display=False, custom_mapping=EXTRA_FORMULAS)
+    counter = FlopCounterMode(display=False, custom_mapping=_EXTRA_FORMULAS)
     counter.mod_tracker = _GlobalOnly()
     fastpath = torch.backends.mha.get_fastpath_enabled()
     torch.backends.mha.set_fastpath_enabled(False)

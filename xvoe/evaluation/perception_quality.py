@@ -28,7 +28,10 @@ from ..training.data import check_size, perception_batch, visible_threshold
 from ..training.latents import encode_means
 from .resampling import interval
 
-CHANNELS = ("rgb", "depth", "objects")
+__all__ = ["POOLED", "PROBE_GOALS", "HeldOut", "read_held_out", "reconstruction", "latent_positions",
+           "PositionProbe", "position_probes", "hidden_part_error"]
+
+_CHANNELS = ("rgb", "depth", "objects")
 POOLED = "all"                              # position_probes' key of the probe for every visible object
 PROBE_GOALS = {"ball": ("x",), "cube": ("x", "y"), "wall": ("x", "y")}      # the probes' goal lines: kind, axes
 
@@ -59,19 +62,19 @@ def read_held_out(data: str | Path, videos: int, image_size: int) -> HeldOut:
                        list(file["states"].attrs["state_columns"]), list(file.attrs["kind_names"]))
 
 
-def psnr(error_sum: float | np.ndarray, count: float | np.ndarray) -> float | np.ndarray:
+def _psnr(error_sum: float | np.ndarray, count: float | np.ndarray) -> float | np.ndarray:
     """Peak signal-to-noise ratio (dB) of 8-bit values from a sum of squared errors over `count` values."""
     return 10 * np.log10(255.0 ** 2 / np.maximum(error_sum / np.maximum(count, 1), 1e-12))
 
 
-def squared_errors(model: ComponentVAE, held: HeldOut, batch: int = 256) -> dict[str, np.ndarray]:
+def _squared_errors(model: ComponentVAE, held: HeldOut, batch: int = 256) -> dict[str, np.ndarray]:
     """Per video, the summed squared errors of the decoded composites and how many values they
     cover, per channel group (`rgb`, `depth`, `objects`: RGB on object pixels)."""
     videos, frames, size = held.rgbd.shape[:3]
     rgbd, ids = held.rgbd.reshape(-1, size, size, 4), held.ids.reshape(-1, size, size)
     slots = held.states.shape[2]
-    sums = {name: np.zeros(len(rgbd)) for name in CHANNELS}
-    counts = {name: np.zeros(len(rgbd)) for name in CHANNELS}
+    sums = {name: np.zeros(len(rgbd)) for name in _CHANNELS}
+    counts = {name: np.zeros(len(rgbd)) for name in _CHANNELS}
     for start in range(0, len(rgbd), batch):
         chunk, maps = rgbd[start:start + batch], ids[start:start + batch]
         noise = np.zeros((len(chunk), slots + 1, model.config.latent_dim), np.float32)
@@ -88,21 +91,21 @@ def squared_errors(model: ComponentVAE, held: HeldOut, batch: int = 256) -> dict
         sums["objects"][rows] = (error[..., :3] * on).sum((1, 2, 3))
         counts["objects"][rows] = 3 * on.sum((1, 2, 3))
     return {f"{name}_{part}": table[name].reshape(videos, frames).sum(1)
-            for part, table in (("sum", sums), ("count", counts)) for name in CHANNELS}
+            for part, table in (("sum", sums), ("count", counts)) for name in _CHANNELS}
 
 
 def reconstruction(model: ComponentVAE, held: HeldOut, rounds: int = 1000,
                    seed: int = 0) -> dict[str, tuple[float, float, float]]:
     """PSNR (dB) per channel group, pooled over all frames: (value, low, high), the interval
     from resampling videos."""
-    errors = squared_errors(model, held)
-    return {name: _pooled_psnr(errors[f"{name}_sum"], errors[f"{name}_count"], rounds, seed) for name in CHANNELS}
+    errors = _squared_errors(model, held)
+    return {name: _pooled_psnr(errors[f"{name}_sum"], errors[f"{name}_count"], rounds, seed) for name in _CHANNELS}
 
 
 def _pooled_psnr(total: np.ndarray, count: np.ndarray, rounds: int, seed: int) -> tuple[float, float, float]:
     """PSNR of per-video error sums pooled, and its interval over videos."""
-    low, high = interval(lambda chosen: psnr(total[chosen].sum(), count[chosen].sum()), len(total), rounds, seed)
-    return float(psnr(total.sum(), count.sum())), low, high
+    low, high = interval(lambda chosen: _psnr(total[chosen].sum(), count[chosen].sum()), len(total), rounds, seed)
+    return float(_psnr(total.sum(), count.sum())), low, high
 
 
 def latent_positions(model: ComponentVAE, held: HeldOut) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -111,30 +114,30 @@ def latent_positions(model: ComponentVAE, held: HeldOut) -> tuple[np.ndarray, np
     return means, held.positions(), pixels > visible_threshold(held.rgbd.shape[2])
 
 
-def fit_probe(means: np.ndarray, targets: np.ndarray, chosen: np.ndarray) -> np.ndarray:
+def _fit_probe(means: np.ndarray, targets: np.ndarray, chosen: np.ndarray) -> np.ndarray:
     """Least-squares weights (D + 1, targets) from the chosen slots' latent means (with a constant)."""
     weights, *_ = np.linalg.lstsq(np.c_[means[chosen], np.ones(chosen.sum())], targets[chosen], rcond=None)
     return weights
 
 
-def r_squared(truth: np.ndarray, guess: np.ndarray) -> np.ndarray:
+def _r_squared(truth: np.ndarray, guess: np.ndarray) -> np.ndarray:
     """R^2 per column; nan where the truth does not vary."""
     spread = ((truth - truth.mean(0)) ** 2).sum(0)
     with np.errstate(divide="ignore", invalid="ignore"):
         return np.where(spread > 1e-6 * len(truth), 1 - ((truth - guess) ** 2).sum(0) / spread, np.nan)
 
 
-def probe(means: np.ndarray, targets: np.ndarray, chosen: np.ndarray, rounds: int = 0,
+def _probe(means: np.ndarray, targets: np.ndarray, chosen: np.ndarray, rounds: int = 0,
           seed: int = 0) -> list[tuple[float, float, float]]:
     """Per target column, (R^2, low, high) of a probe fitted on the first half of the videos and
     scored on the second half, over the `chosen` slots (V, T, K); the interval resamples the
     held-out videos (no interval, nan, when rounds is 0 or the R^2 is nan)."""
     half = len(means) // 2
-    weights = fit_probe(means[:half], targets[:half], chosen[:half])
+    weights = _fit_probe(means[:half], targets[:half], chosen[:half])
     held = chosen[half:]
     truth = targets[half:][held]
     guess = np.c_[means[half:][held], np.ones(held.sum())] @ weights
-    values = r_squared(truth, guess)
+    values = _r_squared(truth, guess)
     video = np.nonzero(held)[0]          # the held-out video of each chosen slot
     return [(float(value), *(_r2_interval(truth[:, c], guess[:, c], video, len(held), rounds, seed)
                              if rounds and np.isfinite(value) else (float("nan"),) * 2))
@@ -154,7 +157,7 @@ class PositionProbe:
 
 def position_probes(means: np.ndarray, positions: np.ndarray, visible: np.ndarray, kind: np.ndarray,
                     kind_names: list[str], rounds: int = 0, seed: int = 0) -> dict[str, PositionProbe]:
-    """The position probe (`probe`: same halves, same interval) for every visible object, under
+    """The position probe (`_probe`: same halves, same interval) for every visible object, under
     `POOLED`, and for each kind's visible objects alone, under the kind's name: every kind of
     `kind_names` but "none", and each kind of `PROBE_GOALS` whether the split names it or not.
 
@@ -178,7 +181,7 @@ def position_probes(means: np.ndarray, positions: np.ndarray, visible: np.ndarra
             missing = (float("nan"),) * 3
             found[name] = PositionProbe(held, missing, missing, short)
             continue
-        r2_x, r2_y = probe(means, positions, chosen, rounds, seed)
+        r2_x, r2_y = _probe(means, positions, chosen, rounds, seed)
         flat = [axis for axis, value in (("x", r2_x[0]), ("y", r2_y[0])) if np.isnan(value)]
         found[name] = PositionProbe(held, r2_x, r2_y,
                                     f"{' and '.join(flat)} does not vary in the held-out half" if flat else "")
@@ -210,7 +213,7 @@ def hidden_part_error(means: np.ndarray, targets: np.ndarray, seen: np.ndarray, 
     half = len(means) // 2
     groups = {"whole": seen & (fraction >= 0.99) & ~edge, "partly hidden": seen & (fraction < 0.9) & ~edge,
               "cut by the frame's edge": seen & edge}
-    weights = fit_probe(means[:half], targets[:half], groups["whole"][:half])
+    weights = _fit_probe(means[:half], targets[:half], groups["whole"][:half])
     errors = {}
     for name, chosen in groups.items():
         chosen = chosen[half:]

@@ -15,7 +15,9 @@ from collections.abc import Callable
 import numpy as np
 from scipy import stats
 
-CONFIDENCE = 0.95
+__all__ = ["interval", "wilson", "values_interval", "pairwise_win", "chance_p"]
+
+_CONFIDENCE = 0.95
 
 
 def interval(statistic: Callable[[np.ndarray], float], units: int, rounds: int = 1000,
@@ -27,7 +29,7 @@ def interval(statistic: Callable[[np.ndarray], float], units: int, rounds: int =
         value = float(statistic(np.zeros(1, dtype=int)))
         return value, value
     found = stats.bootstrap((np.arange(units),), statistic, n_resamples=rounds, vectorized=False,
-                            method="percentile", confidence_level=CONFIDENCE, rng=np.random.default_rng(seed))
+                            method="percentile", confidence_level=_CONFIDENCE, rng=np.random.default_rng(seed))
     return float(found.confidence_interval.low), float(found.confidence_interval.high)
 
 
@@ -36,7 +38,7 @@ def wilson(successes: float, count: int) -> tuple[float, float]:
     half, so `successes` need not be whole): never of zero width for count >= 1, inside [0, 1]."""
     if count == 0:
         return float("nan"), float("nan")
-    z = stats.norm.ppf(0.5 + CONFIDENCE / 2)
+    z = stats.norm.ppf(0.5 + _CONFIDENCE / 2)
     share, spread = successes / count, z * z / count
     centre = (share + spread / 2) / (1 + spread)
     half = z / (1 + spread) * np.sqrt(share * (1 - share) / count + spread / (4 * count))

@@ -19,7 +19,7 @@ object proposed where nothing is hidden costs nothing (docs/decisions.md, "The b
 explanations"). Decoding is the cost, so only occupied slots are decoded (seen at some frame, or
 the explained one), the decodes are shared by the two terms and the two explanations, and videos
 are scored in batches with no Python loop over frames. What is drawn (`DrawnScene`) is handed on
-to the NLL's scene of the same videos (inference.surprise.hidden_object_scene).
+to the NLL's scene of the same videos (inference.surprise._hidden_object_scene).
 """
 from __future__ import annotations
 
@@ -33,6 +33,9 @@ from ..models.perception import ComponentVAE
 from ..models.slots import behind_walls, composite, decode_slots, scene_layers
 from ..models.xpl import XPL
 from .metrics import excess
+
+__all__ = ["EXPLANATIONS", "Surprise", "explained_latents", "DrawnScene", "draw_scene", "mse_surprise",
+           "every_explanation", "dynamics_composites", "aggregate"]
 
 EXPLANATIONS = ("proposal", "better")
 
@@ -66,13 +69,13 @@ def explained_latents(xpl: XPL, mean: Tensor, visible: Tensor, occluder: Tensor,
             explained = torch.where(kept[:, None, None, None], explained, refined)
             slot = torch.where(kept, slot, -1)
         refined = explained
-    return refined, slot, occupied_slots(visible, slot)
+    return refined, slot, _occupied_slots(visible, slot)
 
 
 @dataclass
 class DrawnScene:
     """A batch of videos as XPL explains them, drawn once: what both explanations of the MSE
-    score and the NLL's scene (inference.surprise.hidden_object_scene) read, so that neither
+    score and the NLL's scene (inference.surprise._hidden_object_scene) read, so that neither
     refines, proposes nor decodes again."""
 
     refined: Tensor      # (B, T, K, D) Transformer 1's latents
@@ -112,12 +115,12 @@ def draw_scene(vae: ComponentVAE, xpl: XPL, mean: Tensor, visible: Tensor, backg
     else:
         none = torch.full(mean.shape[:1], -1, dtype=torch.long, device=mean.device)
         proposal, scale, slot = refined, torch.zeros_like(refined), none
-    drawn = occupied_slots(visible, slot) if proposed else visible.any(dim=1)
+    drawn = _occupied_slots(visible, slot) if proposed else visible.any(dim=1)
     layers, walls = scene_layers(vae, proposal, drawn, visible, occluder)
-    return DrawnScene(refined, proposal, scale, slot, decode_background(vae, background), layers, walls)
+    return DrawnScene(refined, proposal, scale, slot, _decode_background(vae, background), layers, walls)
 
 
-def occupied_slots(visible: Tensor, slot: Tensor) -> Tensor:
+def _occupied_slots(visible: Tensor, slot: Tensor) -> Tensor:
     """The slots (B, K) seen at some frame, and the explained one (-1: none)."""
     occupied = visible.any(dim=1)
     occupied[torch.arange(len(slot), device=slot.device)[slot >= 0], slot[slot >= 0]] = True
@@ -148,7 +151,7 @@ def _explanations(vae: ComponentVAE, xpl: XPL, frames: Tensor, mean: Tensor, vis
                   occluder: Tensor, better: bool, scene: DrawnScene | None = None) -> dict[str, Surprise]:
     if scene is None:
         scene = draw_scene(vae, xpl, mean, visible, background, occluder)
-    slot, occupied = scene.slot, occupied_slots(visible, scene.slot)
+    slot, occupied = scene.slot, _occupied_slots(visible, scene.slot)
     proposed = Surprise(*_terms(vae, xpl, frames, scene.background, scene.proposal, scene.layers, scene.walls,
                                 occupied, visible, occluder), slot)
     if not better:
@@ -159,10 +162,10 @@ def _explanations(vae: ComponentVAE, xpl: XPL, frames: Tensor, mean: Tensor, vis
     # the dynamics' prediction is decoded again
     empty = Surprise(*_terms(vae, xpl, frames, scene.background, scene.refined, scene.seen_layers(vae.blank()[0]),
                              scene.walls, visible.any(dim=1), visible, occluder), torch.full_like(slot, -1))
-    return {"proposal": proposed, "better": better_explanation(empty, proposed)}
+    return {"proposal": proposed, "better": _better_explanation(empty, proposed)}
 
 
-def better_explanation(first: Surprise, second: Surprise) -> Surprise:
+def _better_explanation(first: Surprise, second: Surprise) -> Surprise:
     """Per video, the surprise under whichever explanation leaves the smaller sum over frames
     (the first on a tie)."""
     second_wins = (second.s_img + second.s_dyn).sum(1) < (first.s_img + first.s_dyn).sum(1)
@@ -175,16 +178,16 @@ def better_explanation(first: Surprise, second: Surprise) -> Surprise:
 
 
 @torch.no_grad()
-def latent_surprise(vae: ComponentVAE, xpl: XPL, frames: Tensor, refined: Tensor, occupied: Tensor, visible: Tensor,
+def _latent_surprise(vae: ComponentVAE, xpl: XPL, frames: Tensor, refined: Tensor, occupied: Tensor, visible: Tensor,
                     background: Tensor, occluder: Tensor) -> tuple[Tensor, Tensor, Tensor]:
     """s_img, s_dyn and s_rec (B, T) of given refined latents (B, T, K, D) with occupied slots (B, K),
     as `mse_surprise` scores each explanation: any latents, e.g. the hidden objects' true ones."""
-    background_pictures = decode_background(vae, background)
+    background_pictures = _decode_background(vae, background)
     layers, walls = scene_layers(vae, refined, occupied, visible, occluder)
     return _terms(vae, xpl, frames, background_pictures, refined, layers, walls, occupied, visible, occluder)
 
 
-def decode_background(vae: ComponentVAE, background: Tensor) -> Tensor:
+def _decode_background(vae: ComponentVAE, background: Tensor) -> Tensor:
     """The background component's pictures (B, T, 4, H, W) of its means (B, T, D)."""
     return vae.decode(background.flatten(0, 1)).unflatten(0, background.shape[:2])
 

@@ -13,8 +13,11 @@ from typing import Any
 from ..domains import Domain, check_config, check_number
 from ..errors import XvoeError
 
+__all__ = ["parse_field", "to_dict", "from_dict", "override", "override_resumed", "field_type",
+           "split_assignment", "parse_value"]
 
-def domain_of(cls: type, name: str) -> Domain | None:
+
+def _domain_of(cls: type, name: str) -> Domain | None:
     """The declared Domain of a config field (a dotted name reaching into nested configs)."""
     head, _, rest = name.partition(".")
     found = {f.name: f for f in fields(cls)}.get(head)
@@ -22,14 +25,14 @@ def domain_of(cls: type, name: str) -> Domain | None:
         return None
     if rest:
         nested = _nested_dataclass(typing.get_type_hints(cls)[head])
-        return domain_of(nested, rest) if nested else None
+        return _domain_of(nested, rest) if nested else None
     return found.metadata.get("domain")
 
 
-def check_value(cls: type, name: str, value: Any) -> Any:
+def _check_value(cls: type, name: str, value: Any) -> Any:
     """`value` if it lies in the domain of `cls`'s field `name` (each item of a tuple); else an
     error that names the field."""
-    return check_number(domain_of(cls, name), name, value)
+    return check_number(_domain_of(cls, name), name, value)
 
 
 def parse_field(cls: type, name: str, text: str) -> Any:
@@ -39,7 +42,7 @@ def parse_field(cls: type, name: str, text: str) -> Any:
         value = parse_value(kind, text)
     except XvoeError as error:
         raise XvoeError(f"{name}: {error}") from None
-    return check_value(cls, name, value)
+    return _check_value(cls, name, value)
 
 
 def to_dict(config: Any) -> dict:
@@ -49,7 +52,7 @@ def to_dict(config: Any) -> dict:
 
 # Fields removed after checkpoints stored them, each with the value every recipe held (their
 # records: docs/log/decisions-2026-11.md). A stored config with that value loads without it.
-RETIRED: dict[str, dict[str, Any]] = {
+_RETIRED: dict[str, dict[str, Any]] = {
     "PerceptionConfig": {"where_latents": False, "where_scale": 0.5, "amodal": False, "cut_share": 0.0},
     "XPLConfig": {"wall_refill": 0.0, "proposal_sees_seen": False, "latent_weights": (), "weigh_by_picture": False,
                   "fill_from_neighbours": False, "line_between_only": False},
@@ -61,7 +64,7 @@ RETIRED: dict[str, dict[str, Any]] = {
 
 def from_dict(cls: type, data: dict, where: str = "") -> Any:
     """Rebuild a (possibly nested) config dataclass from `to_dict` output; unknown keys are an
-    error, and so are a value not of its field's type and a retired field (`RETIRED`) set to
+    error, and so are a value not of its field's type and a retired field (`_RETIRED`) set to
     anything but the value it always held. `where`: the config's key in the errors (the class
     name by default)."""
     where = where or cls.__name__
@@ -80,21 +83,21 @@ def from_dict(cls: type, data: dict, where: str = "") -> Any:
             value = from_dict(target, value, f"{where}.{name}")
         elif isinstance(value, list):
             value = tuple(value)
-        if target is None and not holds_type(hints[name], value):
+        if target is None and not _holds_type(hints[name], value):
             raise XvoeError(f"{where}.{name} is {value!r}, not {_type_name(hints[name])}")
         values[name] = value
     return check_config(cls(**values))
 
 
-def holds_type(kind: Any, value: Any) -> bool:
+def _holds_type(kind: Any, value: Any) -> bool:
     """Whether `value` is of a config field's type `kind` (an int is a float too; a bool is
     neither; a tuple's items each of its item type): a stored config of the wrong types is
     refused by name instead of failing wherever the network first uses the value."""
     if isinstance(kind, types.UnionType) or typing.get_origin(kind) is typing.Union:
-        return any(holds_type(option, value) for option in typing.get_args(kind))
+        return any(_holds_type(option, value) for option in typing.get_args(kind))
     if typing.get_origin(kind) is tuple:
         items = typing.get_args(kind)[:1] or (Any,)
-        return isinstance(value, tuple) and all(holds_type(items[0], item) for item in value)
+        return isinstance(value, tuple) and all(_holds_type(items[0], item) for item in value)
     if kind is type(None):
         return value is None
     if kind is float:
@@ -116,7 +119,7 @@ def _type_name(kind: Any) -> str:
 
 
 def _without_retired(cls: type, data: dict) -> dict:
-    retired = RETIRED.get(cls.__name__, {})
+    retired = _RETIRED.get(cls.__name__, {})
     for name, held in retired.items():
         value = data.get(name, held)
         if (tuple(value) if isinstance(value, list) else value) != held:

@@ -17,6 +17,8 @@ import torch
 from ..domains import DEVICES
 from ..errors import XvoeError
 
+__all__ = ["parse_device", "resolve_device", "device_of", "autocast_dtype", "mixed_precision", "on_cpu"]
+
 
 def parse_device(name: str | torch.device) -> torch.device:
     """The device `name` names, on this machine or not, or a one-line XvoeError."""

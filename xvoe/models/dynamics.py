@@ -16,6 +16,8 @@ from torch import Tensor, nn
 
 from ..domains import COUNT, within
 
+__all__ = ["DynamicsConfig", "DynamicsState", "mlp", "InteractionLSTM"]
+
 
 @dataclass(frozen=True)
 class DynamicsConfig:
@@ -76,7 +78,7 @@ class InteractionLSTM(nn.Module):
         # pairwise interactions at frame t, summed over the other slots
         pairs = torch.relu(self.receiver(state).unsqueeze(3) + self.sender(state).unsqueeze(2))
         effects = self.interaction(pairs)                                   # (B, T, K, K, H)
-        effect = (effects * senders(slots, inert, z)[:, None, :, :, None]).sum(dim=3)
+        effect = (effects * _senders(slots, inert, z)[:, None, :, :, None]).sum(dim=3)
         inputs = torch.cat([state, memory, effect], dim=-1).reshape(batch, frames, slots, -1)
         outputs = self.recur(inputs.permute(0, 2, 1, 3).reshape(batch * slots, frames, -1))
         change = self.out(outputs).reshape(batch, slots, frames, -1).permute(0, 2, 1, 3)
@@ -105,7 +107,7 @@ class InteractionLSTM(nn.Module):
         buffer = own if state is None else torch.cat([state.buffer, own], dim=1)
         memory, _ = self.buffer(own, buffer, buffer, need_weights=False)
         pairs = torch.relu(self.receiver(current).unsqueeze(2) + self.sender(current).unsqueeze(1))
-        effect = (self.interaction(pairs) * senders(slots, inert, z)[..., None]).sum(dim=2)
+        effect = (self.interaction(pairs) * _senders(slots, inert, z)[..., None]).sum(dim=2)
         inputs = torch.cat([current, memory.reshape(batch, slots, -1), effect], dim=-1).reshape(batch * slots, -1)
         if state is None:
             hidden = cell = z.new_zeros(batch * slots, self.config.lstm)
@@ -123,7 +125,7 @@ class InteractionLSTM(nn.Module):
         return history[:, start:]
 
 
-def senders(slots: int, inert: Tensor | None, like: Tensor) -> Tensor:
+def _senders(slots: int, inert: Tensor | None, like: Tensor) -> Tensor:
     """(1 or B, K, K) weights of the effect of slot j (last axis) on slot i: 0 on the
     diagonal and from inert slots, 1 elsewhere."""
     others = (1.0 - torch.eye(slots, device=like.device, dtype=like.dtype))[None]

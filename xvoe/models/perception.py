@@ -23,10 +23,13 @@ from torch import Tensor, nn
 from ..domains import COUNT, NON_NEGATIVE, POSITIVE, check_config, within
 from ..errors import XvoeError
 
-BLANK_DEPTH = 1.5                                   # beyond the far plane (255 -> 1.0)
-BLANK = (1.0, 1.0, 1.0, BLANK_DEPTH)                # RGB white, depth past the background
-MEAN_RANGE = 3.0                                    # mean = 6*sigmoid(a) - 3
-STD_SCALE = 3.0                                     # std = 3*sigmoid(b)
+__all__ = ["BLANK", "PerceptionConfig", "normalise", "to_uint8", "BroadcastDecoder", "PerceptionBatch",
+           "ComponentVAE"]
+
+_BLANK_DEPTH = 1.5                                   # beyond the far plane (255 -> 1.0)
+BLANK = (1.0, 1.0, 1.0, _BLANK_DEPTH)                # RGB white, depth past the background
+_MEAN_RANGE = 3.0                                    # mean = 6*sigmoid(a) - 3
+_STD_SCALE = 3.0                                     # std = 3*sigmoid(b)
 
 
 @dataclass(frozen=True)
@@ -73,7 +76,7 @@ class PerceptionConfig:
             raise XvoeError(f"vit_width {self.vit_width} is not a multiple of vit_heads {self.vit_heads}")
 
 
-def blank_like(images: Tensor) -> Tensor:
+def _blank_like(images: Tensor) -> Tensor:
     """The blank value, broadcastable against (..., 4, H, W) images."""
     return images.new_tensor(BLANK).view(4, 1, 1)
 
@@ -89,7 +92,7 @@ def to_uint8(images: Tensor) -> Tensor:
     return ((images.clamp(-1, 1) + 1.0) * 127.5).round().to(torch.uint8).movedim(-3, -1).cpu()
 
 
-class CNNEncoder(nn.Module):
+class _CNNEncoder(nn.Module):
     """Small CPU encoder: stride-2 5x5 convolutions, then an MLP to the 2D posterior parameters."""
 
     def __init__(self, config: PerceptionConfig):
@@ -112,7 +115,7 @@ class CNNEncoder(nn.Module):
         return self.head(self.convs(images))
 
 
-class ViTEncoder(nn.Module):
+class _ViTEncoder(nn.Module):
     """The paper's encoder: patch embedding, CLS token, pre-LN Transformer, MLP head."""
 
     def __init__(self, config: PerceptionConfig):
@@ -134,8 +137,8 @@ class ViTEncoder(nn.Module):
         return self.head(self.norm(self.blocks(tokens)[:, 0]))
 
 
-def build_encoder(config: PerceptionConfig) -> nn.Module:
-    return CNNEncoder(config) if config.encoder == "cnn" else ViTEncoder(config)
+def _build_encoder(config: PerceptionConfig) -> nn.Module:
+    return _CNNEncoder(config) if config.encoder == "cnn" else _ViTEncoder(config)
 
 
 class BroadcastDecoder(nn.Module):
@@ -207,7 +210,7 @@ class ComponentVAE(nn.Module):
     def __init__(self, config: PerceptionConfig):
         super().__init__()
         self.config = config
-        self.encoder = build_encoder(config)
+        self.encoder = _build_encoder(config)
         self.decoder = BroadcastDecoder(config)
         self.theta = nn.Parameter(torch.tensor(float(config.theta_init)))
         self._start_with_small_std(config.std_init)
@@ -217,12 +220,12 @@ class ComponentVAE(nn.Module):
         std = 3*sigmoid(0) = 1.5 the decoder first sees mostly noise and learns slowly."""
         last = [m for m in self.encoder.head.modules() if isinstance(m, nn.Linear)][-1]
         with torch.no_grad():
-            last.bias[self.config.latent_dim:] = math.log(std / (STD_SCALE - std))
+            last.bias[self.config.latent_dim:] = math.log(std / (_STD_SCALE - std))
 
     def posterior(self, images: Tensor) -> tuple[Tensor, Tensor]:
         """Mean in (-3, 3) and std in (0, 3) of q(z | masked image); images (N,4,H,W)."""
         a, b = self.encoder(images).chunk(2, dim=-1)
-        return MEAN_RANGE * (2 * torch.sigmoid(a) - 1), STD_SCALE * torch.sigmoid(b)
+        return _MEAN_RANGE * (2 * torch.sigmoid(a) - 1), _STD_SCALE * torch.sigmoid(b)
 
     DECODE_CHUNK = 64   # latents per decoder pass outside training
 
@@ -284,7 +287,7 @@ class ComponentVAE(nn.Module):
         per_frame = per_frame + self.config.object_loss_weight * _sum_by(object_nll, batch.object_frame, count)
         background_error = batch.background_mask * (out["background"] - batch.background).pow(2)
         per_frame = per_frame + scale * background_error.flatten(1).sum(1)
-        kl = kl_normal(out["mean"], out["std"])
+        kl = _kl_normal(out["mean"], out["std"])
         kl_objects, kl_background, kl_blank = kl.split([len(batch.objects), count, 1])
         per_frame = per_frame + self.config.beta * (_sum_by(kl_objects, batch.object_frame, count) + kl_background)
         blank_nll = scale * (out["blank"] - self.blank()).pow(2).sum() + self.config.beta * kl_blank.sum()
@@ -302,7 +305,7 @@ class ComponentVAE(nn.Module):
         return self.loss(batch)
 
 
-def kl_normal(mean: Tensor, std: Tensor) -> Tensor:
+def _kl_normal(mean: Tensor, std: Tensor) -> Tensor:
     """KL(N(mean, std^2) || N(0, I)) summed over the last axis; std floored to avoid log(0)."""
     std = std.clamp_min(1e-6)
     return 0.5 * (mean.pow(2) + std.pow(2) - 1.0).sum(-1) - std.log().sum(-1)

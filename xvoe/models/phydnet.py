@@ -31,6 +31,8 @@ from ..domains import COUNT, NON_NEGATIVE, check_config, within
 from ..errors import XvoeError
 from .perception import normalise
 
+__all__ = ["PhyDNetConfig", "PhyDNet", "widen_lstm_kernel", "PhyDNetObjective"]
+
 
 @dataclass(frozen=True)
 class PhyDNetConfig:
@@ -75,7 +77,7 @@ class PhyDNetConfig:
 
 # --- moments ---------------------------------------------------------------------------
 
-def moment_basis(k: int, dtype: torch.dtype = torch.float64) -> Tensor:
+def _moment_basis(k: int, dtype: torch.dtype = torch.float64) -> Tensor:
     """A (k, k) with A[p, i] = (i - c)^p / p!, so that the moments of w are A w A^T."""
     offsets = torch.arange(k, dtype=dtype) - (k - 1) / 2
     orders = torch.arange(k)
@@ -83,26 +85,26 @@ def moment_basis(k: int, dtype: torch.dtype = torch.float64) -> Tensor:
     return offsets[None, :] ** orders[:, None].to(dtype) / factorials[:, None]
 
 
-def kernel_moments(weights: Tensor) -> Tensor:
+def _kernel_moments(weights: Tensor) -> Tensor:
     """Moment matrices (..., k, k) of filters (..., k, k)."""
-    basis = moment_basis(weights.shape[-1], weights.dtype).to(weights.device)
+    basis = _moment_basis(weights.shape[-1], weights.dtype).to(weights.device)
     return basis @ weights @ basis.T
 
 
-def kernels_with_moments(moments: Tensor) -> Tensor:
+def _kernels_with_moments(moments: Tensor) -> Tensor:
     """The filters (..., k, k) whose moment matrices are exactly `moments` (..., k, k)."""
-    inverse = torch.linalg.inv(moment_basis(moments.shape[-1], torch.float64)).to(moments.device)
+    inverse = torch.linalg.inv(_moment_basis(moments.shape[-1], torch.float64)).to(moments.device)
     return (inverse @ moments.double() @ inverse.T).to(moments.dtype)
 
 
-def derivative_targets(k: int) -> Tensor:
+def _derivative_targets(k: int) -> Tensor:
     """(k*k, k, k): target f = p*k + q is one-hot at (p, q): filter f ~ d^(p+q)/di^p dj^q."""
     return torch.eye(k * k).reshape(k * k, k, k)
 
 
 # --- the cells ---------------------------------------------------------------------------
 
-class PhyCellLayer(nn.Module):
+class _PhyCellLayer(nn.Module):
     """h~ = h + Phi(h) (physical predictor), then h = h~ + K * (x - h~) with K = sigmoid(conv[h~, x]).
 
     A gain in (0, 1), like a Kalman gain, keeps the corrected state between the prediction and
@@ -124,7 +126,7 @@ class PhyCellLayer(nn.Module):
         return predicted + gain * (observed - predicted)
 
 
-class ConvLSTMCell(nn.Module):
+class _ConvLSTMCell(nn.Module):
     def __init__(self, inputs: int, hidden: int, kernel: int):
         super().__init__()
         self.hidden = hidden
@@ -159,15 +161,15 @@ class PhyDNet(nn.Module):
         features = widths[-1]
         self.encode_physics = _conv_block(features, features, 1)
         self.encode_residual = _conv_block(features, features, 1)
-        self.phycell = nn.ModuleList(PhyCellLayer(features, config.phycell_kernel, config.gain_kernel)
+        self.phycell = nn.ModuleList(_PhyCellLayer(features, config.phycell_kernel, config.gain_kernel)
                                      for _ in range(config.phycell_layers))
         sizes = (features, *config.lstm_channels)
-        self.lstm = nn.ModuleList(ConvLSTMCell(a, b, config.lstm_kernel) for a, b in zip(sizes, sizes[1:]))
+        self.lstm = nn.ModuleList(_ConvLSTMCell(a, b, config.lstm_kernel) for a, b in zip(sizes, sizes[1:]))
         self.decode_physics = _conv_block(features, features, 1)
         self.decode_residual = _conv_block(config.lstm_channels[-1], features, 1)
         self.decoder = nn.Sequential(*(_up_block(a, b) for a, b in zip(widths[::-1], widths[-2::-1])),
                                      nn.Conv2d(widths[0], config.channels, 3, padding=1))
-        self.register_buffer("moment_targets", derivative_targets(config.phycell_kernel), persistent=False)
+        self.register_buffer("moment_targets", _derivative_targets(config.phycell_kernel), persistent=False)
         self.project_moments()
 
     # moments of the PhyCell filters
@@ -177,12 +179,12 @@ class PhyDNet(nn.Module):
 
     def moments(self) -> list[Tensor]:
         """Their moment matrices (k*k, channels, k, k), to compare with `moment_targets`."""
-        return [kernel_moments(weight) for weight in self.filters()]
+        return [_kernel_moments(weight) for weight in self.filters()]
 
     @torch.no_grad()
     def project_moments(self) -> None:
         """Set every PhyCell filter to the stencil whose moments are exactly its one-hot target."""
-        stencils = kernels_with_moments(self.moment_targets)
+        stencils = _kernels_with_moments(self.moment_targets)
         for weight in self.filters():
             weight.copy_(stencils[:, None].expand_as(weight))
 
@@ -236,7 +238,7 @@ class PhyDNet(nn.Module):
         prediction = error.mean()
         fitted = prediction
         if self.config.change_weight > 0:
-            weight = 1 + self.config.change_weight * change_mask(frames)
+            weight = 1 + self.config.change_weight * _change_mask(frames)
             fitted = (weight * error).sum() / (weight.sum() * error.shape[2])
         moment = self.moment_loss()
         return {"loss": fitted + self.config.moment_weight * moment, "prediction": prediction,
@@ -269,7 +271,7 @@ def widen_lstm_kernel(net: PhyDNet, kernel: int) -> PhyDNet:
     return wider.train(net.training)
 
 
-def change_mask(frames: Tensor, threshold: float = 2 / 255) -> Tensor:
+def _change_mask(frames: Tensor, threshold: float = 2 / 255) -> Tensor:
     """(B, T-1, 1, H, W): 1 where any channel of frame t+1 differs from frame t by more than the
     threshold, else 0. Frames are in [-1, 1], so 2/255 is one uint8 level (a change of exactly one
     level may fall on either side of it in float32; two levels or more always count)."""

@@ -17,6 +17,9 @@ from torch import Tensor, nn
 
 from ..domains import COUNT, POSITIVE, within
 
+__all__ = ["ReasoningConfig", "ReasoningTransformer", "occlusion_keep", "never_seen", "hide_slot",
+           "gaussian_nll"]
+
 
 @dataclass(frozen=True)
 class ReasoningConfig:

@@ -11,6 +11,9 @@ from torch import Tensor
 from ..scenes.render import DEPTH_FAR, OBJECT_DEPTH, WALL_DEPTH
 from .perception import ComponentVAE
 
+__all__ = ["decode_slots", "composite", "scene_layers", "redraw_slots", "behind_walls", "nearest_wall",
+           "push_behind"]
+
 
 def decode_slots(vae: ComponentVAE, z: Tensor, occupied: Tensor) -> Tensor:
     """Pictures (B, T, K, 4, H, W) of the latents z (B, T, K, D); unoccupied slots (B, K) are
@@ -66,11 +69,11 @@ def _placed(vae: ComponentVAE, layers: Tensor, visible: Tensor, occluder: Tensor
 
 
 
-WALL_PIXEL = 0.5    # decoded depth under which a wall's picture covers a pixel ([-1, 1]; walls stand at -0.5)
+_WALL_PIXEL = 0.5    # decoded depth under which a wall's picture covers a pixel ([-1, 1]; walls stand at -0.5)
 
 
 
-BEHIND = 2 * (OBJECT_DEPTH - WALL_DEPTH) / DEPTH_FAR    # from a wall to the objects' lane in [-1, 1]: 0.5
+_BEHIND = 2 * (OBJECT_DEPTH - WALL_DEPTH) / DEPTH_FAR    # from a wall to the objects' lane in [-1, 1]: 0.5
 
 
 
@@ -100,5 +103,5 @@ def push_behind(pictures: Tensor, walls: Tensor) -> Tensor:
     """Pictures (..., 4, H, W) whose depth is at least the walls' (..., 1, H, W, broadcast)
     plus BEHIND, the distance from the walls to the objects' lane, where a wall covers the pixel."""
     depth = pictures[..., 3:, :, :]
-    pushed = torch.where(walls < WALL_PIXEL, torch.maximum(depth, walls + BEHIND), depth)
+    pushed = torch.where(walls < _WALL_PIXEL, torch.maximum(depth, walls + _BEHIND), depth)
     return torch.cat([pictures[..., :3, :, :], pushed], dim=-3)

@@ -24,6 +24,8 @@ from .reasoning import (
     occlusion_keep,
 )
 
+__all__ = ["XPLConfig", "XPL", "permute_slots"]
+
 
 @dataclass(frozen=True)
 class XPLConfig:

@@ -40,8 +40,8 @@ __all__ = ["ball", "cube", "wall", "Violation", "pass_through", "remove", "telep
 # The wall's timetable names the setting the pair is labelled with (permanence S2 aside, the
 # benchmark's settings use these timetables).
 SETTING_OF_SCHEDULE = {"away_start_end": "S1", "stays": "S2", "away_end": "S3"}
-SCHEDULE_OF_SETTING = {setting: schedule for schedule, setting in SETTING_OF_SCHEDULE.items()}
-ACTIONS = ("pass_through", "remove", "teleport")
+_SCHEDULE_OF_SETTING = {setting: schedule for schedule, setting in SETTING_OF_SCHEDULE.items()}
+_ACTIONS = ("pass_through", "remove", "teleport")
 
 
 @dataclass(frozen=True)
@@ -162,11 +162,11 @@ def save_pairs(pairs: list[CustomPair], out: str | Path, *, size: int = 64, over
 # --- checks ------------------------------------------------------------------------------
 
 def _schedule(wall: str) -> tuple[str, str]:
-    if wall in SCHEDULE_OF_SETTING:
-        return SCHEDULE_OF_SETTING[wall], wall
+    if wall in _SCHEDULE_OF_SETTING:
+        return _SCHEDULE_OF_SETTING[wall], wall
     if wall in SETTING_OF_SCHEDULE:
         return wall, SETTING_OF_SCHEDULE[wall]
-    raise XvoeError(f"wall must be a setting ({', '.join(SCHEDULE_OF_SETTING)}) or a timetable "
+    raise XvoeError(f"wall must be a setting ({', '.join(_SCHEDULE_OF_SETTING)}) or a timetable "
                     f"({', '.join(world.WALL_SCHEDULES)}), not {wall!r}")
 
 
@@ -207,8 +207,8 @@ def _check_violation(things: list[Thing], violation: Violation, frames: int) -> 
     if not isinstance(violation, Violation):
         raise XvoeError("the violation must be custom.pass_through(a, b), custom.remove(a, frame) or "
                         "custom.teleport(a, frame, dx)")
-    if violation.action not in ACTIONS:
-        raise XvoeError(f"unknown violation {violation.action!r}; expected one of {', '.join(ACTIONS)}")
+    if violation.action not in _ACTIONS:
+        raise XvoeError(f"unknown violation {violation.action!r}; expected one of {', '.join(_ACTIONS)}")
     involved = [violation.a] + ([violation.b] if violation.action == "pass_through" else [])
     for index in involved:
         if not 0 <= index < len(things):

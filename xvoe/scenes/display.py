@@ -26,7 +26,10 @@ from .generate import GenerateConfig, render_unit
 from .render import STATE_COLUMNS, Video
 from .videos import check_index, silhouette
 
-LENGTHS = ("x", "y", "size", "height", "vx", "vy")     # state columns in pixels, which scale with the picture
+__all__ = ["DISPLAY_SIZE", "DisplayVideo", "check_display_size", "display_video", "enlarge",
+           "hidden_silhouettes", "outline"]
+
+_LENGTHS = ("x", "y", "size", "height", "vx", "vy")     # state columns in pixels, which scale with the picture
 
 
 @dataclass
@@ -101,7 +104,7 @@ def outline(mask: np.ndarray, width: int = 2) -> np.ndarray:
 
 def _scaled_states(states: np.ndarray, factor: float) -> np.ndarray:
     scaled = states.astype(np.float32, copy=True)
-    for name in LENGTHS:
+    for name in _LENGTHS:
         scaled[..., STATE_COLUMNS.index(name)] *= np.float32(factor)
     return scaled
 

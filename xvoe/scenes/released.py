@@ -26,18 +26,20 @@ from .scenarios import SCENARIOS
 from .tfrecord import TFRecordError, parse_example, parse_tensor, records
 from .world import KIND_NAMES, MAX_SLOTS
 
+__all__ = ["SOURCE_NAME", "import_released"]
+
 # The reference's test blocks in record order (eval/eval_xpl.py batches a scenario's records by
 # 1000; utils/metrix_ds.py compares block 0 with 1, 2 with 3, 4 with 5 and counts 1 and 5 impossible)
-BLOCKS = (("S1", 0, True), ("S1", 1, False), ("S2", 0, True), ("S2", 1, True), ("S3", 0, True), ("S3", 1, False))
-TEST_FILES = {"collision": 6, "blocking": 6, "permanence": 4, "continuity": 6}    # build_data/video_read.py
-FEATURES = ("raw_image", "mask")
-OCCLUDER_SLOT = 7            # eval/eval_xpl.py leaves the last of the 8 slots out of the dynamics term
-IMPORTED_KINDS = (*KIND_NAMES, "object")      # a seen slot whose shape the masks do not tell
+_BLOCKS = (("S1", 0, True), ("S1", 1, False), ("S2", 0, True), ("S2", 1, True), ("S3", 0, True), ("S3", 1, False))
+_TEST_FILES = {"collision": 6, "blocking": 6, "permanence": 4, "continuity": 6}    # build_data/video_read.py
+_FEATURES = ("raw_image", "mask")
+_OCCLUDER_SLOT = 7            # eval/eval_xpl.py leaves the last of the 8 slots out of the dynamics term
+_IMPORTED_KINDS = (*KIND_NAMES, "object")      # a seen slot whose shape the masks do not tell
 SOURCE_NAME = "X-VoE release (TFRecord)"
 
 
 @dataclass(frozen=True)
-class Part:
+class _Part:
     """One scenario's test files (or the training files), in the order their records count."""
 
     scenario: str | None
@@ -49,7 +51,7 @@ def import_released(source: str | os.PathLike, split: str, out: str | os.PathLik
                     overwrite: bool = False, progress: bool = True) -> Path:
     """Write the released split under `source` (the downloaded X-VoE directory, with test/ and
     train/) to `out` in xvoe's schema, at `size` pixels a side if given (a divisor of the
-    release's 128, so that the shipped 32x32 models read it; see `downsample`). Every file is
+    release's 128, so that the shipped 32x32 models read it; see `_downsample`). Every file is
     read through once first, so a truncated or foreign file is refused before anything is written."""
     if split not in store.SPLITS:
         raise XvoeError(f"--split must be train or test, not {split!r}")
@@ -59,11 +61,11 @@ def import_released(source: str | os.PathLike, split: str, out: str | os.PathLik
     frames, native = first[0].shape[:2]
     size = _check_size(size, native)
     total = sum(counts)
-    per_block = {part.scenario: count // TEST_FILES[part.scenario] for part, count in zip(parts, counts)} \
+    per_block = {part.scenario: count // _TEST_FILES[part.scenario] for part, count in zip(parts, counts)} \
         if split == "test" else {}
     config = {"source": SOURCE_NAME, "split": split, "frames": int(frames), "size": size,
               "files": [str(path.relative_to(Path(source))) for part in parts for path in part.files],
-              **({"source_size": int(native), "resampled": RESAMPLING} if size != native else {}),
+              **({"source_size": int(native), "resampled": _RESAMPLING} if size != native else {}),
               **({"pairs": per_block} if split == "test" else {"videos": total})}
     overlapped = 0
     with store.atomic_file(out, overwrite) as file:
@@ -76,10 +78,10 @@ def import_released(source: str | os.PathLike, split: str, out: str | os.PathLik
                 at = offset + _test_row(index, per_block[part.scenario]) if split == "test" else offset + index
                 labels = _test_labels(part.scenario, index, per_block[part.scenario]) if split == "test" \
                     else _train_labels(masks)
-                ids, shared = ids_of(masks, image[..., 3])
+                ids, shared = _ids_of(masks, image[..., 3])
                 overlapped += shared
                 if size != native:
-                    image, ids = downsample(image, ids, size)
+                    image, ids = _downsample(image, ids, size)
                 writer.add(store.encode(_as_video(image, ids), labels), at=at)
                 bar.update()
             offset += count
@@ -101,7 +103,7 @@ def _check_size(size: int | None, native: int) -> int:
     return int(size)
 
 
-def _test_parts(source: Path) -> list[Part]:
+def _test_parts(source: Path) -> list[_Part]:
     """The scenarios present under source/test (or source itself), each with all its files."""
     root = source / "test" if (source / "test").is_dir() else source
     if not root.is_dir():
@@ -110,17 +112,17 @@ def _test_parts(source: Path) -> list[Part]:
     for scenario in SCENARIOS:
         if not (root / scenario).is_dir():
             continue
-        files = tuple(root / scenario / f"eval-part-{i:03d}.tfrecord" for i in range(TEST_FILES[scenario]))
+        files = tuple(root / scenario / f"eval-part-{i:03d}.tfrecord" for i in range(_TEST_FILES[scenario]))
         missing = [str(path) for path in files if not path.is_file()]
         if missing:
             raise XvoeError(f"{scenario} is incomplete: {missing[0]} is missing ({len(missing)} of {len(files)} files)")
-        parts.append(Part(scenario, files))
+        parts.append(_Part(scenario, files))
     if not parts:
-        raise XvoeError(f"{root} holds none of the test scenarios' directories ({', '.join(TEST_FILES)})")
+        raise XvoeError(f"{root} holds none of the test scenarios' directories ({', '.join(_TEST_FILES)})")
     return parts
 
 
-def _train_part(source: Path) -> Part:
+def _train_part(source: Path) -> _Part:
     root = source / "train" if (source / "train").is_dir() else source
     files = tuple(sorted(root.glob("train-part-[0-9][0-9][0-9].tfrecord")))
     if not files:
@@ -132,10 +134,10 @@ def _train_part(source: Path) -> Part:
                       f"{', '.join(f'train-part-{n:03d}' for n in gaps[:3])}{' ...' if len(gaps) > 3 else ''} "
                       f"({len(gaps)} missing up to train-part-{max(numbers):03d}); the files present are imported",
                       stacklevel=3)
-    return Part(None, files)
+    return _Part(None, files)
 
 
-def _survey(parts: list[Part]) -> tuple[list[int], tuple[np.ndarray, np.ndarray]]:
+def _survey(parts: list[_Part]) -> tuple[list[int], tuple[np.ndarray, np.ndarray]]:
     """Records per part, every checksum checked and each file's first record parsed, and the
     first video (its shape is the split's); refuses what cannot be imported whole."""
     counts, first = [], None
@@ -160,18 +162,18 @@ def _survey(parts: list[Part]) -> tuple[list[int], tuple[np.ndarray, np.ndarray]
     return counts, first
 
 
-def _check_blocks(part: Part, count: int) -> None:
-    blocks = TEST_FILES[part.scenario]
+def _check_blocks(part: _Part, count: int) -> None:
+    blocks = _TEST_FILES[part.scenario]
     if count == 0 or count % blocks:
         raise XvoeError(f"{part.scenario} holds {count} videos, not {blocks} equal blocks (one per setting and "
                         "member, as the reference's metrics read them)")
 
 
-def _check_files(part: Part, per_file: list[int]) -> None:
+def _check_files(part: _Part, per_file: list[int]) -> None:
     """Warn where a scenario's files do not each hold one block: the labels go by position
     among the scenario's records, which is what the reference's metrics read, but such files
     were not written as the reference's build scripts write them."""
-    block = sum(per_file) // TEST_FILES[part.scenario]
+    block = sum(per_file) // _TEST_FILES[part.scenario]
     if any(found != block for found in per_file):
         warnings.warn(f"{part.scenario}'s files hold {', '.join(map(str, per_file))} records, not one block of "
                       f"{block} each; the records are labelled by their place among the scenario's "
@@ -185,12 +187,12 @@ def _parse(record: bytes, path: Path, index: int) -> tuple[np.ndarray, np.ndarra
         example = parse_example(record)
     except TFRecordError as error:
         raise TFRecordError(f"{where}: {error}") from None
-    missing = [name for name in FEATURES if len(example.get(name, ())) != 1]
+    missing = [name for name in _FEATURES if len(example.get(name, ())) != 1]
     if missing:
         raise TFRecordError(f"{where} is not an X-VoE video: no {' or '.join(missing)} feature "
                             f"(it has {', '.join(sorted(example)) or 'none'})")
     try:
-        image, masks = (parse_tensor(example[name][0]) for name in FEATURES)
+        image, masks = (parse_tensor(example[name][0]) for name in _FEATURES)
     except TFRecordError as error:
         raise TFRecordError(f"{where}: {error}") from None
     if masks.ndim == 5 and masks.shape[-1] == 1:
@@ -220,7 +222,7 @@ def _check_same_shape(video, first, path: Path, index: int) -> None:
                             f"{first[0].shape}; one file holds one size")
 
 
-def _videos(part: Part, shape: tuple[int, int]):
+def _videos(part: _Part, shape: tuple[int, int]):
     """Every (image, masks) of a part, in record order."""
     for path in part.files:
         for index, record in enumerate(records(path)):
@@ -241,14 +243,14 @@ def _test_row(index: int, pairs: int) -> int:
 
 def _test_labels(scenario: str, index: int, pairs: int) -> dict:
     block, pair = divmod(index, pairs)
-    setting, member, possible = BLOCKS[block]
+    setting, member, possible = _BLOCKS[block]
     # the release records no event frame: -1, as for a pair without one
     return {"scenario": scenario, "setting": setting, "pair": pair, "member": member, "possible": possible,
             "event_frame": -1}
 
 
 def _train_labels(masks: np.ndarray) -> dict:
-    has_wall = masks.shape[1] > OCCLUDER_SLOT and bool(masks[:, OCCLUDER_SLOT].any())
+    has_wall = masks.shape[1] > _OCCLUDER_SLOT and bool(masks[:, _OCCLUDER_SLOT].any())
     return {"group": "released", "has_wall": has_wall, "event_frame": -1}
 
 
@@ -263,7 +265,7 @@ class _Video:
     color: np.ndarray
 
 
-def ids_of(masks: np.ndarray, depth: np.ndarray) -> tuple[np.ndarray, int]:
+def _ids_of(masks: np.ndarray, depth: np.ndarray) -> tuple[np.ndarray, int]:
     """(T, H, W) slot ids from (T, K, H, W) per-slot masks and the (T, H, W) depth (near small):
     k+1 where slot k's mask alone is set, 0 where none is; and the number of pixels under more
     than one mask. The release does not say whether its masks are of what is seen or amodal
@@ -288,12 +290,12 @@ def ids_of(masks: np.ndarray, depth: np.ndarray) -> tuple[np.ndarray, int]:
     return ids, int(shared.sum())
 
 
-# how `downsample` resamples, recorded in the file's config
-RESAMPLING = "rgb: block mean; ids: the label covering most of a block, ties to the nearer, and a slot a frame " \
+# how `_downsample` resamples, recorded in the file's config
+_RESAMPLING = "rgb: block mean; ids: the label covering most of a block, ties to the nearer, and a slot a frame " \
              "shows that would own no block takes the block it covers most; depth: the mean of the owner's pixels"
 
 
-def downsample(image: np.ndarray, ids: np.ndarray, size: int) -> tuple[np.ndarray, np.ndarray]:
+def _downsample(image: np.ndarray, ids: np.ndarray, size: int) -> tuple[np.ndarray, np.ndarray]:
     """(T, H, W, 4) RGBD and (T, H, W) ids to `size` pixels a side, H a multiple of it.
 
     RGB is the block's mean (area averaging). Each block gets one label: the one covering most
@@ -344,9 +346,9 @@ def _as_video(image: np.ndarray, ids: np.ndarray) -> _Video:
         states[..., column["x"]] = (seen.sum(axis=2) * cols).sum(axis=-1) / pixels
         states[..., column["y"]] = (seen.sum(axis=3) * rows).sum(axis=-1) / pixels
     kind = np.zeros(MAX_SLOTS, np.int8)
-    kind[ever] = IMPORTED_KINDS.index("object")
-    if ever[OCCLUDER_SLOT]:
-        kind[OCCLUDER_SLOT] = IMPORTED_KINDS.index("wall")
+    kind[ever] = _IMPORTED_KINDS.index("object")
+    if ever[_OCCLUDER_SLOT]:
+        kind[_OCCLUDER_SLOT] = _IMPORTED_KINDS.index("wall")
     color = np.zeros((MAX_SLOTS, 3), np.uint8)
     for k in np.flatnonzero(ever):
         color[k] = np.round(image[..., :3][seen[:, k]].mean(axis=0)).astype(np.uint8)
@@ -357,6 +359,6 @@ def _write_attributes(file: h5py.File, split: str, config: dict) -> None:
     """The schema's attributes; what the release does not record (its seed, its depth scale) is -1 or NaN."""
     store.write_attributes(file, split, config, -1)
     file.attrs["generator_version"] = f"import of the {SOURCE_NAME}"
-    file.attrs["kind_names"] = list(IMPORTED_KINDS)
+    file.attrs["kind_names"] = list(_IMPORTED_KINDS)
     file.attrs["depth_far"] = np.nan
     file.attrs["source"] = SOURCE_NAME

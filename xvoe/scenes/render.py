@@ -15,9 +15,11 @@ import numpy as np
 from .physics import Trajectory
 from .world import DURATION, FLOOR, KIND_NAMES, MAX_SLOTS, WALL_KINDS, WORLD, Scene, wall_fraction
 
+__all__ = ["WALL_DEPTH", "OBJECT_DEPTH", "DEPTH_FAR", "STATE_COLUMNS", "Video", "render"]
+
 WALL_DEPTH = 20.0
 OBJECT_DEPTH = 40.0
-FLOOR_NEAR_DEPTH = 30.0
+_FLOOR_NEAR_DEPTH = 30.0
 DEPTH_FAR = 80.0
 
 STATE_COLUMNS = ("x", "y", "size", "height", "lane", "present", "visible", "vx", "vy", "angle")
@@ -92,7 +94,7 @@ def render(scene: Scene, trajectory: Trajectory, size: int = 64) -> Video:
 def _floor_depth(ys_down: np.ndarray) -> np.ndarray:
     """Depth of the floor seen at each image row: near at the bottom, far at its top edge."""
     height_in_floor = np.clip((WORLD - ys_down) / FLOOR, 0.0, 1.0)
-    return FLOOR_NEAR_DEPTH + height_in_floor * (DEPTH_FAR - FLOOR_NEAR_DEPTH)
+    return _FLOOR_NEAR_DEPTH + height_in_floor * (DEPTH_FAR - _FLOOR_NEAR_DEPTH)
 
 
 def _draw(thing, x: float, y: float, xs: np.ndarray, ys_down: np.ndarray, rgb: np.ndarray,

@@ -23,29 +23,31 @@ import numpy as np
 from ..errors import XvoeError
 from ..resources import memory_problem
 
-GZIP_MAGIC = b"\x1f\x8b"
-MASK_DELTA = 0xA282EAD8
+__all__ = ["TFRecordError", "records", "parse_example", "parse_tensor"]
+
+_GZIP_MAGIC = b"\x1f\x8b"
+_MASK_DELTA = 0xA282EAD8
 # TensorFlow's DataType enum (tensorflow/core/framework/types.proto) for the types a video holds
-DTYPES = {1: np.float32, 2: np.float64, 3: np.int32, 4: np.uint8, 6: np.int8, 9: np.int64, 10: np.bool_}
+_DTYPES = {1: np.float32, 2: np.float64, 3: np.int32, 4: np.uint8, 6: np.int8, 9: np.int64, 10: np.bool_}
 # TensorProto's repeated value fields (packed), by field number, for tensors written without tensor_content
-VALUE_FIELDS = {5: "f4", 6: "f8", 7: "varint", 10: "varint", 11: "varint"}
+_VALUE_FIELDS = {5: "f4", 6: "f8", 7: "varint", 10: "varint", 11: "varint"}
 
 
 class TFRecordError(XvoeError):
     """A file that is not a whole TFRecord file, or a record that is not what was expected."""
 
 
-def masked_crc(data: bytes | memoryview) -> int:
+def _masked_crc(data: bytes | memoryview) -> int:
     """TFRecord's checksum: CRC-32C rotated right by 15 bits plus a constant, so that a CRC of
     data that holds CRCs is not itself weak."""
     crc = crc32c.crc32c(data)
-    return (((crc >> 15) | (crc << 17)) + MASK_DELTA) & 0xFFFFFFFF
+    return (((crc >> 15) | (crc << 17)) + _MASK_DELTA) & 0xFFFFFFFF
 
 
 def _open(path: Path) -> BinaryIO:
     """The file's bytes, gunzipped if it starts with gzip's magic (X-VoE's files are gzip)."""
     with open(path, "rb") as probe:
-        gzipped = probe.read(2) == GZIP_MAGIC
+        gzipped = probe.read(2) == _GZIP_MAGIC
     return gzip.open(path, "rb") if gzipped else open(path, "rb")  # noqa: SIM115 - closed by the caller
 
 
@@ -88,18 +90,18 @@ def records(path: str | os.PathLike) -> Iterator[bytes]:
                 raise TFRecordError(f"{path} is truncated: a record header at byte {offset} has {len(header)} "
                                     "of 12 bytes")
             length, length_crc = struct.unpack("<QI", header)
-            if masked_crc(header[:8]) != length_crc:
+            if _masked_crc(header[:8]) != length_crc:
                 raise TFRecordError(f"{path} is not a TFRecord file (bad length checksum at byte {offset})")
             data = _read_exactly(stream, length, path, "a record", offset + 12)
             checksum = _read_exactly(stream, 4, path, "a record's checksum", offset + 12 + length)
             (data_crc,) = struct.unpack("<I", checksum)
-            if masked_crc(data) != data_crc:
+            if _masked_crc(data) != data_crc:
                 raise TFRecordError(f"{path} is damaged: bad data checksum in the record at byte {offset}")
             offset += 16 + length
             yield data
 
 
-def count_records(path: str | os.PathLike) -> int:
+def _count_records(path: str | os.PathLike) -> int:
     """How many whole records the file holds; a damaged file raises, as `records` does."""
     return sum(1 for _ in records(path))
 
@@ -119,7 +121,7 @@ def _varint(data: memoryview, at: int) -> tuple[int, int]:
         shift += 7
 
 
-def fields(message: bytes | memoryview) -> Iterator[tuple[int, int, int | memoryview]]:
+def _fields(message: bytes | memoryview) -> Iterator[tuple[int, int, int | memoryview]]:
     """(field number, wire type, value) of each field: an int for varints, bytes otherwise."""
     data = memoryview(message)
     at = 0
@@ -156,9 +158,9 @@ def _packed(wire: int, value, kind: str) -> list:
 
 def _feature(message: memoryview) -> list:
     """A tf.train.Feature's values: bytes_list (1), float_list (2) or int64_list (3)."""
-    for number, _, inner in fields(message):
+    for number, _, inner in _fields(message):
         values: list = []
-        for _, wire, value in fields(inner):
+        for _, wire, value in _fields(inner):
             if number == 1:
                 values.append(bytes(value))
             elif number == 2:
@@ -174,14 +176,14 @@ def parse_example(record: bytes) -> dict[str, list]:
     whose map field feature (1) holds entries of key (1) and Feature (2)."""
     parsed: dict[str, list] = {}
     try:
-        for number, wire, features in fields(record):
+        for number, wire, features in _fields(record):
             if number != 1 or wire != 2:
                 continue
-            for entry_number, _, entry in fields(features):
+            for entry_number, _, entry in _fields(features):
                 if entry_number != 1:
                     continue
                 name, value = "", memoryview(b"")
-                for key, _, part in fields(entry):
+                for key, _, part in _fields(entry):
                     if key == 1:
                         name = bytes(part).decode("utf-8")
                     elif key == 2:
@@ -198,27 +200,27 @@ def parse_tensor(serialized: bytes) -> np.ndarray:
     or for a tensor written value by value, in its typed repeated field."""
     dtype, shape, content, values = None, [], None, []
     try:
-        for number, wire, value in fields(serialized):
+        for number, wire, value in _fields(serialized):
             if number == 1:
                 dtype = value
             elif number == 2:
-                shape = [next((int(size) for n, _, size in fields(dim) if n == 1), 0)
-                         for n, _, dim in fields(value) if n == 2]
+                shape = [next((int(size) for n, _, size in _fields(dim) if n == 1), 0)
+                         for n, _, dim in _fields(value) if n == 2]
             elif number == 4:
                 content = bytes(value)
-            elif number in VALUE_FIELDS:
-                values += _packed(wire, value, VALUE_FIELDS[number])
+            elif number in _VALUE_FIELDS:
+                values += _packed(wire, value, _VALUE_FIELDS[number])
     except ValueError as error:
         raise TFRecordError(f"a tensor is not a serialized TensorProto ({error})") from None
-    if dtype not in DTYPES:
+    if dtype not in _DTYPES:
         raise TFRecordError(f"a tensor has TensorFlow dtype {dtype}, which this reader does not know")
     count = math.prod(shape) if shape else 1       # Python's integers: a declared size never overflows
-    if problem := memory_problem(count * np.dtype(DTYPES[dtype]).itemsize):
+    if problem := memory_problem(count * np.dtype(_DTYPES[dtype]).itemsize):
         raise TFRecordError(f"a tensor declares shape {tuple(shape)}, which would {problem}")
     if content is not None:
-        array = np.frombuffer(content, dtype=np.dtype(DTYPES[dtype]).newbyteorder("<"))
+        array = np.frombuffer(content, dtype=np.dtype(_DTYPES[dtype]).newbyteorder("<"))
     else:       # written value by value; a single value stands for all (TensorFlow's splat)
-        array = np.asarray(values if len(values) != 1 else values * count, dtype=DTYPES[dtype])
+        array = np.asarray(values if len(values) != 1 else values * count, dtype=_DTYPES[dtype])
     if array.size != count:
         raise TFRecordError(f"a tensor of shape {tuple(shape)} holds {array.size} values, not {count}")
-    return array.astype(DTYPES[dtype], copy=False).reshape(shape)
+    return array.astype(_DTYPES[dtype], copy=False).reshape(shape)

@@ -13,6 +13,9 @@ from ..errors import XvoeError
 from . import store
 from .world import FLOOR, WORLD
 
+__all__ = ["check_index", "video_indices", "describe", "find_pair", "list_videos", "wall_lowered",
+           "true_objects", "silhouette"]
+
 
 def check_index(file: h5py.File, index: int) -> None:
     """An error unless `index` names a video of the split file."""
@@ -48,7 +51,7 @@ def find_pair(file: h5py.File, scenario: str, setting: str, pair: int) -> tuple[
                       file["member"][:], scenario, setting, pair, str(file.filename))
 
 
-VIDEO_FIELDS = ("index", "scenario", "setting", "pair", "member", "possible")
+_VIDEO_FIELDS = ("index", "scenario", "setting", "pair", "member", "possible")
 
 
 def list_videos(file: h5py.File, scenario: str | None = None, setting: str | None = None,
@@ -59,7 +62,7 @@ def list_videos(file: h5py.File, scenario: str | None = None, setting: str | Non
     one-line error that says what it holds."""
     if file.attrs["split"] != "test":
         raise XvoeError(f"{file.filename} is a {file.attrs['split']} split; pairs live in test splits")
-    found = store.labels(file, VIDEO_FIELDS[1:])
+    found = store.labels(file, _VIDEO_FIELDS[1:])
     chosen, so_far = np.ones(len(found["scenario"]), bool), []
     for name, wanted in (("scenario", scenario), ("setting", setting), ("member", member), ("pair", pair)):
         if wanted is None:

@@ -10,14 +10,18 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
+__all__ = ["WORLD", "FLOOR", "DURATION", "OBJECT_SIZE", "GRAVITY", "KIND_NAMES", "WALL_KINDS", "MAX_SLOTS",
+           "WALL_SCHEDULES", "wall_fraction", "Thing", "Edit", "Scene", "sample_colors", "make_scene",
+           "NO_COLOR", "ball", "cube", "wall", "rolling_speed"]
+
 WORLD = 64.0          # the camera's field of view, world units (= pixels at 64x64)
 FLOOR = 12.0          # height of the floor's top surface
 DURATION = 1.5        # seconds of simulated time in a video, whatever the frame count
 OBJECT_SIZE = 4.0     # radius of a ball and half side of a cube
 GRAVITY = 200.0       # world units per second squared
 
-OBJECT_LANE = 1       # balls and cubes move in this depth lane
-WALL_LANE = 0         # walls stand nearer the camera and never touch anything
+_OBJECT_LANE = 1       # balls and cubes move in this depth lane
+_WALL_LANE = 0         # walls stand nearer the camera and never touch anything
 
 KIND_NAMES = ("none", "ball", "cube", "wall", "window_wall")
 WALL_KINDS = ("wall", "window_wall")
@@ -63,7 +67,7 @@ class Thing:
 
     @property
     def lane(self) -> int:
-        return WALL_LANE if self.kind in WALL_KINDS else OBJECT_LANE
+        return _WALL_LANE if self.kind in WALL_KINDS else _OBJECT_LANE
 
 
 @dataclass(frozen=True)
@@ -145,7 +149,7 @@ def wall(x: float, half_width: float, height: float, window: tuple[float, float]
     return Thing(kind, NO_COLOR, x=x, y=FLOOR + height / 2, half_width=half_width, height=height, window=window)
 
 
-def frame_time(frame: float, frames: int) -> float:
+def _frame_time(frame: float, frames: int) -> float:
     """Seconds at a (possibly fractional) frame index."""
     return frame * DURATION / frames
 

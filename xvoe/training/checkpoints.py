@@ -21,6 +21,9 @@ from ..outputs import atomic_paths
 from .config import TrainConfig
 from .stages import SCORED, STAGES
 
+__all__ = ["CHECKPOINT_FORMAT", "WEIGHTS", "SHIPPED", "save_checkpoint", "load_checkpoint", "recorded_input",
+           "first_not_finite", "load_weights", "resolve_run", "shipped_path"]
+
 CHECKPOINT_FORMAT = 1
 WEIGHTS = Path(__file__).resolve().parent.parent / "weights"
 SHIPPED = SCORED         # every model a checkpoint holds ships under its stage's name
@@ -69,7 +72,7 @@ def load_checkpoint(path: str | os.PathLike, stage: str | None = None, device: s
         raise XvoeError(f"{path} holds a {state.get('stage')} model, not {stage}: load it under its own name "
                         f"({state.get('stage')}.pt)")
     # the stages xvoe trains are checked; the loop's other callers (a test's toy stage) read their own
-    if state.get("stage") in STAGES and (problem := contents_problem(state)) is not None:
+    if state.get("stage") in STAGES and (problem := _contents_problem(state)) is not None:
         raise XvoeError(f"{path} does not fit the {state.get('stage')} model: {problem}")
     if (bad := first_not_finite(state)) is not None:
         raise XvoeError(f"{path} holds weights that are not finite ({bad}); the run that wrote it diverged")
@@ -84,10 +87,10 @@ def recorded_input(state: dict, path: str | os.PathLike, key: str, flag: str = "
     return state["meta"][key]
 
 
-WEIGHT_KEYS = ("model", "trained")      # "trained" beside "model" when a run averages its weights
+_WEIGHT_KEYS = ("model", "trained")      # "trained" beside "model" when a run averages its weights
 
 
-def contents_problem(state: dict) -> str | None:
+def _contents_problem(state: dict) -> str | None:
     """What in a checkpoint of a known format is not what its stage stores, naming the key, or
     None: its model config of the stage's fields and types, the training config's, a whole
     step, and weights that are tensors by name. Read here, where every loader passes, so that
@@ -111,7 +114,7 @@ def contents_problem(state: dict) -> str | None:
         return f"meta is a {type(state['meta']).__name__}, not a dict"
     if "model" not in state:
         return "it has no model key (the weights)"
-    for key in (key for key in WEIGHT_KEYS if key in state):
+    for key in (key for key in _WEIGHT_KEYS if key in state):
         if not isinstance(state[key], dict):
             return f"{key} is a {type(state[key]).__name__}, not a dict of tensors"
         for name, value in state[key].items():
@@ -121,9 +124,9 @@ def contents_problem(state: dict) -> str | None:
 
 
 def first_not_finite(state: dict) -> str | None:
-    """The first weight of a checkpoint (`WEIGHT_KEYS`) holding a NaN or an infinity, as
+    """The first weight of a checkpoint (`_WEIGHT_KEYS`) holding a NaN or an infinity, as
     "KEY NAME", or None."""
-    for key in (key for key in WEIGHT_KEYS if key in state):
+    for key in (key for key in _WEIGHT_KEYS if key in state):
         for name, tensor in state[key].items():
             if tensor.is_floating_point() and not bool(torch.isfinite(tensor).all()):
                 return f"{key} {name}"

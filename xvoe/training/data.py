@@ -21,7 +21,10 @@ from ..scenes.released import SOURCE_NAME
 from ..scenes.scenarios import TRAINING_GROUPS
 from ..scenes.world import FLOOR, WORLD
 
-BLANK_SEED = 1 << 20      # the shard number of the blank input's noise (shared by all processes)
+__all__ = ["visible_threshold", "check_size", "masked_inputs", "perception_batch", "Ownership",
+           "process_counts", "owned_shards", "Focus", "focus_on", "check_focus", "ShardedFrames"]
+
+_BLANK_SEED = 1 << 20      # the shard number of the blank input's noise (shared by all processes)
 
 
 def visible_threshold(size: int) -> float:
@@ -29,13 +32,13 @@ def visible_threshold(size: int) -> float:
     return 4.0 * (size / 128.0) ** 2
 
 
-def frame_size(file: h5py.File) -> int:
+def _frame_size(file: h5py.File) -> int:
     return int(file["rgbd"].shape[2])
 
 
 def check_size(file: h5py.File, image_size: int, what: str = "the model") -> None:
     """Refuse data whose frames are not the size the model was built for."""
-    size = frame_size(file)
+    size = _frame_size(file)
     if size != image_size:
         remedy = "import the release again with xvoe import" if file.attrs.get("source") == SOURCE_NAME \
             else "generate the data with"
@@ -74,7 +77,7 @@ def perception_batch(rgbd: np.ndarray | Tensor, ids: np.ndarray | Tensor, slots:
 
 
 @dataclass
-class Slice:
+class _Slice:
     """Videos [start, stop) of a split file, in memory."""
 
     rgbd: np.ndarray      # (n, T, H, W, 4) uint8
@@ -83,13 +86,13 @@ class Slice:
     stop: int
 
 
-def load_slice(path: str, start: int, stop: int) -> Slice:
+def _load_slice(path: str, start: int, stop: int) -> _Slice:
     with store.open_dataset(path) as file:
-        return Slice(store.read_frames(file, "rgbd", start, stop), store.read_frames(file, "ids", start, stop),
+        return _Slice(store.read_frames(file, "rgbd", start, stop), store.read_frames(file, "ids", start, stop),
                      start, stop)
 
 
-def shard_bounds(videos: int, shards: int) -> list[tuple[int, int]]:
+def _shard_bounds(videos: int, shards: int) -> list[tuple[int, int]]:
     """Contiguous video ranges of `shards` near-equal slices."""
     edges = [videos * s // shards for s in range(shards + 1)]
     return list(zip(edges[:-1], edges[1:]))
@@ -133,7 +136,7 @@ def owned_shards(path: str, videos: int, *, batch_size: int, shards: int, rank: 
         raise XvoeError(f"{path} holds {videos} videos, fewer than the {shards} data shards")
     per_rank = shards // world
     mine = list(range(rank * per_rank, (rank + 1) * per_rank))
-    bounds = shard_bounds(videos, shards)
+    bounds = _shard_bounds(videos, shards)
     return Ownership(mine, [bounds[s] for s in mine], batch_size // shards)
 
 
@@ -152,7 +155,7 @@ class Focus:
         return np.concatenate([rows, rng.choice(self.rows[index], self.count)]) if self.count else rows
 
 
-def share_count(field: str, share: float, per_shard: int, items: str) -> int:
+def _share_count(field: str, share: float, per_shard: int, items: str) -> int:
     """How many of the `per_shard` items each shard gives a batch the TrainConfig share `field`
     takes; a share outside [0, 1], or one that rounds to none, is refused."""
     if not 0.0 <= share <= 1.0:
@@ -163,7 +166,7 @@ def share_count(field: str, share: float, per_shard: int, items: str) -> int:
     return count
 
 
-def split_by_shard(path: str, owned: Ownership, found: np.ndarray, rows: np.ndarray, what: str) -> list[np.ndarray]:
+def _split_by_shard(path: str, owned: Ownership, found: np.ndarray, rows: np.ndarray, what: str) -> list[np.ndarray]:
     """`found` (one entry per file row of `rows`) split among the owned shards; every shard must
     hold some, `what` naming them in the error."""
     parts = [found[(rows >= start) & (rows < stop)] for start, stop in owned.bounds]
@@ -177,16 +180,16 @@ def focus_on(path: str, owned: Ownership, group: str, share: float) -> Focus:
     """The Focus of TrainConfig.focus_group / focus_share for the shards a process owns of the
     training split at `path`."""
     check_focus(group, share)
-    count = share_count("focus_share", share, owned.per_shard, "videos")
+    count = _share_count("focus_share", share, owned.per_shard, "videos")
     if not count:
         return Focus([], 0)
     with store.open_dataset(path) as file:
-        found = focus_videos(file, group, owned.start, owned.stop)
-    return Focus(split_by_shard(path, owned, found, found, f"{group} videos with a wall"), count)
+        found = _focus_videos(file, group, owned.start, owned.stop)
+    return Focus(_split_by_shard(path, owned, found, found, f"{group} videos with a wall"), count)
 
 
 @dataclass
-class AirborneFrames:
+class _AirborneFrames:
     """TrainConfig.airborne_share for the perception stage. Frames with a ball or cube off the
     floor are a few percent of a split (falling cubes), too few for the encoder and decoder to
     learn to draw an object there."""
@@ -195,18 +198,18 @@ class AirborneFrames:
     count: int               # how many of the shard's frames per batch come from them
 
 
-def airborne_frames_of(path: str, owned: Ownership, share: float) -> AirborneFrames:
+def _airborne_frames_of(path: str, owned: Ownership, share: float) -> _AirborneFrames:
     """The AirborneFrames of `share` for the shards a process owns of the training split at `path`."""
-    count = share_count("airborne_share", share, owned.per_shard, "frames")
+    count = _share_count("airborne_share", share, owned.per_shard, "frames")
     if not count:
-        return AirborneFrames([], 0)
+        return _AirborneFrames([], 0)
     with store.open_dataset(path) as file:
-        found = np.argwhere(airborne(file, owned.start, owned.stop)) + [owned.start, 0]
-    return AirborneFrames(split_by_shard(path, owned, found, found[:, 0], "frame with a ball or cube off the floor"),
+        found = np.argwhere(_airborne(file, owned.start, owned.stop)) + [owned.start, 0]
+    return _AirborneFrames(_split_by_shard(path, owned, found, found[:, 0], "frame with a ball or cube off the floor"),
                           count)
 
 
-def airborne(file: h5py.File, start: int, stop: int) -> np.ndarray:
+def _airborne(file: h5py.File, start: int, stop: int) -> np.ndarray:
     """(videos, T) bool: frames of rows [start, stop) in which a visible ball or cube's lowest
     point is at least its own half-size above the floor (states are in pixels, y downwards)."""
     columns = list(file["states"].attrs["state_columns"])
@@ -214,7 +217,7 @@ def airborne(file: h5py.File, start: int, stop: int) -> np.ndarray:
     y, size = states[..., columns.index("y")], states[..., columns.index("size")]
     kinds = list(file.attrs["kind_names"])
     movable = np.isin(file["kind"][start:stop], [kinds.index("ball"), kinds.index("cube")])[:, None, :]
-    floor_row = frame_size(file) * (1.0 - FLOOR / WORLD)
+    floor_row = _frame_size(file) * (1.0 - FLOOR / WORLD)
     lifted = (states[..., columns.index("visible")] > 0) & movable & (y + 2 * size <= floor_row)
     return lifted.any(axis=2)
 
@@ -229,7 +232,7 @@ def check_focus(group: str, share: float | None = None) -> None:
         raise XvoeError("focus_share needs a focus_group (e.g. permanence)")
 
 
-def focus_videos(file: h5py.File, group: str, start: int, stop: int) -> np.ndarray:
+def _focus_videos(file: h5py.File, group: str, start: int, stop: int) -> np.ndarray:
     """Rows in [start, stop) of a training split's `group` videos that have a wall; `group` may
     name several, comma-separated (permanence,continuity), to hold more than one kind of hidden
     event in each batch."""
@@ -260,16 +263,16 @@ class ShardedFrames:
         owned = owned_shards(path, videos, batch_size=batch_size, shards=shards, rank=rank, world=world,
                              max_videos=max_videos)
         self.shards, self.bounds, self.per_shard = owned.shards, owned.bounds, owned.per_shard
-        self.data = load_slice(path, owned.start, owned.stop)
+        self.data = _load_slice(path, owned.start, owned.stop)
         self.latent_dim, self.seed = latent_dim, seed
         self.frames = self.data.rgbd.shape[1]
-        self.airborne = airborne_frames_of(path, owned, airborne_share)
+        self.airborne = _airborne_frames_of(path, owned, airborne_share)
 
     def batch(self, step: int) -> PerceptionBatch:
         """The local part of the global batch of `step`; the same whoever asks, whenever."""
         video, frame, noise = self._draw(step)
         video -= self.data.start
-        blank_noise = np.random.default_rng([self.seed, step, BLANK_SEED]).standard_normal(
+        blank_noise = np.random.default_rng([self.seed, step, _BLANK_SEED]).standard_normal(
             (1, self.latent_dim), dtype=np.float32)
         return perception_batch(self.data.rgbd[video, frame], self.data.ids[video, frame], self.slots,
                                 noise, blank_noise)

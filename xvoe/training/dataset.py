@@ -11,6 +11,8 @@ from torch.utils.data import Dataset
 
 from ..scenes import store
 
+__all__ = ["SplitDataset"]
+
 
 class SplitDataset(Dataset):
     """The videos of a split file: `rgbd` (T, H, W, 4) and `ids` (T, H, W) uint8 tensors, the

@@ -12,7 +12,7 @@ pixels. Schema (an interface; version in the attribute `xvoe_latents`):
   float32 (N, T, D): the background component (floor and sky) that the composite needs.
 - attributes: `perception_checkpoint` (path), `perception_sha256`, `source` (data file),
   `source_split`, `config` (JSON: recipe, perception config, threshold, the data's config), and
-  the cache's key: `split_identity` (JSON, xvoe.fingerprints.split_identity) and `perception_identity`
+  the cache's key: `split_identity` (JSON, xvoe.fingerprints.split_identity) and `_perception_identity`
   (`encoder_key`: a hash of the module's weights and config, and the precision it encoded in
   where not float32). `check_cache` refuses a cache whose key is not the split's and the
   perception's at hand.
@@ -44,12 +44,15 @@ from .data import check_size, masked_inputs, visible_threshold
 from .perception import load_perception
 from .recipes import recipe_of
 
-LATENTS_VERSION = 1
-ARRAYS = ("mean", "std", "visible", "present", "pixels", "background_mean", "background_std")
+__all__ = ["LATENT_CHUNK", "open_latents", "encode_frames", "encode_means", "encode_split", "encode_with",
+           "encoder_key", "split_cache", "check_cache"]
+
+_LATENTS_VERSION = 1
+_ARRAYS = ("mean", "std", "visible", "present", "pixels", "background_mean", "background_std")
 
 
 @dataclass
-class Latents:
+class _Latents:
     """A latent cache in memory."""
 
     mean: np.ndarray
@@ -66,7 +69,7 @@ class Latents:
         return json.loads(self.attrs["config"])
 
 
-def sha256_of(path: str | os.PathLike) -> str:
+def _sha256_of(path: str | os.PathLike) -> str:
     digest = hashlib.sha256()
     with open(path, "rb") as handle:
         for block in iter(lambda: handle.read(1 << 20), b""):
@@ -74,13 +77,13 @@ def sha256_of(path: str | os.PathLike) -> str:
     return digest.hexdigest()
 
 
-def write_latents(path: str | os.PathLike, latents: Latents, overwrite: bool = False) -> Path:
+def _write_latents(path: str | os.PathLike, latents: _Latents, overwrite: bool = False) -> Path:
     """Write a cache atomically (temporary name, then rename)."""
     with store.atomic_file(path, overwrite=overwrite) as file:
-        for name in ARRAYS:
+        for name in _ARRAYS:
             array = getattr(latents, name)
-            file.create_dataset(name, data=array, track_times=False, **compressed(array))
-        file.attrs["xvoe_latents"] = LATENTS_VERSION
+            file.create_dataset(name, data=array, track_times=False, **_compressed(array))
+        file.attrs["xvoe_latents"] = _LATENTS_VERSION
         for name, value in latents.attrs.items():
             if name != "xvoe_latents":
                 file.attrs[name] = value
@@ -90,7 +93,7 @@ def write_latents(path: str | os.PathLike, latents: Latents, overwrite: bool = F
 LATENT_CHUNK = 16      # videos per compressed chunk and per encoder batch: a scoring batch reads one
 
 
-def compressed(array: np.ndarray) -> dict:
+def _compressed(array: np.ndarray) -> dict:
     """How a cache's array is stored: deflate at its fastest level over byte-shuffled chunks of
     videos, 9x smaller than the raw floats (the empty slots repeat one posterior) for 0.1 s more
     read per 10,000 videos (docs/decisions.md, "Speed and memory")."""
@@ -104,21 +107,21 @@ def open_latents(path: str | os.PathLike) -> h5py.File:
     """Open a latent cache for reading, or say in one line why it is not one."""
     file = store.open_hdf5(path)
     version = file.attrs.get("xvoe_latents")
-    if version is None or int(version) != LATENTS_VERSION:
+    if version is None or int(version) != _LATENTS_VERSION:
         file.close()
-        raise XvoeError(f"{path} is not an xvoe latent cache of version {LATENTS_VERSION}")
+        raise XvoeError(f"{path} is not an xvoe latent cache of version {_LATENTS_VERSION}")
     return file
 
 
-def read_latents(path: str | os.PathLike) -> Latents:
+def _read_latents(path: str | os.PathLike) -> _Latents:
     with open_latents(path) as file:
-        arrays = {name: file[name][:] for name in ARRAYS}
+        arrays = {name: file[name][:] for name in _ARRAYS}
         attrs = {name: (value.item() if isinstance(value, np.generic) else value)
                  for name, value in file.attrs.items()}
-    return Latents(**arrays, attrs=attrs)
+    return _Latents(**arrays, attrs=attrs)
 
 
-ENCODE_CHUNK = 64   # images per encoder pass: the paper's ViT needs about 8 MiB of activations per image
+_ENCODE_CHUNK = 64   # images per encoder pass: the paper's ViT needs about 8 MiB of activations per image
 
 
 @torch.no_grad()
@@ -130,7 +133,7 @@ def encode_frames(model, rgbd: np.ndarray, ids: np.ndarray, slots: int) -> dict[
     count, objects = len(frames), len(parts["objects"])
     inputs = torch.cat([parts["objects"], parts["background"], model.blank()])
     with mixed_precision(device):
-        posteriors = [model.posterior(part) for part in inputs.split(ENCODE_CHUNK)]
+        posteriors = [model.posterior(part) for part in inputs.split(_ENCODE_CHUNK)]
     mean, std = (torch.cat(found).float() for found in zip(*posteriors))
     slot_mean = mean[-1:].expand(count, slots, -1).clone()
     slot_std = std[-1:].expand(count, slots, -1).clone()
@@ -155,7 +158,7 @@ def encode_split(model_ref: str | os.PathLike, data: str | os.PathLike, out: str
     """What `xvoe encode` does: encode every frame of a split into a latent cache, on `device`."""
     model, state = load_perception(model_ref, resolve_device(device))
     origin = {"perception_checkpoint": str(Path(state["path"]).resolve()),
-              "perception_sha256": sha256_of(state["path"]), "recipe": recipe_of(state["config"])}
+              "perception_sha256": _sha256_of(state["path"]), "recipe": recipe_of(state["config"])}
     return encode_with(model, data, out, origin, videos_per_batch=videos_per_batch, overwrite=overwrite,
                        progress=progress)
 
@@ -198,11 +201,11 @@ def encode_with(model: ComponentVAE, data: str | os.PathLike, out: str | os.Path
                  "config": json.dumps(config, sort_keys=True),
                  "split_identity": json.dumps(identity or split_identity(file), sort_keys=True),
                  "perception_identity": encoder_key(model)}
-    latents = Latents(visible=arrays["pixels"] > threshold, present=present, attrs=attrs, **arrays)
-    return write_latents(out, latents, overwrite=overwrite)
+    latents = _Latents(visible=arrays["pixels"] > threshold, present=present, attrs=attrs, **arrays)
+    return _write_latents(out, latents, overwrite=overwrite)
 
 
-def perception_identity(model: ComponentVAE) -> str:
+def _perception_identity(model: ComponentVAE) -> str:
     """A perception module's key in a latent cache: the hash of its weights and config, the same
     for a run's perception.pt and the shipped copy of it (xvoe.fingerprints.arrays_hash)."""
     arrays = {name: tensor.detach().cpu().numpy() for name, tensor in model.state_dict().items()}
@@ -210,11 +213,11 @@ def perception_identity(model: ComponentVAE) -> str:
 
 
 def encoder_key(model: ComponentVAE, device: torch.device | None = None) -> str:
-    """What a latent cache's values hang on: the module (`perception_identity`) and, where it is
+    """What a latent cache's values hang on: the module (`_perception_identity`) and, where it is
     not float32, the precision it encodes in on `device` (its own by default): bfloat16 on CUDA
     moves latents far beyond float rounding, so a GPU's cache is not the CPU's."""
     dtype = autocast_dtype(device or device_of(model))
-    return perception_identity(model) + ("" if dtype == torch.float32 else f"-{str(dtype).removeprefix('torch.')}")
+    return _perception_identity(model) + ("" if dtype == torch.float32 else f"-{str(dtype).removeprefix('torch.')}")
 
 
 def split_cache(data: str | os.PathLike, perception: str) -> Path:
@@ -227,7 +230,7 @@ def split_cache(data: str | os.PathLike, perception: str) -> Path:
 def check_cache(cache: str | os.PathLike, data: str | os.PathLike, perception: str | None = None,
                 identity: dict | None = None) -> None:
     """An error unless the latent cache was encoded from this very split and, given
-    `perception` (a `perception_identity`), by that perception module. The split is known by
+    `perception` (a `_perception_identity`), by that perception module. The split is known by
     the identity the cache records (`split_identity`: seed, config, videos, contents; `identity`,
     the split's, where the caller has it already: it hashes frames); a cache that records none,
     by the same path, generation config and video count (a file regenerated under the old name

@@ -16,6 +16,8 @@ from .data import ShardedFrames
 from .loop import Job, checkpoint_path, fit, setup_distributed, start_process
 from .recipes import DEFAULT_RECIPE, recipe, recipe_of
 
+__all__ = ["load_perception", "train_perception"]
+
 
 def load_perception(model: str | os.PathLike, device: str | torch.device = "cpu"):
     """The trained ComponentVAE of a checkpoint (in eval mode) and the checkpoint's contents."""
@@ -27,7 +29,7 @@ def load_perception(model: str | os.PathLike, device: str | torch.device = "cpu"
     return vae.to(device).eval(), state
 
 
-def perception_configs(recipe_name: str, run_dir: Path, resume: bool, **train_overrides: Any):
+def _perception_configs(recipe_name: str, run_dir: Path, resume: bool, **train_overrides: Any):
     """Model and training configs: the checkpoint's when resuming, else the recipe's, with overrides."""
     ckpt = checkpoint_path(run_dir, "perception")
     if resume and ckpt.exists():
@@ -53,7 +55,7 @@ def train_perception(data: str | os.PathLike | None, run_dir: str | os.PathLike,
             raise XvoeError("--data is required to start a run (the training split file)")
         ckpt = checkpoint_path(run_dir, "perception")
         data = recorded_input(load_checkpoint(ckpt), ckpt, "data")
-    recipe_name, model_config, config = perception_configs(recipe_name, run_dir, resume, **train_overrides)
+    recipe_name, model_config, config = _perception_configs(recipe_name, run_dir, resume, **train_overrides)
     if resume and checkpoint_path(run_dir, "perception").exists():
         model_config = override_resumed(model_config, model_overrides, what="perception run")
     else:

@@ -26,11 +26,13 @@ from .data import check_size, focus_on, owned_shards
 from .loop import Dist, Job, checkpoint_path, fit, setup_distributed, start_process
 from .recipes import DEFAULT_RECIPE, recipe, recipe_of
 
-STAGE = "phydnet"
-LOSS_FIELDS = ("change_weight", "moment_weight")   # PhyDNetConfig fields a resumed run may change
+__all__ = ["train_phydnet", "load_phydnet"]
+
+_STAGE = "phydnet"
+_LOSS_FIELDS = ("change_weight", "moment_weight")   # PhyDNetConfig fields a resumed run may change
 
 
-class VideoBatches:
+class _VideoBatches:
     """The shards of a split file that one process owns, in memory as uint8 RGBD, and its batches.
 
     With `focus_group`, a `focus_share` of each shard's part of a batch is drawn from that
@@ -56,12 +58,12 @@ class VideoBatches:
         return self.rgbd[torch.from_numpy(np.concatenate(picks) - self.start)]
 
 
-def phydnet_configs(recipe_name: str, run_dir: Path, resume: bool, data: str | os.PathLike | None
+def _phydnet_configs(recipe_name: str, run_dir: Path, resume: bool, data: str | os.PathLike | None
                     ) -> tuple[str, PhyDNetConfig, TrainConfig, str]:
     """Model and training configs and the data file: the checkpoint's when resuming, else the recipe's."""
-    ckpt = checkpoint_path(run_dir, STAGE)
+    ckpt = checkpoint_path(run_dir, _STAGE)
     if resume and ckpt.exists():
-        state = load_checkpoint(ckpt, STAGE)
+        state = load_checkpoint(ckpt, _STAGE)
         model_config = from_dict(PhyDNetConfig, state["config"]["phydnet"])
         train_config, recipe_name = from_dict(TrainConfig, state["train"]), recipe_of(state["config"])
         return recipe_name, model_config, train_config, str(data or recorded_input(state, ckpt, "data"))
@@ -77,11 +79,11 @@ def train_phydnet(data: str | os.PathLike | None, run_dir: str | os.PathLike, *,
     """What `xvoe train phydnet` does (also under torchrun) on `device`; returns RUN_DIR/phydnet.pt."""
     place = setup_distributed(device)
     run_dir = Path(run_dir)
-    recipe_name, model_config, config, data = phydnet_configs(recipe_name, run_dir, resume, data)
-    ckpt = checkpoint_path(run_dir, STAGE)
+    recipe_name, model_config, config, data = _phydnet_configs(recipe_name, run_dir, resume, data)
+    ckpt = checkpoint_path(run_dir, _STAGE)
     resuming = resume and ckpt.exists()
     if resuming:
-        model_config = override_resumed(model_config, model_overrides, LOSS_FIELDS, "PhyDNet")
+        model_config = override_resumed(model_config, model_overrides, _LOSS_FIELDS, "PhyDNet")
     else:
         model_config = override(model_config, **(model_overrides or {}))
     config = override(config, **train_overrides)
@@ -89,25 +91,25 @@ def train_phydnet(data: str | os.PathLike | None, run_dir: str | os.PathLike, *,
         if not resuming:
             raise XvoeError("lstm_kernel widens the gates of a trained PhyDNet in a later phase; a fresh run "
                             "takes its kernel from the model config (--set model.lstm_kernel=K)")
-        widen_checkpoint(ckpt, config.lstm_kernel, place)
+        _widen_checkpoint(ckpt, config.lstm_kernel, place)
         model_config = replace(model_config, lstm_kernel=config.lstm_kernel)   # a loss field's override kept
     config = start_process(config, place)
-    batches = VideoBatches(data, image_size=model_config.image_size, batch_size=config.batch_size,
+    batches = _VideoBatches(data, image_size=model_config.image_size, batch_size=config.batch_size,
                            shards=config.data_shards, rank=place.rank, world=place.world,
                            max_videos=config.max_videos, seed=config.seed, focus_group=config.focus_group,
                            focus_share=config.focus_share)
-    job = Job(STAGE, PhyDNetObjective(PhyDNet(model_config)), batches.batch,
+    job = Job(_STAGE, PhyDNetObjective(PhyDNet(model_config)), batches.batch,
               {"recipe": recipe_name, "phydnet": to_dict(model_config)}, meta={"data": str(Path(data).resolve())},
               item_bytes=4 * batches.rgbd[:1].numel())
     return fit(job, config, run_dir, place=place, resume=resume, overwrite=overwrite, progress=progress)
 
 
-def widen_checkpoint(path: Path, kernel: int, place: Dist) -> None:
+def _widen_checkpoint(path: Path, kernel: int, place: Dist) -> None:
     """Rewrite a PhyDNet run's checkpoint with its ConvLSTM gates widened to `kernel`
     (`widen_lstm_kernel`: the same predictions to begin with) and Adam afresh, its step, RNG
     states and loss log kept, so that the resumed phase trains the wider gates."""
     if place.main:
-        state = load_checkpoint(path, STAGE)
+        state = load_checkpoint(path, _STAGE)
         narrow = from_dict(PhyDNetConfig, state["config"]["phydnet"])
         widened = {}
         for key in ("model", "trained"):        # "trained" beside "model" when the run averages its weights
@@ -126,8 +128,8 @@ def widen_checkpoint(path: Path, kernel: int, place: Dist) -> None:
 
 def load_phydnet(model: str | os.PathLike, device: str | torch.device = "cpu") -> tuple[PhyDNet, dict]:
     """A trained PhyDNet (in eval mode) from a checkpoint or run directory, and the checkpoint's contents."""
-    path = resolve_run(model, STAGE)
-    state = load_checkpoint(path, STAGE, device)
+    path = resolve_run(model, _STAGE)
+    state = load_checkpoint(path, _STAGE, device)
     objective = PhyDNetObjective(PhyDNet(from_dict(PhyDNetConfig, state["config"]["phydnet"])))
     load_weights(objective, state, path)
     state["path"] = str(path)

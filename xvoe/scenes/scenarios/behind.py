@@ -10,17 +10,19 @@ from ..physics import Take, run
 from ..world import OBJECT_SIZE as R
 from ..world import Edit, Scene, Thing, ball, make_scene, rolling_speed, wall
 
-INCOMING, HIDDEN, WALL = 0, 1, 2
-SCHEDULES = {"S1": "away_start_end", "S2": "stays", "S3": "away_end"}
-WALL_HALF_WIDTH = (11.0, 14.0)   # ranges the wall's size is drawn from, world units
-WALL_HEIGHT = (14.0, 22.0)
+__all__ = ["sample", "test_pair", "training"]
+
+_INCOMING, _HIDDEN, _WALL = 0, 1, 2
+_SCHEDULES = {"S1": "away_start_end", "S2": "stays", "S3": "away_end"}
+_WALL_HALF_WIDTH = (11.0, 14.0)   # ranges the wall's size is drawn from, world units
+_WALL_HEIGHT = (14.0, 22.0)
 
 
 def sample(rng: np.random.Generator, make_hidden: Callable[[float], Thing]) -> Scene:
     """Incoming ball, the hidden thing (fully covered by the wall) and the wall."""
     wall_x = rng.uniform(30.0, 36.0)
-    half_width = rng.uniform(*WALL_HALF_WIDTH)
-    height = rng.uniform(*WALL_HEIGHT)
+    half_width = rng.uniform(*_WALL_HALF_WIDTH)
+    height = rng.uniform(*_WALL_HEIGHT)
     # The hidden thing and the incoming ball at the moment they meet both stay behind the wall.
     hidden_x = rng.uniform(wall_x - half_width + 3 * R + 1, wall_x + half_width - R - 1)
     speed = rolling_speed(rng)
@@ -35,14 +37,14 @@ def test_pair(rng: np.random.Generator, setting: str, frames: int,
               make_hidden: Callable[[float], Thing]) -> tuple[Take, Take]:
     """Member 0 meets the hidden thing; member 1 passes through it (S1, S3: impossible) or,
     in S2, finds nothing there (possible; its frames are the S3 member 1's without the reveal)."""
-    scene = sample(rng, make_hidden).with_schedule(SCHEDULES[setting])
+    scene = sample(rng, make_hidden).with_schedule(_SCHEDULES[setting])
     expected = run(scene, frames)
-    event = expected.trajectory.first_contact(INCOMING, HIDDEN)
+    event = expected.trajectory.first_contact(_INCOMING, _HIDDEN)
     expected.event_frame = event
     if setting == "S2":
-        other = run(scene.without(HIDDEN), frames, possible=True, event_frame=event)
+        other = run(scene.without(_HIDDEN), frames, possible=True, event_frame=event)
     else:
-        ghost = scene.with_edits(Edit(event, "pass_through", INCOMING, HIDDEN))
+        ghost = scene.with_edits(Edit(event, "pass_through", _INCOMING, _HIDDEN))
         other = run(ghost, frames, possible=False, event_frame=event)
     return expected, other
 
@@ -51,9 +53,9 @@ def training(rng: np.random.Generator, with_wall: bool, frames: int,
              make_hidden: Callable[[float], Thing] | None) -> Take:
     scene = sample(rng, make_hidden or ball)
     if make_hidden is None:
-        scene = scene.without(HIDDEN)
-    scene = scene.with_schedule("away_start_end") if with_wall else scene.without(WALL)
+        scene = scene.without(_HIDDEN)
+    scene = scene.with_schedule("away_start_end") if with_wall else scene.without(_WALL)
     take = run(scene, frames)
     if make_hidden is not None:
-        take.event_frame = take.trajectory.first_contact(INCOMING, HIDDEN)
+        take.event_frame = take.trajectory.first_contact(_INCOMING, _HIDDEN)
     return take

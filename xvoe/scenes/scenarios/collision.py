@@ -12,6 +12,8 @@ from ..physics import Take
 from ..world import Scene, ball
 from . import behind
 
+__all__ = ["SETTINGS", "sample", "test_pair", "training"]
+
 SETTINGS = ("S1", "S2", "S3")
 
 

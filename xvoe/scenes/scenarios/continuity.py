@@ -13,9 +13,11 @@ from ..physics import Take, run
 from ..world import OBJECT_SIZE as R
 from ..world import Edit, Scene, ball, make_scene, wall
 
+__all__ = ["SETTINGS", "sample", "test_pair", "training"]
+
 SETTINGS = ("S1", "S2", "S3")
-SCHEDULES = {"S1": "away_start_end", "S2": "stays", "S3": "away_end"}
-BALL, WALL = 0, 1
+_SCHEDULES = {"S1": "away_start_end", "S2": "stays", "S3": "away_end"}
+_BALL, _WALL = 0, 1
 
 
 def sample(rng: np.random.Generator) -> Scene:
@@ -32,31 +34,31 @@ def sample(rng: np.random.Generator) -> Scene:
     return make_scene(rng, things)
 
 
-def window_entry(take: Take) -> int:
+def _window_entry(take: Take) -> int:
     """The first frame at which the ball reaches the window's near edge."""
     scene = take.scene
-    window_left = scene.things[WALL].x - scene.things[WALL].window[0]
-    reached = take.trajectory.position[:, BALL, 0] + R > window_left
+    window_left = scene.things[_WALL].x - scene.things[_WALL].window[0]
+    reached = take.trajectory.position[:, _BALL, 0] + R > window_left
     return int(np.argmax(reached)) if reached.any() else -1
 
 
-def skip_window(take: Take, frame: int) -> Edit:
+def _skip_window(take: Take, frame: int) -> Edit:
     """Move the ball so that at `frame` it sits just past the window, behind the wall."""
-    wall_thing = take.scene.things[WALL]
+    wall_thing = take.scene.things[_WALL]
     target = wall_thing.x + wall_thing.window[0] + R + 0.5
-    return Edit(frame, "teleport", BALL, dx=target - take.trajectory.position[frame, BALL, 0])
+    return Edit(frame, "teleport", _BALL, dx=target - take.trajectory.position[frame, _BALL, 0])
 
 
 def test_pair(rng: np.random.Generator, setting: str, frames: int) -> tuple[Take, Take]:
-    scene = sample(rng).with_schedule(SCHEDULES[setting])
+    scene = sample(rng).with_schedule(_SCHEDULES[setting])
     expected = run(scene, frames)
-    event = window_entry(expected)
+    event = _window_entry(expected)
     expected.event_frame = event
-    other = run(scene.with_edits(skip_window(expected, event)), frames,
+    other = run(scene.with_edits(_skip_window(expected, event)), frames,
                 possible=(setting == "S2"), event_frame=event)
     return expected, other
 
 
 def training(rng: np.random.Generator, with_wall: bool, frames: int) -> Take:
     scene = sample(rng).with_schedule("away_start_end")
-    return run(scene if with_wall else scene.without(WALL), frames)
+    return run(scene if with_wall else scene.without(_WALL), frames)

@@ -6,6 +6,8 @@ import numpy as np
 from ..physics import Take
 from . import behind
 
+__all__ = ["training"]
+
 
 def training(rng: np.random.Generator, with_wall: bool, frames: int) -> Take:
     return behind.training(rng, with_wall, frames, make_hidden=None)

@@ -15,8 +15,10 @@ from ..physics import Take, run
 from ..world import FLOOR, Edit, Scene, cube, make_scene, wall
 from ..world import OBJECT_SIZE as R
 
+__all__ = ["SETTINGS", "sample", "test_pair", "training"]
+
 SETTINGS = ("S1", "S2")
-CUBES, WALL = (0, 1, 2), 3
+_CUBES, _WALL = (0, 1, 2), 3
 
 
 def _spread(rng: np.random.Generator, low: float, high: float, gap: float) -> list[float]:
@@ -38,13 +40,13 @@ def sample(rng: np.random.Generator) -> Scene:
     return make_scene(rng, things + [wall(wall_x, half_width, height)])
 
 
-def rest_on_floor(scene: Scene, index: int) -> Scene:
+def _rest_on_floor(scene: Scene, index: int) -> Scene:
     things = list(scene.things)
     things[index] = replace(things[index], y=FLOOR + R)
     return replace(scene, things=tuple(things))
 
 
-def landing_frame(take: Take, index: int) -> int:
+def _landing_frame(take: Take, index: int) -> int:
     """The first frame at which a cube rests on the floor."""
     resting = take.trajectory.position[:, index, 1] <= FLOOR + R + 0.05
     return int(np.argmax(resting)) if resting.any() else -1
@@ -55,21 +57,21 @@ def test_pair(rng: np.random.Generator, setting: str, frames: int) -> tuple[Take
     if setting == "S1":
         scene = scene.with_schedule("away_start_end")
         expected = run(scene, frames)
-        first = min(CUBES, key=lambda i: landing_frame(expected, i))
-        event = landing_frame(expected, first) + 1
+        first = min(_CUBES, key=lambda i: _landing_frame(expected, i))
+        event = _landing_frame(expected, first) + 1
         expected.event_frame = event
         other = run(scene.with_edits(Edit(event, "remove", first)), frames, possible=False, event_frame=event)
         return expected, other
     if setting == "S2":
         scene = scene.with_schedule("away_end")
         resting = int(rng.integers(3))
-        return run(scene, frames), run(rest_on_floor(scene, resting), frames)
+        return run(scene, frames), run(_rest_on_floor(scene, resting), frames)
     raise ValueError(f"permanence has no setting {setting!r}")
 
 
 def training(rng: np.random.Generator, with_wall: bool, frames: int) -> Take:
     scene = sample(rng).with_schedule("away_start_end")
-    for index in CUBES:
+    for index in _CUBES:
         if rng.random() < 0.5:
-            scene = rest_on_floor(scene, index)
-    return run(scene if with_wall else scene.without(WALL), frames)
+            scene = _rest_on_floor(scene, index)
+    return run(scene if with_wall else scene.without(_WALL), frames)
