@@ -24,14 +24,13 @@ import torch
 
 import xvoe
 from xvoe.evaluation import explanation_quality as quality
-from xvoe.evaluation.score import Scorer, encode_videos
+from xvoe.evaluation.score import encode_videos
 from xvoe.evaluation.surprise import dynamics_composites, explained_latents
 from xvoe.models.slots import composite, scene_layers
-from xvoe.scenes import store
 
 
 @torch.no_grad()
-def draw_fills(scorer: Scorer, file, index: int, path: str, title: str) -> None:
+def draw_fills(scorer: xvoe.Scorer, file, index: int, path: str, title: str) -> None:
     """A video's frames over the composite of its refined moving slots, each under a wall
     they stand behind drawn as in the MSE score's dynamics term (the wall left out), and the
     dynamics' prediction of it: where a fill took on a wall's shape, it shows."""
@@ -70,7 +69,7 @@ def main() -> None:
     torch.set_num_threads(2)
     scorer = xvoe.load_model(args.model)
     start = time.perf_counter()
-    with store.open_dataset(args.data) as file:
+    with xvoe.open_dataset(args.data) as file:
         hidden = quality.hidden_explanations(scorer, file, quality.pick(file, "blocking", "S2", 0, args.pairs))
         ceiling = quality.perception_iou(scorer, file, quality.pick(file, "blocking", "S1", 0, args.pairs))
         expected = quality.expected_videos(file, args.pairs)

@@ -36,7 +36,7 @@ def per_video(scorer, data: str, rows: range, batch: int, progress: bool) -> tup
     videos "better" left empty."""
     sums = {name: [] for name in EXPLANATIONS}
     dropped = []
-    with store.open_dataset(data, split="test") as file:
+    with xvoe.open_dataset(data, split="test") as file:
         for start in tqdm(range(rows.start, rows.stop, batch), desc="score", unit="batch", disable=not progress):
             video = encode_videos(scorer, file, start, min(rows.stop, start + batch))
             scored = every_explanation(scorer.vae, scorer.xpl, video["frames"], video["mean"], video["visible"],
@@ -51,7 +51,7 @@ def per_video(scorer, data: str, rows: range, batch: int, progress: bool) -> tup
 
 def chosen_rows(data: str, text: str) -> tuple[range, list[np.ndarray]]:
     """The split's rows FIRST:LAST (`row_range`) and their LABELS, read once for every explanation's file."""
-    with store.open_dataset(data, split="test") as file:
+    with xvoe.open_dataset(data, split="test") as file:
         rows = row_range(text, file["rgbd"].shape[0])
         return rows, [values[rows.start:rows.stop] for values in store.labels(file, LABELS).values()]
 

@@ -15,7 +15,7 @@ import tempfile
 import time
 from pathlib import Path
 
-from xvoe.scenes.generate import GenerateConfig, generate
+import xvoe
 
 
 def cpu_seconds() -> float:
@@ -24,10 +24,10 @@ def cpu_seconds() -> float:
     return own.ru_utime + own.ru_stime + workers.ru_utime + workers.ru_stime
 
 
-def throughput(config: GenerateConfig, workers: int, folder: Path) -> float:
+def throughput(config: xvoe.GenerateConfig, workers: int, folder: Path) -> float:
     out = folder / f"{config.split}-{workers}.h5"
     start, cpu_start = time.perf_counter(), cpu_seconds()
-    generate(config, out, workers=workers, overwrite=True, progress=False)
+    xvoe.generate(config, out, workers=workers, overwrite=True, progress=False)
     seconds, cpu = time.perf_counter() - start, cpu_seconds() - cpu_start
     videos = config.units * config.videos_per_unit
     print(f"{config.split:5s} workers={workers} videos={videos} seconds={seconds:.2f} "
@@ -43,8 +43,8 @@ def main() -> None:
     parser.add_argument("--size", type=int, default=64)
     parser.add_argument("--workers", type=int, default=2)
     args = parser.parse_args()
-    train = GenerateConfig("train", videos=args.videos, size=args.size, seed=0)
-    test = GenerateConfig("test", pairs=args.pairs, size=args.size, seed=1)
+    train = xvoe.GenerateConfig("train", videos=args.videos, size=args.size, seed=0)
+    test = xvoe.GenerateConfig("test", pairs=args.pairs, size=args.size, seed=1)
     with tempfile.TemporaryDirectory() as folder:
         results = {}
         for config in (train, test):

@@ -23,8 +23,8 @@ def main() -> None:
     start = time.perf_counter()
     rows = 0
     for path in args.scores:
-        scores = metrics.read_scores(path)
-        rows += len(metrics.metric_rows(scores, metrics.model_name(path, scores), rounds=args.rounds))
+        scores = xvoe.read_scores(path)
+        rows += len(xvoe.metric_rows(scores, metrics.model_name(path, scores), rounds=args.rounds))
     rows_s = time.perf_counter() - start
     with tempfile.TemporaryDirectory() as out:
         start = time.perf_counter()

@@ -36,9 +36,7 @@ from tqdm.auto import tqdm
 
 import xvoe
 from xvoe import allocator
-from xvoe.errors import XvoeError
 from xvoe.evaluation.explanation_quality import ground_truth
-from xvoe.evaluation.metrics import comparative, holistic
 from xvoe.evaluation.score import encode_videos
 from xvoe.evaluation.surprise import mse_surprise
 from xvoe.inference.score import nll_config, reference_nll
@@ -61,7 +59,7 @@ def chosen_ranges(file, pairs: int) -> list[tuple[int, int]]:
     for name, kind in SETTINGS:
         where = np.flatnonzero((scenario == name) & (setting == kind))
         if len(where) == 0:
-            raise XvoeError(f"{file.filename} holds no {name} {kind} pairs; give a whole test split")
+            raise xvoe.XvoeError(f"{file.filename} holds no {name} {kind} pairs; give a whole test split")
         ranges.append((int(where[0]), int(where[0]) + min(len(where), 2 * pairs)))
     return ranges
 
@@ -132,7 +130,7 @@ def main() -> None:
     args = parser.parse_args()
     try:
         run(args)
-    except XvoeError as error:
+    except xvoe.XvoeError as error:
         raise SystemExit(f"nll.py: error: {error}") from None
 
 
@@ -141,10 +139,10 @@ def run(args: argparse.Namespace) -> None:
     seeds = [int(seed) for seed in args.seeds.split(",")]
     scorer = xvoe.load_model(args.model)
     if scorer.xpl is None or not scorer.xpl.config.use_reasoning:
-        raise XvoeError(f"the NLL surprise needs an XPL model with reasoning; {scorer.name} has none")
+        raise xvoe.XvoeError(f"the NLL surprise needs an XPL model with reasoning; {scorer.name} has none")
     config = nll_config(scorer.nll or InferenceConfig(), args.particles, xvoe.nll_settings(args.nll_set))
     rows, nll_seconds, mse_seconds = [], 0.0, 0.0
-    with store.open_dataset(args.data) as file:
+    with xvoe.open_dataset(args.data) as file:
         check_size(file, scorer.image_size, f"the model {scorer.name}")
         batches = [(a, min(stop, a + BATCH)) for start, stop in chosen_ranges(file, args.pairs)
                    for a in range(start, stop, BATCH)]
@@ -202,14 +200,14 @@ def report(table: dict[str, np.ndarray], args: argparse.Namespace, config: Infer
               f"in no frame: median {np.median(repeat[hidden]) if hidden.any() else float('nan'):.2f}, "
               f"largest {repeat[hidden].max() if hidden.any() else float('nan'):.2f}")
     print("comparative accuracy on the same pairs, MSE score -> NLL (goal: NLL >= 99% in every S1 and S3 setting):")
-    mse, nll = comparative(table, "score", rounds=200), comparative(table, "nll", rounds=200)
+    mse, nll = xvoe.comparative(table, "score", rounds=200), xvoe.comparative(table, "nll", rounds=200)
     lowest = 1.0
     for key in (k for k in mse if k[1] != "S2"):
         lowest = min(lowest, nll[key].value)
         print(f"  {key[0]} {key[1]}: {100 * mse[key].value:.1f}% -> {100 * nll[key].value:.1f}% "
               f"(NLL 95% interval {100 * nll[key].low:.0f}-{100 * nll[key].high:.0f})")
     print("holistic AUC of the NLL excess per scenario (goal >= 0.9):")
-    aucs = holistic(table, "nll_excess", rounds=200)
+    aucs = xvoe.holistic(table, "nll_excess", rounds=200)
     for scenario, estimate in aucs.items():
         print(f"  {scenario}: {estimate.value:.3f} (95% interval {estimate.low:.2f}-{estimate.high:.2f})")
     lowest_auc = min(e.value for e in aucs.values())

@@ -27,12 +27,10 @@ import numpy as np
 import torch
 
 import xvoe
-from xvoe.errors import XvoeError
 from xvoe.evaluation.score import encode_videos
 from xvoe.evaluation.surprise import draw_scene
 from xvoe.inference.score import nll_config, xpl_nll
 from xvoe.models.nll import InferenceConfig
-from xvoe.scenes import store
 from xvoe.training.data import check_size
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -44,7 +42,7 @@ def inference_at(commit: str, folder: Path) -> ModuleType:
     def git(*args: str) -> str:
         done = subprocess.run(["git", "-C", str(ROOT), *args], capture_output=True, text=True)
         if done.returncode != 0:
-            raise XvoeError(f"git {' '.join(args)}: {done.stderr.strip()}")
+            raise xvoe.XvoeError(f"git {' '.join(args)}: {done.stderr.strip()}")
         return done.stdout
 
     name = f"inference_{git('rev-parse', '--short', commit).strip()}"
@@ -59,7 +57,7 @@ def inference_at(commit: str, folder: Path) -> ModuleType:
 
 def drawn_batches(scorer, data: str, videos: int) -> list[tuple[dict, object]]:
     """The first `videos` videos, encoded and drawn in batches as `xvoe score` does."""
-    with store.open_dataset(data) as file:
+    with xvoe.open_dataset(data) as file:
         check_size(file, scorer.image_size, f"the model {scorer.name}")
         count = min(videos, file["rgbd"].shape[0])
         batches = []
@@ -91,7 +89,7 @@ def main() -> None:
     args = parser.parse_args()
     try:
         run(args)
-    except XvoeError as error:
+    except xvoe.XvoeError as error:
         raise SystemExit(f"nll_speed.py: error: {error}") from None
 
 

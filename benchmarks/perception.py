@@ -23,8 +23,8 @@ from pathlib import Path
 import numpy as np
 import torch
 
+import xvoe
 from xvoe.apps.frames import save_reconstructions
-from xvoe.errors import XvoeError
 from xvoe.evaluation import perception_quality as quality
 from xvoe.evaluation.scorecard import PROBE_R2
 from xvoe.models.config import from_dict
@@ -85,7 +85,7 @@ def main(argv: list[str] | None = None) -> int:
     try:
         model, state = load_perception(args.model)
         held = quality.read_held_out(args.data, args.videos, model.config.image_size)
-    except XvoeError as error:
+    except xvoe.XvoeError as error:
         print(f"error: {error}", file=sys.stderr)
         return 2
     count, frames, size = held.rgbd.shape[:3]

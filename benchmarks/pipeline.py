@@ -23,13 +23,9 @@ from dataclasses import replace
 from pathlib import Path
 
 import xvoe
-from xvoe.apps.pipeline import DEFAULT_MODELS, MODELS, PipelineConfig, run_pipeline, stage_times
+from xvoe.apps.pipeline import DEFAULT_MODELS, MODELS, stage_times
 from xvoe.evaluation import scorecard
-from xvoe.evaluation.metrics import read_scores
-from xvoe.scenes.generate import GenerateConfig, generate
 from xvoe.training.config import TrainConfig
-from xvoe.training.recipes import DEFAULT_RECIPE, RECIPES, recipe
-from xvoe.training.stages import STAGES
 
 FRESH_SEED = 12345
 
@@ -55,7 +51,7 @@ def within_budget(name: str, fraction: float) -> str:
         return name
     if not 0.0 < fraction < 1.0:
         raise SystemExit(f"--budget must be above 0 and at most 1, not {fraction}")
-    chosen = recipe(name)
+    chosen = xvoe.recipe(name)
 
     def scaled(train: TrainConfig | None) -> TrainConfig | None:     # None: the stage trains as xpl_train says
         if train is None:
@@ -63,10 +59,11 @@ def within_budget(name: str, fraction: float) -> str:
         return replace(train, steps=max(1, round(train.steps * fraction)),
                        decay_steps=max(1, round(train.decay_steps * fraction)))
 
-    trainings = {field: scaled(getattr(chosen, field)) for field in {entry.train_field for entry in STAGES.values()}}
+    fields = {entry.train_field for entry in xvoe.STAGES.values()}
+    trainings = {field: scaled(getattr(chosen, field)) for field in fields}
     budget = f"{name}-x{fraction:g}"
     phases = tuple((stage, scaled(train)) for stage, train in chosen.phases)
-    RECIPES[budget] = replace(chosen, name=budget, phases=phases, **trainings)
+    xvoe.RECIPES[budget] = replace(chosen, name=budget, phases=phases, **trainings)
     return budget
 
 
@@ -84,7 +81,7 @@ def accuracy_lines(found: dict[str, dict]) -> list[scorecard.Line]:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--out", required=True)
-    parser.add_argument("--recipe", default=DEFAULT_RECIPE)
+    parser.add_argument("--recipe", default=xvoe.DEFAULT_RECIPE)
     parser.add_argument("--seed", type=int, default=0, help="the training seed (xvoe pipeline --seed)")
     parser.add_argument("--train-videos", type=int, help="default: the recipe's")
     parser.add_argument("--pairs", type=int, default=200)
@@ -99,7 +96,7 @@ def main() -> None:
     run_dir = Path(args.out)
     finished_before = set(stage_times(run_dir))
     start = time.monotonic()
-    report = run_pipeline(PipelineConfig(args.out, args.recipe, args.train_videos, args.pairs, models,
+    report = xvoe.run_pipeline(xvoe.PipelineConfig(args.out, args.recipe, args.train_videos, args.pairs, models,
                                          seed=args.seed, progress=False))
     wall = time.monotonic() - start
     stages = stage_times(run_dir)
@@ -121,15 +118,15 @@ def main() -> None:
 
     fresh = Path(args.fresh) if args.fresh else run_dir / "data" / f"fresh-{args.fresh_seed}.h5"
     if not fresh.exists():
-        size = recipe(args.recipe).perception.image_size
-        generate(GenerateConfig("test", pairs=args.fresh_pairs, size=size, seed=args.fresh_seed), fresh, workers=2,
-                 progress=False)
+        size = xvoe.recipe(args.recipe).perception.image_size
+        fresh_split = xvoe.GenerateConfig("test", pairs=args.fresh_pairs, size=size, seed=args.fresh_seed)
+        xvoe.generate(fresh_split, fresh, workers=2, progress=False)
     found = {}
     for model in models:
         out = run_dir / "scores" / f"fresh-{fresh.stem}-{model}.csv"
         reference = "random" if model == "random" else str(run_dir / f"{model}.pt")
         start = time.monotonic()
-        scores = read_scores(xvoe.score(reference, fresh, out, overwrite=True,
+        scores = xvoe.read_scores(xvoe.score(reference, fresh, out, overwrite=True,
                                         progress=False))
         print(f"{model}: scored {len(scores['index'])} videos of {fresh} in {time.monotonic() - start:.0f} s")
         found[model] = scores

@@ -15,10 +15,8 @@ from __future__ import annotations
 import argparse
 
 import xvoe
-from xvoe.evaluation.metrics import comparative, holistic
 from xvoe.evaluation.scorecard import identity_lines
 from xvoe.inference.score import under_prior_two
-from xvoe.scenes import store
 
 
 def main() -> None:
@@ -29,7 +27,7 @@ def main() -> None:
     parser.add_argument("--rounds", type=int, default=1000, help="bootstrap resamples of the intervals")
     args = parser.parse_args()
     try:
-        with store.open_dataset(args.data, split="test") as file:
+        with xvoe.open_dataset(args.data, split="test") as file:
             xvoe.check_same_split(args.scores, xvoe.split_identity(file), args.data)
         scores = xvoe.read_scores(args.scores, args.data)
         used = xvoe.score_header(args.scores).get("nll", {}).get("prior_two")
@@ -43,8 +41,9 @@ def main() -> None:
     print(f"{args.scores}, scored with prior_two {used:g}; NLL-excess holistic AUC [95% interval], identity lines "
           "(%), lowest NLL S1/S3 comparative (%)")
     for prior, table in tables.items():
-        auc = holistic(table, "nll_excess", args.rounds)
-        worst = min((e.value, f"{s} {t}") for (s, t), e in comparative(table, "nll", args.rounds).items() if t != "S2")
+        auc = xvoe.holistic(table, "nll_excess", args.rounds)
+        accuracy = xvoe.comparative(table, "nll", args.rounds)
+        worst = min((e.value, f"{s} {t}") for (s, t), e in accuracy.items() if t != "S2")
         identity = identity_lines(table, args.rounds) if prior > 0 else []
         print(f"prior_two {prior:<6g} AUC " + " / ".join(f"{e.value:.3f} [{e.low:.3f}, {e.high:.3f}]"
                                                          for e in auc.values())

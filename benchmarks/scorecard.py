@@ -35,7 +35,6 @@ import torch
 
 import xvoe
 from xvoe.evaluation import scorecard
-from xvoe.scenes import store
 
 
 def timed_scores(model, data: str, out: Path, **options) -> tuple[dict, float]:
@@ -65,7 +64,7 @@ def scored_runs(args: argparse.Namespace, model, work: Path) -> tuple[list[dict]
     """The model's score tables, the first the card's (the NLL's seeds after it, where it has
     one), and the speed lines of scoring them: read from --scores and --repeat where given."""
     if args.scores:
-        with store.open_dataset(args.data, split="test") as file:
+        with xvoe.open_dataset(args.data, split="test") as file:
             identity = xvoe.split_identity(file)        # hashes frames: once for every file given
         runs = [given_scores(args.scores, model, args.data, identity, not args.no_nll)]
         if args.repeat:
@@ -93,7 +92,7 @@ def card_lines(args: argparse.Namespace, model, work: Path) -> list[scorecard.Li
     baselines = {Path(name).stem: timed_scores(name, args.data, work / f"{Path(name).stem}.csv")[0]
                  for name in args.baselines}
     lines += scorecard.lead_lines(scores, baselines, args.rounds)
-    with store.open_dataset(args.data) as file:
+    with xvoe.open_dataset(args.data) as file:
         if "nll" in scores and not args.no_nll:
             lines += scorecard.nll_lines(scores, file, runs[1] if len(runs) > 1 else None, args.rounds)
         if reasons(model) and args.pairs:

@@ -22,7 +22,6 @@ import torch
 import xvoe
 from xvoe.evaluation.explanation_quality import hidden_explanations, pick
 from xvoe.evaluation.metrics import VERDICTS
-from xvoe.scenes import store
 
 ORDER = [("collision", "S1"), ("collision", "S2"), ("collision", "S3"), ("blocking", "S1"), ("blocking", "S2"),
          ("blocking", "S3"), ("permanence", "S1"), ("permanence", "S2"), ("continuity", "S1"),
@@ -85,7 +84,7 @@ def main() -> None:
         line(f"{scenario} holistic AUC (x100)", [rows[r][key] for r in runs],
              shipped_rows[key] if shipped_rows else None)
     if args.hidden_pairs:
-        with store.open_dataset(args.data) as file:
+        with xvoe.open_dataset(args.data) as file:
             videos = pick(file, "blocking", "S2", 0, args.hidden_pairs)
             ious = {m: hidden_explanations(xvoe.load_model(m), file, videos)["iou"] for m in models}
         line("hidden_iou (x100)", [100 * ious[r] for r in runs], 100 * ious[args.shipped] if args.shipped else None)
