@@ -1,9 +1,9 @@
 """Find the references the docs, notebooks and comments make, and check that each still holds.
 
 A reference is a repository path, a markdown link, a section citation (`docs/NAME.md,
-"Heading"`), an `xvoe ...` command line, a `python benchmarks/X.py ...` command or a dotted
-`xvoe.NAME`. Docs are read by people who cannot ask what a renamed file or flag used to be, so
-tests/test_references.py fails on any dead one, at file:line. Nothing here runs a command:
+"Heading"`), an `xvoe ...` command line, a `python benchmarks/X.py ...` command, a dotted
+`xvoe.NAME` or a `--flag` named in prose. Docs are read by people who cannot ask what a renamed
+file or flag used to be, so tests/test_references.py fails on any dead one, at file:line. Nothing here runs a command:
 `xvoe` lines are parsed by the real argument parser, benchmark flags are read from the
 scripts' `add_argument` calls.
 """
@@ -444,7 +444,43 @@ def dead_names(text: Text) -> Iterator[Dead]:
             yield Dead(text.at(found.start()), dotted, why)
 
 
-CHECKS = (dead_paths, dead_citations, dead_commands, dead_names)
+# Flags prose may name that belong to another program, each with its program.
+OTHER_TOOLS = {"--durations": "pytest", "--nproc_per_node": "torchrun", "--standalone": "torchrun"}
+FLAG = re.compile(r"(?<![\w-])--[a-z][a-z0-9]*(?:[-_][a-z0-9]+)*")
+SCRIPTS = ("benchmarks/*.py", "tests/interruptions.py")     # the repository's scripts with flags of their own
+
+
+@cache
+def known_flags() -> frozenset[str]:
+    """Every long option of an xvoe verb, of a script of the repository, and OTHER_TOOLS'."""
+    flags, parsers = set(OTHER_TOOLS), [xvoe_parser()]
+    while parsers:
+        for action in parsers.pop()._actions:
+            flags |= {option for option in action.option_strings if option.startswith("--")}
+            if isinstance(action, argparse._SubParsersAction):
+                parsers += action.choices.values()
+    for pattern in SCRIPTS:
+        for script in ROOT.glob(pattern):
+            flags |= benchmark_flags(script)
+    return frozenset(flags)
+
+
+def dead_flags(text: Text) -> Iterator[Dead]:
+    """`--flags` named in prose (a comment, a docstring, markdown) that nothing takes. A flag in a
+    command (`xvoe ...`, `python benchmarks/X.py ...`) is its parser's to check (dead_commands)."""
+    if text.code:
+        return
+    commands = [span.span(1) for span in INLINE_CODE.finditer(text.text)
+                if arguments_after(span.group(1), is_xvoe) is not None
+                or arguments_after(span.group(1), is_benchmark) is not None]
+    for found in FLAG.finditer(text.text):
+        inside = any(start <= found.start() < end for start, end in commands)
+        if not inside and found.group() not in known_flags():
+            yield Dead(text.at(found.start()), found.group(),
+                       "no xvoe verb, script of the repository or tool of OTHER_TOOLS takes it")
+
+
+CHECKS = (dead_paths, dead_citations, dead_commands, dead_names, dead_flags)
 
 
 def dead_references(texts: Iterable[Text]) -> list[Dead]:

@@ -4,8 +4,9 @@ A renamed file, heading, flag or function leaves its old name behind in prose th
 test reads; a user then follows a dead link or types a command that no longer parses. Here
 each repository path and markdown link exists, each `docs/NAME.md, "Heading"` citation names a
 heading of that file, each `xvoe ...` command parses with the real parser (nothing is run),
-each `python benchmarks/X.py --flag` names a flag the script takes, and each `xvoe.NAME`
-resolves (`viz.NAME` never does: there is no xvoe.viz). docs/log/ is history and not read.
+each `python benchmarks/X.py --flag` names a flag the script takes, each `xvoe.NAME`
+resolves (`viz.NAME` never does: there is no xvoe.viz), and each --flag prose names is taken by
+an xvoe verb, a script of the repository or a tool the finder lists. docs/log/ is history and not read.
 The finding and checking is in tests/doc_references.py.
 """
 from __future__ import annotations
@@ -61,6 +62,7 @@ but not name what is gone: `xvoe generate --preset paper`, `python -m xvoe trian
 `xvoe.score(...)` and `xvoe.custom.make_pair` resolve; `viz.true_objects`, `xvoe.viz.show`,
 `xvoe.no_such_name` and `xvoe.custom.no_such_name` do not. DESIGN section 6 is not here, nor
 NOTES-38.md.
+Flags in prose: --particles, --times and pytest's --durations are taken; --no-residual is gone.
 """
     texts = refs.markdown_texts(planted, refs.ROOT / "docs" / "planted.md", "docs/planted.md")
     assert reported(texts) == {
@@ -79,6 +81,7 @@ NOTES-38.md.
         ("docs/planted.md:21", "xvoe.custom.no_such_name"),
         ("docs/planted.md:21", "DESIGN section 6"),
         ("docs/planted.md:22", "NOTES-38.md"),
+        ("docs/planted.md:23", "--no-residual"),
     }
     message = "\n".join(map(str, refs.dead_references(texts)))
     assert "docs/planted.md:3: 'docs/no-such-file.md': no such file or directory" in message
@@ -98,10 +101,18 @@ def f():
     """Scored by `xvoe score --model xpl --data t.h5 --out s.csv --surprise mse2`."""
     return 1    # why: docs/decisions.md, "A heading that
                 # no longer exists"
+
+
+def g():
+    """Scored with --particles 64, not with --no-such-option (its command's, `xvoe score --no-such-option`)."""
+    return 2    # --seed, not --sed
 ''')
     assert reported(refs.python_texts(module)) == {
         (f"{module}:3", "xvoe.viz.plot_surprise_curves"),
         (f"{module}:3", "xvoe/scenes/no_such.py"),
         (f"{module}:8", "xvoe score --model xpl --data t.h5 --out s.csv --surprise mse2"),
         (f"{module}:9", 'docs/decisions.md, "A heading that no longer exists"'),
+        (f"{module}:14", "--no-such-option"),
+        (f"{module}:14", "xvoe score --no-such-option"),
+        (f"{module}:15", "--sed"),
     }
