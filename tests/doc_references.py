@@ -3,9 +3,9 @@
 A reference is a repository path, a markdown link, a section citation (`docs/NAME.md,
 "Heading"`), an `xvoe ...` command line, a `python benchmarks/X.py ...` command, a dotted
 `xvoe.NAME` or a `--flag` named in prose. Docs are read by people who cannot ask what a renamed
-file or flag used to be, so tests/test_references.py fails on any dead one, at file:line. Nothing here runs a command:
-`xvoe` lines are parsed by the real argument parser, benchmark flags are read from the
-scripts' `add_argument` calls.
+file or flag used to be, so tests/test_references.py fails on any dead one, at file:line.
+Nothing here runs a command: `xvoe` lines are parsed by the real argument parser, benchmark
+flags are read from the scripts' `add_argument` calls.
 """
 from __future__ import annotations
 
