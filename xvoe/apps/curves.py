@@ -16,7 +16,7 @@ from ..evaluation.score import MSE_LABEL, check_same_split, read_curves, warn_un
 from ..fingerprints import split_identity
 from ..scenes import store
 from ..scenes.display import DISPLAY_SIZE, check_display_size, display_video
-from ..scenes.videos import _labels_of, _pair_rows, find_pair, wall_lowered
+from ..scenes.videos import find_pair, labels_of, pair_rows, wall_lowered
 
 __all__ = ["PairCurves", "pair_curves", "draw_pair_curves", "member_labels", "plot_surprise_curves",
            "plot_surprise_definitions", "definition_curves", "animate_pair"]
@@ -42,7 +42,7 @@ def pair_curves(scores: str | Path, data: str | Path | None, scenario: str, sett
     table = read_scores(scores)
     saved = read_curves(curves if curves is not None else Path(scores).with_suffix(".curves.npz"),
                         len(table["index"]), scores)
-    rows = _pair_rows(table["scenario"], table["setting"], table["pair"], table["member"], scenario, setting, pair,
+    rows = pair_rows(table["scenario"], table["setting"], table["pair"], table["member"], scenario, setting, pair,
                       str(scores))
     videos = [int(table["index"][r]) for r in rows]
     frames = saved.total.shape[1]
@@ -52,7 +52,7 @@ def pair_curves(scores: str | Path, data: str | Path | None, scenario: str, sett
             check_same_split(scores, split_identity(file), data)
             warn_unchecked(scores)
             for video in videos:
-                if not 0 <= video < file["rgbd"].shape[0] or _labels_of(file, video) != (scenario, setting, pair):
+                if not 0 <= video < file["rgbd"].shape[0] or labels_of(file, video) != (scenario, setting, pair):
                     raise XvoeError(f"{scores} does not match {data}: its video {video} is not {scenario} "
                                     f"{setting} pair {pair} there")
             if file["rgbd"].shape[1] != frames:

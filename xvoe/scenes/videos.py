@@ -13,8 +13,8 @@ from ..errors import XvoeError
 from . import store
 from .world import FLOOR, WORLD
 
-__all__ = ["check_index", "video_indices", "describe", "find_pair", "list_videos", "wall_lowered",
-           "true_objects", "silhouette"]
+__all__ = ["check_index", "video_indices", "describe", "find_pair", "pair_rows", "labels_of", "list_videos",
+           "wall_lowered", "true_objects", "silhouette"]
 
 
 def check_index(file: h5py.File, index: int) -> None:
@@ -47,7 +47,7 @@ def find_pair(file: h5py.File, scenario: str, setting: str, pair: int) -> tuple[
     what the file holds."""
     if file.attrs["split"] != "test":
         raise XvoeError(f"{file.filename} is a {file.attrs['split']} split; pairs live in test splits")
-    return _pair_rows(store.strings(file, "scenario"), store.strings(file, "setting"), file["pair"][:],
+    return pair_rows(store.strings(file, "scenario"), store.strings(file, "setting"), file["pair"][:],
                       file["member"][:], scenario, setting, pair, str(file.filename))
 
 
@@ -85,8 +85,8 @@ def _held(values: list) -> str:
     return ", ".join(map(str, values))
 
 
-def _pair_rows(scenarios, settings, pairs, members, scenario: str, setting: str, pair: int,
-               where: str) -> tuple[int, int]:
+def pair_rows(scenarios, settings, pairs, members, scenario: str, setting: str, pair: int,
+              where: str) -> tuple[int, int]:
     """Rows of member 0 and 1 of (scenario, setting, pair) among label columns."""
     scenarios, settings = np.asarray(scenarios).astype(str), np.asarray(settings).astype(str)
     known = list(dict.fromkeys(scenarios))
@@ -105,7 +105,8 @@ def _pair_rows(scenarios, settings, pairs, members, scenario: str, setting: str,
     return int(rows[0][0]), int(rows[1][0])
 
 
-def _labels_of(file: h5py.File, index: int) -> tuple[str, str, int]:
+def labels_of(file: h5py.File, index: int) -> tuple[str, str, int]:
+    """The (scenario, setting, pair) video `index` of an open split is labelled with."""
     return file["scenario"].asstr()[index], file["setting"].asstr()[index], int(file["pair"][index])
 
 
