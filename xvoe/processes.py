@@ -37,14 +37,20 @@ def _watch(parent: int) -> None:
 
 
 @contextmanager
-def interrupts_held() -> Iterator[None]:
+def interrupts_held(workers: bool = False) -> Iterator[None]:
     """Ctrl-C held back while worker processes start in the block: they start with it blocked
     (the mask outlives exec), so a Ctrl-C to the terminal's process group never interrupts a
     worker mid-import with a traceback of its own, and their parent, which ends them, gets one
-    that came meanwhile as the block ends."""
+    that came meanwhile as the block ends. `workers`: processes start in the block, so
+    multiprocessing's resource tracker starts first, outside it (starting, it unblocks Ctrl-C
+    in this process, and the workers started after it would get it)."""
     if not hasattr(signal, "pthread_sigmask"):
         yield
         return
+    if workers:
+        from multiprocessing import resource_tracker
+
+        resource_tracker.ensure_running()
     before = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})
     try:
         yield
