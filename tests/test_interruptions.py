@@ -87,3 +87,57 @@ def test_a_ctrl_c_as_training_processes_start_stops_them_all_in_one_line(tmp_pat
     assert err.strip().startswith("interrupted") and len(err.strip().splitlines()) == 1, err
     written = sorted(p.name for p in run.rglob("*")) if run.exists() else []
     assert set(written) <= {"perception.pt", "perception.csv"}, written
+
+
+SLOW_FINALISER = """
+import time
+import weakref
+from pathlib import Path
+
+import numpy as np
+
+
+class Held:
+    pass
+
+
+def finalise():
+    if Path({mark!r}).exists():        # slow once
+        return
+    Path({mark!r}).touch()
+    ends = time.monotonic() + 10
+    while time.monotonic() < ends:      # Python code, so that a Ctrl-C's handler runs in here
+        pass
+
+
+class SlowFinaliser:
+    name = "slow-finaliser"
+
+    def surprise(self, videos):
+        held = Held()
+        weakref.finalize(held, finalise)
+        del held                        # the finaliser runs now, in the main thread
+        time.sleep(1)                   # the scores are not written before the Ctrl-C raised again
+        return np.zeros((len(videos.index), videos.frames))
+"""
+
+
+def test_a_ctrl_c_met_in_a_finaliser_interrupts_the_run_in_one_line(tmp_path):
+    """Python cannot raise a KeyboardInterrupt out of a finaliser: it prints "Exception
+    ignored" and goes on. The command line raises it again after the finaliser instead."""
+    from xvoe.scenes.generate import GenerateConfig, generate
+
+    data = generate(GenerateConfig("test", pairs=1, size=32, seed=3), tmp_path / "t.h5", workers=1, progress=False)
+    mark, model = tmp_path / "finalising", tmp_path / "slow.py"
+    model.write_text(SLOW_FINALISER.format(mark=str(mark)))
+    score = subprocess.Popen([sys.executable, "-m", "xvoe", "score", "--model", f"{model}:SlowFinaliser", "--data",
+                              str(data), "--out", str(tmp_path / "s.csv"), "--no-checks", "--quiet"],
+                             stderr=subprocess.PIPE, text=True, start_new_session=True,
+                             env=os.environ | {"OMP_NUM_THREADS": "1"})
+    deadline = time.monotonic() + 120
+    while not mark.exists() and score.poll() is None and time.monotonic() < deadline:
+        time.sleep(0.05)
+    os.killpg(score.pid, signal.SIGINT)
+    _, err = score.communicate(timeout=120)
+    assert score.returncode == 130 and err.count("\n") == 1, err
+    assert "interrupted" in err and not (tmp_path / "s.csv").exists()

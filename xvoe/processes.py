@@ -8,6 +8,7 @@ for that itself (elsewhere).
 """
 from __future__ import annotations
 
+import _thread
 import ctypes
 import os
 import signal
@@ -16,6 +17,7 @@ import threading
 import time
 from collections.abc import Iterator
 from contextlib import contextmanager
+from typing import Any
 
 PR_SET_PDEATHSIG = 1        # from <linux/prctl.h>
 
@@ -56,3 +58,26 @@ def interrupts_held(workers: bool = False) -> Iterator[None]:
         yield
     finally:
         signal.pthread_sigmask(signal.SIG_SETMASK, before)
+
+
+def interrupts_kept() -> None:
+    """A Ctrl-C whose handler runs inside a finaliser (a weakref callback, a `__del__`) raises
+    there, where Python can only print "Exception ignored ... KeyboardInterrupt" and go on as
+    if none had come: it is sent again, to be raised in the code that runs next, and nothing is
+    printed. Once the handler ignores Ctrl-C (the outputs are written), it is dropped."""
+    shown = sys.unraisablehook
+
+    def hook(unraisable: Any) -> None:
+        if unraisable.exc_type is not None and issubclass(unraisable.exc_type, KeyboardInterrupt):
+            _thread.start_new_thread(_interrupt_soon, ())
+            return
+        shown(unraisable)
+
+    sys.unraisablehook = hook
+
+
+def _interrupt_soon() -> None:
+    """Ctrl-C again in a moment, from another thread: raised from the hook that saw it ignored,
+    it would be ignored again."""
+    time.sleep(0.01)
+    _thread.interrupt_main(signal.SIGINT)       # the handler in force runs (none where Ctrl-C is ignored)
