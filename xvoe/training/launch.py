@@ -64,8 +64,7 @@ def _join(context: mp.ProcessContext) -> None:
     except mp.ProcessExitedException as error:
         if error.signal_name in ("SIGINT", "SIGTERM"):
             raise KeyboardInterrupt(f"training process {error.error_index} stopped by {error.signal_name}") from None
-        raise XvoeError(f"a training process ended before its stage did ({error}; out of memory?)") from None
-
+        raise XvoeError(f"a training process ended before its stage did: {error}") from None
 
 
 class ForwardedStops(StopRequests):
