@@ -2,7 +2,9 @@
 (generate, encode, score in two workers, metrics) at a seeded moment, finds no process left
 behind, no broken file under a final name, no traceback, and a rerun equal to the uninterrupted
 run. The harder case of the two signals and the training run are left to the full run that
-docs/results.md ("Interruptions") gives, 20 per command, to keep the suite within its time."""
+docs/results.md ("Interruptions") gives, 20 per command, to keep the suite within its time.
+Two moments a random draw seldom meets are placed on purpose: a Ctrl-C as training processes
+start (`on_cores`), and one whose handler runs inside a finaliser."""
 import contextlib
 import json
 import os
