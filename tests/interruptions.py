@@ -4,7 +4,10 @@ Each command below (generate in workers, encode, score in two workers, a tiny tr
 metrics) runs once whole, for its outputs and its time; then, N times for each signal, it is
 started again in a folder of its own and sent SIGKILL (to the command's process alone, as the
 out-of-memory killer or `kill -9` would) or SIGINT (to its process group, as Ctrl-C in a
-terminal) after a delay drawn (seeded) between 0 and that time. Each trial checks:
+terminal) after a delay drawn (seeded) between the interpreter's start and that time. A trial
+whose command ended before its signal is checked too but not counted: the moment is drawn again,
+within the shortest run seen so far, until N trials really interrupted the command (at most 4N
+draws). Each trial checks:
 
 - no process of the run is left (its process group is empty within 20 s);
 - no broken file under a final name: each output is absent or the same bytes as the whole
@@ -180,19 +183,23 @@ def trained_problems(path: Path) -> list[str]:
 
 @dataclass
 class Tally:
-    trials: int = 0
-    finished_first: int = 0             # the signal came after the command had ended
+    trials: int = 0                     # runs that the signal really interrupted
+    finished_first: int = 0             # draws whose signal came after the command had ended
+    shortest: float = float("inf")      # the quickest of those runs, in seconds: later moments fall within it
     problems: list[str] = field(default_factory=list)
 
 
 def trial(command: Command, how: str, delay: float, out: Path, inputs: Path, whole: dict[str, str],
           tally: Tally) -> None:
     prepare(command, out, inputs)
+    began = time.monotonic()
     process = subprocess.Popen(argv(command, out, inputs), stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
                                text=True, start_new_session=True)
     with contextlib.suppress(subprocess.TimeoutExpired):
         process.wait(delay)
     finished = process.poll() is not None
+    if finished:
+        tally.shortest = min(tally.shortest, time.monotonic() - began)
     if not finished:
         if how == "SIGKILL":
             process.kill()
@@ -200,7 +207,7 @@ def trial(command: Command, how: str, delay: float, out: Path, inputs: Path, who
             os.killpg(process.pid, signal.SIGINT)
     _, err = process.communicate()
     said = f"{command.name} {how} at {delay:.2f} s"
-    tally.trials += 1
+    tally.trials += not finished
     tally.finished_first += finished
     if stray := left_behind(process.pid):
         tally.problems.append(f"{said}: processes {stray} left running")
@@ -226,7 +233,8 @@ def trial(command: Command, how: str, delay: float, out: Path, inputs: Path, who
 def main(argv_: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("workdir", type=Path)
-    parser.add_argument("--times", type=int, default=20, help="trials of each signal for each command")
+    parser.add_argument("--times", type=int, default=20,
+                        help="trials that really interrupted the command, for each signal and command")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--commands", default="generate,encode,score,train,metrics")
     parser.add_argument("--signals", default=",".join(SIGNALS), help="of SIGKILL and SIGINT")
@@ -239,10 +247,12 @@ def main(argv_: list[str] | None = None) -> int:
     for command in (c for c in commands(workers) if c.name in args.commands.split(",")):
         took, whole = run_whole(command, args.workdir / command.name, inputs)
         tallies = {how: Tally() for how in SIGNALS if how in args.signals.split(",")}
-        for _ in range(args.times):
-            for how, tally in tallies.items():
-                trial(command, how, rng.uniform(STARTING, max(took, STARTING)), args.workdir / command.name, inputs,
-                      whole, tally)
+        for how, tally in tallies.items():
+            for _ in range(4 * args.times):
+                if tally.trials == args.times:
+                    break
+                latest = max(min(took, tally.shortest) - 0.05, STARTING)
+                trial(command, how, rng.uniform(STARTING, latest), args.workdir / command.name, inputs, whole, tally)
         report = {"command": command.name, "whole_seconds": round(took, 1),
                   **{how: {"trials": t.trials, "finished_first": t.finished_first, "problems": t.problems}
                      for how, t in tallies.items()}}

@@ -711,19 +711,24 @@ def limit_cases(files, tmp: Path) -> list[tuple[list[str], str]]:
     ]
 
 
-@pytest.fixture
-def full_disk(tmp_path):
-    """A file system with no room left inside the test's folder (a small tmpfs, filled once the
-    cases have put their files there), or None where none can be mounted (not as root)."""
-    folder = tmp_path / "full"
+def mounted_tmpfs(folder: Path, options: str) -> typing.Iterator[Path | None]:
+    """A small tmpfs mounted at `folder` (made here) for the caller's block, or None where none
+    can be mounted (not as root)."""
     folder.mkdir()
-    mounted = os.geteuid() == 0 and subprocess.run(["mount", "-t", "tmpfs", "-o", "size=1m", "tmpfs", str(folder)],
+    mounted = os.geteuid() == 0 and subprocess.run(["mount", "-t", "tmpfs", "-o", options, "tmpfs", str(folder)],
                                                    capture_output=True).returncode == 0
     if not mounted:
         folder.rmdir()
     yield folder if mounted else None
     if mounted:
         subprocess.run(["umount", str(folder)], check=True)
+
+
+@pytest.fixture
+def full_disk(tmp_path):
+    """A file system with no room left inside the test's folder (a small tmpfs, filled once the
+    cases have put their files there), or None where none can be mounted (not as root)."""
+    yield from mounted_tmpfs(tmp_path / "full", "size=1m")
 
 
 def fill(folder: Path) -> None:
@@ -750,7 +755,7 @@ def full_disk_cases(files, full: Path | None) -> list[tuple[list[str], str]]:
     full_name = "no space left on device writing"
     return [
         (["generate", "--split", "test", "--pairs", "1", "--size", "32", "--out", str(full / "g.h5"), "--quiet"],
-         f"{full_name} {full / 'g.h5'}"),
+         f"a split of 22 videos needs at least 0.0769 MB of disk space, {full} has 0 MB free"),
         (["score", "--model", "random", "--data", test, "--out", str(full / "s.csv"), "--quiet"],
          f"{full_name} {full / 's.csv'}"),
         (["score", "--model", "random", "--data", test, "--out", str(old), "--seed", "1", "--overwrite", "--quiet"],
@@ -766,10 +771,52 @@ def full_disk_cases(files, full: Path | None) -> list[tuple[list[str], str]]:
     ]
 
 
-def test_every_bad_input_gets_one_line_exit_2_and_changes_nothing(files, tmp_path, capsys, monkeypatch, full_disk):
+def test_a_disk_that_fills_as_generate_writes_is_named_in_one_line(full_disk, capsys, monkeypatch):
+    """generate refuses before the work a split that cannot fit; one that the estimate let
+    through and that fills the disk all the same is named as every verb's is."""
+    if full_disk is None:
+        pytest.skip("mounts a file system: run as root")
+    monkeypatch.setattr("xvoe.scenes.generate._least_bytes_per_video", lambda config: 0)
+    fill(full_disk)
+    before = snapshot(full_disk)
+    code, err = run(["generate", "--split", "test", "--pairs", "1", "--size", "32", "--out", str(full_disk / "g.h5"),
+                     "--quiet"], capsys)
+    assert code == 2 and err == f"xvoe generate: error: no space left on device writing {full_disk / 'g.h5'}\n", err
+    assert snapshot(full_disk) == before
+
+
+@pytest.fixture
+def read_only(tmp_path):
+    """A file system mounted read-only inside the test's folder, or None where none can be
+    mounted (not as root, who passes every permission check but this one)."""
+    yield from mounted_tmpfs(tmp_path / "read-only", "ro,size=1m")
+
+
+def read_only_cases(files, folder: Path | None) -> list[tuple[list[str], str]]:
+    """Every verb that writes, into a read-only file system: named so, not as a permission
+    that a chmod could change."""
+    if folder is None:
+        return []
+    test, train = str(files["test-32"]), str(files["train-32"])
+    scores = folder.parent / "read-only-scores.csv"
+    assert main(["score", "--model", "random", "--data", test, "--out", str(scores), "--quiet"]) == 0
+    said = f"cannot write to {folder}: read-only file system"
+    return [
+        (["generate", "--split", "test", "--pairs", "1", "--size", "32", "--out", str(folder / "g.h5"), "--quiet"],
+         said),
+        (["score", "--model", "random", "--data", test, "--out", str(folder / "s.csv"), "--quiet"], said),
+        (["train", "perception", "--data", train, "--out", str(folder / "run"), "--steps", "1", "--quiet"], said),
+        (["metrics", str(scores), "--rounds", "20", "--out", str(folder / "r")], said),
+        (["show", test, "--out", str(folder / "s.png")], said),
+        (["encode", "--model", "xpl", "--data", train, "--out", str(folder / "enc"), "--quiet"], said),
+    ]
+
+
+def test_every_bad_input_gets_one_line_exit_2_and_changes_nothing(files, tmp_path, capsys, monkeypatch, full_disk,
+                                                                   read_only):
     monkeypatch.chdir(tmp_path)
     tried = 0
-    full = full_disk_cases(files, full_disk)
+    full = full_disk_cases(files, full_disk) + read_only_cases(files, read_only)
     for args, needle in case_lines(files, tmp_path) + limit_cases(files, tmp_path) + full:
         before = snapshot(tmp_path)
         code, err = run(args, capsys)
@@ -780,7 +827,7 @@ def test_every_bad_input_gets_one_line_exit_2_and_changes_nothing(files, tmp_pat
         tried += 1
     assert tried == 6 * len(MALFORMED) + 2 * len(MALFORMED_TRAIN) + 40 + 31 + 14 + 6 + 7 + 7 + 17 + 14 + 6 + 5 + 23 \
         + len(full)
-    assert full or full_disk is None
+    assert full or (full_disk is None and read_only is None)
 
 
 CONFIGS = (TrainConfig, PerceptionConfig, XPLConfig, ReasoningConfig, DynamicsConfig, PhyDNetConfig, InferenceConfig,
@@ -929,7 +976,7 @@ def test_a_set_of_files_is_replaced_whole_or_not_at_all(tmp_path, monkeypatch):
 
     monkeypatch.setattr(os, "replace", refuse_the_csv)
     before = snapshot(tmp_path)
-    with pytest.raises(XvoeError, match="cannot replace .*r.csv: Operation not permitted"):
+    with pytest.raises(XvoeError, match="cannot replace .*r.csv: operation not permitted"):
         with atomic_paths(*old) as temporaries:
             for temporary in temporaries:
                 temporary.write_text("new")
@@ -1269,3 +1316,63 @@ def test_a_name_the_file_system_takes_is_written_however_long(tmp_path, capsys):
     assert run(["show", str(out), "--out", str(picture)], capsys)[0] == 0
     assert sorted(p.name for p in tmp_path.iterdir()) == sorted([out.name, picture.name])
     store.open_dataset(out).close()
+
+
+LOSES_THE_FOLDER = """
+import os
+import subprocess
+
+import numpy as np
+
+
+class LosesTheFolder:
+    name = "loses-the-folder"
+    changed = False
+
+    def surprise(self, videos):
+        if not self.changed:
+            {change}
+            self.changed = True
+        return np.zeros((len(videos.index), videos.frames))
+"""
+
+
+def lose_the_folder_midway(root: Path, change: str) -> list[str]:
+    """`xvoe score` arguments whose model, as it scores, makes the folder of --out refuse writes."""
+    (root / "loses.py").write_text(LOSES_THE_FOLDER.format(change=change))
+    (root / "loses.py").chmod(0o644)
+    return ["score", "--model", f"{root / 'loses.py'}:LosesTheFolder", "--data", str(root / "test.h5"),
+            "--out", str(root / "out" / "s.csv"), "--no-checks", "--quiet"]
+
+
+def test_a_folder_made_read_only_as_score_runs_gets_one_line_and_no_scores(files, tmp_path, capsys):
+    if os.geteuid() != 0:
+        pytest.skip("mounts a folder read-only: run as root")
+    out = tmp_path / "out"
+    out.mkdir()
+    shutil.copy(files["test-32"], tmp_path / "test.h5")
+    # a read-only mount of the folder over itself: the run's open claim is on the one below
+    args = lose_the_folder_midway(tmp_path, f"subprocess.run(['mount', '--bind', {str(out)!r}, {str(out)!r}]); "
+                                            f"subprocess.run(['mount', '-o', 'remount,bind,ro', {str(out)!r}])")
+    try:
+        code, err = run(args, capsys)
+    finally:
+        while subprocess.run(["umount", str(out)], capture_output=True).returncode == 0:
+            pass
+    assert code == 2 and err == f"xvoe score: error: read-only file system writing {out / 's.csv'}\n", err
+    assert all(path.name.startswith(".") for path in out.iterdir())      # claims, which the next run takes
+    args[args.index("--model") + 1] = "random"
+    assert run(args, capsys)[0] == 0
+    assert sorted(path.name for path in out.iterdir()) == ["s.csv", "s.curves.npz"]
+
+
+@needs_setpriv
+def test_a_folder_made_unwritable_as_score_runs_gets_one_line_and_no_scores(files, shared_folder):
+    out = shared_folder / "out"
+    out.mkdir()
+    os.chown(out, NOBODY, NOBODY)
+    args = lose_the_folder_midway(shared_folder, f"os.chmod({str(out)!r}, 0o555)")
+    done = run_unprivileged(shared_folder, args)
+    assert done.returncode == 2 and done.stderr == f"xvoe score: error: permission denied writing {out / 's.csv'}\n", \
+        done.stderr
+    assert all(path.name.startswith(".") for path in out.iterdir())

@@ -13,6 +13,9 @@ def _interrupted_at_start(number: int, frame) -> None:
 
 signal.signal(signal.SIGINT, _interrupted_at_start)
 from .apps.cli import main  # noqa: E402 - after the handler, which covers the import
+from .processes import interrupts_kept  # noqa: E402
+
+interrupts_kept()
 
 signal.signal(signal.SIGINT, signal.default_int_handler)
 

@@ -187,7 +187,7 @@ def _open_claim(lock: Path, path: str | os.PathLike) -> int:
             return os.open(lock, os.O_RDONLY)
         raise XvoeError(f"cannot claim {path}: permission denied for {lock}") from None
     except OSError as error:
-        raise XvoeError(f"cannot claim {path}: {error.strerror or error} ({lock})") from None
+        raise XvoeError(f"cannot claim {path}: {refusal(error) or error.strerror or error} ({lock})") from None
 
 
 def release(path: str | os.PathLike) -> None:
@@ -239,7 +239,7 @@ def _writable_directory(directory: Path, make: bool = True) -> None:
     if not existing.is_dir():
         raise XvoeError(f"cannot write under {directory}: {existing} is a file")
     if not os.access(existing, os.W_OK | os.X_OK):
-        raise XvoeError(f"cannot write to {existing}: permission denied")
+        raise XvoeError(f"cannot write to {existing}: {_unwritable(existing)}")
     if not make:
         return
     missing = [directory, *directory.parents][:len(directory.parents) + 1]
@@ -248,7 +248,16 @@ def _writable_directory(directory: Path, make: bool = True) -> None:
         directory.mkdir(parents=True, exist_ok=True)
         _made.extend(reversed(missing))
     except OSError as error:
-        raise XvoeError(f"cannot make the directory {directory}: {error.strerror}") from None
+        raise XvoeError(f"cannot make the directory {directory}: {refusal(error) or error.strerror}") from None
+
+
+def _unwritable(folder: Path) -> str:
+    """Why `folder`, which this process may not write to, refuses: its file system is mounted
+    read-only (no change of permissions helps), or the permissions say no."""
+    with suppress(OSError):
+        if os.statvfs(folder).f_flag & os.ST_RDONLY:
+            return "read-only file system"
+    return "permission denied"
 
 
 def parts_folder(path: Path) -> Path:
@@ -311,22 +320,38 @@ def atomic_paths(*paths: Path) -> Iterator[list[Path]]:
             for temporary in temporaries:
                 if temporary.is_dir() and not temporary.is_symlink():
                     shutil.rmtree(temporary, ignore_errors=True)
-                else:
-                    temporary.unlink(missing_ok=True)
+                else:       # a folder that stopped taking changes keeps it: the next run removes it
+                    with suppress(OSError):
+                        temporary.unlink(missing_ok=True)
 
 
 # what a write meets on a full disk (or past a quota, or past the size limit of a process's files)
 _NO_SPACE = {errno.ENOSPC: "no space left on device", errno.EDQUOT: "disk quota exceeded",
              errno.EFBIG: "file too large for this process or file system"}
+# what a write meets where the folder stopped taking files after the run's checks (its
+# permissions changed, its file system remounted read-only)
+_REFUSED = _NO_SPACE | {errno.EACCES: "permission denied", errno.EPERM: "operation not permitted",
+                        errno.EROFS: "read-only file system"}
 
 
 def no_space(error: BaseException) -> str | None:
-    """What is full, where `error` is a write that found no room, else None. HDF5 names the
-    errno only in its message, and a failed flush as it closes a file is a RuntimeError."""
-    if isinstance(error, OSError) and error.errno in _NO_SPACE:
-        return _NO_SPACE[error.errno]
+    """What is full, where `error` is a write that found no room, else None."""
+    return _errno_text(error, _NO_SPACE)
+
+
+def refusal(error: BaseException) -> str | None:
+    """Why the file system refused a write, where `error` is such a refusal (no room, no
+    permission, read-only), else None."""
+    return _errno_text(error, _REFUSED)
+
+
+def _errno_text(error: BaseException, texts: dict[int, str]) -> str | None:
+    """HDF5 names the errno only in its message, and a failed flush as it closes a file is a
+    RuntimeError."""
+    if isinstance(error, OSError) and error.errno in texts:
+        return texts[error.errno]
     if isinstance(error, (OSError, RuntimeError)):
-        return next((what for number, what in _NO_SPACE.items() if f"errno = {number}," in str(error)), None)
+        return next((what for number, what in texts.items() if f"errno = {number}," in str(error)), None)
     return None
 
 
@@ -342,13 +367,14 @@ def nearly_full(folder: Path) -> bool:
 
 @contextmanager
 def writing(path: str | os.PathLike) -> Iterator[None]:
-    """A full disk met in the block is named in one line, by the output it was writing: its
-    final name, not a temporary's, and where blocks nest (a report's figures), the outermost's."""
+    """A full disk, or a folder that stopped taking files, met in the block is named in one
+    line, by the output it was writing: its final name, not a temporary's, and where blocks nest
+    (a report's figures), the outermost's."""
     _writing.append(Path(path))
     try:
         yield
     except (OSError, RuntimeError) as error:
-        if (what := no_space(error)) is None:
+        if (what := refusal(error)) is None:
             raise
         raise XvoeError(f"{what} writing {_writing[0]}") from None
     finally:
@@ -380,7 +406,7 @@ def replace_together(temporaries: list[Path], paths: list[Path]) -> None:
         for path, old in aside:
             os.replace(old, path)
         if isinstance(error, OSError):
-            raise XvoeError(f"cannot replace {current}: {error.strerror or error}; "
+            raise XvoeError(f"cannot replace {current}: {refusal(error) or error.strerror or error}; "
                             "the files there were left as they were") from None
         raise
     for _, old in aside:

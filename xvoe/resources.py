@@ -1,6 +1,6 @@
 """What this machine has, checked before the work: a size or count past it is one line
 ("needs N GB, has M"), not a traceback at the first allocation, an out-of-memory kill an hour
-in, or a million forked processes.
+in, a full disk an hour in, or a million forked processes.
 
 Memory is what the kernel says a new allocation can take now (MemAvailable, under the
 cgroup's limit where one is set); cores are those this process may run on. An estimate counts
@@ -10,6 +10,7 @@ it does not promise that the rest will.
 from __future__ import annotations
 
 import os
+import shutil
 from pathlib import Path
 
 from .errors import XvoeError
@@ -78,3 +79,23 @@ def check_workers(workers: int, what: str = "--workers") -> None:
     """Refuse, before any process is started, more worker processes than this process has cores."""
     if workers > (count := cores()):
         raise XvoeError(f"{what} {workers} is more than this machine's {count} cores; give at most {count}")
+
+
+def check_disk(needed: float, out: str | os.PathLike, what: str) -> None:
+    """Refuse, in one line before the work, `what` (a phrase: "a split of 10,000 videos") where
+    the file system that `out` goes to has less free than the `needed` bytes it surely takes."""
+    folder = Path(os.path.abspath(out)).parent
+    while not folder.is_dir() and folder != folder.parent:
+        folder = folder.parent
+    try:
+        free = shutil.disk_usage(folder).free
+    except OSError:
+        return      # a folder that cannot be looked at is named by the claim of the output
+    if needed > free:
+        raise XvoeError(f"{what} needs at least {_disk_amount(needed)} of disk space, {folder} has "
+                        f"{_disk_amount(free)} free")
+
+
+def _disk_amount(count: float) -> str:
+    """A byte count in MB below a GB: a small file system (a quota, a memory disk) is common."""
+    return f"{count / 1e6:.3g} MB" if count < 1e9 else gigabytes(count)

@@ -16,9 +16,12 @@ import torch.distributed as dist
 import torch.multiprocessing as mp
 
 from ..errors import XvoeError
-from ..processes import end_with_parent
+from ..processes import end_with_parent, interrupts_held
 from .loop import StopRequests
 from .recipes import RECIPES, Recipe
+
+# how long the other processes get to end on their own once one has ended with an error or a stop
+GRACE_SECONDS = 60.0
 
 
 def rendezvous_store() -> dist.TCPStore:
@@ -39,21 +42,37 @@ def on_cores(train: Callable[..., Any], processes: int, recipe: Recipe | None = 
         train(**kwargs)
         return
     store = rendezvous_store()     # kept in a name until the processes are joined: freed, it lets its port go
-    context = mp.start_processes(_process, args=(processes, store.port, train, recipe, kwargs, os.getpid()),
-                                 nprocs=processes, join=False, start_method="spawn")
+    # a Ctrl-C while they start (each imports torch again) is held, here and in them, until the
+    # forwarding is in place: it then stops them as one that comes later does
+    with ForwardedStops([]) as stops:
+        with interrupts_held(workers=True):
+            context = mp.start_processes(_process, args=(processes, store.port, train, recipe, kwargs, os.getpid()),
+                                         nprocs=processes, join=False, start_method="spawn")
+            stops.processes = context.processes
+        _join(context)
+
+
+def _join(context: mp.ProcessContext) -> None:
+    """Wait for every process, and raise as one process would where one failed. The others get
+    a grace period to end on their own (a stop ends them all, one a little after another) before
+    torch ends them."""
     try:
-        with ForwardedStops(context.processes):
-            while not context.join():
-                pass
+        while not context.join(grace_period=GRACE_SECONDS):
+            pass
     except mp.ProcessRaisedException as error:
         raise _as_in_one_process(str(error)) from None
+    except mp.ProcessExitedException as error:
+        if error.signal_name in ("SIGINT", "SIGTERM"):
+            raise KeyboardInterrupt(f"training process {error.error_index} stopped by {error.signal_name}") from None
+        raise XvoeError(f"a training process ended before its stage did: {error}") from None
 
 
 class ForwardedStops(StopRequests):
     """Ctrl-C or SIGTERM here (a Jupyter interrupt reaches this process alone) goes to every
     process once, as if each had got it: the first stops them after the step they agreed on, the
     second at once. The processes lead process groups of their own (`_process`), so a terminal's
-    Ctrl-C reaches them only this way."""
+    Ctrl-C reaches them only this way (one that reached them before, as they started, is held
+    there until they run the stage)."""
 
     def __init__(self, processes: list) -> None:
         super().__init__()
@@ -90,6 +109,8 @@ def _process(rank: int, world: int, port: int, train: Callable[..., Any], recipe
     if recipe is not None:
         RECIPES[recipe.name] = recipe
     try:
+        # started with Ctrl-C held (`on_cores`): one that came meanwhile stops the stage here
+        signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGINT})
         train(**kwargs)
     except KeyboardInterrupt as stop:
         raise Stopped(str(stop)) from None
