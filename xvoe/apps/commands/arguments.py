@@ -26,7 +26,7 @@ from ...training.config import DEFAULT_RECIPE, RECIPE_NAMES
 from ...training.stages import RANDOM, SCORED, STAGES
 
 __all__ = ["Parser", "Writes", "add_device", "argument", "check_paths", "default_workers", "field", "flag",
-           "generate_field", "late", "output_of", "positive", "recipe_names", "scored_by_surprise",
+           "generate_field", "late", "latent_stages", "output_of", "positive", "recipe_names", "scored_by_surprise",
            "scored_checkpoints", "shard"]
 
 # what the verbs need of the layers that import torch, loaded when a verb runs or a value is
@@ -126,6 +126,12 @@ def recipe_names() -> str:
 def scored_checkpoints() -> str:
     """The stage checkpoints `--model` takes, as a --help list: xpl.pt, plato.pt, ..."""
     return ", ".join(STAGES[name].checkpoint for name in SCORED)
+
+
+def latent_stages() -> str:
+    """The stages that train on the perception's latent cache, for a --help line: a, b and c."""
+    names = [name for name, entry in STAGES.items() if entry.reads_latents]
+    return f"{', '.join(names[:-1])} and {names[-1]}"
 
 
 def scored_by_surprise() -> str:

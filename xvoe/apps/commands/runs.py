@@ -10,7 +10,7 @@ import xvoe
 from ...domains import NON_NEGATIVE, SEED, Domain
 from ...training.config import DEFAULT_RECIPE
 from ...training.stages import DEFAULT_MODELS, MODELS, SCORED
-from .arguments import add_device, default_workers, flag, positive, recipe_names
+from .arguments import add_device, default_workers, flag, latent_stages, positive, recipe_names
 
 __all__ = ["add_pipeline", "add_ship"]
 
@@ -34,7 +34,7 @@ def add_pipeline(verbs) -> None:
                           help="models trained side by side, the cores shared out (0: one per core; default 1: "
                                "one at a time); more lanes hold more memory")
     pipeline.add_argument("--train-processes", type=int, default=0,
-                          help="one-thread processes that train the XPL, proposal and PLATO stages together "
+                          help=f"one-thread processes that train the {latent_stages()} stages together "
                                "(default 0: one per core), at most as many as a stage has data shards and a "
                                "divisor of them, so that the batches are the same on any machine")
     pipeline.add_argument("--quiet", action="store_true", help="no progress bars")

@@ -14,7 +14,7 @@ from ...errors import XvoeError
 from ...outputs import claim_directory
 from ...training.config import DEFAULT_RECIPE, TrainConfig
 from ...training.stages import STAGES, Stage
-from .arguments import Parser, Writes, add_device, field, flag, late, output_of, positive, recipe_names
+from .arguments import Parser, Writes, add_device, field, flag, late, latent_stages, output_of, positive, recipe_names
 
 __all__ = ["add_encode", "add_train"]
 
@@ -121,10 +121,9 @@ def _run_train(args: argparse.Namespace) -> None:
 
 
 def add_encode(verbs) -> None:
-    readers = [name for name, entry in STAGES.items() if entry.reads_latents]
     encode = verbs.add_parser("encode", help="encode a split into a latent cache with a trained perception module",
                               description="Encode every frame of a split into a latent cache (HDF5), which the "
-                                          f"{', '.join(readers[:-1])} and {readers[-1]} stages train on.")
+                                          f"{latent_stages()} stages train on.")
     encode.add_argument("--data", required=True, help="the split file to encode")
     encode.add_argument("--out", required=True, help="the run directory (its perception.pt unless --model)")
     encode.add_argument("--model", help="a perception run or checkpoint (default: --out)")
