@@ -13,7 +13,7 @@ from ...domains import POSITIVE
 from ...errors import XvoeError
 from ...outputs import claim_directory
 from ...training.config import DEFAULT_RECIPE, TrainConfig
-from ...training.stages import STAGES, Stage
+from ...training.stages import PERCEPTION, STAGES, Stage
 from .arguments import Parser, Writes, add_device, field, flag, late, latent_stages, output_of, positive, recipe_names
 
 __all__ = ["add_encode", "add_train"]
@@ -46,16 +46,15 @@ def _add_stage(parser: argparse.ArgumentParser, entry: Stage) -> None:
     parser.add_argument("--steps", type=field(TrainConfig, "steps"), help="training steps (default: the recipe's)")
     parser.add_argument("--minutes", type=flag(float, POSITIVE, "minutes"),
                         help="stop after this many minutes of training")
+    unit = "frames" if stage == PERCEPTION else "videos"
     parser.add_argument("--batch-size", type=field(TrainConfig, "batch_size"),
-                        help="videos per step over all processes" if stage == "phydnet"
-                        else "frames per step over all processes" if stage == "perception"
-                        else "videos per step")
+                        help=f"{unit} per step over all processes" if entry.reads == "pixels" else "videos per step")
     parser.add_argument("--max-videos", type=positive, help="use only the first N videos of --data")
     parser.add_argument("--seed", type=field(TrainConfig, "seed"),
                         help="the seed of initialisation and batches (default 0)")
     parser.add_argument("--lr", type=field(TrainConfig, "lr"),
                         help="peak learning rate (default: the recipe's; it halves every decay_steps)")
-    if stage != "perception":      # the others draw videos, which can come from one group
+    if stage != PERCEPTION:      # the others draw videos, which can come from one group
         parser.add_argument("--focus-group", help="draw --focus-share of each batch from this group's training "
                                                   "videos with a wall (e.g. permanence; several: "
                                                   "permanence,continuity)")
@@ -107,7 +106,7 @@ def _run_train(args: argparse.Namespace) -> None:
         print(xvoe.train_proposal(args.out, args.data, model_overrides=model, **common, **train))
         return
     common |= {"recipe_name": args.recipe, "model_overrides": model}
-    if stage == "perception":
+    if stage == PERCEPTION:
         print(xvoe.train_perception(args.data, args.out, **common, **train))
     elif stage == "phydnet":
         print(xvoe.train_phydnet(args.data, args.out, **common, **train))
