@@ -1,17 +1,20 @@
 """A researcher's conventions: `xvoe --version`; every verb's --help without torch (the time is
 benchmarks/cli_help.py's to measure); --quiet taken by every verb; the recipe names the --help
-lists without loading a recipe are the recipes'."""
+lists without loading a recipe are the recipes', and the models it offers those the verbs take."""
 from __future__ import annotations
 
 import re
 import subprocess
 import sys
+from dataclasses import fields
 from pathlib import Path
 
 import pytest
 
 import xvoe
 from xvoe.apps.cli import build_parser, main
+from xvoe.apps.pipeline import MODELS, PipelineConfig
+from xvoe.training.checkpoints import SHIPPED
 from xvoe.training.config import DEFAULT_RECIPE, RECIPE_NAMES
 from xvoe.training.recipes import RECIPES
 
@@ -58,3 +61,18 @@ def test_the_inference_layer_is_imported_by_its_installed_name():
              for number, line in enumerate(path.read_text().splitlines(), 1)
              if re.match(r"\s*(from|import) inference\b", line)]
     assert stray == []
+
+
+def _help_of(parser, dest: str) -> str:
+    return next(action.help for action in parser._actions if action.dest == dest)
+
+
+def test_the_help_offers_the_models_the_verbs_take():
+    # the names are the registry's, not a copy: what the help lists is what the verbs accept
+    offered = re.fullmatch(r"comma-separated: (.*) \(default (.*)\)", _help_of(verbs()["pipeline"], "models"))
+    default = next(f.default for f in fields(PipelineConfig) if f.name == "models")
+    assert offered[1].split(", ") == list(MODELS) and tuple(offered[2].split(",")) == default
+    named = re.search(r"a stage checkpoint \((.*)\), (\S+), or a model of your own",
+                      _help_of(verbs()["score"], "model"))
+    assert named[1].split(", ") == [f"{name}.pt" for name in SHIPPED]
+    assert xvoe.load_model(named[2]).name == named[2]

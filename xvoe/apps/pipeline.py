@@ -45,13 +45,11 @@ from ..training.loop import checkpoint_path
 from ..training.perception import train_perception
 from ..training.phydnet import train_phydnet
 from ..training.recipes import DEFAULT_RECIPE, RECIPES, Recipe, recipe
-from ..training.stages import MODELS, PERCEPTION, RANDOM, STAGES, continued_by, resting_on
+from ..training.stages import DEFAULT_MODELS, MODELS, PERCEPTION, STAGES, continued_by, resting_on
 from ..training.xpl import TRAINED_ON_LATENTS, train_proposal, train_xpl
 from .explanation_figure import plot_explanation
 from .report import header_lines, report
 from .verbs import with_display
-
-DEFAULT_MODELS = ("xpl", RANDOM)
 
 
 @dataclass(frozen=True)

@@ -80,6 +80,8 @@ RANDOM = "random"
 # every model scored by name, with the goals the scorecard holds it to ("chance": 50% inside the interval)
 MODEL_ROLES: dict[str, str] = {**{name: STAGES[name].role for name in SCORED}, RANDOM: "chance"}
 MODELS = tuple(MODEL_ROLES)
+# what `xvoe pipeline` scores unless told: the XPL model against chance (here, below torch, for its --help)
+DEFAULT_MODELS = ("xpl", RANDOM)
 
 
 def stage(name: str) -> Stage:
