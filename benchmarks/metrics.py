@@ -12,7 +12,7 @@ import tempfile
 import time
 
 import xvoe
-from xvoe.evaluation import metrics
+from xvoe.evaluation import metrics, score_tables
 
 
 def main() -> None:
@@ -23,8 +23,8 @@ def main() -> None:
     start = time.perf_counter()
     rows = 0
     for path in args.scores:
-        scores = metrics.read_scores(path)
-        rows += len(metrics.metric_rows(scores, metrics.model_name(path, scores), rounds=args.rounds))
+        scores = score_tables.read_scores(path)
+        rows += len(metrics.metric_rows(scores, score_tables.model_name(path, scores), rounds=args.rounds))
     rows_s = time.perf_counter() - start
     with tempfile.TemporaryDirectory() as out:
         start = time.perf_counter()

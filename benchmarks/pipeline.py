@@ -25,7 +25,7 @@ from pathlib import Path
 import xvoe
 from xvoe.apps.pipeline import DEFAULT_MODELS, MODELS, PipelineConfig, run_pipeline, stage_times
 from xvoe.evaluation import scorecard
-from xvoe.evaluation.metrics import read_scores
+from xvoe.evaluation.score_tables import read_scores
 from xvoe.scenes.generate import GenerateConfig, generate
 from xvoe.training.config import TrainConfig
 from xvoe.training.recipes import DEFAULT_RECIPE, RECIPES, recipe

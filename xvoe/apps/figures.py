@@ -23,8 +23,9 @@ from PIL import Image, ImageDraw
 
 from ..errors import XvoeError
 from ..evaluation.explain import DRAW_THRESHOLD, Explanation, drawn_pixels
-from ..evaluation.metrics import excess, read_scores
+from ..evaluation.metrics import excess
 from ..evaluation.score import MSE_LABEL, check_same_split, read_curves, warn_unchecked
+from ..evaluation.score_tables import read_scores
 from ..fingerprints import split_identity
 from ..models.devices import device_of
 from ..models.perception import normalise, to_uint8
@@ -525,7 +526,7 @@ def draw_frame_rows(ax, videos: list[np.ndarray], labels: list[str], title: str,
 def plot_onset(pairs: dict[str, list[dict]]) -> plt.Figure:
     """Violation onset: for each scenario, how many S1/S3 pairs' surprise difference peaks how
     many frames after the event (0: at the event frame; negative: before it), one series per
-    model (`xvoe.evaluation.metrics.onset_pairs`)."""
+    model (`xvoe.evaluation.onset.onset_pairs`)."""
     scenarios = list(dict.fromkeys(p["scenario"] for found in pairs.values() for p in found))
     if not scenarios:
         raise XvoeError("no S1 or S3 pair with an event frame to time")
