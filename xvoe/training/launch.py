@@ -17,7 +17,7 @@ import torch.multiprocessing as mp
 
 from ..errors import XvoeError
 from ..processes import end_with_parent
-from .loop import StopRequests
+from .distributed import StopRequests
 from .recipes import RECIPES, Recipe
 
 

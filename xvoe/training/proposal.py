@@ -14,8 +14,9 @@ from ..models.reasoning import hide_slot
 from ..models.xpl import XPL, XPLConfig, permute_slots
 from .checkpoints import load_checkpoint, recorded_input
 from .config import TrainConfig
+from .distributed import setup_distributed, start_process
 from .latent_batches import ProposalBatch, ProposalBatches
-from .loop import Job, checkpoint_path, fit, setup_distributed, start_process
+from .loop import Job, checkpoint_path, fit
 from .recipes import recipe, recipe_of
 from .xpl import fingerprint, run_xpl
 

@@ -25,9 +25,10 @@ from ..models.xpl import XPL, XPLConfig
 from ..scenes import store
 from .checkpoints import load_checkpoint, load_weights, recorded_input, resolve_run
 from .config import TrainConfig
+from .distributed import setup_distributed, start_process
 from .latent_batches import LatentBatches
 from .latents import check_cache, encode_split, encoder_key, open_latents, split_cache
-from .loop import Job, checkpoint_path, fit, setup_distributed, start_process
+from .loop import Job, checkpoint_path, fit
 from .perception import load_perception
 from .recipes import DEFAULT_RECIPE, recipe, recipe_of
 from .stages import STAGES
