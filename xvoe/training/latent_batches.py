@@ -57,15 +57,15 @@ class LatentBatches:
         with open_latents(path) as file:
             owned = owned_shards(path, file["mean"].shape[0], batch_size=batch_size, shards=shards, rank=rank,
                                  world=world, max_videos=max_videos)
-            self.mean = torch.from_numpy(file["mean"][owned.start:owned.stop])
-            self.visible = torch.from_numpy(file["visible"][owned.start:owned.stop])
-        split = _source_split(path, "focus_group") if focus_share and focus_group else path   # read only when used
+            self.mean = torch.from_numpy(file["mean"][owned.start:owned.stop])            # (N, T, K, D)
+            self.visible = torch.from_numpy(file["visible"][owned.start:owned.stop])      # (N, T, K) bool
+            source = file.attrs.get("source")       # the split file it was encoded from
+        split = _present(source, path, "focus_group") if focus_share and focus_group else path  # read only when used
         self.focus = focus_on(split, owned, focus_group, focus_share)
-        found = _wall_slots(path, owned.start, owned.stop) if walls else None    # (read only when used)
-        self.walls = torch.zeros_like(self.visible[:, 0]) if found is None else torch.from_numpy(found)
-        self.outside = None     # (B, T, K) hidden entries wholly outside the picture, where asked for
-        if outside:
-            places = object_places(path, owned.start, owned.stop)
+        found, places = _read_split(source, path, owned.start, owned.stop, walls, outside)
+        self.walls = torch.zeros_like(self.visible[:, 0]) if found is None else torch.from_numpy(found)   # (N, K)
+        self.outside = None     # (N, T, K) hidden entries wholly outside the picture, where asked for
+        if places is not None:
             self.outside = torch.from_numpy(outside_picture(places)) & ~self.visible
         self.shards, self.bounds, self.per_shard = owned.shards, owned.bounds, owned.per_shard
         self.start, self.seed, self.object_share = owned.start, seed, object_share
@@ -195,44 +195,44 @@ def _empty_latent(latents: str) -> Tensor:
     return torch.from_numpy(empty.mean(0) if len(empty) else np.zeros(mean.shape[-1], np.float32))
 
 
-def _cache_source(latents: str) -> str | None:
-    """The split file a latent cache was encoded from, as the cache records it."""
-    with open_latents(latents) as file:
-        return file.attrs.get("source")
-
-
-def _source_split(latents: str, needed_by: str) -> str:
-    """The split file a latent cache was encoded from; an error naming what needs it if it is gone."""
-    source = _cache_source(latents)
+def _present(source: str | None, latents: str, needed_by: str) -> str:
+    """The split file `source` a latent cache was encoded from; an error naming what needs it if it is gone."""
     if source is None or not Path(source).is_file():
         raise XvoeError(f"{needed_by} needs the split file {source} the cache {latents} was encoded from, "
                         "and it is missing")
     return source
 
 
-def _wall_slots(latents: str, start: int, stop: int) -> np.ndarray | None:
-    """(N, K) bool: the slots that hold a wall, from the split file the cache was encoded
-    from (its `kind` map); None, with a warning, when that file is gone."""
-
-    source = _cache_source(latents)
-    if source is None or not Path(source).is_file():
+def _read_split(source: str | None, latents: str, start: int, stop: int, walls: bool,
+                outside: bool) -> tuple[np.ndarray | None, np.ndarray | None]:
+    """What the cache does not hold, read from its split file for videos [start, stop) where asked
+    for: the slots that hold a wall (N, K) bool, from the `kind` map (None, with a warning, when
+    the file is gone: training goes on as if there were no walls), and `object_places`."""
+    found = places = None
+    missing = source is None or not Path(source).is_file()
+    if walls and missing:
         warnings.warn(f"the split file {source} the cache {latents} was encoded from is missing: "
                       "training goes on as if its videos had no walls", stacklevel=2)
-        return None
-    with store.open_dataset(source) as file:
-        return store.wall_mask(file, start, stop)
+    if outside:
+        _present(source, latents, "outside_refill")
+    if (walls or outside) and not missing:
+        with store.open_dataset(source) as file:
+            found = store.wall_mask(file, start, stop) if walls else None
+            if outside:
+                columns = list(file["states"].attrs["state_columns"])
+                states = store.read_states(file, start, stop)[..., [columns.index(c) for c in ("x", "y", "size")]]
+                states = states * (WORLD / file["rgbd"].shape[2])
+                states[..., 1] = WORLD - states[..., 1]
+                places = states.astype(np.float32)
+    return found, places
 
 
 def object_places(latents: str, start: int, stop: int) -> np.ndarray:
     """(N, T, K, 3) float32: each slot's centre x, y (up) and size (radius or half side) in world units,
     per frame, from the split file the cache was encoded from."""
-    with store.open_dataset(_source_split(latents, "outside_refill")) as file:
-        columns = list(file["states"].attrs["state_columns"])
-        states = store.read_states(file, start, stop)[..., [columns.index(c) for c in ("x", "y", "size")]]
-        scale = WORLD / file["rgbd"].shape[2]
-    states = states * scale
-    states[..., 1] = WORLD - states[..., 1]
-    return states.astype(np.float32)
+    with open_latents(latents) as file:
+        source = file.attrs.get("source")
+    return _read_split(source, latents, start, stop, walls=False, outside=True)[1]
 
 
 def outside_picture(places: np.ndarray) -> np.ndarray:
