@@ -23,8 +23,7 @@ from ..models.devices import resolve_device
 from ..resources import cores
 from .config import TrainConfig
 
-__all__ = ["KERNELS", "Dist", "StopRequests", "pin_kernels", "seed_everything", "set_threads", "setup_distributed",
-           "start_process"]
+__all__ = ["KERNELS", "Dist", "StopRequests", "pin_kernels", "seed_everything", "setup_distributed", "start_process"]
 
 @dataclass
 class Dist:
@@ -55,7 +54,7 @@ def setup_distributed(device: str | torch.device = "cpu") -> Dist:
     return Dist(rank, world, local_rank, chosen)
 
 
-def set_threads(config: TrainConfig, local_world: int) -> None:
+def _set_threads(config: TrainConfig, local_world: int) -> None:
     """Share the cores between the processes of this machine: config.threads, else
     OMP_NUM_THREADS when set (torchrun sets it), else the cores divided by the processes."""
     threads = config.threads or int(os.environ.get("OMP_NUM_THREADS", "0") or 0)
@@ -90,7 +89,7 @@ def start_process(config: TrainConfig, place: Dist) -> TrainConfig:
     taken (unless the config fixes its threads), every RNG seeded."""
     pin_kernels()
     config = override(config, data_shards=config.data_shards or place.world)
-    set_threads(config, int(os.environ.get("LOCAL_WORLD_SIZE", "1")))
+    _set_threads(config, int(os.environ.get("LOCAL_WORLD_SIZE", "1")))
     seed_everything(config.seed)
     return config
 

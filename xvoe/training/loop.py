@@ -41,8 +41,7 @@ from .checkpoints import CHECKPOINT_FORMAT, first_not_finite, load_checkpoint, l
 from .config import TrainConfig
 from .distributed import Dist, StopRequests
 
-__all__ = ["CsvLog", "Job", "WeightAverage", "checkpoint_path", "fit", "learning_rate", "log_path", "rng_state",
-           "set_rng_state"]
+__all__ = ["Job", "checkpoint_path", "fit", "learning_rate"]
 
 
 @dataclass
@@ -68,11 +67,11 @@ def checkpoint_path(run_dir: str | os.PathLike, stage: str) -> Path:
     return Path(run_dir) / f"{stage}.pt"
 
 
-def log_path(run_dir: str | os.PathLike, stage: str) -> Path:
+def _log_path(run_dir: str | os.PathLike, stage: str) -> Path:
     return Path(run_dir) / f"{stage}.csv"
 
 
-def rng_state() -> dict:
+def _rng_state() -> dict:
     """Every generator's state as tensors and plain data, which a checkpoint loads without pickle."""
     kind, key, position, has_gauss, gauss = np.random.get_state()
     return {"python": random.getstate(), "numpy": (kind, torch.from_numpy(key.astype(np.int64)), position,
@@ -80,7 +79,7 @@ def rng_state() -> dict:
             "torch": torch.get_rng_state(), "cuda": torch.cuda.get_rng_state_all() if torch.cuda.is_available() else []}
 
 
-def set_rng_state(state: dict) -> None:
+def _set_rng_state(state: dict) -> None:
     random.setstate(state["python"])
     kind, key, *rest = state["numpy"]         # the key: a tensor, or an array in older checkpoints
     np.random.set_state((kind, np.asarray(key.cpu() if isinstance(key, torch.Tensor) else key, np.uint32), *rest))
@@ -90,7 +89,7 @@ def set_rng_state(state: dict) -> None:
         torch.cuda.set_rng_state_all([part.cpu() for part in state["cuda"]])
 
 
-class WeightAverage:
+class _WeightAverage:
     """An exponential moving average of a model's weights, corrected for its start as Adam's
     moments are: after t steps it weighs step s by decay**(t - s), normalised, so that a short
     run's average is not pulled toward the first weights. The trained weights' noise at the
@@ -116,7 +115,7 @@ class WeightAverage:
             self.state[name].copy_(value)
 
 
-class CsvLog:
+class _CsvLog:
     """Loss rows beside the checkpoint, one every `every` steps and one where a session ends,
     written with each checkpoint (`data`), so that the two always agree: an interrupted or
     failed session leaves the log of its last checkpoint, never rows that no checkpoint holds.
@@ -166,7 +165,7 @@ class _Meter:
 
 
 # the stages whose batches are not videos drawn by group, and what they draw instead
-UNFOCUSED = {"perception": "single frames"}
+_UNFOCUSED = {"perception": "single frames"}
 
 
 @claim_scope()
@@ -190,7 +189,7 @@ def fit(job: Job, config: TrainConfig, run_dir: str | os.PathLike, *, place: Dis
     # fused: one kernel of torch's own, where the loop of ops takes the square root from MKL's vector
     # library, whose last bit differs between CPU makers (docs/decisions.md, "One seed, one set of weights")
     optimiser = torch.optim.Adam(model.parameters(), lr=config.lr, fused=place.device.type in ("cpu", "cuda"))
-    run = _Run(job, config, place, ckpt, log_path(run_dir, job.stage), model, optimiser, resume)
+    run = _Run(job, config, place, ckpt, _log_path(run_dir, job.stage), model, optimiser, resume)
     if resume and ckpt.exists():
         run.resume()
     wrapped = model
@@ -206,7 +205,7 @@ def fit(job: Job, config: TrainConfig, run_dir: str | os.PathLike, *, place: Dis
         while step < config.steps and not stop.agreed(place, run.out_of_time()):
             for group in optimiser.param_groups:
                 group["lr"] = learning_rate(config, step)
-            batch = job.batches(step)               # this process's share of the global batch
+            batch = job.batches(step)       # this process's share: latents (B, T, K, D) and masks, or videos
             run.items += job.items(batch)
             terms = _step(wrapped, optimiser, batch, place.device, precision, config.grad_clip)
             step += 1
@@ -243,9 +242,9 @@ def _check_job(job: Job, config: TrainConfig) -> None:
         raise XvoeError(f"airborne_share picks the perception stage's frames; the {job.stage} stage has none")
     if config.lstm_kernel and job.stage != "phydnet":
         raise XvoeError(f"lstm_kernel widens PhyDNet's ConvLSTM gates; the {job.stage} stage has none")
-    if (config.focus_group or config.focus_share) and job.stage in UNFOCUSED:
+    if (config.focus_group or config.focus_share) and job.stage in _UNFOCUSED:
         raise XvoeError(f"focus_group and focus_share pick videos of a group; the {job.stage} stage draws "
-                        f"{UNFOCUSED[job.stage]}")
+                        f"{_UNFOCUSED[job.stage]}")
 
 
 class _Run:
@@ -258,8 +257,8 @@ class _Run:
         self.job, self.config, self.place, self.ckpt, self.log = job, config, place, ckpt, log
         self.model, self.optimiser, self.resumed = model, optimiser, resume
         self.start, self.elapsed, self.meter, self.items = 0, 0.0, _Meter(), 0
-        self.average = WeightAverage(model, config.average_decay) if config.average_decay else None
-        self.table: CsvLog | None = None
+        self.average = _WeightAverage(model, config.average_decay) if config.average_decay else None
+        self.table: _CsvLog | None = None
 
     def resume(self) -> None:
         """Continue from the checkpoint: weights, step and time; the optimiser, RNG states and
@@ -273,7 +272,7 @@ class _Run:
         self.start, self.elapsed = state["step"], state.get("elapsed", 0.0)
         if "optimizer" in state:
             self.optimiser.load_state_dict(state["optimizer"])
-            set_rng_state(state["rng"])
+            _set_rng_state(state["rng"])
             self.meter.sums, self.meter.count = dict(state["meter"]["sums"]), state["meter"]["count"]
         elif self.place.main:
             # a shipped checkpoint keeps weights only: train it further from its step
@@ -317,7 +316,7 @@ class _Run:
                "items_per_second": round(rate, 1), **{name: round(value, 5) for name, value in means.items()}}
         self.bar.set_postfix({name: f"{value:.4g}" for name, value in means.items() if name in ("loss", "psnr")})
         if self.place.main:
-            self.table = self.table or CsvLog(self.log, list(row), self.start if self.resumed else None,
+            self.table = self.table or _CsvLog(self.log, list(row), self.start if self.resumed else None,
                                               self.config.log_every)
             self.table.write(row)
 
@@ -335,7 +334,7 @@ class _Run:
         save_checkpoint(self.ckpt, {"format": CHECKPOINT_FORMAT, "stage": self.job.stage, "config": self.job.config,
                                     "train": to_dict(self.config), "step": step, "elapsed": self.elapsed,
                                     **weights, "optimizer": self.optimiser.state_dict(),
-                                    "rng": rng_state(), "meta": self.job.meta, "world": self.place.world,
+                                    "rng": _rng_state(), "meta": self.job.meta, "world": self.place.world,
                                     "kernels": torch.backends.cpu.get_cpu_capability(),
                                     "meter": {"sums": self.meter.sums, "count": self.meter.count}},
                         beside={self.log: self.table.data()} if self.table else None)
