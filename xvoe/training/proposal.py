@@ -20,9 +20,9 @@ from .loop import Job, checkpoint_path, fit
 from .recipes import recipe, recipe_of
 from .xpl import fingerprint, run_xpl
 
-__all__ = ["PROPOSAL_BETA", "ProposalNetworks", "train_proposal"]
+__all__ = ["ProposalNetworks", "train_proposal"]
 
-PROPOSAL_BETA = 0.5   # the proposal stage's loss is the beta-NLL: with the plain NLL a hard latent's scale
+_PROPOSAL_BETA = 0.5   # the proposal stage's loss is the beta-NLL: with the plain NLL a hard latent's scale
                       # grows and its mean stops learning (docs/decisions.md, "Proposal loss: beta-NLL")
 
 
@@ -48,7 +48,7 @@ class ProposalNetworks(nn.Module):
         rebuilt = ~hide_slot(visible.shape, batch.hidden)
         with torch.no_grad():
             context = self.refine(torch.where(rebuilt.unsqueeze(-1), self.empty, raw), visible & ~rebuilt, walls[:, 0])
-        out = self.losses(torch.where(rebuilt.unsqueeze(-1), target, context), visible, batch.hidden, PROPOSAL_BETA)
+        out = self.losses(torch.where(rebuilt.unsqueeze(-1), target, context), visible, batch.hidden, _PROPOSAL_BETA)
         out["loss"] = out["mae"] + out["existence"]
         return out
 
