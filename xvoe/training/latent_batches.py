@@ -27,7 +27,7 @@ __all__ = ["LatentBatch", "LatentBatches", "ProposalBatch", "ProposalBatches", "
            "outside_picture", "wall_stays"]
 
 _PROPOSAL_OBJECT_SHARE = 0.5   # the proposal stage rebuilds a seen object this often (else any slot); as
-                              # in the joint stage: more, and Transformer 2 fills empty slots with objects
+                               # in the joint stage: more, and Transformer 2 fills empty slots with objects
 
 
 @dataclass
