@@ -1,5 +1,5 @@
 """What pinning the kernels costs: a recipe's training and scoring steps (benchmarks/steps.py)
-timed under the kernels every training process pins (`xvoe.training.loop.KERNELS`: AVX2 for
+timed under the kernels every training process pins (`xvoe.training.distributed.KERNELS`: AVX2 for
 torch's own kernels and oneDNN's, MKL's maker-independent path) against this machine's own
 choice, each in a fresh process (a process's kernels are fixed at its first), alternated
 `--rounds` times. It prints each stage's median ms per item under both and their ratio.
@@ -20,7 +20,7 @@ import sys
 from pathlib import Path
 
 from xvoe import allocator
-from xvoe.training.loop import KERNELS
+from xvoe.training.distributed import KERNELS
 
 STEPS = Path(__file__).with_name("steps.py")
 

@@ -12,7 +12,7 @@ import tempfile
 import time
 
 import xvoe
-from xvoe.evaluation import metrics
+from xvoe.evaluation import score_tables
 
 
 def main() -> None:
@@ -24,7 +24,7 @@ def main() -> None:
     rows = 0
     for path in args.scores:
         scores = xvoe.read_scores(path)
-        rows += len(xvoe.metric_rows(scores, metrics.model_name(path, scores), rounds=args.rounds))
+        rows += len(xvoe.metric_rows(scores, score_tables.model_name(path, scores), rounds=args.rounds))
     rows_s = time.perf_counter() - start
     with tempfile.TemporaryDirectory() as out:
         start = time.perf_counter()

@@ -20,8 +20,8 @@ import numpy as np
 import torch
 
 import xvoe
+from xvoe.evaluation.disagreements import VERDICTS
 from xvoe.evaluation.explanation_quality import hidden_explanations, pick
-from xvoe.evaluation.metrics import VERDICTS
 
 ORDER = [("collision", "S1"), ("collision", "S2"), ("collision", "S3"), ("blocking", "S1"), ("blocking", "S2"),
          ("blocking", "S3"), ("permanence", "S1"), ("permanence", "S2"), ("continuity", "S1"),

@@ -62,9 +62,9 @@ from xvoe.models.perception import ComponentVAE, normalise
 from xvoe.models.phydnet import PhyDNet, PhyDNetObjective
 from xvoe.models.xpl import XPL
 from xvoe.training.data import perception_batch, visible_threshold
+from xvoe.training.latent_batches import LatentBatch
 from xvoe.training.latents import encode_frames
 from xvoe.training.recipes import recipe
-from xvoe.training.xpl import LatentBatch
 
 UNIT = {"perception": "frame", "xpl": "video", "score": "video", "nll": "video", "phydnet": "video"}
 SLOTS, FRAMES = 8, 15

@@ -27,7 +27,7 @@ object is on the whole, not anew each frame, and a proposal narrower than the po
 part of the evidence. The trajectory sites are masked by `exists` in both model and guide, so a
 particle without a hidden object is weighted by p(no object) p(x | no object) / q(no object)
 alone: an exact trans-dimensional importance sampler. Sequential Monte Carlo and importance
-sampling (`inference.smc`) both run these methods through Pyro's trace and replay; no density
+sampling (`inference.model_steps`) both run these methods through Pyro's trace and replay; no density
 is written anywhere else.
 """
 from __future__ import annotations

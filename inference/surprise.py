@@ -18,9 +18,11 @@ from xvoe.models.slots import redraw_slots
 from xvoe.models.xpl import XPL
 from xvoe.resources import check_memory
 
+from .evidence import Evidence, importance_evidence, smc_evidence
+from .hypotheses import Hypotheses, top_hypotheses
 from .identity import Identity, identity_gap, two_objects
 from .model import InferenceConfig, Proposal, drawing_cost
-from .smc import Evidence, Hypotheses, effective_sample_size, importance_evidence, smc_evidence, top_hypotheses
+from .smc import effective_sample_size
 from .xpl_scene import XPLScene
 
 __all__ = ["NLLSurprise", "Seed", "check_particles", "nll_surprise", "HiddenPosterior", "hidden_posterior",
@@ -250,7 +252,7 @@ def explain_surprise(vae: ComponentVAE, xpl: XPL, frames: Tensor, mean: Tensor, 
                      seed: Seed = 0, top: int = 4) -> Surprise:
     """`nll_surprise` with the plural explanation: the `top` heaviest distinct hidden-object
     trajectories after resampling, their weights, and the frames where they disagree
-    (`inference.smc.top_hypotheses`). With importance sampling, the particles that hold an
+    (`inference.hypotheses.top_hypotheses`). With importance sampling, the particles that hold an
     object stand in for them, weighted among themselves."""
     config = config or InferenceConfig()
     result = nll_surprise(vae, xpl, frames, mean, visible, background, occluder, config, method, seed)

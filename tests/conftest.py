@@ -4,10 +4,10 @@ import numpy as np
 import pytest
 from hypothesis import settings
 
-from xvoe.training.loop import KERNELS
+from xvoe.training.distributed import KERNELS
 
 # The training's kernels in this process too, before its first: stages trained here then match
-# those trained in the processes the pipeline starts (xvoe.training.loop.pin_kernels).
+# those trained in the processes the pipeline starts (xvoe.training.distributed.pin_kernels).
 os.environ.update({name: os.environ.get(name, value) for name, value in KERNELS.items()})
 
 from xvoe.scenes import store

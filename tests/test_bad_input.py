@@ -28,7 +28,7 @@ from hypothesis import strategies as st
 
 from xvoe.apps.cli import main
 from xvoe.errors import XvoeError
-from xvoe.evaluation.metrics import read_scores, score_problem
+from xvoe.evaluation.score_tables import read_scores, score_problem
 from xvoe.models.config import _domain_of, field_type, override, parse_field
 from xvoe.models.dynamics import DynamicsConfig
 from xvoe.models.nll import InferenceConfig

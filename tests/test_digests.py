@@ -2,7 +2,7 @@
 bytes on every machine the suite runs on (both machine kinds: with and without AVX-512).
 
 The stages train in a fresh process (tests/digests.py), whose kernels the training pins at its
-start (xvoe.training.loop.KERNELS), with MKL on the one code path it keeps the same across CPU
+start (xvoe.training.distributed.KERNELS), with MKL on the one code path it keeps the same across CPU
 makers (MKL_CBWR=COMPATIBLE), which the training does not pin yet (docs/decisions.md, "One seed,
 one set of weights"). The XPL, proposal and PLATO stages run in one process here, not the
 pipeline's two: the bytes tested are the kernels', which are the same in both.
@@ -13,7 +13,7 @@ import subprocess
 import sys
 from pathlib import Path
 
-from xvoe.training.loop import KERNELS
+from xvoe.training.distributed import KERNELS
 
 # MKL_CBWR=COMPATIBLE python tests/digests.py OUT 1, on an AVX-512 host and on an AMD AVX2 CPU
 # emulated by qemu-x86_64 -cpu EPYC-Rome (docs/decisions.md, "One seed, one set of weights"). PhyDNet's

@@ -1,4 +1,4 @@
-"""Importance sampling of the hidden-object model (`inference.smc.importance_evidence`: the
+"""Importance sampling of the hidden-object model (`inference.evidence.importance_evidence`: the
 frame-by-frame model and guide, never resampled) against closed-form evidence."""
 import math
 import warnings
@@ -10,8 +10,8 @@ import torch
 from pyro import poutine
 from pyro.util import check_model_guide_match
 
+from xvoe.inference.evidence import importance_evidence
 from xvoe.inference.model import HiddenObjectModel, InferenceConfig, Proposal, _fuse, _LinearGaussianScene
-from xvoe.inference.smc import importance_evidence
 
 pytestmark = pytest.mark.usefixtures("double_precision")     # these checks compare to 1e-4
 

@@ -11,19 +11,10 @@ from scipy.stats import mannwhitneyu
 
 from xvoe.apps.report import report
 from xvoe.errors import XvoeError
-from xvoe.evaluation.metrics import (
-    VERDICTS,
-    auc,
-    comparative,
-    disagreements,
-    has_both_surprises,
-    holistic,
-    metric_rows,
-    read_scores,
-    relative,
-    side_by_side,
-)
+from xvoe.evaluation.disagreements import VERDICTS, disagreements, has_both_surprises, side_by_side
+from xvoe.evaluation.metrics import auc, comparative, holistic, metric_rows, relative
 from xvoe.evaluation.resampling import chance_p, values_interval, wilson
+from xvoe.evaluation.score_tables import read_scores
 from xvoe.scenes.generate import GenerateConfig, generate
 
 
@@ -334,7 +325,7 @@ def test_without_the_paper_score_the_metrics_are_as_before():
 
 
 def test_violation_onset_on_hand_made_curves():
-    from xvoe.evaluation.metrics import onset, onset_pairs
+    from xvoe.evaluation.onset import onset, onset_pairs
 
     # two collision S1 pairs (rows: pair 0 possible, impossible; pair 1 possible, impossible), event at frame 2
     scores = {"scenario": np.array(["collision"] * 4), "setting": np.array(["S1"] * 4),

@@ -24,7 +24,7 @@ from xvoe.models.phydnet import (
 )
 from xvoe.scenes.generate import GenerateConfig, generate
 from xvoe.training.config import TrainConfig
-from xvoe.training.loop import Dist
+from xvoe.training.distributed import Dist
 from xvoe.training.phydnet import _VideoBatches, _widen_checkpoint, load_phydnet, train_phydnet
 from xvoe.training.recipes import DEFAULT_RECIPE, RECIPES
 

@@ -13,7 +13,7 @@ from conftest import randomise_dynamics_head
 import xvoe
 from xvoe.apps.cli import main
 from xvoe.evaluation import score as scoring
-from xvoe.evaluation.metrics import read_scores
+from xvoe.evaluation.score_tables import read_scores
 from xvoe.inference.model import InferenceConfig
 from xvoe.inference.score import xpl_nll
 from xvoe.models.dynamics import DynamicsConfig

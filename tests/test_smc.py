@@ -7,16 +7,11 @@ import pytest
 import torch
 from pyro import poutine
 
+from xvoe.inference.evidence import Evidence, smc_evidence, widenings_of
+from xvoe.inference.hypotheses import top_hypotheses
 from xvoe.inference.model import HiddenObjectModel, InferenceConfig, Proposal, _LinearGaussianScene
-from xvoe.inference.smc import (
-    Evidence,
-    ModelSteps,
-    run_smc,
-    smc_evidence,
-    systematic_resample,
-    top_hypotheses,
-    widenings_of,
-)
+from xvoe.inference.model_steps import ModelSteps
+from xvoe.inference.smc import run_smc, systematic_resample
 
 pytestmark = pytest.mark.usefixtures("double_precision")
 
@@ -333,7 +328,7 @@ def test_the_frame_by_frame_weights_are_the_whole_videos_model_over_guide(exists
             f"z_{t}": run.state["trajectory"][:, t] for t in range(scene.frames)}
         joint = poutine.trace(poutine.condition(model.model, data=values)).get_trace(frames, proposal, 4)
         proposed = poutine.trace(poutine.condition(model.guide, data=values)).get_trace(frames, proposal, 4)
-    from xvoe.inference.smc import site_log_probs
+    from xvoe.inference.model_steps import site_log_probs
     proposed.compute_log_prob()         # conditioned, every guide site is observed: pick the proposed ones
     drawn = [name for name in proposed.nodes
              if name.startswith("z_") or name == "two" or (name == "exists" and exists is None)]

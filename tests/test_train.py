@@ -17,7 +17,8 @@ from xvoe.scenes.generate import GenerateConfig, generate
 from xvoe.training.checkpoints import load_checkpoint
 from xvoe.training.config import TrainConfig
 from xvoe.training.data import ShardedFrames
-from xvoe.training.loop import Job, fit, learning_rate, seed_everything
+from xvoe.training.distributed import seed_everything
+from xvoe.training.loop import Job, fit, learning_rate
 from xvoe.training.perception import load_perception, train_perception
 from xvoe.training.recipes import DEFAULT_RECIPE, recipe
 
@@ -210,17 +211,17 @@ def test_a_request_that_lands_during_the_exchange_stops_the_next_step(monkeypatc
     later, or the run trains on after the user asked it to stop."""
     import signal
 
-    from xvoe.training import loop
+    from xvoe.training import distributed
 
-    stops = loop.StopRequests(enabled=False)
-    place = loop.Dist(rank=0, world=2)
+    stops = distributed.StopRequests(enabled=False)
+    place = distributed.Dist(rank=0, world=2)
 
     def exchange(flags, op):            # the other process had no request; ours lands meanwhile
         stops.ask(signal.SIGINT, None)
 
-    monkeypatch.setattr(loop.dist, "all_reduce", exchange)
+    monkeypatch.setattr(distributed.dist, "all_reduce", exchange)
     assert not stops.agreed(place, out_of_time=False) and not stops.asked
-    monkeypatch.setattr(loop.dist, "all_reduce", lambda flags, op: None)
+    monkeypatch.setattr(distributed.dist, "all_reduce", lambda flags, op: None)
     assert stops.agreed(place, out_of_time=False) and stops.asked
     with pytest.raises(KeyboardInterrupt):          # a second request stops at once
         stops.ask(signal.SIGINT, None)

@@ -12,21 +12,18 @@ from xvoe.models.xpl import XPL, XPLConfig
 from xvoe.scenes import store
 from xvoe.scenes.world import WORLD
 from xvoe.training.config import TrainConfig
-from xvoe.training.latents import _Latents, _write_latents
-from xvoe.training.recipes import RECIPES
-from xvoe.training.xpl import (
+from xvoe.training.latent_batches import (
     LatentBatches,
     ProposalBatch,
-    ProposalNetworks,
     bridge_hidden,
-    load_xpl,
-    nll_settings_of,
     object_places,
     outside_picture,
-    train_proposal,
-    train_xpl,
     wall_stays,
 )
+from xvoe.training.latents import _Latents, _write_latents
+from xvoe.training.proposal import ProposalNetworks, train_proposal
+from xvoe.training.recipes import RECIPES
+from xvoe.training.xpl import load_xpl, nll_settings_of, train_xpl
 
 N, T, K, D = 32, 8, 4, 6
 TINY = {"steps": 100, "batch_size": 32, "lr": 3e-3, "warmup_steps": 1, "log_every": 5}
@@ -58,6 +55,7 @@ def tiny_recipe(monkeypatch):
     the joint stage, so that one stage trains every part."""
     from dataclasses import replace
 
+    import xvoe.training.proposal as proposal_stage
     import xvoe.training.xpl as stage
 
     default = RECIPES["cpu-short"]
@@ -68,6 +66,7 @@ def tiny_recipe(monkeypatch):
                                          joint_proposal=True, reasoning=reasoning, dynamics=dynamics),
                     proposal_train=replace(default.proposal_train, focus_group="", focus_share=0.0))
     monkeypatch.setattr(stage, "recipe", lambda name: small)
+    monkeypatch.setattr(proposal_stage, "recipe", lambda name: small)
 
 
 def test_xpl_stage_learns_and_resumes_exactly(cache, tmp_path):

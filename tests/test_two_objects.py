@@ -13,10 +13,11 @@ from test_nll import D, T, tiny_models, video
 
 from xvoe.errors import XvoeError
 from xvoe.evaluation.surprise import draw_scene
+from xvoe.inference.evidence import smc_evidence
 from xvoe.inference.identity import Identity, identity_gap, two_objects
 from xvoe.inference.model import HiddenObjectModel, InferenceConfig, Proposal
+from xvoe.inference.model_steps import empty_branch
 from xvoe.inference.score import under_prior_two
-from xvoe.inference.smc import empty_branch, smc_evidence
 from xvoe.inference.surprise import _hidden_object_scene, nll_surprise
 from xvoe.inference.xpl_scene import XPLScene
 from xvoe.models.slots import _WALL_PIXEL

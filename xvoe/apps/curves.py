@@ -11,8 +11,9 @@ import numpy as np
 from matplotlib.animation import FuncAnimation
 
 from ..errors import XvoeError
-from ..evaluation.metrics import excess, read_scores
+from ..evaluation.metrics import excess
 from ..evaluation.score import MSE_LABEL, check_same_split, read_curves, warn_unchecked
+from ..evaluation.score_tables import read_scores
 from ..fingerprints import split_identity
 from ..scenes import store
 from ..scenes.display import DISPLAY_SIZE, check_display_size, display_video

@@ -170,7 +170,7 @@ def plot_components(rows: list[dict], model: str, metric: str = "comparative") -
 def plot_onset(pairs: dict[str, list[dict]]) -> plt.Figure:
     """Violation onset: for each scenario, how many S1/S3 pairs' surprise difference peaks how
     many frames after the event (0: at the event frame; negative: before it), one series per
-    model (`xvoe.evaluation.metrics.onset_pairs`)."""
+    model (`xvoe.evaluation.onset.onset_pairs`)."""
     scenarios = list(dict.fromkeys(p["scenario"] for found in pairs.values() for p in found))
     if not scenarios:
         raise XvoeError("no S1 or S3 pair with an event frame to time")

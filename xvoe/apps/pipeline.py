@@ -44,9 +44,10 @@ from ..training.launch import on_cores
 from ..training.loop import checkpoint_path
 from ..training.perception import train_perception
 from ..training.phydnet import train_phydnet
+from ..training.proposal import train_proposal
 from ..training.recipes import DEFAULT_RECIPE, RECIPES, Recipe, recipe
 from ..training.stages import DEFAULT_MODELS, MODELS, PERCEPTION, STAGES, continued_by, resting_on
-from ..training.xpl import TRAINED_ON_LATENTS, train_proposal, train_xpl
+from ..training.xpl import TRAINED_ON_LATENTS, train_xpl
 from .explanation_figure import plot_explanation
 from .report import header_lines, report
 from .verbs import with_display

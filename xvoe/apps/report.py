@@ -10,22 +10,18 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import XvoeError
-from ..evaluation.metrics import (
-    ONSET_FIELDS,
+from ..evaluation.disagreements import (
     SURPRISES,
     VERDICTS,
     disagreement_fields,
     disagreements,
     has_both_surprises,
-    metric_rows,
-    model_name,
-    onset,
-    onset_pairs,
-    read_scores,
-    relative_members,
     side_by_side,
 )
+from ..evaluation.metrics import metric_rows, relative_members
+from ..evaluation.onset import ONSET_FIELDS, onset, onset_pairs
 from ..evaluation.score import check_same_split, read_curves, score_header, scored_split, warn_unchecked
+from ..evaluation.score_tables import model_name, read_scores
 from ..fingerprints import describe_split, split_identity
 from ..outputs import (
     claim_directory,

@@ -23,8 +23,8 @@ from ..domains import TIME_LIMIT
 from ..errors import XvoeError
 from ..evaluation.explain import Explanation, explain_drawn
 from ..evaluation.explain import explain as explain_mse
-from ..evaluation.metrics import ScoreTable
 from ..evaluation.score import Scorer, SurpriseModel, as_scorer, merge_scores, prepare_latents, score_split
+from ..evaluation.score_tables import ScoreTable
 from ..evaluation.surprise import EXPLANATIONS
 from ..models.devices import resolve_device
 from ..outputs import claim_file, claim_scope, parts_folder, writing

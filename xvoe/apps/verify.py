@@ -19,7 +19,6 @@ import numpy as np
 from xvoe.inference.score import NLLColumns
 
 from ..errors import XvoeError
-from ..evaluation.metrics import read_columns, scores_digest
 from ..evaluation.score import (
     CURVES,
     check_same_split,
@@ -32,6 +31,7 @@ from ..evaluation.score import (
     score_rows,
     stored_columns,
 )
+from ..evaluation.score_tables import read_columns, scores_digest
 from ..fingerprints import split_identity
 from ..models.config import from_dict, to_dict
 from ..models.nll import InferenceConfig

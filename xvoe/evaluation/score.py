@@ -68,7 +68,8 @@ from ..training.perception import load_perception
 from ..training.phydnet import load_phydnet
 from ..training.xpl import load_xpl, nll_settings_of
 from .checks import check_batches, check_finite, check_spread, sample_rows
-from .metrics import excess, model_name_problem, scores_digest
+from .metrics import excess
+from .score_tables import model_name_problem, scores_digest
 from .surprise import DrawnScene, aggregate, draw_scene, every_explanation
 
 # score, s_img and s_dyn: the default verdict (for XPL, the better of two explanations); paper_score:

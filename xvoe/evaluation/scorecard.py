@@ -28,8 +28,9 @@ from ..errors import XvoeError
 from ..models.perception import ComponentVAE
 from ..scenes.scenarios import SCENARIOS
 from ..training.stages import MODEL_ROLES
+from .disagreements import VERDICTS, has_both_surprises
 from .explanation_quality import expected_videos, ground_truth, hidden_explanations, mae_iou, pick
-from .metrics import VERDICTS, Estimate, comparative, has_both_surprises, holistic, pairs_table, pairwise_win
+from .metrics import Estimate, comparative, holistic, pairs_table, pairwise_win
 from .perception_quality import (
     POOLED,
     PROBE_GOALS,

@@ -29,10 +29,11 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import XvoeError
-from . import store, world
+from . import world
 from .physics import Take, run
 from .render import Video, render
 from .world import Edit, Scene, Thing, ball, cube, wall
+from .writer import Writer, atomic_file, encode, write_attributes
 
 __all__ = ["ball", "cube", "wall", "Violation", "pass_through", "remove", "teleport", "CustomPair", "make_pair",
            "save_pairs", "SETTING_OF_SCHEDULE"]
@@ -147,12 +148,12 @@ def save_pairs(pairs: list[CustomPair], out: str | Path, *, size: int = 64, over
     config = {"custom": True, "size": size, "frames": frames.pop(), "pairs": len(pairs),
               "scenes": [[asdict(thing) for thing in pair.expected.scene.things] for pair in pairs],
               "violations": [asdict(pair.impossible.scene.edits[-1]) for pair in pairs]}
-    with store.atomic_file(out, overwrite) as file:
-        store.write_attributes(file, "test", config, seed=0)
-        writer = store.Writer(file, "test", 2 * len(pairs), config["frames"], size)
+    with atomic_file(out, overwrite) as file:
+        write_attributes(file, "test", config, seed=0)
+        writer = Writer(file, "test", 2 * len(pairs), config["frames"], size)
         for index, pair in enumerate(pairs):
             for member, (take, video) in enumerate(zip(pair.takes, pair.render(size))):
-                writer.add(store.encode(video, {"scenario": pair.name, "setting": pair.setting, "pair": index,
+                writer.add(encode(video, {"scenario": pair.name, "setting": pair.setting, "pair": index,
                                                 "member": member, "possible": take.possible,
                                                 "event_frame": take.event_frame}))
         writer.finish()

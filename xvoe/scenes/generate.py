@@ -27,6 +27,7 @@ from ..resources import check_disk, check_memory, check_workers
 from . import store
 from .render import Video, render
 from .scenarios import SCENARIOS, TEST_SETTINGS, TRAINING_GROUPS
+from .writer import EncodedVideo, Writer, atomic_file, copy_videos, encode, held_per_video, write_attributes
 
 TRAINING_VARIANTS = tuple((group, with_wall) for group in TRAINING_GROUPS for with_wall in (True, False))
 _SPLIT_CODE = {"train": 0, "test": 1}
@@ -69,9 +70,9 @@ def unit_rng(config: GenerateConfig, unit: int) -> np.random.Generator:
     return np.random.default_rng(np.random.SeedSequence(key))
 
 
-def make_unit(config: GenerateConfig, unit: int) -> list[store.EncodedVideo]:
+def make_unit(config: GenerateConfig, unit: int) -> list[EncodedVideo]:
     """Simulate, render and compress the video(s) of one unit."""
-    return [store.encode(video, labels) for video, labels in render_unit(config, unit)]
+    return [encode(video, labels) for video, labels in render_unit(config, unit)]
 
 
 def render_unit(config: GenerateConfig, unit: int) -> list[tuple[Video, dict]]:
@@ -109,14 +110,14 @@ def generate(config: GenerateConfig, out: str | Path, workers: int = 1, shard: t
     check_workers(workers)
     units = shard_units(config, shard)
     count = len(units) * config.videos_per_unit
-    check_memory(count * store.held_per_video(config.frames), f"a split of {count:,} videos")
+    check_memory(count * held_per_video(config.frames), f"a split of {count:,} videos")
     check_disk(count * _least_bytes_per_video(config), out, f"a split of {count:,} videos")
-    with store.atomic_file(out, overwrite) as file:
-        store.write_attributes(file, config.split, config.to_dict(), config.seed)
+    with atomic_file(out, overwrite) as file:
+        write_attributes(file, config.split, config.to_dict(), config.seed)
         if shard != (0, 1):
             file.attrs["shard"] = f"{shard[0]}/{shard[1]}"
             file.attrs["first_unit"] = units.start
-        writer = store.Writer(file, config.split, count, config.frames, config.size)
+        writer = Writer(file, config.split, count, config.frames, config.size)
         bar = progress_bar(total=count, unit="video", desc=f"generate {config.split}", disable=not progress)
         for videos in _map(partial(make_unit, config), units, workers):
             for video in videos:
@@ -172,11 +173,11 @@ def merge(parts: list[str | Path], out: str | Path, overwrite: bool = False, pro
             raise XvoeError(f"shards {found} do not make up 0..{count - 1} exactly once")
         config = GenerateConfig(**store.config_of(first))
         total = sum(file["rgbd"].shape[0] for _, _, file in shards)
-        with store.atomic_file(out, overwrite) as target:
-            store.write_attributes(target, config.split, config.to_dict(), config.seed)
-            writer = store.Writer(target, config.split, total, config.frames, config.size)
+        with atomic_file(out, overwrite) as target:
+            write_attributes(target, config.split, config.to_dict(), config.seed)
+            writer = Writer(target, config.split, total, config.frames, config.size)
             for _, _, file in progress_bar(shards, desc="merge", unit="shard", disable=not progress):
-                store.copy_videos(file, writer)
+                copy_videos(file, writer)
             writer.finish()
     finally:
         for file in files:

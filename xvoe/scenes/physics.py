@@ -16,6 +16,8 @@ import pymunk
 
 from .world import DURATION, FLOOR, GRAVITY, WALL_KINDS, Scene
 
+__all__ = ["SUBSTEPS", "Take", "Trajectory", "run", "simulate"]
+
 BALL, CUBE, GROUND = 1, 2, 3
 SUBSTEPS = 20
 
@@ -40,73 +42,17 @@ class Trajectory:
 
 def simulate(scene: Scene, frames: int, substeps: int = SUBSTEPS) -> Trajectory:
     """Simulate `scene` for `frames` frames spread over DURATION seconds."""
-    space = pymunk.Space()
-    space.gravity = (0.0, -GRAVITY)
-    space.collision_slop = 0.01             # resting contacts sink by at most this much
-    floor = pymunk.Segment(space.static_body, (-1e4, FLOOR - 1.0), (1e4, FLOOR - 1.0), 1.0)
-    floor.friction = 1.0
-    floor.elasticity = 0.0
-    floor.collision_type = GROUND
-    space.add(floor)
+    space = _space()
+    bodies, shapes = _add_things(space, scene)
+    contacts = _Contacts(bodies, shapes)
+    space.on_collision(BALL, BALL, begin=contacts.balls_meet)
+    space.on_collision(BALL, CUBE, begin=contacts.ball_meets_cube)
+    space.on_collision(CUBE, GROUND, begin=contacts.cube_lands)
 
     n = len(scene.things)
-    bodies: dict[int, pymunk.Body] = {}
-    shapes: dict[int, pymunk.Shape] = {}
-    for i, thing in enumerate(scene.things):
-        if thing.kind in WALL_KINDS or not thing.exists:
-            continue
-        body, shape = _make_body(thing)
-        space.add(body, shape)
-        bodies[i], shapes[i] = body, shape
-    owner = {id(body): i for i, body in bodies.items()}
-
-    ghosts: set[frozenset[int]] = set()
-    contacts: list[tuple[int, int, int]] = []
-    clock = {"frame": 0}
-
-    def pair_of(arbiter: pymunk.Arbiter) -> tuple[int, int]:
-        a, b = arbiter.bodies
-        return owner[id(a)], owner[id(b)]
-
-    def balls_meet(arbiter: pymunk.Arbiter, _space: pymunk.Space, _data) -> None:
-        arbiter.process_collision = False
-        i, j = pair_of(arbiter)
-        if frozenset((i, j)) in ghosts:
-            return
-        a, b = bodies[i], bodies[j]
-        a.velocity, b.velocity = b.velocity, a.velocity
-        a.angular_velocity, b.angular_velocity = b.angular_velocity, a.angular_velocity
-        contacts.append((clock["frame"], i, j))
-
-    def ball_meets_cube(arbiter: pymunk.Arbiter, _space: pymunk.Space, _data) -> None:
-        i, j = pair_of(arbiter)
-        if frozenset((i, j)) in ghosts:
-            arbiter.process_collision = False
-            return
-        ball_index = i if shapes[i].collision_type == BALL else j
-        cube_index = j if ball_index == i else i
-        if bodies[cube_index].body_type != pymunk.Body.STATIC:
-            return          # a loose cube: let the solver handle it
-        arbiter.process_collision = False
-        ball = bodies[ball_index]
-        ball.velocity = (-ball.velocity.x, ball.velocity.y)
-        ball.angular_velocity = -ball.angular_velocity
-        contacts.append((clock["frame"], ball_index, cube_index))
-
-    def cube_lands(arbiter: pymunk.Arbiter, _space: pymunk.Space, _data) -> None:
-        # A falling cube stops dead on the floor instead of sinking into it for a frame.
-        body = next(b for b in arbiter.bodies if b.body_type == pymunk.Body.DYNAMIC)
-        half = shapes[owner[id(body)]].bb.top - body.position.y
-        body.position = (body.position.x, FLOOR + half)
-        body.velocity = (body.velocity.x, 0.0)
-
-    space.on_collision(BALL, BALL, begin=balls_meet)
-    space.on_collision(BALL, CUBE, begin=ball_meets_cube)
-    space.on_collision(CUBE, GROUND, begin=cube_lands)
-
-    position = np.zeros((frames, n, 2))
-    velocity = np.zeros((frames, n, 2))
-    angle = np.zeros((frames, n))
+    position = np.zeros((frames, n, 2))     # (T, n, 2)
+    velocity = np.zeros((frames, n, 2))     # (T, n, 2)
+    angle = np.zeros((frames, n))           # (T, n)
     present = np.zeros((frames, n), dtype=bool)
     for i, thing in enumerate(scene.things):     # walls and absent things keep their spec
         position[:, i] = (thing.x, thing.y)
@@ -116,10 +62,10 @@ def simulate(scene: Scene, frames: int, substeps: int = SUBSTEPS) -> Trajectory:
 
     for frame in range(frames):
         if frame > 0:
-            clock["frame"] = frame
+            contacts.frame = frame
             for edit in edits:
                 if edit.frame == frame:
-                    _apply(edit, space, bodies, shapes, ghosts)
+                    _apply(edit, space, bodies, shapes, contacts.ghosts)
             for _ in range(substeps):
                 space.step(dt)
         for i, body in bodies.items():
@@ -129,7 +75,81 @@ def simulate(scene: Scene, frames: int, substeps: int = SUBSTEPS) -> Trajectory:
             velocity[frame, i] = body.velocity
             angle[frame, i] = body.angle
             present[frame, i] = True
-    return Trajectory(position, velocity, angle, present, contacts)
+    return Trajectory(position, velocity, angle, present, contacts.found)
+
+
+def _space() -> pymunk.Space:
+    """An empty world with gravity and the floor."""
+    space = pymunk.Space()
+    space.gravity = (0.0, -GRAVITY)
+    space.collision_slop = 0.01             # resting contacts sink by at most this much
+    floor = pymunk.Segment(space.static_body, (-1e4, FLOOR - 1.0), (1e4, FLOOR - 1.0), 1.0)
+    floor.friction = 1.0
+    floor.elasticity = 0.0
+    floor.collision_type = GROUND
+    space.add(floor)
+    return space
+
+
+def _add_things(space: pymunk.Space, scene: Scene) -> tuple[dict[int, pymunk.Body], dict[int, pymunk.Shape]]:
+    """The bodies and shapes of the scene's things that exist, by index; walls are never simulated."""
+    bodies: dict[int, pymunk.Body] = {}
+    shapes: dict[int, pymunk.Shape] = {}
+    for i, thing in enumerate(scene.things):
+        if thing.kind in WALL_KINDS or not thing.exists:
+            continue
+        body, shape = _make_body(thing)
+        space.add(body, shape)
+        bodies[i], shapes[i] = body, shape
+    return bodies, shapes
+
+
+class _Contacts:
+    """The contacts resolved exactly rather than by the solver, and the list of them by frame;
+    `ghosts` holds the pairs an edit lets pass through each other."""
+
+    def __init__(self, bodies: dict[int, pymunk.Body], shapes: dict[int, pymunk.Shape]):
+        self.bodies, self.shapes = bodies, shapes
+        self.owner = {id(body): i for i, body in bodies.items()}
+        self.ghosts: set[frozenset[int]] = set()
+        self.found: list[tuple[int, int, int]] = []     # (frame, a, b)
+        self.frame = 0
+
+    def _pair(self, arbiter: pymunk.Arbiter) -> tuple[int, int]:
+        a, b = arbiter.bodies
+        return self.owner[id(a)], self.owner[id(b)]
+
+    def balls_meet(self, arbiter: pymunk.Arbiter, _space: pymunk.Space, _data) -> None:
+        arbiter.process_collision = False
+        i, j = self._pair(arbiter)
+        if frozenset((i, j)) in self.ghosts:
+            return
+        a, b = self.bodies[i], self.bodies[j]
+        a.velocity, b.velocity = b.velocity, a.velocity
+        a.angular_velocity, b.angular_velocity = b.angular_velocity, a.angular_velocity
+        self.found.append((self.frame, i, j))
+
+    def ball_meets_cube(self, arbiter: pymunk.Arbiter, _space: pymunk.Space, _data) -> None:
+        i, j = self._pair(arbiter)
+        if frozenset((i, j)) in self.ghosts:
+            arbiter.process_collision = False
+            return
+        ball_index = i if self.shapes[i].collision_type == BALL else j
+        cube_index = j if ball_index == i else i
+        if self.bodies[cube_index].body_type != pymunk.Body.STATIC:
+            return          # a loose cube: let the solver handle it
+        arbiter.process_collision = False
+        ball = self.bodies[ball_index]
+        ball.velocity = (-ball.velocity.x, ball.velocity.y)
+        ball.angular_velocity = -ball.angular_velocity
+        self.found.append((self.frame, ball_index, cube_index))
+
+    def cube_lands(self, arbiter: pymunk.Arbiter, _space: pymunk.Space, _data) -> None:
+        """A falling cube stops dead on the floor instead of sinking into it for a frame."""
+        body = next(b for b in arbiter.bodies if b.body_type == pymunk.Body.DYNAMIC)
+        half = self.shapes[self.owner[id(body)]].bb.top - body.position.y
+        body.position = (body.position.x, FLOOR + half)
+        body.velocity = (body.velocity.x, 0.0)
 
 
 def _make_body(thing) -> tuple[pymunk.Body, pymunk.Shape]:

@@ -25,6 +25,7 @@ from .render import STATE_COLUMNS
 from .scenarios import SCENARIOS
 from .tfrecord import TFRecordError, parse_example, parse_tensor, records
 from .world import KIND_NAMES, MAX_SLOTS
+from .writer import Writer, atomic_file, encode, write_attributes
 
 __all__ = ["SOURCE_NAME", "import_released"]
 
@@ -68,9 +69,9 @@ def import_released(source: str | os.PathLike, split: str, out: str | os.PathLik
               **({"source_size": int(native), "resampled": _RESAMPLING} if size != native else {}),
               **({"pairs": per_block} if split == "test" else {"videos": total})}
     overlapped = 0
-    with store.atomic_file(out, overwrite) as file:
+    with atomic_file(out, overwrite) as file:
         _write_attributes(file, split, config)
-        writer = store.Writer(file, split, total, int(frames), size)
+        writer = Writer(file, split, total, int(frames), size)
         bar = progress_bar(total=total, unit="video", desc=f"import {split}", disable=not progress)
         offset = 0
         for part, count in zip(parts, counts):
@@ -82,7 +83,7 @@ def import_released(source: str | os.PathLike, split: str, out: str | os.PathLik
                 overlapped += shared
                 if size != native:
                     image, ids = _downsample(image, ids, size)
-                writer.add(store.encode(_as_video(image, ids), labels), at=at)
+                writer.add(encode(_as_video(image, ids), labels), at=at)
                 bar.update()
             offset += count
         bar.close()
@@ -256,7 +257,7 @@ def _train_labels(masks: np.ndarray) -> dict:
 
 @dataclass
 class _Video:
-    """What store.encode reads of a rendered video."""
+    """What writer.encode reads of a rendered video."""
 
     rgbd: np.ndarray
     ids: np.ndarray
@@ -357,7 +358,7 @@ def _as_video(image: np.ndarray, ids: np.ndarray) -> _Video:
 
 def _write_attributes(file: h5py.File, split: str, config: dict) -> None:
     """The schema's attributes; what the release does not record (its seed, its depth scale) is -1 or NaN."""
-    store.write_attributes(file, split, config, -1)
+    write_attributes(file, split, config, -1)
     file.attrs["generator_version"] = f"import of the {SOURCE_NAME}"
     file.attrs["kind_names"] = list(_IMPORTED_KINDS)
     file.attrs["depth_far"] = np.nan

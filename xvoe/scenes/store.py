@@ -1,133 +1,34 @@
-"""HDF5 storage of a split: the schema every other part of xvoe reads.
+"""HDF5 storage of a split: the schema every other part of xvoe reads, opened and checked.
 
-One file per split. `rgbd` (N,T,H,W,4) and `ids` (N,T,H,W) are chunked one video per
-chunk and deflate-compressed; the chunks are compressed by the workers that render them
-and written as they are (`write_direct_chunk`), so the writer never becomes the bottleneck
-and the bytes do not depend on the number of workers. Small per-video arrays are kept in
-memory and written at the end. A file is written under a temporary name and renamed when
-complete, so a crash never leaves a half-written file that looks valid.
+One file per split (written by `writer`): `rgbd` (N,T,H,W,4) and `ids` (N,T,H,W) one video per
+compressed chunk, the small per-video arrays (`states`, `kind`, `color`) and one label column
+per video. Opening a split checks its shapes, types and labels in one cheap pass
+(`open_dataset`); every video's pixels and states are checked where they are read
+(`read_frames`, `read_states`).
 """
 from __future__ import annotations
 
 import json
 import os
-import zlib
-from collections.abc import Iterator
-from contextlib import contextmanager
-from dataclasses import dataclass, field
 from pathlib import Path
 
 import h5py
 import numpy as np
 
 from ..errors import XvoeError
-from ..outputs import atomic_paths, claim_file, claim_scope
 from ..resources import memory_problem
-from .render import DEPTH_FAR, STATE_COLUMNS, Video
 from .scenarios import SCENARIOS, TRAINING_GROUPS
-from .world import KIND_NAMES, MAX_SLOTS, WALL_KINDS
+from .world import WALL_KINDS
+
+__all__ = ["GENERATOR_VERSION", "SCHEMA_VERSION", "SPLITS", "TEST_LABELS", "TRAIN_LABELS", "config_of", "damaged",
+           "labels", "open_dataset", "open_hdf5", "pair_labels_problem", "read_frames", "read_states", "strings",
+           "wall_mask"]
 
 SCHEMA_VERSION = 1
 GENERATOR_VERSION = "1.0"
-DEFLATE_LEVEL = 2            # higher levels cost far more time for little (docs/decisions.md, "Speed and memory")
 TEST_LABELS = ("scenario", "setting", "pair", "member", "possible", "event_frame")
 TRAIN_LABELS = ("group", "has_wall", "event_frame")
 SPLITS = ("train", "test")
-
-
-@dataclass
-class EncodedVideo:
-    """A rendered video with its big arrays already compressed, ready for the writer."""
-
-    rgbd: bytes
-    ids: bytes
-    states: np.ndarray
-    kind: np.ndarray
-    color: np.ndarray
-    labels: dict = field(default_factory=dict)
-
-
-def encode(video: Video, labels: dict) -> EncodedVideo:
-    return EncodedVideo(zlib.compress(video.rgbd.tobytes(), DEFLATE_LEVEL),
-                        zlib.compress(video.ids.tobytes(), DEFLATE_LEVEL),
-                        video.states, video.kind, video.color, labels)
-
-
-def _label_dtype(name: str):
-    if name in ("scenario", "setting", "group"):
-        return h5py.string_dtype("utf-8")
-    if name in ("possible", "has_wall"):
-        return np.bool_
-    if name in ("pair", "event_frame"):
-        return np.int32
-    return np.int8
-
-
-def held_per_video(frames: int) -> int:
-    """Bytes a `Writer` holds in memory per video until it finishes (the states, kinds, colours
-    and labels; the frames go to disk as they come), for a size to be checked before the work."""
-    return frames * MAX_SLOTS * len(STATE_COLUMNS) * 4 + MAX_SLOTS * 4 + 8 * 64
-
-
-class Writer:
-    """Fills the datasets of one split file, video by video, in index order."""
-
-    def __init__(self, file: h5py.File, split: str, count: int, frames: int, size: int):
-        self.file, self.split, self.count = file, split, count
-        kwargs = dict(compression="gzip", compression_opts=DEFLATE_LEVEL, track_times=False)
-        self.rgbd = file.create_dataset("rgbd", (count, frames, size, size, 4), np.uint8,
-                                        chunks=(1, frames, size, size, 4), **kwargs)
-        self.ids = file.create_dataset("ids", (count, frames, size, size), np.uint8,
-                                       chunks=(1, frames, size, size), **kwargs)
-        self.states = np.zeros((count, frames, MAX_SLOTS, len(STATE_COLUMNS)), np.float32)
-        self.kind = np.zeros((count, MAX_SLOTS), np.int8)
-        self.color = np.zeros((count, MAX_SLOTS, 3), np.uint8)
-        names = TEST_LABELS if split == "test" else TRAIN_LABELS
-        self.labels = {name: [None] * count for name in names}
-        self.written = 0
-
-    def add(self, video: EncodedVideo, at: int | None = None) -> None:
-        """Store the next video, or with `at` the video of that row (an import whose source
-        order is not the schema's)."""
-        i = self.written if at is None else at
-        self.rgbd.id.write_direct_chunk((i, 0, 0, 0, 0), video.rgbd)
-        self.ids.id.write_direct_chunk((i, 0, 0, 0), video.ids)
-        self.states[i], self.kind[i], self.color[i] = video.states, video.kind, video.color
-        for name, values in self.labels.items():
-            values[i] = video.labels[name]
-        self.written += 1
-
-    def finish(self) -> None:
-        if self.written != self.count:
-            raise XvoeError(f"only {self.written} of {self.count} videos were written")
-        small = dict(track_times=False)
-        self.file.create_dataset("states", data=self.states, **small).attrs["state_columns"] = list(STATE_COLUMNS)
-        self.file.create_dataset("kind", data=self.kind, **small)
-        self.file.create_dataset("color", data=self.color, **small)
-        for name, values in self.labels.items():
-            self.file.create_dataset(name, data=np.array(values, dtype=_label_dtype(name)), **small)
-
-
-@contextmanager
-def atomic_file(path: str | os.PathLike, overwrite: bool = False) -> Iterator[h5py.File]:
-    """An HDF5 file open for writing under a temporary name, renamed to `path` on success;
-    `path` is held from the claim to the rename (xvoe.outputs). With no chunk cache: each chunk
-    is written whole as it comes, so a full disk fails that write; a cached chunk whose write
-    fails as the dataset closes leaves HDF5 to crash the process at the file's close."""
-    with claim_scope():
-        path = claim_file(path, overwrite)
-        with atomic_paths(path) as (tmp,), h5py.File(tmp, "w", track_order=False, rdcc_nbytes=0) as file:
-            yield file
-
-
-def write_attributes(file: h5py.File, split: str, config: dict, seed: int) -> None:
-    file.attrs["xvoe_schema"] = SCHEMA_VERSION
-    file.attrs["generator_version"] = GENERATOR_VERSION
-    file.attrs["split"] = split
-    file.attrs["seed"] = seed
-    file.attrs["config"] = json.dumps(config, sort_keys=True)
-    file.attrs["kind_names"] = list(KIND_NAMES)
-    file.attrs["depth_far"] = DEPTH_FAR
 
 
 def open_hdf5(path: str | os.PathLike) -> h5py.File:
@@ -144,7 +45,7 @@ def open_hdf5(path: str | os.PathLike) -> h5py.File:
 
 
 def open_dataset(path: str | os.PathLike, split: str | None = None) -> h5py.File:
-    """Open an xvoe split file for reading, or say in one line why it is not one (`schema_problem`);
+    """Open an xvoe split file for reading, or say in one line why it is not one (`_schema_problem`);
     with `split`, it must be that split."""
     file = open_hdf5(path)
     version = file.attrs.get("xvoe_schema")
@@ -153,7 +54,7 @@ def open_dataset(path: str | os.PathLike, split: str | None = None) -> h5py.File
     elif int(version) != SCHEMA_VERSION:
         problem = f"has xvoe schema version {int(version)}; this xvoe reads version {SCHEMA_VERSION}"
     else:
-        problem = schema_problem(file) or value_problem(file)
+        problem = _schema_problem(file) or _value_problem(file)
     if problem is None and split is not None and file.attrs["split"] != split:
         problem = (f"is a {file.attrs['split']} split; this needs a {split} split"
                    + (" (training on impossible events is refused)" if split == "train" else ""))
@@ -164,14 +65,14 @@ def open_dataset(path: str | os.PathLike, split: str | None = None) -> h5py.File
 
 
 # the datasets of every split: (dims, numpy kind) per dataset; the uint8 ones exactly so, since
-# their type is what bounds their values (value_problem reads none of those pixels)
-ARRAYS = {"rgbd": (5, "u"), "ids": (4, "u"), "states": (4, "f"), "kind": (2, "i"), "color": (3, "u")}
-UINT8 = ("rgbd", "ids", "color")
-LABEL_KINDS = {"scenario": "O", "setting": "O", "group": "O", "possible": "b", "has_wall": "b",
+# their type is what bounds their values (_value_problem reads none of those pixels)
+_ARRAYS = {"rgbd": (5, "u"), "ids": (4, "u"), "states": (4, "f"), "kind": (2, "i"), "color": (3, "u")}
+_UINT8 = ("rgbd", "ids", "color")
+_LABEL_KINDS = {"scenario": "O", "setting": "O", "group": "O", "possible": "b", "has_wall": "b",
                "pair": "i", "member": "i", "event_frame": "i"}
 
 
-def schema_problem(file: h5py.File) -> str | None:
+def _schema_problem(file: h5py.File) -> str | None:
     """What makes an open HDF5 file not a valid split, in a few words, or None: the split
     attribute, every dataset there with the right rank and type, the frames RGBD, one row per
     video in every dataset and label. Shapes and types only: no video is read."""
@@ -188,10 +89,10 @@ def schema_problem(file: h5py.File) -> str | None:
     if not isinstance(config, dict):
         return "has a config attribute that is not a JSON object"
     labels = TEST_LABELS if split == "test" else TRAIN_LABELS
-    for name, (dims, kind) in ARRAYS.items():
+    for name, (dims, kind) in _ARRAYS.items():
         if name not in file or not isinstance(file[name], h5py.Dataset):
             return f"has no {name} dataset"
-        if name in UINT8 and file[name].dtype != np.uint8:
+        if name in _UINT8 and file[name].dtype != np.uint8:
             return f"has a {name} dataset of type {file[name].dtype}; xvoe stores {name} as uint8 (0..255)"
         if file[name].ndim != dims or file[name].dtype.kind != kind:
             return f"has a {name} dataset of shape {file[name].shape} and type {file[name].dtype}, not {dims}-D {kind}"
@@ -211,13 +112,13 @@ def schema_problem(file: h5py.File) -> str | None:
         if name not in file or not isinstance(file[name], h5py.Dataset):
             return f"has no {name} label (a {split} split has {', '.join(labels)})"
         found = "O" if h5py.check_string_dtype(file[name].dtype) else file[name].dtype.kind
-        if file[name].shape != (count,) or found != LABEL_KINDS[name]:
+        if file[name].shape != (count,) or found != _LABEL_KINDS[name]:
             return (f"has a {name} label of shape {file[name].shape} and type {file[name].dtype}; "
-                    f"expected one per video ({count}) of kind {LABEL_KINDS[name]}")
-    return labels_memory_problem(file, labels)
+                    f"expected one per video ({count}) of kind {_LABEL_KINDS[name]}")
+    return _labels_memory_problem(file, labels)
 
 
-def labels_memory_problem(file: h5py.File, labels: tuple[str, ...]) -> str | None:
+def _labels_memory_problem(file: h5py.File, labels: tuple[str, ...]) -> str | None:
     """Whether the states and labels, which commands read whole, fit in this machine's memory:
     a split declaring more videos than it could hold is refused on opening, not at the read."""
     arrays = sum(file[name].size * file[name].dtype.itemsize for name in ("states", "kind", "color"))
@@ -230,12 +131,12 @@ def labels_memory_problem(file: h5py.File, labels: tuple[str, ...]) -> str | Non
 _TEXT_BYTES = 64        # a label's text, read as a Python string
 
 
-def value_problem(file: h5py.File) -> str | None:
+def _value_problem(file: h5py.File) -> str | None:
     """What makes the values of a split of the right schema wrong, in a few words, or None.
 
     Fast on a split of 10,000 videos (under 0.1 s on one core), since every command opens its split
     and each data-loading worker opens it again: the labels and the kind map are read whole (a
-    few bytes a video), the pixels are bounded by their type (uint8, `schema_problem`) and only
+    few bytes a video), the pixels are bounded by their type (uint8, `_schema_problem`) and only
     the slot ids of the first and last video are read, a cheap pass that finds ids written by
     another program without decompressing the whole split. Every other video's ids and states
     are checked where they are read (`read_frames`, `read_states`), at a few milliseconds a
@@ -252,7 +153,7 @@ def value_problem(file: h5py.File) -> str | None:
     if len(columns) != file["states"].shape[3] or not {"x", "y", "present", "visible"} <= set(columns):
         return f"has states columns {columns}; expected one name per column, x, y, present and visible among them"
     if file.attrs["split"] == "train":
-        return training_labels_problem(labels(file, TRAIN_LABELS), file["rgbd"].shape[1])
+        return _training_labels_problem(labels(file, TRAIN_LABELS), file["rgbd"].shape[1])
     return pair_labels_problem(labels(file, TEST_LABELS), file["rgbd"].shape[1], bool(config_of(file).get("custom")))
 
 
@@ -264,7 +165,7 @@ def _event_problem(event_frame: np.ndarray, frames: int) -> str | None:
     return None
 
 
-def training_labels_problem(found: dict[str, np.ndarray], frames: int) -> str | None:
+def _training_labels_problem(found: dict[str, np.ndarray], frames: int) -> str | None:
     """What is wrong with a training split's labels, or None: known groups (`released` for
     the paper's imported videos), event frames within the frames."""
     groups = (*TRAINING_GROUPS, "released")
@@ -320,7 +221,7 @@ def read_frames(file: h5py.File, name: str, start: int, stop: int | None = None)
     """`file[name][start:stop]` (`file[name][start]` without `stop`) of a split's per-video
     frames (`rgbd`, `ids`), or a one-line error naming the file and the first video whose
     chunk cannot be read (damaged on disk) or, for `ids`, whose slot ids run past the split's
-    slots: every video is checked where it is read, as `value_problem` reads only two."""
+    slots: every video is checked where it is read, as `_value_problem` reads only two."""
     try:
         found = file[name][start] if stop is None else file[name][start:stop]
     except OSError:
@@ -389,31 +290,4 @@ def strings(file: h5py.File, name: str) -> np.ndarray:
 
 def labels(file: h5py.File, names: tuple[str, ...]) -> dict[str, np.ndarray]:
     """The named label columns of every video, string ones as str (`strings`)."""
-    return {name: strings(file, name) if LABEL_KINDS[name] == "O" else file[name][:] for name in names}
-
-
-def _checked_chunk(source: h5py.File, name: str, video: int) -> bytes:
-    """The compressed chunk of `video`'s `name` as stored, decompressed once to check it: a
-    damaged chunk copied unread would only fail whoever reads the merged split."""
-    dataset = source[name]
-    try:
-        mask, chunk = dataset.id.read_direct_chunk((video,) + (0,) * (dataset.ndim - 1))
-        whole = len(zlib.decompress(chunk)) == np.prod(dataset.chunks) * dataset.dtype.itemsize
-    except (OSError, zlib.error):
-        whole = False
-    if not whole or mask:       # a filter skipped (mask) is not how xvoe writes a chunk either
-        raise XvoeError(damaged(source.filename, name, video))
-    return chunk
-
-
-def copy_videos(source: h5py.File, writer: Writer) -> None:
-    """Append every video of `source` to `writer`, moving the compressed chunks as they are
-    (each checked on the way, `_checked_chunk`)."""
-    states, kind, color = source["states"][:], source["kind"][:], source["color"][:]
-    labels = {name: source[name].asstr()[:] if source[name].dtype.kind == "O" else source[name][:]
-              for name in writer.labels}
-    for i in range(states.shape[0]):
-        rgbd = _checked_chunk(source, "rgbd", i)
-        ids = _checked_chunk(source, "ids", i)
-        writer.add(EncodedVideo(rgbd, ids, states[i], kind[i], color[i],
-                                {name: values[i] for name, values in labels.items()}))
+    return {name: strings(file, name) if _LABEL_KINDS[name] == "O" else file[name][:] for name in names}

@@ -40,6 +40,7 @@ from ..models.perception import ComponentVAE, normalise
 from ..outputs import claim_file, claim_scope
 from ..progress import progress_bar
 from ..scenes import store
+from ..scenes.writer import atomic_file
 from .data import check_size, masked_inputs, visible_threshold
 from .perception import load_perception
 from .recipes import recipe_of
@@ -79,7 +80,7 @@ def _sha256_of(path: str | os.PathLike) -> str:
 
 def _write_latents(path: str | os.PathLike, latents: _Latents, overwrite: bool = False) -> Path:
     """Write a cache atomically (temporary name, then rename)."""
-    with store.atomic_file(path, overwrite=overwrite) as file:
+    with atomic_file(path, overwrite=overwrite) as file:
         for name in _ARRAYS:
             array = getattr(latents, name)
             file.create_dataset(name, data=array, track_times=False, **_compressed(array))

@@ -17,7 +17,7 @@ import torch.multiprocessing as mp
 
 from ..errors import XvoeError
 from ..processes import end_with_parent, interrupts_held
-from .loop import StopRequests
+from .distributed import StopRequests
 from .recipes import RECIPES, Recipe
 
 # how long the other processes get to end on their own once one has ended with an error or a stop

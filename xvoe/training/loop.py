@@ -4,7 +4,8 @@ A stage hands over a `Job`: its model, a function from step to the local batch, 
 config as JSON. The loop owns the rest: the optimiser and learning-rate schedule, the
 progress bar, a CSV of losses beside the checkpoint, atomic checkpoints (config, step, model
 or its moving average, optimiser and RNG states) every few minutes, exact resumption, and
-running under `torchrun --nproc_per_node N` with DistributedDataParallel (gloo on CPU, nccl on GPU).
+running under `torchrun --nproc_per_node N` with DistributedDataParallel (gloo on CPU, nccl on
+GPU; the process's own setup is `distributed`).
 
 Batches are drawn from generators seeded by (seed, step, shard), so a resumed run repeats
 no batch and skips none, and N processes compute the gradient of the same global batch as
@@ -16,11 +17,10 @@ import csv
 import io
 import os
 import random
-import signal
-import threading
 import time
 import warnings
 from collections.abc import Callable
+from contextlib import AbstractContextManager
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -28,17 +28,20 @@ from typing import Any
 import numpy as np
 import torch
 import torch.distributed as dist
-from torch import nn
+from torch import Tensor, nn
 
 from ..domains import check_config
 from ..errors import XvoeError
-from ..models.config import override, to_dict
-from ..models.devices import mixed_precision, resolve_device
+from ..models.config import to_dict
+from ..models.devices import mixed_precision
 from ..outputs import claim_directory, claim_file, claim_scope
 from ..progress import progress_bar
-from ..resources import check_memory, cores
+from ..resources import check_memory
 from .checkpoints import CHECKPOINT_FORMAT, first_not_finite, load_checkpoint, load_weights, save_checkpoint
 from .config import TrainConfig
+from .distributed import Dist, StopRequests
+
+__all__ = ["Job", "checkpoint_path", "fit", "learning_rate"]
 
 
 @dataclass
@@ -54,42 +57,6 @@ class Job:
     item_bytes: int = 0                           # bytes of one item of a batch as the model reads it (0: unknown)
 
 
-@dataclass
-class Dist:
-    """Where this process sits in a torchrun launch (rank 0 of 1 when run alone)."""
-
-    rank: int = 0
-    world: int = 1
-    local_rank: int = 0
-    device: torch.device = field(default_factory=lambda: torch.device("cpu"))
-
-    @property
-    def main(self) -> bool:
-        return self.rank == 0
-
-
-def setup_distributed(device: str | torch.device = "cpu") -> Dist:
-    """Join the process group torchrun set up, if any, on `device`; "cuda" without a number is
-    each process's own GPU (its local rank's)."""
-    world = int(os.environ.get("WORLD_SIZE", "1"))
-    rank, local_rank = int(os.environ.get("RANK", "0")), int(os.environ.get("LOCAL_RANK", "0"))
-    chosen = resolve_device(device)
-    cuda = chosen.type == "cuda"
-    if cuda:
-        chosen = torch.device("cuda", local_rank if chosen.index is None else chosen.index)
-        torch.cuda.set_device(chosen)
-    if world > 1 and not dist.is_initialized():
-        dist.init_process_group("nccl" if cuda else "gloo")
-    return Dist(rank, world, local_rank, chosen)
-
-
-def set_threads(config: TrainConfig, local_world: int) -> None:
-    """Share the cores between the processes of this machine: config.threads, else
-    OMP_NUM_THREADS when set (torchrun sets it), else the cores divided by the processes."""
-    threads = config.threads or int(os.environ.get("OMP_NUM_THREADS", "0") or 0)
-    torch.set_num_threads(threads or max(1, cores() // max(1, local_world)))
-
-
 def learning_rate(config: TrainConfig, step: int) -> float:
     """Linear warm-up, then halving every decay_steps."""
     warm = min(1.0, (step + 1) / max(1, config.warmup_steps))
@@ -100,11 +67,11 @@ def checkpoint_path(run_dir: str | os.PathLike, stage: str) -> Path:
     return Path(run_dir) / f"{stage}.pt"
 
 
-def log_path(run_dir: str | os.PathLike, stage: str) -> Path:
+def _log_path(run_dir: str | os.PathLike, stage: str) -> Path:
     return Path(run_dir) / f"{stage}.csv"
 
 
-def rng_state() -> dict:
+def _rng_state() -> dict:
     """Every generator's state as tensors and plain data, which a checkpoint loads without pickle."""
     kind, key, position, has_gauss, gauss = np.random.get_state()
     return {"python": random.getstate(), "numpy": (kind, torch.from_numpy(key.astype(np.int64)), position,
@@ -112,7 +79,7 @@ def rng_state() -> dict:
             "torch": torch.get_rng_state(), "cuda": torch.cuda.get_rng_state_all() if torch.cuda.is_available() else []}
 
 
-def set_rng_state(state: dict) -> None:
+def _set_rng_state(state: dict) -> None:
     random.setstate(state["python"])
     kind, key, *rest = state["numpy"]         # the key: a tensor, or an array in older checkpoints
     np.random.set_state((kind, np.asarray(key.cpu() if isinstance(key, torch.Tensor) else key, np.uint32), *rest))
@@ -122,40 +89,7 @@ def set_rng_state(state: dict) -> None:
         torch.cuda.set_rng_state_all([part.cpu() for part in state["cuda"]])
 
 
-def seed_everything(seed: int) -> None:
-    random.seed(seed)
-    np.random.seed(seed)
-    torch.manual_seed(seed)
-
-
-# The code paths of torch's own kernels and oneDNN's convolutions: AVX2, which both machine kinds have,
-# so that they sum alike on either (docs/decisions.md, "One seed, one set of weights"; MKL's matrix
-# products still follow the CPU's maker). An environment that names its own keeps it.
-KERNELS = {"ATEN_CPU_CAPABILITY": "avx2", "ONEDNN_MAX_CPU_ISA": "AVX2"}
-
-
-def pin_kernels() -> str:
-    """Ask for the `KERNELS` instruction set and say which this process's torch kernels use.
-    Torch reads it at its first kernel, so a process that ran one before keeps what it chose
-    (a checkpoint records it: `kernels`); a training command or a stage's process runs none
-    before this."""
-    for name, value in KERNELS.items():
-        os.environ.setdefault(name, value)
-    return torch.backends.cpu.get_cpu_capability()
-
-
-def start_process(config: TrainConfig, place: Dist) -> TrainConfig:
-    """A stage's config in this process, as one process or any number of them read it: the
-    kernels pinned, one data shard per process unless set, this process's share of the cores
-    taken (unless the config fixes its threads), every RNG seeded."""
-    pin_kernels()
-    config = override(config, data_shards=config.data_shards or place.world)
-    set_threads(config, int(os.environ.get("LOCAL_WORLD_SIZE", "1")))
-    seed_everything(config.seed)
-    return config
-
-
-class WeightAverage:
+class _WeightAverage:
     """An exponential moving average of a model's weights, corrected for its start as Adam's
     moments are: after t steps it weighs step s by decay**(t - s), normalised, so that a short
     run's average is not pulled toward the first weights. The trained weights' noise at the
@@ -181,7 +115,7 @@ class WeightAverage:
             self.state[name].copy_(value)
 
 
-class CsvLog:
+class _CsvLog:
     """Loss rows beside the checkpoint, one every `every` steps and one where a session ends,
     written with each checkpoint (`data`), so that the two always agree: an interrupted or
     failed session leaves the log of its last checkpoint, never rows that no checkpoint holds.
@@ -231,7 +165,7 @@ class _Meter:
 
 
 # the stages whose batches are not videos drawn by group, and what they draw instead
-UNFOCUSED = {"perception": "single frames"}
+_UNFOCUSED = {"perception": "single frames"}
 
 
 @claim_scope()
@@ -244,18 +178,9 @@ def fit(job: Job, config: TrainConfig, run_dir: str | os.PathLike, *, place: Dis
     shipped checkpoint (weights only), the weights and step do, with a fresh optimiser.
     """
     place = place or Dist()
-    check_config(config)        # a config built in Python, not through override, is checked too
-    # a batch's float copy for the model, at the least: a size past the machine is named before any step
-    check_memory(job.item_bytes * config.batch_size, f"--batch-size {config.batch_size}")
-    if config.airborne_share and job.stage != "perception":
-        raise XvoeError(f"airborne_share picks the perception stage's frames; the {job.stage} stage has none")
-    if config.lstm_kernel and job.stage != "phydnet":
-        raise XvoeError(f"lstm_kernel widens PhyDNet's ConvLSTM gates; the {job.stage} stage has none")
-    if (config.focus_group or config.focus_share) and job.stage in UNFOCUSED:
-        raise XvoeError(f"focus_group and focus_share pick videos of a group; the {job.stage} stage draws "
-                        f"{UNFOCUSED[job.stage]}")
+    _check_job(job, config)
     run_dir = claim_directory(run_dir)
-    ckpt, log = checkpoint_path(run_dir, job.stage), log_path(run_dir, job.stage)
+    ckpt = checkpoint_path(run_dir, job.stage)
     if place.main:      # one run trains a stage of a run directory at a time; its other processes follow this one
         claim_file(ckpt, overwrite=True, what=f"the {job.stage} stage's checkpoint")
     if ckpt.exists() and not (resume or overwrite):
@@ -264,95 +189,29 @@ def fit(job: Job, config: TrainConfig, run_dir: str | os.PathLike, *, place: Dis
     # fused: one kernel of torch's own, where the loop of ops takes the square root from MKL's vector
     # library, whose last bit differs between CPU makers (docs/decisions.md, "One seed, one set of weights")
     optimiser = torch.optim.Adam(model.parameters(), lr=config.lr, fused=place.device.type in ("cpu", "cuda"))
-    start, elapsed, meter = 0, 0.0, _Meter()
-    average = WeightAverage(model, config.average_decay) if config.average_decay else None
+    run = _Run(job, config, place, ckpt, _log_path(run_dir, job.stage), model, optimiser, resume)
     if resume and ckpt.exists():
-        state = load_checkpoint(ckpt, job.stage, place.device)
-        load_weights(model, state, ckpt)        # "model" is checked to fit even where "trained" replaces it
-        if "trained" in state:
-            load_weights(model, state, ckpt, "trained")
-        if average:
-            average.load(state["model"])
-        start, elapsed = state["step"], state.get("elapsed", 0.0)
-        if "optimizer" in state:
-            optimiser.load_state_dict(state["optimizer"])
-            set_rng_state(state["rng"])
-            meter.sums, meter.count = dict(state["meter"]["sums"]), state["meter"]["count"]
-        elif place.main:
-            # a shipped checkpoint keeps weights only: train it further from its step
-            warnings.warn(f"{ckpt} holds no optimiser state (a shipped model?): Adam starts afresh at step "
-                          f"{start}", stacklevel=2)
+        run.resume()
     wrapped = model
     if place.world > 1:
         wrapped = nn.parallel.DistributedDataParallel(model, device_ids=[place.device] if place.device.type == "cuda"
                                                       else None)
     if place.main:
         run_dir.mkdir(parents=True, exist_ok=True)
-
-    def log_row(table: CsvLog | None, step: int, means: dict[str, float]) -> CsvLog | None:
-        rate = items * place.world / max(1e-9, time.monotonic() - session)
-        row = {"step": step, "minutes": round(elapsed / 60, 4), "lr": learning_rate(config, step - 1),
-               "items_per_second": round(rate, 1), **{name: round(value, 5) for name, value in means.items()}}
-        bar.set_postfix({name: f"{value:.4g}" for name, value in means.items() if name in ("loss", "psnr")})
-        if place.main:
-            table = table or CsvLog(log, list(row), start if resume else None, config.log_every)
-            table.write(row)
-        return table
-
-    def checkpoint(step: int) -> None:
-        if place.main:
-            # "model" is what every loader reads: the average when there is one
-            weights = {"model": average.state, "trained": model.state_dict()} if average else \
-                {"model": model.state_dict()}
-            if (bad := first_not_finite(weights)) is not None:     # the last good checkpoint stays as it was
-                raise XvoeError(f"the {job.stage} stage diverged by step {step} (its weights are not finite: {bad}); "
-                                f"nothing was saved: train with a lower --lr than {config.lr:g}")
-            save_checkpoint(ckpt, {"format": CHECKPOINT_FORMAT, "stage": job.stage, "config": job.config,
-                                   "train": to_dict(config), "step": step, "elapsed": elapsed,
-                                   **weights, "optimizer": optimiser.state_dict(),
-                                   "rng": rng_state(), "meta": job.meta, "world": place.world,
-                                   "kernels": torch.backends.cpu.get_cpu_capability(),
-                                   "meter": {"sums": meter.sums, "count": meter.count}},
-                            beside={log: table.data()} if table else None)
-
-    table = None
+    run.begin(progress)
     precision = mixed_precision(place.device)
-    bar = progress_bar(total=config.steps, initial=start, desc=job.stage, disable=not (progress and place.main),
-               dynamic_ncols=True)
-    session = last_save = time.monotonic()
-    items, began = 0, session - elapsed
-    step = start
+    step = run.start
     with StopRequests() as stop:
-        while step < config.steps and not stop.agreed(place, bool(config.max_minutes)
-                                                      and elapsed >= 60 * config.max_minutes):
+        while step < config.steps and not stop.agreed(place, run.out_of_time()):
             for group in optimiser.param_groups:
                 group["lr"] = learning_rate(config, step)
-            batch = job.batches(step)
-            items += job.items(batch)
-            batch = batch.to(place.device) if hasattr(batch, "to") else batch
-            with precision:
-                terms = wrapped(batch)
-            optimiser.zero_grad(set_to_none=True)
-            terms["loss"].backward()
-            if config.grad_clip:
-                nn.utils.clip_grad_norm_(model.parameters(), config.grad_clip)
-            optimiser.step()
+            batch = job.batches(step)       # this process's share: latents (B, T, K, D) and masks, or videos
+            run.items += job.items(batch)
+            terms = _step(wrapped, optimiser, batch, place.device, precision, config.grad_clip)
             step += 1
-            if average:
-                average.update(step)
-            elapsed = time.monotonic() - began
-            meter.add({name: value.detach() for name, value in terms.items() if value.dim() == 0})
-            if step % config.log_every == 0:
-                table = log_row(table, step, meter.take())
-            bar.update(1)
-            if place.main and time.monotonic() - last_save >= 60 * config.checkpoint_minutes:
-                checkpoint(step)
-                last_save = time.monotonic()
+            run.after_step(step, terms)
         stop.agreed(place, out_of_time=False)       # a request during the last step stops what follows too
-    bar.close()
-    if meter.count:
-        table = log_row(table, step, meter.means())
-    checkpoint(step)
+    run.end(step)
     if place.world > 1:
         dist.barrier()
     if stop.asked:
@@ -360,44 +219,122 @@ def fit(job: Job, config: TrainConfig, run_dir: str | os.PathLike, *, place: Dis
     return ckpt
 
 
-class StopRequests:
-    """In the main thread, Ctrl-C (or a Jupyter interrupt) and SIGTERM ask the loop to stop after
-    the step it is in, so that the last checkpoint holds that step and a resumed run goes on
-    exactly; a second request stops at once. Under torchrun the processes agree before each step
-    (a request or a time limit reached in one process stops them all there), so no process waits
-    in a gradient exchange that the others have left."""
-
-    def __init__(self, enabled: bool = True):
-        self.enabled = enabled and threading.current_thread() is threading.main_thread()
-        self.requested = False      # a request this process got (the handler sets it)
-        self.asked = False          # a request every process has agreed on
-        self.previous: dict[int, Any] = {}
-
-    def __enter__(self) -> StopRequests:
-        if self.enabled:
-            self.previous = {number: signal.signal(number, self.ask) for number in (signal.SIGINT, signal.SIGTERM)}
-        return self
-
-    def agreed(self, place: Dist, out_of_time: bool) -> bool:
-        """Whether every process stops before the next step; `asked` then says whether a request
-        (in any process) made it stop."""
-        requested = self.requested
-        if place.world > 1:
-            # a request that lands while the exchange waits is kept for the next step, never lost
-            flags = torch.tensor([float(requested), float(out_of_time)], device=place.device)
-            dist.all_reduce(flags, op=dist.ReduceOp.MAX)
-            requested, out_of_time = bool(flags[0]), bool(flags[1])
-        self.asked = requested
-        return requested or out_of_time
-
-    def ask(self, number: int, frame: Any) -> None:
-        if self.requested:
-            raise KeyboardInterrupt
-        self.requested = True
-
-    def __exit__(self, *exc: Any) -> None:
-        for number, handler in self.previous.items():
-            signal.signal(number, handler)
+def _step(wrapped: nn.Module, optimiser: torch.optim.Optimizer, batch: Any, device: torch.device,
+          precision: AbstractContextManager, grad_clip: float) -> dict[str, Tensor]:
+    """One optimiser step on a local batch: its loss terms, `loss` () the one differentiated."""
+    batch = batch.to(device) if hasattr(batch, "to") else batch
+    with precision:
+        terms = wrapped(batch)                      # {"loss": (), ...}: the objective and its parts
+    optimiser.zero_grad(set_to_none=True)
+    terms["loss"].backward()
+    if grad_clip:
+        nn.utils.clip_grad_norm_(wrapped.parameters(), grad_clip)
+    optimiser.step()
+    return terms
 
 
-# --- the perception stage -------------------------------------------------------------
+def _check_job(job: Job, config: TrainConfig) -> None:
+    """Refuse, before any step, a config the stage cannot train or a batch past the machine's memory."""
+    check_config(config)        # a config built in Python, not through override, is checked too
+    # a batch's float copy for the model, at the least: a size past the machine is named before any step
+    check_memory(job.item_bytes * config.batch_size, f"--batch-size {config.batch_size}")
+    if config.airborne_share and job.stage != "perception":
+        raise XvoeError(f"airborne_share picks the perception stage's frames; the {job.stage} stage has none")
+    if config.lstm_kernel and job.stage != "phydnet":
+        raise XvoeError(f"lstm_kernel widens PhyDNet's ConvLSTM gates; the {job.stage} stage has none")
+    if (config.focus_group or config.focus_share) and job.stage in _UNFOCUSED:
+        raise XvoeError(f"focus_group and focus_share pick videos of a group; the {job.stage} stage draws "
+                        f"{_UNFOCUSED[job.stage]}")
+
+
+class _Run:
+    """What a session of `fit` keeps beside the model and the optimiser: the step it started
+    at, its time, the running means of the loss terms and their CSV log, the weights' moving
+    average, the progress bar; and how it writes a checkpoint of them."""
+
+    def __init__(self, job: Job, config: TrainConfig, place: Dist, ckpt: Path, log: Path, model: nn.Module,
+                 optimiser: torch.optim.Optimizer, resume: bool):
+        self.job, self.config, self.place, self.ckpt, self.log = job, config, place, ckpt, log
+        self.model, self.optimiser, self.resumed = model, optimiser, resume
+        self.start, self.elapsed, self.meter, self.items = 0, 0.0, _Meter(), 0
+        self.average = _WeightAverage(model, config.average_decay) if config.average_decay else None
+        self.table: _CsvLog | None = None
+
+    def resume(self) -> None:
+        """Continue from the checkpoint: weights, step and time; the optimiser, RNG states and
+        running means where it holds them (a shipped checkpoint keeps weights only)."""
+        state = load_checkpoint(self.ckpt, self.job.stage, self.place.device)
+        load_weights(self.model, state, self.ckpt)      # "model" is checked to fit even where "trained" replaces it
+        if "trained" in state:
+            load_weights(self.model, state, self.ckpt, "trained")
+        if self.average:
+            self.average.load(state["model"])
+        self.start, self.elapsed = state["step"], state.get("elapsed", 0.0)
+        if "optimizer" in state:
+            self.optimiser.load_state_dict(state["optimizer"])
+            _set_rng_state(state["rng"])
+            self.meter.sums, self.meter.count = dict(state["meter"]["sums"]), state["meter"]["count"]
+        elif self.place.main:
+            # a shipped checkpoint keeps weights only: train it further from its step
+            warnings.warn(f"{self.ckpt} holds no optimiser state (a shipped model?): Adam starts afresh at step "
+                          f"{self.start}", stacklevel=3)
+
+    def begin(self, progress: bool) -> None:
+        """Start the progress bar and the clocks: the session's, and the run's (its time before)."""
+        self.bar = progress_bar(total=self.config.steps, initial=self.start, desc=self.job.stage,
+                                disable=not (progress and self.place.main), dynamic_ncols=True)
+        self.session = self.last_save = time.monotonic()
+        self.began = self.session - self.elapsed
+
+    def out_of_time(self) -> bool:
+        return bool(self.config.max_minutes) and self.elapsed >= 60 * self.config.max_minutes
+
+    def after_step(self, step: int, terms: dict[str, Tensor]) -> None:
+        """Take in the weights and loss terms of `step` steps: the average, the means, a CSV row
+        every log_every steps, a checkpoint every checkpoint_minutes."""
+        if self.average:
+            self.average.update(step)
+        self.elapsed = time.monotonic() - self.began
+        self.meter.add({name: value.detach() for name, value in terms.items() if value.dim() == 0})
+        if step % self.config.log_every == 0:
+            self.write_row(step, self.meter.take())
+        self.bar.update(1)
+        if self.place.main and time.monotonic() - self.last_save >= 60 * self.config.checkpoint_minutes:
+            self.save(step)
+            self.last_save = time.monotonic()
+
+    def end(self, step: int) -> None:
+        """Close the bar, log the steps since the last row and write the last checkpoint."""
+        self.bar.close()
+        if self.meter.count:
+            self.write_row(step, self.meter.means())
+        self.save(step)
+
+    def write_row(self, step: int, means: dict[str, float]) -> None:
+        rate = self.items * self.place.world / max(1e-9, time.monotonic() - self.session)
+        row = {"step": step, "minutes": round(self.elapsed / 60, 4), "lr": learning_rate(self.config, step - 1),
+               "items_per_second": round(rate, 1), **{name: round(value, 5) for name, value in means.items()}}
+        self.bar.set_postfix({name: f"{value:.4g}" for name, value in means.items() if name in ("loss", "psnr")})
+        if self.place.main:
+            self.table = self.table or _CsvLog(self.log, list(row), self.start if self.resumed else None,
+                                              self.config.log_every)
+            self.table.write(row)
+
+    def save(self, step: int) -> None:
+        """The checkpoint of `step` steps and the log beside it, from the main process; refused
+        where the weights are not finite, so that the last good checkpoint stays as it was."""
+        if not self.place.main:
+            return
+        # "model" is what every loader reads: the average when there is one
+        weights = {"model": self.average.state, "trained": self.model.state_dict()} if self.average else \
+            {"model": self.model.state_dict()}
+        if (bad := first_not_finite(weights)) is not None:
+            raise XvoeError(f"the {self.job.stage} stage diverged by step {step} (its weights are not finite: {bad}); "
+                            f"nothing was saved: train with a lower --lr than {self.config.lr:g}")
+        save_checkpoint(self.ckpt, {"format": CHECKPOINT_FORMAT, "stage": self.job.stage, "config": self.job.config,
+                                    "train": to_dict(self.config), "step": step, "elapsed": self.elapsed,
+                                    **weights, "optimizer": self.optimiser.state_dict(),
+                                    "rng": _rng_state(), "meta": self.job.meta, "world": self.place.world,
+                                    "kernels": torch.backends.cpu.get_cpu_capability(),
+                                    "meter": {"sums": self.meter.sums, "count": self.meter.count}},
+                        beside={self.log: self.table.data()} if self.table else None)

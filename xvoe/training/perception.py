@@ -13,7 +13,8 @@ from ..models.perception import ComponentVAE, PerceptionConfig
 from .checkpoints import load_checkpoint, load_weights, recorded_input, resolve_run
 from .config import TrainConfig
 from .data import ShardedFrames
-from .loop import Job, checkpoint_path, fit, setup_distributed, start_process
+from .distributed import setup_distributed, start_process
+from .loop import Job, checkpoint_path, fit
 from .recipes import DEFAULT_RECIPE, recipe, recipe_of
 
 __all__ = ["load_perception", "train_perception"]

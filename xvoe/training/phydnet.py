@@ -23,7 +23,8 @@ from ..scenes import store
 from .checkpoints import load_checkpoint, load_weights, recorded_input, resolve_run, save_checkpoint
 from .config import TrainConfig
 from .data import check_size, focus_on, owned_shards
-from .loop import Dist, Job, checkpoint_path, fit, setup_distributed, start_process
+from .distributed import Dist, setup_distributed, start_process
+from .loop import Job, checkpoint_path, fit
 from .recipes import DEFAULT_RECIPE, recipe, recipe_of
 
 __all__ = ["train_phydnet", "load_phydnet"]

@@ -32,7 +32,7 @@ __all__ = ["Parser", "Writes", "add_device", "argument", "check_paths", "default
 # what the verbs need of the layers that import torch, loaded when a verb runs or a value is
 # parsed: building the parser imports none of them, so that --help answers at once
 _LATE = {"parse_device": "xvoe.models.devices", "resolve_device": "xvoe.models.devices",
-         "check_focus": "xvoe.training.data", "pin_kernels": "xvoe.training.loop",
+         "check_focus": "xvoe.training.data", "pin_kernels": "xvoe.training.distributed",
          "encoded_cache": "xvoe.training.xpl"}
 
 

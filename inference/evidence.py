@@ -1,0 +1,174 @@
+"""The evidence of one video under the hidden-object model, by SMC or by importance sampling.
+
+The SMC sums the existence of a hidden object and the explanation of the seen objects (one, or
+two identical ones) out exactly: without a hidden object, every latent is masked and one
+particle gives the exact branch; with one, N particles carry the trajectory (`run_smc`).
+Importance sampling is the same run never resampled, the guide proposing existence and the
+explanation too.
+
+    log p^(x, object, v) = the SMC's evidence of the branch with an object under explanation v
+    log p^(x) = logsumexp over v of (log p^(x, object, v), log p(x, no object, v))
+
+Both branches are kept frame by frame too: the SMC's normaliser after each frame estimates
+p(x_<=t | object) (as unbiased as the whole video's), the branch without one is exact per
+frame, and the differences of their mixture are each frame's surprise, -log p^(x_t | x_<t).
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import torch
+from torch import Tensor
+
+from .model import HiddenObjectModel, InferenceConfig, Proposal, Scene
+from .model_steps import ModelSteps, empty_branch, seeded
+from .smc import SMCRun, run_smc
+
+__all__ = ["Evidence", "hidden_run", "importance_evidence", "smc_evidence", "widenings_of"]
+
+@dataclass
+class Evidence:
+    """The NLL estimate of one video, by SMC (existence and identity summed out exactly) or by
+    importance sampling (both proposed by the guide)."""
+
+    log_evidence: float           # log p^(x)
+    log_evidence_hidden: float    # log p^(x, a hidden object) (SMC; nan by importance sampling), -inf where none fits
+    log_evidence_empty: float     # log p(x, no hidden object), exact (SMC; nan by importance sampling)
+    p_hidden: float               # posterior probability of a hidden object
+    ess: float                    # ESS of the final weights (SMC: the likelier explanation's run, all holding one)
+    min_ess: float                # the lowest ESS over frames, before resampling
+    lineages: int                 # distinct first-frame ancestors of the final particles
+    resamplings: int
+    particles: int
+    trajectories: Tensor | None   # (N, T, D) final particles, None where no object can be placed
+    log_weights: Tensor | None    # (N,) float64 final log-weights, of the posterior over all of them
+    exists: Tensor | None = None  # (N,) bool: which final particles hold an object (None: all)
+    frame_nll: Tensor | None = None   # (T,) float64 -log p^(x_t | x_<t), existence summed out; sums to nll
+    p_two: float = 0.0            # posterior probability that a seen object is two identical ones
+    version: Tensor | None = None     # (N,) long: each final particle's explanation (1: two objects)
+
+    @property
+    def nll(self) -> float:
+        return -self.log_evidence
+
+    @property
+    def weights(self) -> Tensor:
+        return torch.softmax(self.log_weights, dim=0)
+
+    def holding(self) -> tuple[Tensor, Tensor] | None:
+        """The trajectories (H, T, D) of the particles that hold an object and their log-weights
+        (H,); None where none does."""
+        if self.trajectories is None:
+            return None
+        if self.exists is None:
+            return self.trajectories, self.log_weights
+        return (self.trajectories[self.exists], self.log_weights[self.exists]) if self.exists.any() else None
+
+    def holding_versions(self) -> Tensor | None:
+        """The explanation (H,) of each particle `holding` returns."""
+        if self.trajectories is None:
+            return None
+        version = self.version if self.version is not None else torch.zeros(
+            len(self.trajectories), dtype=torch.long, device=self.trajectories.device)
+        return version if self.exists is None else version[self.exists]
+
+
+def widenings_of(config: InferenceConfig) -> tuple[float, ...]:
+    """The SMC proposal's widenings (`smc_proposal_widening`; None: `proposal_widening`)."""
+    widenings = config.smc_proposal_widening
+    if widenings is None:
+        return (config.proposal_widening,)
+    return (widenings,) if isinstance(widenings, (int, float)) else tuple(widenings)
+
+
+def _frame_surprise(branches: list[Tensor]) -> Tensor:
+    """-log p(x_t | x_<t) (T,) float64 from each branch's log p(x_<=t, branch) after every frame
+    (T,): the differences of their sum over frames."""
+    so_far = torch.logsumexp(torch.stack(branches), dim=0)
+    return -torch.diff(so_far, prepend=so_far.new_zeros(1))
+
+
+def _log_sum(values: list[float]) -> float:
+    """log sum exp of a list of float64 log-values (-inf where it is empty)."""
+    return float(torch.logsumexp(torch.tensor(values, dtype=torch.float64), dim=0)) if values else -math.inf
+
+
+@torch.no_grad()
+def smc_evidence(scene: Scene, frames: Tensor, config: InferenceConfig, proposal: Proposal | None,
+                 generator: torch.Generator | None = None, free: bool = True) -> Evidence:
+    """One video's evidence, summed over the scene's explanations of what was seen (its
+    versions): each run once without a hidden object (one particle: every latent is masked, so
+    it is exact) and by SMC over `config.particles` particles with one. `free` False: no slot is
+    left for a hidden object, and the evidence is that of the branches without one."""
+    model = HiddenObjectModel(scene, config)
+    device, versions = frames.device, range(scene.versions)
+    with seeded(generator, device):
+        empty = [empty_branch(model, frames, version).cumsum(0) for version in versions]
+        empty_end = [float(branch[-1]) for branch in empty]
+        known = _log_sum(empty_end)
+        runs = [hidden_run(model, frames, config, proposal, version, known, generator) for version in versions] \
+            if free else []
+    hidden_end = [float(run.log_evidence[0]) for run in runs]
+    total = _log_sum(empty_end + hidden_end)
+    p_two = math.exp(_log_sum(empty_end[1:] + hidden_end[1:]) - total) if scene.versions > 1 else 0.0
+    frame_nll = _frame_surprise(empty + [run.frame_log_evidence[0] for run in runs])
+    if not free:
+        particles = config.particles
+        return Evidence(total, -math.inf, total, 0.0, float(particles), float(particles), 0, 0, particles,
+                        None, None, frame_nll=frame_nll, p_two=p_two)
+    hidden = _log_sum(hidden_end)
+    likelier = runs[max(versions, key=lambda version: hidden_end[version])]
+    # every run's particles, each run's weights scaled to its share of p(x, object): one posterior
+    log_weights = torch.cat([torch.log_softmax(run.log_weights[0], 0) + float(run.log_evidence[0]) for run in runs])
+    version = torch.cat([torch.full((run.log_weights.shape[1],), v, dtype=torch.long, device=device)
+                         for v, run in zip(versions, runs)])
+    return Evidence(total, hidden, known, math.exp(hidden - total), float(likelier.final_ess[0]),
+                    float(likelier.ess[0].min()), int(likelier.lineages[0]), int(likelier.resampled[0].sum()),
+                    likelier.log_weights.shape[1], torch.cat([run.state["trajectory"] for run in runs]),
+                    log_weights, frame_nll=frame_nll, p_two=p_two, version=version)
+
+
+def hidden_run(model: HiddenObjectModel, frames: Tensor, config: InferenceConfig, proposal: Proposal | None,
+               version: int, known: float, generator: torch.Generator | None) -> SMCRun:
+    """The SMC of the branch with a hidden object under one explanation of what was seen. A
+    pilot of fewer particles is kept where it trails `known` (the exact branches' log p(x, no
+    object) summed) by more than smc_pilot_margin nats: the branch then changes log p(x) by
+    less than exp(-margin)."""
+    steps = ModelSteps(model, frames, proposal, widenings_of(config), {"exists": 1.0, "two": float(version)})
+    sure = proposal is not None and float(proposal.p_exists) > config.smc_pilot_skip_exists
+    for size in () if sure else _pilot_sizes(config):
+        pilot = run_smc(steps, size, threshold=config.resample_threshold, generator=generator, device=frames.device)
+        if known - float(pilot.log_evidence[0]) > config.smc_pilot_margin:
+            return pilot
+    return run_smc(steps, config.particles, threshold=config.resample_threshold, generator=generator,
+                   device=frames.device)
+
+
+@torch.no_grad()
+def importance_evidence(scene: Scene, frames: Tensor, config: InferenceConfig, proposal: Proposal,
+                        generator: torch.Generator | None = None) -> Evidence:
+    """One video's evidence by importance sampling: the same frame-by-frame model and guide,
+    never resampled, the guide proposing the existence of a hidden object and the explanation
+    of the seen objects too."""
+    model = HiddenObjectModel(scene, config)
+    particles = config.particles
+    with seeded(generator, frames.device):
+        run = run_smc(ModelSteps(model, frames, proposal, (config.proposal_widening,)), particles,
+                      threshold=0.0, generator=generator, device=frames.device)
+    log_weights, exists, version = run.log_weights[0], run.state["exists"], run.state["version"]
+    weights = torch.softmax(log_weights, dim=0)
+    p_hidden = float((weights * exists).sum().clamp(0.0, 1.0))      # a weighted sum can round past 1
+    p_two = float((weights * version).sum().clamp(0.0, 1.0))
+    return Evidence(float(run.log_evidence[0]), math.nan, math.nan, p_hidden, float(run.final_ess[0]),
+                    float(run.ess[0].min()), int(run.lineages[0]), 0, particles, run.state["trajectory"],
+                    log_weights, exists, p_two=p_two, version=version)
+
+
+def _pilot_sizes(config: InferenceConfig) -> tuple[int, ...]:
+    """The pilot runs' particle counts, smallest first: those of config.smc_pilot between 0 and
+    config.particles."""
+    sizes = (config.smc_pilot,) if isinstance(config.smc_pilot, int) else tuple(config.smc_pilot)
+    if list(sizes) != sorted(sizes):
+        raise ValueError(f"smc_pilot's runs go smallest first, not {sizes}")
+    return tuple(size for size in sizes if 0 < size < config.particles)
