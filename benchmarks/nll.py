@@ -39,7 +39,7 @@ from xvoe import allocator
 from xvoe.errors import XvoeError
 from xvoe.evaluation.explanation_quality import ground_truth
 from xvoe.evaluation.metrics import comparative, holistic
-from xvoe.evaluation.score import encode_videos
+from xvoe.evaluation.scorer import encode_videos
 from xvoe.evaluation.surprise import mse_surprise
 from xvoe.inference.score import nll_config, reference_nll
 from xvoe.inference.surprise import nll_surprise

@@ -28,7 +28,7 @@ import torch
 
 import xvoe
 from xvoe.errors import XvoeError
-from xvoe.evaluation.score import encode_videos
+from xvoe.evaluation.scorer import encode_videos
 from xvoe.evaluation.surprise import draw_scene
 from xvoe.inference.score import nll_config, xpl_nll
 from xvoe.models.nll import InferenceConfig

@@ -11,7 +11,7 @@ import torch
 
 from xvoe.errors import XvoeError
 from xvoe.evaluation.explain import DRAW_THRESHOLD, Explanation, _pictures, _read_video, look_alike, masked
-from xvoe.evaluation.score import Scorer
+from xvoe.evaluation.scorer import Scorer
 from xvoe.models.perception import to_uint8
 
 from .identity import two_objects

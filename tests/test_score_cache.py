@@ -12,7 +12,8 @@ from conftest import randomise_dynamics_head
 
 import xvoe
 from xvoe.apps.cli import main
-from xvoe.evaluation import score as scoring
+from xvoe.evaluation import score_cache
+from xvoe.evaluation import scorer as scoring
 from xvoe.evaluation.metrics import read_scores
 from xvoe.inference.model import InferenceConfig
 from xvoe.inference.score import xpl_nll
@@ -73,7 +74,7 @@ def test_scores_from_the_cache_are_the_scores_without_it(tiny_split, tmp_path, m
         raise AssertionError("a split with a cache was encoded again")
 
     monkeypatch.setattr(scoring, "encode_frames", no_encoding)
-    monkeypatch.setattr(scoring, "encode_with", no_encoding)
+    monkeypatch.setattr(score_cache, "encode_with", no_encoding)
     found = {"xpl": scored(xpl, tiny_split, tmp_path / "xpl.csv", **nll),      # the MSE and the NLL read it
              "plato": scored(plato, tiny_split, tmp_path / "plato.csv")}        # another model of that perception
     for name in ("xpl", "plato"):

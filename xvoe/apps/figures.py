@@ -24,7 +24,9 @@ from PIL import Image, ImageDraw
 from ..errors import XvoeError
 from ..evaluation.explain import DRAW_THRESHOLD, Explanation, drawn_pixels
 from ..evaluation.metrics import excess, read_scores
-from ..evaluation.score import MSE_LABEL, check_same_split, read_curves, warn_unchecked
+from ..evaluation.score_curves import read_curves
+from ..evaluation.score_headers import check_same_split, warn_unchecked
+from ..evaluation.scorer import MSE_LABEL
 from ..fingerprints import split_identity
 from ..models.devices import device_of
 from ..models.perception import normalise, to_uint8
@@ -729,7 +731,7 @@ class PairCurves:
     possible: list[bool]
     events: list[int]               # each member's event frame (-1: none, or no split given)
     lowered: np.ndarray             # (T,) how far the wall stands in either member (0 without the split)
-    own: str | None = None          # a model's own curve (`xvoe.evaluation.score.Curves`); None: the MSE's terms
+    own: str | None = None          # a model's own curve (`xvoe.evaluation.score_curves.Curves`); None: the MSE's terms
     label: str = MSE_LABEL          # what its axis measures
 
 
@@ -816,7 +818,7 @@ def plot_surprise_curves(scores: str | Path, data: str | Path | None, scenario: 
     the excess (s_img - s_rec + s_dyn) when the curves hold s_rec (models with a perception);
     a model's own curve alone, on its own axis, for a model answering `surprise(videos)`.
 
-    scores: a CSV written by `xvoe score` (score_split); curves: its per-frame curves (default:
+    scores: a CSV written by `xvoe score`; curves: its per-frame curves (default:
     the .curves.npz beside it); data: the test split that was scored, for the event frame (red
     line) and the frames where the wall stands (grey; lighter while it moves), or None for
     the curves alone. frame: a frame to mark (a cursor)."""

@@ -28,7 +28,7 @@ import torch
 
 from ..errors import XvoeError
 from ..evaluation.explain import explain
-from ..evaluation.score import load_model, score_split
+from ..evaluation.scorer import load_model
 from ..models.config import to_dict
 from ..models.devices import resolve_device
 from ..outputs import claim_directory, claim_scope
@@ -48,6 +48,7 @@ from ..training.stages import SCORED, STAGES
 from ..training.xpl import TRAINED_ON_LATENTS, train_proposal, train_xpl
 from .figures import plot_explanation
 from .report import header_lines, report
+from .verbs import score as score_split
 from .verbs import with_display
 
 MODELS = (*SCORED, "random")

@@ -25,7 +25,8 @@ from ..evaluation.metrics import (
     relative_members,
     side_by_side,
 )
-from ..evaluation.score import check_same_split, read_curves, score_header, scored_split, warn_unchecked
+from ..evaluation.score_curves import read_curves
+from ..evaluation.score_headers import check_same_split, score_header, scored_split, warn_unchecked
 from ..fingerprints import describe_split, split_identity
 from ..outputs import (
     claim_directory,

@@ -14,7 +14,8 @@ import matplotlib.pyplot as plt
 from ..errors import XvoeError
 from ..evaluation.explain import DRAW_THRESHOLD
 from ..evaluation.metrics import read_scores
-from ..evaluation.score import Scorer, as_scorer, check_same_split, check_scored_by, score_header
+from ..evaluation.score_headers import check_same_split, check_scored_by, score_header
+from ..evaluation.scorer import Scorer, as_scorer
 from ..fingerprints import split_identity
 from ..models.config import from_dict
 from ..models.nll import InferenceConfig

@@ -20,8 +20,9 @@ from ..models.slots import composite, decode_slots
 from ..scenes import store
 from ..scenes.videos import check_index, describe
 from ..training.data import check_size
-from .score import Scorer, encode_video, read_videos, run_model
+from .scorer import Scorer, encode_video
 from .surprise import explained_latents, mse_surprise
+from .user_models import read_videos, run_model
 
 # A hypothesis of the NLL's posterior below this probability is not drawn as the model's belief:
 # no outline, no rows of it, one line of text instead; above it, its outline's opacity is its p.
@@ -92,7 +93,7 @@ def explain_drawn(scorer: Scorer, data: str, index: int) -> DrawnExplanation:
         check_index(file, index)
         videos, title = read_videos(file, index, index + 1), describe(file, index)
     try:
-        drawn = np.asarray(run_model(scorer, "explain", videos))
+        drawn = np.asarray(run_model(scorer.custom, "explain", videos, scorer.time_limit))
     except (ValueError, TypeError):
         drawn = np.zeros(0, object)     # ragged, or not an array: refused below with what it is
     expected = videos.rgbd.shape[:4]
