@@ -109,6 +109,28 @@ def test_the_nll_beside_the_mse_score_is_the_nll_of_each_video_drawn_on_its_own(
                                    rtol=1e-6, atol=1e-6)
 
 
+def test_an_explanation_from_an_encoded_chunk_is_the_explanation_encoding_its_video(tiny_split, monkeypatch):
+    """`xvoe.explain(..., chunk=...)` reads the video from a chunk encoded once for all its videos,
+    and draws what explaining it alone draws, to the bit, under either surprise."""
+    with store.open_dataset(tiny_split) as file:
+        scorer = tiny_scorer("xpl", file["states"].shape[2])
+        chunk = scoring.encode_chunk(scorer, file, 3)
+    assert chunk.first == 0 and chunk.holds(3) and not chunk.holds(len(chunk.videos["mean"]))
+    settings = {"display_size": None, "particles": 4}
+    alone = {surprise: xvoe.explain(scorer, tiny_split, 3, surprise=surprise, **settings)
+             for surprise in ("mse", "nll")}
+
+    def no_encoding(*args, **kwargs):
+        raise AssertionError("a video of an encoded chunk was encoded again")
+
+    monkeypatch.setattr(scoring, "encode_frames", no_encoding)
+    for surprise, expected in alone.items():
+        found = xvoe.explain(scorer, tiny_split, 3, surprise=surprise, chunk=chunk, **settings)
+        np.testing.assert_array_equal(found.behind_wall, expected.behind_wall, err_msg=surprise)
+        assert found.title == expected.title
+    assert found.nll == alone["nll"].nll and found.p_hidden == alone["nll"].p_hidden
+
+
 def shipped_or_skip() -> Path:
     if shipped_path("plato") is None or shipped_path("xpl", "perception") is None:
         pytest.skip("no shipped plato model in xvoe/weights")

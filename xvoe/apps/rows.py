@@ -61,9 +61,9 @@ def nll_scorer(model: str | Scorer, data: str | Path, scores: str | Path) -> tup
     if "nll" not in header:
         raise XvoeError(f"{scores} has no NLL columns; score it with --surprise nll (or both)")
     scorer = as_scorer(model)
-    check_scored_by(scores, scorer)
+    check_scored_by(scores, scorer, header)
     with store.open_dataset(data) as file:
-        check_same_split(scores, split_identity(file), data)
+        check_same_split(scores, split_identity(file), data, header)
     return replace(scorer, nll=from_dict(InferenceConfig, header["nll"])), int(header["nll_seed"])
 
 

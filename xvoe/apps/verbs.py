@@ -36,7 +36,15 @@ from ..evaluation.score_cache import latent_cache, prepare_latents
 from ..evaluation.score_curves import curve_columns
 from ..evaluation.score_headers import new_header
 from ..evaluation.score_writer import score_lines, write_score_files
-from ..evaluation.scorer import Scorer, as_scorer, encode_videos, mse_curves, open_test_split, own_surprise
+from ..evaluation.scorer import (
+    EncodedChunk,
+    Scorer,
+    as_scorer,
+    encode_videos,
+    mse_curves,
+    open_test_split,
+    own_surprise,
+)
 from ..evaluation.shards import merge_scores, shard_rows
 from ..evaluation.surprise import EXPLANATIONS
 from ..evaluation.user_models import SurpriseModel, check_model, checked_surprise, curve_of, read_videos
@@ -264,24 +272,27 @@ def _worker_threads(threads: int, parent: int) -> None:
 
 def explain(model: str | Scorer | SurpriseModel, data: str | Path, index: int, *, surprise: str = "mse",
             particles: int | None = None, seed: int = 0, explanation: str = "better",
-            display_size: int | None = DISPLAY_SIZE, device: str = "cpu") -> Explanation:
+            display_size: int | None = DISPLAY_SIZE, device: str = "cpu",
+            chunk: EncodedChunk | None = None) -> Explanation:
     """What the model believes is behind the wall in video `index`: Transformer 2's proposal
     (surprise "mse"; with explanation "better", the default verdict's, only where it explains the
     video better than nothing hidden; "proposal", always, as the paper) or the Pyro model's
     posterior (surprise "nll", from `particles` importance samples drawn from `seed`; None: the
     model's setting). With the video's scene at `display_size` for `plot_explanation` to draw
     the explanation onto (None: the model's frames alone); the model reads its own frames.
-    device: where a model given by name runs."""
+    device: where a model given by name runs. chunk: the video's latent cache chunk already
+    encoded by this model (`xvoe.evaluation.scorer.encode_chunk`), for a caller that explains
+    many videos to encode each chunk once; the explanation is the same."""
     check_explanation(explanation)
     if display_size is not None:
         check_display_size(display_size)
     scorer = as_scorer(model, device)
-    return with_display(_explain(scorer, data, index, surprise, particles, seed, explanation), data, index,
+    return with_display(_explain(scorer, data, index, surprise, particles, seed, explanation, chunk), data, index,
                         display_size)
 
 
 def _explain(scorer: Scorer, data: str | Path, index: int, surprise: str, particles: int | None, seed: int,
-             explanation: str) -> Explanation:
+             explanation: str, chunk: EncodedChunk | None = None) -> Explanation:
     """The explanation `explain` asked for, of the model's own frames."""
     scorer = replace(scorer, explanation=explanation) if scorer.custom is None else scorer
     if scorer.is_random:
@@ -295,10 +306,10 @@ def _explain(scorer: Scorer, data: str | Path, index: int, surprise: str, partic
             raise XvoeError(f"the model {scorer.name} draws its own explanation; leave out --surprise nll")
         return explain_drawn(scorer, str(data), index)
     if surprise == "nll":
-        return explain_nll(scorer, str(data), index, particles=particles, seed=seed)
+        return explain_nll(scorer, str(data), index, particles=particles, seed=seed, chunk=chunk)
     if surprise != "mse":
         raise XvoeError(f"--surprise must be mse or nll, not {surprise!r}")
-    return explain_mse(scorer, str(data), index)
+    return explain_mse(scorer, str(data), index, chunk)
 
 
 def with_display(explanation: Explanation, data: str | Path, index: int,

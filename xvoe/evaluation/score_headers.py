@@ -74,12 +74,17 @@ def surprise_definitions(scorer: Scorer, how: str) -> dict:
 
 def new_header(scorer: Scorer, split: dict, data: str | Path, score_column: str, how: str,
                settings: dict | None = None) -> dict:
-    """The header of a score file about to be written (`score_header` reads it back):
-    `settings`, what the NLL's columns were made with (xvoe.inference.score, `nll_header`), where
-    it has them. The digest of the scores is added once they are written."""
-    return {"xvoe": package_version(), "model": scorer.name, "model_identity": model_identity(scorer),
-            "split": split, "data": str(Path(data).resolve()), "score": score_column, "aggregate": how,
-            "surprise": surprise_definitions(scorer, how), **(settings or {})}
+    """The header of a score file about to be written (`score_header` reads it back), with
+    `model_settings`, where the model's settings came from (its checkpoints' recipes, and what the
+    command line changed when they were trained: `checkpoint_settings`), for a model read from
+    checkpoints; `settings`: what the NLL's columns were made with (xvoe.inference.score,
+    `NLLRun.header`), where it has them. The digest of the scores is added once they are written."""
+    found = {"xvoe": package_version(), "model": scorer.name, "model_identity": model_identity(scorer),
+             "split": split, "data": str(Path(data).resolve()), "score": score_column, "aggregate": how,
+             "surprise": surprise_definitions(scorer, how), **(settings or {})}
+    if scorer.settings is not None:
+        found["model_settings"] = scorer.settings
+    return found
 
 
 def curves_arrays(path: str | Path) -> dict[str, np.ndarray]:

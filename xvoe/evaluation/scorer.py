@@ -33,11 +33,14 @@ from ..training.data import check_size, visible_threshold
 from ..training.latents import LATENT_CHUNK, encode_frames
 from ..training.perception import load_perception
 from ..training.phydnet import load_phydnet
+from ..training.provenance import recipe_differences
+from ..training.recipes import recipe_of
 from ..training.xpl import load_xpl, nll_settings_of
 from .surprise import DrawnScene, draw_scene, every_explanation
 from .user_models import SurpriseModel, Videos, checked_model, load_surprise_model, read_videos
 
-__all__ = ["MSE_CURVES", "MSE_LABEL", "PhyDNetSurprise", "RandomAgent", "Scorer", "as_scorer", "encode",
+__all__ = ["MSE_CURVES", "MSE_LABEL", "EncodedChunk", "PhyDNetSurprise", "RandomAgent", "Scorer", "as_scorer",
+           "checkpoint_settings", "encode", "encode_chunk",
            "encode_video", "encode_videos", "load_model", "mse_curves", "names_code", "open_test_split",
            "own_surprise"]
 
@@ -98,6 +101,9 @@ class Scorer:
     source: str | None = None
     # seconds a `custom` model's surprise may take for one batch (None: no limit)
     time_limit: float | None = TIME_LIMIT
+    # where the settings of each checkpoint read came from, for the header (`checkpoint_settings`);
+    # None for a model made in memory or of your own
+    settings: dict | None = None
 
     @property
     def is_random(self) -> bool:
@@ -161,12 +167,29 @@ def load_model(model: str, device: str | torch.device = "cpu") -> Scorer:
         raise XvoeError(f"{model} is not a model to score with: give a run directory, one of "
                         f"{', '.join(s + '.pt' for s in SHIPPED)}, or 'random'")
     if stage == "phydnet":
-        net = load_phydnet(run_dir / "phydnet.pt", device)[0]
-        return Scorer(stage, None, None, phydnet=net, custom=PhyDNetSurprise(net), source=_absolute_reference(model))
-    vae, _ = load_perception(run_dir, device)
+        net, state = load_phydnet(run_dir / "phydnet.pt", device)
+        return Scorer(stage, None, None, phydnet=net, custom=PhyDNetSurprise(net), source=_absolute_reference(model),
+                      settings=checkpoint_settings({stage: state}))
+    vae, perception = load_perception(run_dir, device)
     xpl, state = load_xpl(run_dir, stage, device)
     return Scorer(stage, vae, xpl, nll=nll_settings_of(state["config"]) if xpl.config.use_reasoning else None,
-                  source=_absolute_reference(model))
+                  source=_absolute_reference(model),
+                  settings=checkpoint_settings({"perception": perception, stage: state}))
+
+
+def checkpoint_settings(states: dict[str, dict]) -> dict[str, dict]:
+    """Where the settings of each checkpoint of a model came from, by stage: the recipe it names,
+    and the settings in which it differs from that recipe (`recipe_differences`: given on the
+    command line, `--set`, when it was trained, or a run not finished), none where the recipe
+    made it. What a score file's header records beside the NLL's sources (`nll_source`)."""
+    found = {}
+    for stage, state in states.items():
+        try:
+            changed = recipe_differences(state)
+        except XvoeError:       # a recipe this copy of xvoe does not have
+            changed = ["the recipe is not one of this xvoe's: its settings cannot be compared"]
+        found[stage] = {"recipe": recipe_of(state["config"]), "changed from the recipe": changed}
+    return found
 
 
 def names_code(model: str) -> bool:
@@ -222,14 +245,35 @@ def encode_videos(scorer: Scorer, file, start: int, stop: int, latents: h5py.Fil
                      torch.from_numpy(latents["background_mean"][start:stop]))
 
 
+@dataclass
+class EncodedChunk:
+    """The videos of one latent cache chunk, encoded as a score encodes them (`encode_chunk`): what
+    an explanation of any of them reads, so that explaining each video of a chunk encodes it once."""
+
+    first: int                      # the chunk's first video in the split
+    videos: dict[str, Tensor]       # `encode_videos` of its videos
+
+    def holds(self, index: int) -> bool:
+        return 0 <= index - self.first < len(self.videos["mean"])
+
+    def video(self, index: int) -> dict[str, Tensor]:
+        """Video `index` of the split (which the chunk holds) as a batch of one."""
+        row = index - self.first
+        return {name: value[row:row + 1] for name, value in self.videos.items()}
+
+
+def encode_chunk(scorer: Scorer, file, index: int) -> EncodedChunk:
+    """The latent cache chunk (LATENT_CHUNK videos from 0) of video `index` of an open test split,
+    encoded as the split's latent cache and an uncached score at the default batch encode them."""
+    start = index - index % LATENT_CHUNK
+    return EncodedChunk(start, encode_videos(scorer, file, start, min(start + LATENT_CHUNK, len(file["rgbd"]))))
+
+
 def encode_video(scorer: Scorer, file, index: int) -> dict[str, Tensor]:
     """Video `index` of an open test split, encoded as its score encodes it (a batch of one):
-    among the videos of its latent cache chunk (LATENT_CHUNK from 0), as the split's latent
-    cache and an uncached score at the default batch encode them. Alone, the encoder's passes
+    among the videos of its latent cache chunk (`encode_chunk`). Alone, the encoder's passes
     hold other images and float rounding moves its latents (and its NLL by up to 6e-4 nats)."""
-    start = index - index % LATENT_CHUNK
-    batch = encode_videos(scorer, file, start, min(start + LATENT_CHUNK, len(file["rgbd"])))
-    return {name: value[index - start:index - start + 1] for name, value in batch.items()}
+    return encode_chunk(scorer, file, index).video(index)
 
 
 def encode(scorer: Scorer, videos: Videos) -> dict[str, Tensor]:
