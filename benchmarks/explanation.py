@@ -24,7 +24,7 @@ import torch
 
 import xvoe
 from xvoe.evaluation import explanation_quality as quality
-from xvoe.evaluation.score import encode_videos
+from xvoe.evaluation.scorer import encode_videos
 from xvoe.evaluation.surprise import dynamics_composites, explained_latents
 from xvoe.models.slots import composite, scene_layers
 

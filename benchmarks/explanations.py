@@ -22,7 +22,7 @@ from tqdm.auto import tqdm
 
 import xvoe
 from xvoe.evaluation.metrics import excess
-from xvoe.evaluation.score import encode_videos
+from xvoe.evaluation.scorer import encode_videos
 from xvoe.evaluation.surprise import EXPLANATIONS, every_explanation
 from xvoe.scenes import store
 

@@ -37,7 +37,7 @@ from tqdm.auto import tqdm
 import xvoe
 from xvoe import allocator
 from xvoe.evaluation.explanation_quality import ground_truth
-from xvoe.evaluation.score import encode_videos
+from xvoe.evaluation.scorer import encode_videos
 from xvoe.evaluation.surprise import mse_surprise
 from xvoe.inference.score import nll_config, reference_nll
 from xvoe.inference.surprise import nll_surprise

@@ -27,7 +27,7 @@ import numpy as np
 import torch
 
 import xvoe
-from xvoe.evaluation.score import encode_videos
+from xvoe.evaluation.scorer import encode_videos
 from xvoe.evaluation.surprise import draw_scene
 from xvoe.inference.score import nll_config, xpl_nll
 from xvoe.models.nll import InferenceConfig

@@ -138,7 +138,7 @@ def score_step(perception, xpl_config, videos: int, rng: np.random.Generator, de
     occluder[:, 0] = True
     precision = mixed_precision(torch.device(device))
 
-    def step() -> None:       # what score.score_split does per batch of videos (encode_videos, _xpl_curves)
+    def step() -> None:       # what xvoe score does per batch of videos (encode_videos, mse_curves)
         encoded = encode_frames(vae, rgbd, ids, SLOTS)
         shaped = {k: torch.from_numpy(v).reshape(videos, FRAMES, *v.shape[1:]).to(device) for k, v in encoded.items()}
         frames = normalise(torch.from_numpy(rgbd.reshape(videos, FRAMES, size, size, 4))).to(device)

@@ -11,7 +11,7 @@ import torch
 
 from xvoe.errors import XvoeError
 from xvoe.evaluation.explain import DRAW_THRESHOLD, Explanation, _pictures, _read_video, look_alike, masked
-from xvoe.evaluation.score import Scorer
+from xvoe.evaluation.scorer import EncodedChunk, Scorer
 from xvoe.models.perception import to_uint8
 
 from .identity import two_objects
@@ -101,13 +101,14 @@ class NLLExplanation(Explanation):
 
 
 def explain_nll(scorer: Scorer, data: str, index: int, particles: int | None = None, seed: int = 0,
-                hypotheses: int = 3) -> NLLExplanation:
-    """What `xvoe explain --surprise nll` draws: the Pyro model's explanation posterior."""
+                hypotheses: int = 3, chunk: EncodedChunk | None = None) -> NLLExplanation:
+    """What `xvoe explain --surprise nll` draws: the Pyro model's explanation posterior; `chunk`:
+    the video's chunk already encoded (`encode_chunk`), where the caller explains several of it."""
     if not scorer.is_random and (scorer.xpl is None or not scorer.xpl.config.use_reasoning):
         raise XvoeError(f"the NLL explanation needs an XPL model with reasoning; {scorer.name} has none")
     config = scorer.nll or InferenceConfig()
     check_particles(particles or config.particles)
-    video, rgbd, title = _read_video(scorer, data, index)
+    video, rgbd, title = _read_video(scorer, data, index, chunk)
     return nll_explanation(scorer.vae, scorer.xpl, video, particles or config.particles, title, rgbd, seed,
                            hypotheses, config)
 

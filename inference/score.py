@@ -1,9 +1,9 @@
 """The NLL columns of a score file: -log p(video) under the Pyro model, its ESS, p(hidden
 object), p(two identical objects), and the NLL less that of a reference drawing only what was
-seen."""
+seen; the settings they are made with (`nll_run`) and where each came from."""
 from __future__ import annotations
 
-from dataclasses import fields, replace
+from dataclasses import dataclass, fields, replace
 from typing import Any
 
 import numpy as np
@@ -11,12 +11,15 @@ from torch import Tensor
 
 from xvoe.domains import check_config
 from xvoe.errors import XvoeError
-from xvoe.evaluation.score import Scorer
+from xvoe.evaluation.scorer import Scorer
 from xvoe.evaluation.surprise import DrawnScene
 from xvoe.models.config import field_type, parse_field, split_assignment, to_dict
 
 from .model import InferenceConfig, pixel_log_normaliser
 from .surprise import NLLSurprise, check_particles, nll_surprise
+
+__all__ = ["NLLRun", "nll_batch", "nll_config", "nll_defaults_note", "nll_excess", "nll_run", "nll_settings",
+           "nll_sources", "reference_nll", "under_prior_two", "xpl_nll"]
 
 
 def nll_config(base: InferenceConfig, particles: int | None = None,
@@ -107,44 +110,46 @@ def _typed(value: Any) -> str:
     return ",".join(map(str, value)) if isinstance(value, (tuple, list)) else str(value)
 
 
-class NLLColumns:
-    """The columns nll, ess, p_hidden, p_two and nll_excess of a score file (xvoe.evaluation.score's
-    ExtraColumns), and the curve nll, -log p(x_t | x_<t) (the SMC's; importance sampling keeps
-    none): one Pyro estimate per video, from the batch the MSE score encoded and drew. The
-    settings are the checkpoint's, each changed where this run overrides it."""
+@dataclass(frozen=True)
+class NLLRun:
+    """What a score's NLL columns are made with (`nll_run`): the settings, where each came from
+    (`nll_sources`), and the seed of the draws (each video's from a generator of its own)."""
 
-    names = ("nll", "ess", "p_hidden", "p_two", "nll_excess")
+    config: InferenceConfig
+    sources: dict[str, str]
+    seed: int = 0
 
-    def __init__(self, particles: int | None = None, seed: int = 0, settings: dict[str, Any] | None = None):
-        self.particles, self.changes, self.seed = particles, settings, seed
-        self.config = nll_config(InferenceConfig(), particles, settings)     # bad settings fail before any work
-        self.overridden = set(settings or ()) | ({"particles"} if particles is not None else set())
-        self.sources = nll_sources(None, self.overridden)
-
-    def check(self, scorer: Scorer) -> None:
-        """The model's own NLL settings, with this run's changes; where the checkpoint stores none,
-        InferenceConfig's defaults, which the header records (`nll_defaults_note` says so)."""
-        if scorer.xpl is None or not scorer.xpl.config.use_reasoning:
-            raise XvoeError(f"the NLL surprise needs an XPL model with reasoning; {scorer.name} has none")
-        self.config = nll_config(scorer.nll or InferenceConfig(), self.particles, self.changes)
-        self.sources = nll_sources(scorer.nll, self.overridden)
-        check_particles(self.config.particles)
-
-    def settings(self) -> dict:
-        """The header's record: the settings, where each came from, and the seed."""
+    def header(self) -> dict:
+        """The score file header's record of them (xvoe.evaluation.score_headers, `new_header`)."""
         return {"nll": to_dict(self.config), "nll_source": self.sources, "nll_seed": self.seed}
 
-    @property
-    def curve_names(self) -> tuple[str, ...]:
-        return ("nll",) if self.config.method == "smc" else ()
 
-    def batch(self, scorer: Scorer, videos: dict[str, Tensor], scene: DrawnScene) -> tuple[np.ndarray, np.ndarray]:
-        found = xpl_nll(scorer, videos, self.config, self.seed, scene)
-        values = np.array([(f.nll, f.ess, f.p_hidden, f.p_two) for f in found], dtype=float).reshape(-1, 4)
-        if not self.curve_names:
-            return values, np.zeros((0, len(found), videos["frames"].shape[1]))
-        return values, np.stack([f.frame_nll.numpy() for f in found])[None]
+def nll_run(scorer: Scorer, particles: int | None = None, seed: int = 0,
+            settings: dict[str, Any] | None = None) -> NLLRun:
+    """The model's own NLL settings (its checkpoint's; where it stores none, InferenceConfig's
+    defaults, which the header records and `nll_defaults_note` words), each changed where this
+    run overrides it (`particles`, `settings`); a one-line error for a model without reasoning."""
+    if scorer.xpl is None or not scorer.xpl.config.use_reasoning:
+        raise XvoeError(f"the NLL surprise needs an XPL model with reasoning; {scorer.name} has none")
+    config = nll_config(scorer.nll or InferenceConfig(), particles, settings)
+    check_particles(config.particles)
+    overridden = set(settings or ()) | ({"particles"} if particles is not None else set())
+    return NLLRun(config, nll_sources(scorer.nll, overridden), seed)
 
-    def finish(self, values: np.ndarray, curves: np.ndarray, size: int) -> np.ndarray:
-        nll_excess = values[:, 0] - reference_nll(curves[2], 4 * size * size, self.config.pixel_sigma)
-        return np.column_stack([values, nll_excess])
+
+def nll_batch(scorer: Scorer, batch: dict[str, Tensor], run: NLLRun,
+              drawn: DrawnScene | None = None) -> tuple[dict[str, np.ndarray], dict[str, np.ndarray]]:
+    """The NLL's columns of encoded videos (`encode_videos`), (B,) each: nll, -log p(video) under
+    the Pyro model, its ess, p_hidden and p_two; and its curve nll (B, T), -log p(x_t | x_<t)
+    (the SMC's; importance sampling keeps none). `drawn`: the batch as the MSE score drew it."""
+    found = xpl_nll(scorer, batch, run.config, run.seed, drawn)
+    columns = {name: np.array([getattr(f, name) for f in found], dtype=float)
+               for name in ("nll", "ess", "p_hidden", "p_two")}
+    curves = {"nll": np.stack([f.frame_nll.numpy() for f in found])} if run.config.method == "smc" else {}
+    return columns, curves
+
+
+def nll_excess(nll: np.ndarray, s_rec: np.ndarray, size: int, run: NLLRun) -> np.ndarray:
+    """The column nll_excess (N,): the NLL less that of a reference drawing only what was seen
+    (`reference_nll`), from the MSE score's s_rec curve (N, T) of frames of `size` pixels a side."""
+    return nll - reference_nll(s_rec, 4 * size * size, run.config.pixel_sigma)

@@ -373,6 +373,16 @@ def dead_commands(text: Text) -> Iterator[Dead]:
 
 
 @cache
+def public_homes() -> dict[str, str]:
+    """xvoe's public names -> the module each is imported from, read from the imports of
+    xvoe/__init__.py's `if TYPE_CHECKING:` block, so that no name is imported to be found."""
+    tree = ast.parse((ROOT / "xvoe" / "__init__.py").read_text())
+    return {alias.asname or alias.name: "xvoe" + ("." + node.module if node.module else "")
+            for block in tree.body if isinstance(block, ast.If) for node in block.body
+            if isinstance(node, ast.ImportFrom) for alias in node.names}
+
+
+@cache
 def module_names(module: str) -> dict[str, str] | None:
     """What a module of the repository holds at its top level, read from its source, name ->
     "module", "function" or "other" (a class, a constant, an import); None if there is no such
@@ -411,14 +421,7 @@ def resolve(dotted: str) -> str | None:
     parts = dotted.split(".")
     if parts[0] != "xvoe" or parts[1:2] == ["viz"]:
         return "there is no xvoe.viz: the figures are xvoe.plot_* and xvoe.show*, from the modules of xvoe.apps"
-    import xvoe
-
-    # xvoe's own table of where each public name lives, so that no name is imported to be found
-    module, name = xvoe._MODULES.get(parts[1]) or "xvoe", parts[1]
-    if name in xvoe._HOME_OF:
-        module = xvoe._HOME_OF[name]
-    elif module != "xvoe":
-        module, name = module.rsplit(".", 1)
+    module, name = public_homes().get(parts[1], "xvoe"), parts[1]
     for part in parts[2:]:
         kind = (module_names(module) or {}).get(name)
         if kind is None:

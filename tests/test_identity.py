@@ -10,10 +10,12 @@ from pathlib import Path
 import h5py
 import numpy as np
 import pytest
+import torch
 
 import xvoe
 from xvoe.apps.cli import main
 from xvoe.errors import XvoeError
+from xvoe.evaluation.score_headers import new_header
 from xvoe.fingerprints import _sampled_videos, arrays_hash, split_identity
 from xvoe.scenes import store
 from xvoe.training.checkpoints import shipped_path
@@ -88,6 +90,25 @@ def test_a_checkpoint_hashes_alike_in_any_directory_and_the_next_model_does_not(
     shipped, moved = xvoe.model_identity(xvoe.load_model("xpl")), xvoe.model_identity(xvoe.load_model(str(run)))
     assert shipped["checkpoint_hash"] == moved["checkpoint_hash"] and moved["source"] == str(run.resolve())
     assert xvoe.model_identity(xvoe.load_model("plato"))["checkpoint_hash"] != shipped["checkpoint_hash"]
+
+
+def test_a_score_header_says_which_model_settings_the_command_line_changed_from_the_recipe(tmp_path):
+    """Each checkpoint's settings are its recipe's but where `--set` changed them when it was
+    trained: the header names the recipe and those (`model_settings`), beside the NLL's sources."""
+    run = tmp_path / "run"
+    run.mkdir()
+    for stage in ("xpl", "perception", "proposal"):
+        shutil.copy(shipped_path("xpl", stage), run / f"{stage}.pt")
+    state = torch.load(run / "xpl.pt", map_location="cpu", weights_only=True)
+    state["train"]["lr"] *= 2       # as `xvoe train xpl --set lr=...` would have stored it
+    torch.save(state, run / "xpl.pt")
+    scorer = xvoe.load_model(str(run))
+    header = new_header(scorer, {}, tmp_path / "t.h5", "score", "sum")
+    recipe = state["config"]["recipe"]
+    assert header["model_settings"]["perception"] == {"recipe": recipe, "changed from the recipe": []}
+    changed = header["model_settings"]["xpl"]["changed from the recipe"]
+    assert len(changed) == 1 and changed[0].startswith(f"train.lr: {state['train']['lr']!r} != ")
+    assert "model_settings" not in new_header(xvoe.load_model("random"), {}, tmp_path / "t.h5", "score", "sum")
 
 
 def test_a_model_of_your_own_is_named_by_module_and_file_hash(tmp_path):

@@ -16,8 +16,8 @@ from xvoe.apps.cli import main
 from xvoe.apps.explanation_figure import plot_explanation
 from xvoe.apps.report import header_lines
 from xvoe.apps.zoo import available_models
-from xvoe.evaluation.score import encode_videos, load_model
 from xvoe.evaluation.score_tables import read_scores
+from xvoe.evaluation.scorer import encode_videos, load_model
 from xvoe.inference.decoder import FoldedDecoder
 from xvoe.inference.explain import nll_explanation
 from xvoe.inference.model import Drawing, HiddenObjectModel, InferenceConfig, Proposal, drawing_cost

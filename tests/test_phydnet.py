@@ -12,7 +12,8 @@ from xvoe.apps.cli import main
 from xvoe.apps.comparisons import plot_predictions, predicted_frames
 from xvoe.apps.pipeline import PipelineConfig, run_pipeline
 from xvoe.errors import XvoeError
-from xvoe.evaluation.score import SCORE_COLUMNS, load_model
+from xvoe.evaluation.score_curves import SCORE_COLUMNS
+from xvoe.evaluation.scorer import load_model
 from xvoe.models.perception import normalise, to_uint8
 from xvoe.models.phydnet import (
     PhyDNet,

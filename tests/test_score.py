@@ -4,7 +4,7 @@ import torch
 
 import xvoe
 from xvoe.errors import XvoeError
-from xvoe.evaluation.score import SCORE_COLUMNS
+from xvoe.evaluation.score_curves import SCORE_COLUMNS
 from xvoe.evaluation.surprise import Surprise, _better_explanation, _latent_surprise, aggregate, mse_surprise
 from xvoe.inference.score import reference_nll
 from xvoe.models.dynamics import DynamicsConfig

@@ -12,7 +12,8 @@ from conftest import randomise_dynamics_head
 
 import xvoe
 from xvoe.apps.cli import main
-from xvoe.evaluation import score as scoring
+from xvoe.evaluation import score_cache
+from xvoe.evaluation import scorer as scoring
 from xvoe.evaluation.score_tables import read_scores
 from xvoe.inference.model import InferenceConfig
 from xvoe.inference.score import xpl_nll
@@ -73,7 +74,7 @@ def test_scores_from_the_cache_are_the_scores_without_it(tiny_split, tmp_path, m
         raise AssertionError("a split with a cache was encoded again")
 
     monkeypatch.setattr(scoring, "encode_frames", no_encoding)
-    monkeypatch.setattr(scoring, "encode_with", no_encoding)
+    monkeypatch.setattr(score_cache, "encode_with", no_encoding)
     found = {"xpl": scored(xpl, tiny_split, tmp_path / "xpl.csv", **nll),      # the MSE and the NLL read it
              "plato": scored(plato, tiny_split, tmp_path / "plato.csv")}        # another model of that perception
     for name in ("xpl", "plato"):
@@ -106,6 +107,28 @@ def test_the_nll_beside_the_mse_score_is_the_nll_of_each_video_drawn_on_its_own(
     with np.load(table.path.with_suffix(".curves.npz")) as curves:
         np.testing.assert_allclose(curves["nll"], np.stack([found.frame_nll.numpy() for found in alone]),
                                    rtol=1e-6, atol=1e-6)
+
+
+def test_an_explanation_from_an_encoded_chunk_is_the_explanation_encoding_its_video(tiny_split, monkeypatch):
+    """`xvoe.explain(..., chunk=...)` reads the video from a chunk encoded once for all its videos,
+    and draws what explaining it alone draws, to the bit, under either surprise."""
+    with store.open_dataset(tiny_split) as file:
+        scorer = tiny_scorer("xpl", file["states"].shape[2])
+        chunk = scoring.encode_chunk(scorer, file, 3)
+    assert chunk.first == 0 and chunk.holds(3) and not chunk.holds(len(chunk.videos["mean"]))
+    settings = {"display_size": None, "particles": 4}
+    alone = {surprise: xvoe.explain(scorer, tiny_split, 3, surprise=surprise, **settings)
+             for surprise in ("mse", "nll")}
+
+    def no_encoding(*args, **kwargs):
+        raise AssertionError("a video of an encoded chunk was encoded again")
+
+    monkeypatch.setattr(scoring, "encode_frames", no_encoding)
+    for surprise, expected in alone.items():
+        found = xvoe.explain(scorer, tiny_split, 3, surprise=surprise, chunk=chunk, **settings)
+        np.testing.assert_array_equal(found.behind_wall, expected.behind_wall, err_msg=surprise)
+        assert found.title == expected.title
+    assert found.nll == alone["nll"].nll and found.p_hidden == alone["nll"].p_hidden
 
 
 def shipped_or_skip() -> Path:

@@ -5,7 +5,7 @@ import torch
 import xvoe.apps.zoo as zoo
 import xvoe.training.checkpoints as checkpoints
 from xvoe.errors import XvoeError
-from xvoe.evaluation.score import load_model
+from xvoe.evaluation.scorer import load_model
 from xvoe.training.recipes import recipe
 
 

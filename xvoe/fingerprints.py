@@ -1,7 +1,7 @@
 """What a result was made from, as hashes that hold across machines and paths: the split a
 score file was scored on and the model that scored it.
 
-A score file records both (xvoe.evaluation.score, `score_header`), so that `xvoe metrics`
+A score file records both (xvoe.evaluation.score_headers, `score_header`), so that `xvoe metrics`
 can refuse scores of another split and `xvoe verify` can load the same model again. Hashes
 are of contents, never of file names, times or compressed bytes.
 """

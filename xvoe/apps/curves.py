@@ -12,8 +12,10 @@ from matplotlib.animation import FuncAnimation
 
 from ..errors import XvoeError
 from ..evaluation.metrics import excess
-from ..evaluation.score import MSE_LABEL, check_same_split, read_curves, warn_unchecked
+from ..evaluation.score_curves import read_curves
+from ..evaluation.score_headers import check_same_split, warn_unchecked
 from ..evaluation.score_tables import read_scores
+from ..evaluation.scorer import MSE_LABEL
 from ..fingerprints import split_identity
 from ..scenes import store
 from ..scenes.display import DISPLAY_SIZE, check_display_size, display_video
@@ -32,7 +34,7 @@ class PairCurves:
     possible: list[bool]
     events: list[int]               # each member's event frame (-1: none, or no split given)
     lowered: np.ndarray             # (T,) how far the wall stands in either member (0 without the split)
-    own: str | None = None          # a model's own curve (`xvoe.evaluation.score.Curves`); None: the MSE's terms
+    own: str | None = None          # a model's own curve (`xvoe.evaluation.score_curves.Curves`); None: the MSE's terms
     label: str = MSE_LABEL          # what its axis measures
 
 

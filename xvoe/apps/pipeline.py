@@ -28,8 +28,8 @@ import torch
 
 from ..errors import XvoeError
 from ..evaluation.explain import explain
-from ..evaluation.score import load_model, score_split
 from ..evaluation.scorecard import role_of
+from ..evaluation.scorer import load_model
 from ..models.config import to_dict
 from ..models.devices import resolve_device
 from ..outputs import claim_directory, claim_scope
@@ -50,6 +50,7 @@ from ..training.stages import DEFAULT_MODELS, MODELS, PERCEPTION, STAGES, contin
 from ..training.xpl import TRAINED_ON_LATENTS, train_xpl
 from .explanation_figure import plot_explanation
 from .report import header_lines, report
+from .verbs import score as score_split
 from .verbs import with_display
 
 

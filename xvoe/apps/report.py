@@ -20,7 +20,8 @@ from ..evaluation.disagreements import (
 )
 from ..evaluation.metrics import metric_rows, relative_members
 from ..evaluation.onset import ONSET_FIELDS, onset, onset_pairs
-from ..evaluation.score import check_same_split, read_curves, score_header, scored_split, warn_unchecked
+from ..evaluation.score_curves import read_curves
+from ..evaluation.score_headers import check_same_split, score_header, scored_split, warn_unchecked
 from ..evaluation.score_tables import model_name, read_scores
 from ..fingerprints import describe_split, split_identity
 from ..outputs import (

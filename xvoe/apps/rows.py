@@ -13,8 +13,9 @@ import matplotlib.pyplot as plt
 
 from ..errors import XvoeError
 from ..evaluation.explain import DRAW_THRESHOLD
-from ..evaluation.score import Scorer, as_scorer, check_same_split, check_scored_by, score_header
+from ..evaluation.score_headers import check_same_split, check_scored_by, score_header
 from ..evaluation.score_tables import read_scores
+from ..evaluation.scorer import Scorer, as_scorer
 from ..fingerprints import split_identity
 from ..models.config import from_dict
 from ..models.nll import InferenceConfig
@@ -60,9 +61,9 @@ def nll_scorer(model: str | Scorer, data: str | Path, scores: str | Path) -> tup
     if "nll" not in header:
         raise XvoeError(f"{scores} has no NLL columns; score it with --surprise nll (or both)")
     scorer = as_scorer(model)
-    check_scored_by(scores, scorer)
+    check_scored_by(scores, scorer, header)
     with store.open_dataset(data) as file:
-        check_same_split(scores, split_identity(file), data)
+        check_same_split(scores, split_identity(file), data, header)
     return replace(scorer, nll=from_dict(InferenceConfig, header["nll"])), int(header["nll_seed"])
 
 

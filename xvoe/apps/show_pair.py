@@ -12,7 +12,8 @@ import matplotlib.pyplot as plt
 import numpy as np
 
 from ..errors import XvoeError
-from ..evaluation.score import check_same_split, read_curves, warn_unchecked
+from ..evaluation.score_curves import read_curves
+from ..evaluation.score_headers import check_same_split, warn_unchecked
 from ..evaluation.score_tables import read_scores
 from ..fingerprints import split_identity
 from ..outputs import atomic_paths, claim_file, claim_scope, nearly_full

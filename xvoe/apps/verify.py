@@ -4,7 +4,7 @@ against the split's; then a seeded sample of its rows is scored again, by the mo
 split its header names, and compared with the file. An edit of any row is so named.
 
 A number in a paper made with xvoe can so be checked later: the header says what to load
-(xvoe.evaluation.score, `score_header`), and the hashes say whether it is still the same. A
+(xvoe.evaluation.score_headers, `score_header`), and the hashes say whether it is still the same. A
 header decides only which weights are read, never which code runs: a model of your own is
 loaded from the `model` its user names, and its file's hash must be the one recorded.
 """
@@ -16,26 +16,20 @@ from pathlib import Path
 
 import numpy as np
 
-from xvoe.inference.score import NLLColumns
+from xvoe.inference.score import NLLRun, nll_run
 
 from ..errors import XvoeError
-from ..evaluation.score import (
-    CURVES,
-    check_same_split,
-    check_scored_by,
-    curves_arrays,
-    load_model,
-    names_code,
-    row_columns,
-    score_header,
-    score_rows,
-    stored_columns,
-)
+from ..evaluation.score_curves import curve_columns
+from ..evaluation.score_headers import check_same_split, check_scored_by, curves_arrays, score_header
 from ..evaluation.score_tables import read_columns, scores_digest
+from ..evaluation.scorer import Scorer, load_model, names_code
 from ..fingerprints import split_identity
 from ..models.config import from_dict, to_dict
 from ..models.nll import InferenceConfig
 from ..scenes import store
+from .verbs import score_batch, score_columns
+
+__all__ = ["Verification", "verify"]
 
 # a video scored alone against the batch it was scored in: the float sums differ in the last digits
 TOLERANCE = {"rtol": 1e-4, "atol": 1e-6}
@@ -92,22 +86,20 @@ def _verify_file(path: Path, rows: int, data: str | Path | None, seed: int, mode
     data = data or header["data"]
     table = read_columns(path)
     scorer = load_model(source)
-    check_scored_by(path, scorer)
-    extra = _extra_columns(header)
-    if extra is not None:
-        extra.check(scorer)
+    check_scored_by(path, scorer, header)
+    nll = _nll_run(header, scorer)
     picked = np.sort(np.random.default_rng(seed).choice(len(table["index"]), min(rows, len(table["index"])),
                                                         replace=False))
     saved = curves_arrays(path.with_suffix(".curves.npz"))
     with store.open_dataset(data, split="test") as file:
-        check_same_split(path, split_identity(file), data)
+        check_same_split(path, split_identity(file), data, header)
         _check_rows(path, table, saved, header, store.labels(file, REQUIRED_LABELS), found)
         for row in picked:
             video = int(table["index"][row])
-            curves, added, extra_curves = score_rows(scorer, file, video, video + 1, 1, extra)
-            again = row_columns(scorer, curves, added, header["aggregate"], extra, header["score"])
-            again |= {f"curve {name}": curves[i, 0] for i, name in enumerate(CURVES) if name in saved}
-            again |= {f"curve {name}": values[0] for name, values in extra_curves.items() if name in saved}
+            curves, values = score_batch(scorer, file, video, video + 1, nll)
+            again = score_columns(scorer, curves, values, header["aggregate"], header["score"], nll,
+                                  file["rgbd"].shape[2])
+            again |= {f"curve {name}": curve[0] for name, curve in curves.items() if name in saved}
             held = {name: table[name][row] for name in again if name in table}
             held |= {name: saved[name.removeprefix("curve ")][row] for name in again if name.startswith("curve ")}
             differ = [name for name in held if not np.allclose(held[name], again[name], **TOLERANCE)]
@@ -122,14 +114,14 @@ REQUIRED_LABELS = ("scenario", "setting", "pair", "member", "possible")
 def _check_rows(path: Path, table: dict[str, np.ndarray], saved: dict[str, np.ndarray], header: dict,
                 labels: dict[str, np.ndarray], found: Verification) -> None:
     """Every row of a scores file against what it was written from: its values against the
-    columns its curves reduce to (`stored_columns`), its model against the header's, its labels
+    columns its curves reduce to (`_stored_columns`), its model against the header's, its labels
     against the split's video of its index; one line, naming the first rows that differ. Scores
     that match all these but not the digest the curves record were edited in a column the
     curves do not hold (the NLL's): said too."""
     index = table["index"].astype(int)
     if index.min() < 0 or index.max() >= len(labels["pair"]):
         raise XvoeError(f"{path} names videos {index.min()}..{index.max()}, which its split does not hold")
-    expected = {name: values for name, values in stored_columns(saved, header).items() if name in table}
+    expected = {name: values for name, values in _stored_columns(saved, header).items() if name in table}
     expected |= {name: values[index] for name, values in labels.items() if name in table}
     if "model" in table and "model" in header:
         expected["model"] = np.full(len(index), header["model"])
@@ -171,12 +163,30 @@ def _value(value) -> str:
     return _shown(value) if isinstance(value, (float, np.floating)) else repr(str(value))
 
 
-def _extra_columns(header: dict) -> NLLColumns | None:
-    """The NLL's columns with the settings and seed the file was made with, if it has them."""
+def _stored_columns(saved: dict[str, np.ndarray], header: dict) -> dict[str, np.ndarray]:
+    """The columns of a score file that its stored curves (`curves_arrays`) reduce to, as they were
+    written (`curve_columns`, by the aggregation its header records), and nll, -log p(video), the
+    sum of its curve whatever the aggregation (the SMC's; importance sampling stores none); score
+    is the header's score column. The NLL's other columns are not sums of curves: rescored."""
+    curves = {name: values for name, values in saved.items() if name != "header"}
+    own = header.get("curve") if header.get("curve") in curves else None
+    found = curve_columns(curves, header.get("aggregate", "sum"), own)
+    if "nll" in curves:
+        found["nll"] = np.asarray(curves["nll"], float).sum(axis=1)
+    score = header.get("score", "score")
+    if score != "score":
+        found.pop("score", None)
+        if score in found:
+            found["score"] = found[score]
+    return found
+
+
+def _nll_run(header: dict, scorer: Scorer) -> NLLRun | None:
+    """The NLL's settings and seed as the file was made with them (each checked as `--nll-set`
+    would be), if it has the NLL's columns."""
     if "nll" not in header:
         return None
-    settings = to_dict(from_dict(InferenceConfig, header["nll"]))
-    return NLLColumns(None, header["nll_seed"], settings)
+    return nll_run(scorer, None, header["nll_seed"], to_dict(from_dict(InferenceConfig, header["nll"])))
 
 
 def _shown(value) -> str:

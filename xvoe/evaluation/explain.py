@@ -20,8 +20,9 @@ from ..models.slots import composite, decode_slots
 from ..scenes import store
 from ..scenes.videos import check_index, describe
 from ..training.data import check_size
-from .score import Scorer, encode_video, read_videos, run_model
+from .scorer import EncodedChunk, Scorer, encode_video
 from .surprise import explained_latents, mse_surprise
+from .user_models import read_videos, run_model
 
 __all__ = ["DRAW_THRESHOLD", "Explanation", "DrawnExplanation", "explain_drawn", "explain", "drawn_pixels",
            "masked", "look_alike", "decoded_mask", "iou"]
@@ -95,7 +96,7 @@ def explain_drawn(scorer: Scorer, data: str, index: int) -> DrawnExplanation:
         check_index(file, index)
         videos, title = read_videos(file, index, index + 1), describe(file, index)
     try:
-        drawn = np.asarray(run_model(scorer, "explain", videos))
+        drawn = np.asarray(run_model(scorer.custom, "explain", videos, scorer.time_limit))
     except (ValueError, TypeError):
         drawn = np.zeros(0, object)     # ragged, or not an array: refused below with what it is
     expected = videos.rgbd.shape[:4]
@@ -105,16 +106,19 @@ def explain_drawn(scorer: Scorer, data: str, index: int) -> DrawnExplanation:
     return DrawnExplanation(videos.rgbd[0], drawn[0], drawn[0], -1, title)
 
 
-def _read_video(scorer: Scorer, data: str, index: int) -> tuple[dict, np.ndarray, str]:
+def _read_video(scorer: Scorer, data: str, index: int,
+                chunk: EncodedChunk | None = None) -> tuple[dict, np.ndarray, str]:
     """Video `index` of a split file, encoded for the scorer as its score encodes it, so that an
-    explanation is of the score's own latents; its frames (T, H, W, 4); its title."""
+    explanation is of the score's own latents (read from `chunk` where it holds the video); its
+    frames (T, H, W, 4); its title."""
     if scorer.is_random:
         raise XvoeError("the random agent explains nothing; give a trained model")
     with store.open_dataset(data) as file:
         check_index(file, index)
         check_size(file, scorer.vae.config.image_size, f"the model {scorer.name}")
         frames = store.read_frames(file, "rgbd", index)
-        return encode_video(scorer, file, index), frames, describe(file, index)
+        video = chunk.video(index) if chunk is not None and chunk.holds(index) else encode_video(scorer, file, index)
+        return video, frames, describe(file, index)
 
 
 def _pictures(vae, refined: torch.Tensor, occupied: torch.Tensor, video: dict,
@@ -131,8 +135,10 @@ def _pictures(vae, refined: torch.Tensor, occupied: torch.Tensor, video: dict,
 
 
 @torch.no_grad()
-def explain(scorer: Scorer, data: str, index: int) -> Explanation:
-    video, rgbd, title = _read_video(scorer, data, index)
+def explain(scorer: Scorer, data: str, index: int, chunk: EncodedChunk | None = None) -> Explanation:
+    """What the MSE score's explanation puts behind the wall in video `index`; `chunk`: its
+    videos already encoded (`encode_chunk`), where the caller explains several of them."""
+    video, rgbd, title = _read_video(scorer, data, index, chunk)
     kept = None     # the explanation the MSE score rests on: with "better", nothing hidden where that fits better
     if scorer.explanation != "proposal":
         kept = mse_surprise(scorer.vae, scorer.xpl, video["frames"], video["mean"], video["visible"],

@@ -23,7 +23,7 @@ from ..scenes import store
 from ..scenes.scenarios import SCENARIOS
 from ..scenes.videos import silhouette
 from .explain import decoded_mask, iou
-from .score import Scorer, encode_videos
+from .scorer import Scorer, encode_videos
 from .surprise import mse_surprise
 
 __all__ = ["pick", "expected_videos", "ground_truth", "hidden_explanations", "hidden_fills", "perception_iou",

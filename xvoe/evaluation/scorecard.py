@@ -41,7 +41,7 @@ from .perception_quality import (
     reconstruction,
 )
 from .resampling import values_interval
-from .score import Scorer
+from .scorer import Scorer
 
 LABELS = {"score": "MSE verdict", "paper_score": "paper's MSE score", "excess": "MSE excess", "nll": "NLL",
           "nll_excess": "NLL excess"}

@@ -74,7 +74,7 @@ STAGES: dict[str, Stage] = {stage.name: stage for stage in (
           "phydnet_train", role="baseline", lane=0),
 )}
 SCORED = tuple(name for name, stage in STAGES.items() if stage.scored)     # the models a checkpoint can be
-# the chance baseline: per-frame surprise drawn at random (xvoe.evaluation.score), scored by name like
+# the chance baseline: per-frame surprise drawn at random (xvoe.evaluation.scorer), scored by name like
 # any model and made by no stage: nothing to train, no checkpoint
 RANDOM = "random"
 # every model scored by name, with the goals the scorecard holds it to ("chance": 50% inside the interval)
