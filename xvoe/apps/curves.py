@@ -127,7 +127,7 @@ def plot_surprise_curves(scores: str | Path, data: str | Path | None, scenario: 
     the excess (s_img - s_rec + s_dyn) when the curves hold s_rec (models with a perception);
     a model's own curve alone, on its own axis, for a model answering `surprise(videos)`.
 
-    scores: a CSV written by `xvoe score` (score_split); curves: its per-frame curves (default:
+    scores: a CSV written by `xvoe score`; curves: its per-frame curves (default:
     the .curves.npz beside it); data: the test split that was scored, for the event frame (red
     line) and the frames where the wall stands (grey; lighter while it moves), or None for
     the curves alone. frame: a frame to mark (a cursor)."""
