@@ -448,7 +448,8 @@ def dead_names(text: Text) -> Iterator[Dead]:
 
 
 # Flags prose may name that belong to another program, each with its program.
-OTHER_TOOLS = {"--durations": "pytest", "--nproc_per_node": "torchrun", "--standalone": "torchrun"}
+OTHER_TOOLS = {"--durations": "pytest", "--dist": "pytest-xdist", "--nproc_per_node": "torchrun",
+               "--standalone": "torchrun"}
 FLAG = re.compile(r"(?<![\w-])--[a-z][a-z0-9]*(?:[-_][a-z0-9]+)*")
 SCRIPTS = ("benchmarks/*.py", "tests/interruptions.py")     # the repository's scripts with flags of their own
 
