@@ -29,8 +29,8 @@ demo: $(STAMP)
 	$(BIN)/xvoe show demo/test.h5 --index 0 --out demo/pair-0.gif --overwrite
 	@echo "demo: scores in demo/scores/, metrics and figures in demo/report/, an explanation and contact sheets in demo/"
 
-# Two pytest workers of one thread each, a test file per worker: the suite's tests are mostly
-# one-thread work and waits on processes, so the two cores halve its time (docs/results.md).
+# Two pytest workers of one thread each, a test file per worker: most tests are one-thread work or
+# waits on the processes they start, which one process with two torch threads leaves a core idle for.
 test: $(STAMP)
 	OMP_NUM_THREADS=1 $(BIN)/python -m pytest -n 2 --dist loadfile
 

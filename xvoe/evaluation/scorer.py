@@ -166,7 +166,7 @@ def load_model(model: str, device: str | torch.device = "cpu") -> Scorer:
         run_dir, stage = path, "xpl"
     if stage not in SHIPPED:
         raise XvoeError(f"{model} is not a model to score with: give a run directory, one of "
-                        f"{', '.join(s + '.pt' for s in SHIPPED)}, or 'random'")
+                        f"{', '.join(s + '.pt' for s in SHIPPED)}, or {RANDOM!r}")
     if stage == "phydnet":
         net, state = load_phydnet(run_dir / "phydnet.pt", device)
         return Scorer(stage, None, None, phydnet=net, custom=PhyDNetSurprise(net), source=_absolute_reference(model),
