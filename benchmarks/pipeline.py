@@ -23,9 +23,10 @@ from dataclasses import replace
 from pathlib import Path
 
 import xvoe
-from xvoe.apps.pipeline import DEFAULT_MODELS, MODELS, stage_times
+from xvoe.apps.pipeline import stage_times
 from xvoe.evaluation import scorecard
 from xvoe.training.config import TrainConfig
+from xvoe.training.stages import DEFAULT_MODELS, MODELS
 
 FRESH_SEED = 12345
 

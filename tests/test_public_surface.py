@@ -52,14 +52,22 @@ def top_level(tree: ast.Module) -> tuple[set[str], set[str]]:
     return bound | defined, defined
 
 
+def is_face(path: Path, tree: ast.Module) -> bool:
+    """A package's face (an __init__.py that defines nothing) or `python -m`'s entry: no surface of its own."""
+    return path.name == "__main__.py" or (path.name == "__init__.py" and not top_level(tree)[1])
+
+
 def export_problems(path: Path) -> list[str]:
-    """A name `__all__` lists that the module lacks; a public function or class it leaves out."""
+    """A module without `__all__`; a name `__all__` lists that the module lacks; a public function or
+    class it leaves out."""
     tree = ast.parse(path.read_text())
     listed = exports(tree)
-    if listed is None:
-        return []
-    bound, defined = top_level(tree)
     where = path.relative_to(ROOT) if path.is_relative_to(ROOT) else path
+    if listed is None:
+        computed = any(isinstance(node, ast.Assign) and any(getattr(t, "id", "") == "__all__" for t in node.targets)
+                       for node in tree.body)
+        return [] if computed or is_face(path, tree) else [f"{where}: no __all__ says what it exports"]
+    bound, defined = top_level(tree)
     lazy = "__getattr__" in defined         # its names load on first use (PEP 562): xvoe's own
     problems = [f"{where}: __all__ lists {name}, which it does not define"
                 for name in listed if name not in bound and not lazy]
@@ -101,6 +109,7 @@ def test_an_internal_import_and_a_stale_all_are_caught(tmp_path):
     (tmp_path / "xvoe").mkdir()
     (tmp_path / "xvoe" / "low.py").write_text('__all__ = ["shown", "gone"]\n\n\ndef shown(): ...\n\n\n'
                                               'def hidden(): ...\n\n\ndef _inner(): ...\n')
+    (tmp_path / "xvoe" / "bare.py").write_text("def shown(): ...\n")
     script = tmp_path / "bench.py"
     script.write_text("from xvoe.low import _inner, hidden, shown\n")
     assert private_imports(script, tmp_path) == ["bench.py:1 imports xvoe.low._inner, an internal",
@@ -108,3 +117,5 @@ def test_an_internal_import_and_a_stale_all_are_caught(tmp_path):
     assert export_problems(tmp_path / "xvoe" / "low.py") == [
         f"{tmp_path / 'xvoe' / 'low.py'}: __all__ lists gone, which it does not define",
         f"{tmp_path / 'xvoe' / 'low.py'}: hidden is public but not in __all__ (export it, or name it _hidden)"]
+    bare = tmp_path / "xvoe" / "bare.py"
+    assert export_problems(bare) == [f"{bare}: no __all__ says what it exports"]

@@ -31,6 +31,10 @@ from pathlib import Path
 
 from .errors import XvoeError
 
+__all__ = ["claim_file", "refuse_overlap", "claim_directory", "check_name_length", "hold", "release",
+           "claim_scope", "parts_folder", "temporary_name", "remove_stale_temporaries", "atomic_paths",
+           "no_space", "refusal", "nearly_full", "writing", "replace_together"]
+
 # the outputs this process holds, by absolute path: the descriptor that holds each one's lock
 _held: dict[Path, int] = {}
 # the directories this process made for its outputs, in the order made (`claim_scope` removes a failed call's)

@@ -19,6 +19,8 @@ from collections.abc import Iterator
 from contextlib import contextmanager
 from typing import Any
 
+__all__ = ["end_with_parent", "interrupts_held", "interrupts_kept"]
+
 PR_SET_PDEATHSIG = 1        # from <linux/prctl.h>
 
 

@@ -15,6 +15,9 @@ from pathlib import Path
 
 from .errors import XvoeError
 
+__all__ = ["cores", "available_memory", "gigabytes", "memory_problem", "check_memory", "check_workers",
+           "check_disk"]
+
 _CGROUP = Path("/sys/fs/cgroup")
 
 

@@ -53,6 +53,9 @@ from .report import header_lines, report
 from .verbs import score as score_split
 from .verbs import with_display
 
+__all__ = ["PipelineConfig", "Stages", "run_pipeline", "stage_times", "run_files", "scored_reference",
+           "scored_steps", "stage_processes", "compare_models", "write_report"]
+
 
 @dataclass(frozen=True)
 class PipelineConfig:

@@ -25,6 +25,8 @@ from ..scenes.display import DISPLAY_SIZE
 from .explanation_figure import plot_explanation
 from .verbs import explain
 
+__all__ = ["ROW_COLUMNS", "DrawnRows", "read_rows", "nll_scorer", "explanation_rows"]
+
 # a figure's row kind -> the score file's column whose probability decides whether it is drawn
 ROW_COLUMNS = {"hidden object": "p_hidden", "two objects": "p_two"}
 

@@ -19,6 +19,8 @@ from ..training.checkpoints import SHIPPED, WEIGHTS, load_checkpoint, shipped_pa
 from ..training.provenance import recipe_differences
 from ..training.stages import PERCEPTION, STAGES
 
+__all__ = ["BUDGET_BYTES", "KEPT", "available_models", "ship"]
+
 BUDGET_BYTES = 25 * 2**20      # all shipped checkpoints together
 KEPT = ("format", "stage", "step", "config", "model", "train", "meta")
 # the shipped models that read the shared perception's latents

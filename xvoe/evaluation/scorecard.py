@@ -27,7 +27,7 @@ import numpy as np
 from ..errors import XvoeError
 from ..models.perception import ComponentVAE
 from ..scenes.scenarios import SCENARIOS
-from ..training.stages import MODEL_ROLES
+from ..training.stages import BASELINE, CHANCE, MODEL_ROLES, ROLES, XPL
 from .disagreements import VERDICTS, has_both_surprises
 from .explanation_quality import expected_videos, ground_truth, hidden_explanations, mae_iou, pick
 from .metrics import Estimate, comparative, holistic, pairs_table, pairwise_win
@@ -43,10 +43,14 @@ from .perception_quality import (
 from .resampling import values_interval
 from .scorer import Scorer
 
+__all__ = ["LABELS", "ROLES", "PSNR", "PROBE_R2", "MSE_SPEED", "NLL_SPEED", "TWO_SAID", "TWO_DENIED", "Line",
+           "Decision", "compare", "role_of", "score_lines", "lead_lines", "nll_lines", "repeat_lines",
+           "identity_lines", "hypotheses_in_s2", "explanation_lines", "perception_lines", "probe_lines",
+           "speed_line", "format_line", "write_card", "read_card"]
+
 LABELS = {"score": "MSE verdict", "paper_score": "paper's MSE score", "excess": "MSE excess", "nll": "NLL",
           "nll_excess": "NLL excess"}
 GAP_PREFIX = {"score": "", "nll": "NLL "}     # the paper's "gap", under the default verdict and the NLL
-ROLES = ("xpl", "baseline", "chance", "reported")     # which of the goals a model's lines carry
 XPL_ACCURACY, BASELINE_ACCURACY, LEAD = 97.0, 90.0, 20.0      # percent
 LEAD_SCENARIOS = ("collision", "blocking")
 NLL_EXCESS_AUC, HIDDEN_IOU, PSNR, PROBE_R2 = 0.9, 0.6, 26.0, 0.95
@@ -120,7 +124,7 @@ def compare(candidate: list[Line], shipped: list[Line]) -> Decision:
 def role_of(model: str) -> str:
     """The goals a model known by name carries (its entry in `MODEL_ROLES` of
     xvoe.training.stages); anything else (a run directory) is a candidate XPL."""
-    return MODEL_ROLES.get(Path(model).name, "xpl")
+    return MODEL_ROLES.get(Path(model).name, XPL)
 
 
 def _percent(name: str, estimate: Estimate, target: float | None = None, direction: str = ">=") -> Line:
@@ -131,16 +135,16 @@ def _accuracy_goal(role: str, column: str, setting: str) -> tuple[float | None, 
     """The comparative goal of a line: (target, direction), or (None, ...) when it is reported."""
     if column != "score" or setting == "S2":
         return None, ">="
-    if role == "xpl":
+    if role == XPL:
         return XPL_ACCURACY, ">="
-    if role == "baseline" and setting == "S1":
+    if role == BASELINE and setting == "S1":
         return BASELINE_ACCURACY, ">="
-    if role == "chance":
+    if role == CHANCE:
         return 50.0, "within"
     return None, ">="
 
 
-def score_lines(scores: dict[str, np.ndarray], role: str = "xpl", rounds: int = 1000, seed: int = 0) -> list[Line]:
+def score_lines(scores: dict[str, np.ndarray], role: str = XPL, rounds: int = 1000, seed: int = 0) -> list[Line]:
     """The lines of one scores table: comparative accuracy (%) of S1 and S3 per scenario under
     every score column it holds (the default verdict carries the goals; the paper's score where
     it differs from it), the S3 - S2 gap, and the holistic AUC per scenario (the NLL excess's
@@ -158,7 +162,7 @@ def score_lines(scores: dict[str, np.ndarray], role: str = "xpl", rounds: int = 
             for scenario in (s for s in SCENARIOS if (s, "S3") in accuracy and (s, "S2") in accuracy):
                 gap = 100 * (accuracy[scenario, "S3"].value - accuracy[scenario, "S2"].value)
                 lines.append(Line(f"{GAP_PREFIX[column]}S3 - S2 gap {scenario} (points)", gap))
-        target = NLL_EXCESS_AUC if column == "nll_excess" and role == "xpl" else None
+        target = NLL_EXCESS_AUC if column == "nll_excess" and role == XPL else None
         for scenario, estimate in holistic(scores, column, rounds, seed).items():
             lines.append(Line(f"{LABELS[column]} {scenario} holistic AUC", estimate.value, estimate.low,
                               estimate.high, target))

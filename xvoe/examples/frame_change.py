@@ -10,6 +10,8 @@ import numpy as np
 
 import xvoe
 
+__all__ = ["FrameChange"]
+
 
 class FrameChange:
     name = "frame-change"

@@ -12,6 +12,8 @@ import numpy as np
 
 import xvoe
 
+__all__ = ["WALL_DEPTH", "ObjectTracker"]
+
 JUMP = 6.0          # pixels a centroid may move in a frame at 64x64 (scaled by the frame size)
 NEAR_WALL = 3       # pixels from a wall's box within which appearing or vanishing is expected
 WALL_DEPTH = 96     # walls stand nearer the camera than objects: darker than this in the depth channel

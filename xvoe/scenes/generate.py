@@ -29,6 +29,8 @@ from .render import Video, render
 from .scenarios import SCENARIOS, TEST_SETTINGS, TRAINING_GROUPS
 from .writer import EncodedVideo, Writer, atomic_file, copy_videos, encode, held_per_video, write_attributes
 
+__all__ = ["GenerateConfig", "unit_rng", "make_unit", "render_unit", "shard_units", "generate", "merge"]
+
 TRAINING_VARIANTS = tuple((group, with_wall) for group in TRAINING_GROUPS for with_wall in (True, False))
 _SPLIT_CODE = {"train": 0, "test": 1}
 

@@ -6,6 +6,8 @@ from dataclasses import dataclass
 
 from ..domains import COUNT, NON_NEGATIVE, POSITIVE, SEED, SHARE, Domain, within
 
+__all__ = ["RECIPE_NAMES", "DEFAULT_RECIPE", "TrainConfig"]
+
 # the recipes' names (a module each in xvoe/training/recipes/, whose RECIPES must hold these),
 # named here too because a recipe builds network configs, which import torch, and the command
 # line lists them in its --help

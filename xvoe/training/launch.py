@@ -20,6 +20,8 @@ from ..processes import end_with_parent, interrupts_held
 from .distributed import StopRequests
 from .recipes import RECIPES, Recipe
 
+__all__ = ["rendezvous_store", "on_cores", "ForwardedStops", "Stopped"]
+
 # how long the other processes get to end on their own once one has ended with an error or a stop
 GRACE_SECONDS = 60.0
 

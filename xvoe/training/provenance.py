@@ -16,6 +16,8 @@ from .recipes import recipe, recipe_of
 from .stages import stage
 from .xpl import nll_settings_of, stage_config
 
+__all__ = ["RUN_FIELDS", "expected_configs", "recipe_differences"]
+
 RUN_FIELDS = ("seed", "data_shards", "threads")
 
 

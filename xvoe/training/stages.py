@@ -13,6 +13,10 @@ from dataclasses import dataclass
 
 from ..errors import XvoeError
 
+__all__ = ["Stage", "PERCEPTION", "XPL", "PROPOSAL", "PLATO", "XPL_NORESIDUAL", "PHYDNET", "RANDOM", "BASELINE",
+           "CHANCE", "REPORTED", "ROLES", "STAGES", "SCORED", "MODEL_ROLES", "MODELS", "DEFAULT_MODELS", "stage",
+           "continued_by", "resting_on"]
+
 
 @dataclass(frozen=True)
 class Stage:
@@ -23,17 +27,17 @@ class Stage:
     config_home: str
     config_key: str             # where: checkpoint["config"][config_key]
     # what it trains on: "pixels" (a training split), "latents" (the perception's latent cache of
-    # one) or "xpl" (the run's xpl.pt, on that cache)
+    # one) or XPL (the run's xpl.pt, on that cache)
     reads: str
     train_field: str            # the Recipe field of its first training run
-    # the goals the scorecard holds the model it makes to (xvoe.evaluation.scorecard): "xpl", "baseline"
-    # or "reported"; empty for a stage that makes no model of its own (`xvoe score --model NAME` scores the others)
+    # the goals the scorecard holds the model it makes to (one of ROLES but CHANCE); empty for a stage that
+    # makes no model of its own (`xvoe score --model NAME` scores the others)
     role: str = ""
     # `xvoe pipeline --jobs` lanes start the lowest first: the longest training, so that the last lane does
     # not start it late (docs/decisions.md, "Pipeline lanes")
     lane: int = 0
     nll: bool = False           # its checkpoint stores the recipe's NLL settings: the model the NLL surprise runs on
-    variant: str = ""           # XPL-family stages: the network XPL is fitted to ("xpl" or "plato")
+    variant: str = ""           # XPL-family stages: the network XPL is fitted to (XPL or PLATO)
     residual: bool = True       # ... and whether its dynamics predict a change (XPL) or the latent itself (PLATO)
 
     @property
@@ -52,36 +56,42 @@ class Stage:
     @property
     def reads_latents(self) -> bool:
         """Whether it reads the perception's latents: a new perception.pt strands its checkpoint."""
-        return self.reads in ("latents", "xpl")
+        return self.reads in ("latents", XPL)
 
 
+# every stage's and model's name, written here once: code elsewhere names them by these constants
 PERCEPTION = "perception"       # the stage whose latents the others on the latent cache read
-_PERCEPTION, _XPL, _PHYDNET = ("xvoe.models.perception:PerceptionConfig", "xvoe.models.xpl:XPLConfig",
-                               "xvoe.models.phydnet:PhyDNetConfig")
-STAGES: dict[str, Stage] = {stage.name: stage for stage in (
-    Stage(PERCEPTION, "the Component VAE, on a training split's frames", _PERCEPTION, "perception",
-          "pixels", "perception_train"),
-    Stage("xpl", "Transformer 1 and the dynamics (Transformer 2 too where the recipe trains it jointly), on the "
-          "latent cache (a split is encoded first)",
-          _XPL, "xpl", "latents", "xpl_train", role="xpl", lane=3, nll=True, variant="xpl"),
-    Stage("proposal", "Transformer 2 and the existence head further, on hidden objects (after xpl)",
-          _XPL, "xpl", "xpl", "proposal_train", variant="xpl"),
-    Stage("plato", "the PLATO baseline: the dynamics alone, on the latent cache", _XPL, "xpl", "latents",
-          "plato_train", role="baseline", lane=1, variant="plato", residual=False),
-    Stage("xpl-noresidual", "XPL without the dynamics' residual (the paper's ablation), on the latent cache",
-          _XPL, "xpl", "latents", "xpl_train", role="reported", lane=2, variant="xpl", residual=False),
-    Stage("phydnet", "the PhyDNet baseline, on a training split's pixels", _PHYDNET, "phydnet", "pixels",
-          "phydnet_train", role="baseline", lane=0),
-)}
-SCORED = tuple(name for name, stage in STAGES.items() if stage.scored)     # the models a checkpoint can be
+XPL, PROPOSAL, PLATO, XPL_NORESIDUAL, PHYDNET = "xpl", "proposal", "plato", "xpl-noresidual", "phydnet"
 # the chance baseline: per-frame surprise drawn at random (xvoe.evaluation.scorer), scored by name like
 # any model and made by no stage: nothing to train, no checkpoint
 RANDOM = "random"
-# every model scored by name, with the goals the scorecard holds it to ("chance": 50% inside the interval)
-MODEL_ROLES: dict[str, str] = {**{name: STAGES[name].role for name in SCORED}, RANDOM: "chance"}
+# the goals the scorecard holds a model to (xvoe.evaluation.scorecard): XPL's own, a baseline's, chance's
+# (50% inside the interval), or reported without goals
+BASELINE, CHANCE, REPORTED = "baseline", "chance", "reported"
+ROLES = (XPL, BASELINE, CHANCE, REPORTED)
+_PERCEPTION, _XPL, _PHYDNET = ("xvoe.models.perception:PerceptionConfig", "xvoe.models.xpl:XPLConfig",
+                               "xvoe.models.phydnet:PhyDNetConfig")
+STAGES: dict[str, Stage] = {stage.name: stage for stage in (
+    Stage(PERCEPTION, "the Component VAE, on a training split's frames", _PERCEPTION, PERCEPTION,
+          "pixels", "perception_train"),
+    Stage(XPL, "Transformer 1 and the dynamics (Transformer 2 too where the recipe trains it jointly), on the "
+          "latent cache (a split is encoded first)",
+          _XPL, XPL, "latents", "xpl_train", role=XPL, lane=3, nll=True, variant=XPL),
+    Stage(PROPOSAL, "Transformer 2 and the existence head further, on hidden objects (after xpl)",
+          _XPL, XPL, XPL, "proposal_train", variant=XPL),
+    Stage(PLATO, "the PLATO baseline: the dynamics alone, on the latent cache", _XPL, XPL, "latents",
+          "plato_train", role=BASELINE, lane=1, variant=PLATO, residual=False),
+    Stage(XPL_NORESIDUAL, "XPL without the dynamics' residual (the paper's ablation), on the latent cache",
+          _XPL, XPL, "latents", "xpl_train", role=REPORTED, lane=2, variant=XPL, residual=False),
+    Stage(PHYDNET, "the PhyDNet baseline, on a training split's pixels", _PHYDNET, PHYDNET, "pixels",
+          "phydnet_train", role=BASELINE, lane=0),
+)}
+SCORED = tuple(name for name, stage in STAGES.items() if stage.scored)     # the models a checkpoint can be
+# every model scored by name, with the goals the scorecard holds it to
+MODEL_ROLES: dict[str, str] = {**{name: STAGES[name].role for name in SCORED}, RANDOM: CHANCE}
 MODELS = tuple(MODEL_ROLES)
 # what `xvoe pipeline` scores unless told: the XPL model against chance (here, below torch, for its --help)
-DEFAULT_MODELS = ("xpl", RANDOM)
+DEFAULT_MODELS = (XPL, RANDOM)
 
 
 def stage(name: str) -> Stage:

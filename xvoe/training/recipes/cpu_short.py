@@ -15,6 +15,8 @@ from ...models.xpl import XPLConfig
 from ..config import TrainConfig
 from .recipe import Recipe
 
+__all__ = ["RECIPE"]     # read by name: xvoe.training.recipes
+
 # two fixed data shards: a stage's batches are then the same on one core, two or four
 # (docs/decisions.md, "Batches that do not depend on the cores"); and fixed threads, which split
 # the sums: a stage of two one-thread processes, or one process of two threads (docs/decisions.md,
@@ -41,7 +43,7 @@ NLL = InferenceConfig(
 )
 
 
-def phydnet_phase(steps: int, lr: float, focus: str, share: float, **changes) -> tuple[str, TrainConfig]:
+def _phydnet_phase(steps: int, lr: float, focus: str, share: float, **changes) -> tuple[str, TrainConfig]:
     return "phydnet", replace(LATER, steps=steps, lr=lr, focus_group=focus, focus_share=share, **changes)
 
 
@@ -71,15 +73,15 @@ RECIPE = Recipe(
     # "The baselines' later phases")
     phases=(
         ("plato", replace(PLATO, steps=75_000, focus_group="continuity", focus_share=0.5)),
-        phydnet_phase(10_000, 5.6e-4, "permanence", 0.5),
-        phydnet_phase(13_000, 1.1e-3, "permanence", 0.75),
-        phydnet_phase(15_000, 5.5e-4, "permanence", 0.5),
-        phydnet_phase(17_000, 5.5e-4, "permanence", 0.75),
-        phydnet_phase(19_500, 1.8e-3, "permanence", 0.75, lstm_kernel=5),
-        phydnet_phase(20_000, 9e-4, "permanence", 0.75),
-        phydnet_phase(20_500, 9e-4, "permanence", 0.5),
-        phydnet_phase(22_000, 4.5e-4, "permanence,continuity", 0.75),
-        phydnet_phase(25_000, 4.5e-4, "blocking,permanence", 0.5),
-        phydnet_phase(28_000, 4.5e-4, "permanence", 0.5),
+        _phydnet_phase(10_000, 5.6e-4, "permanence", 0.5),
+        _phydnet_phase(13_000, 1.1e-3, "permanence", 0.75),
+        _phydnet_phase(15_000, 5.5e-4, "permanence", 0.5),
+        _phydnet_phase(17_000, 5.5e-4, "permanence", 0.75),
+        _phydnet_phase(19_500, 1.8e-3, "permanence", 0.75, lstm_kernel=5),
+        _phydnet_phase(20_000, 9e-4, "permanence", 0.75),
+        _phydnet_phase(20_500, 9e-4, "permanence", 0.5),
+        _phydnet_phase(22_000, 4.5e-4, "permanence,continuity", 0.75),
+        _phydnet_phase(25_000, 4.5e-4, "blocking,permanence", 0.5),
+        _phydnet_phase(28_000, 4.5e-4, "permanence", 0.5),
     ),
 )

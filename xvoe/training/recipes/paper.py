@@ -8,6 +8,8 @@ from ...models.xpl import XPLConfig
 from ..config import TrainConfig
 from .recipe import Recipe
 
+__all__ = ["RECIPE"]     # read by name: xvoe.training.recipes
+
 XPL_TRAIN = TrainConfig(steps=32_000, batch_size=500, warmup_steps=1000, decay_steps=10_000, checkpoint_minutes=10.0,
                         log_every=100)
 

@@ -19,6 +19,8 @@ from ...models.xpl import XPLConfig
 from ..config import TrainConfig
 from ..stages import STAGES, stage
 
+__all__ = ["Recipe", "stage_settings"]
+
 
 @dataclass(frozen=True)
 class Recipe:
