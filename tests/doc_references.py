@@ -281,7 +281,7 @@ def takes_flag(flags: Iterable[str], flag: str) -> bool:
 
 PATH = re.compile(rf"(?<![\w./-])((?:{'|'.join(TOP)})/[\w./*-]*[\w*/])")
 LINK = re.compile(r"\[[^\]]*\]\(([^)\s]+)\)")
-CITATION = re.compile(r"(docs/[\w-]+\.md),?\s+\"([^\"]+)\"")
+CITATION = re.compile(r"(docs/[\w/-]+\.md),?\s+\(?\"([^\"]+)\"")     # docs/X.md, "H" or docs/X.md ("H")
 NEXT_HEADING = re.compile(r"\s*(?:,\s*(?:and\s+)?|\s+and\s+)\"([^\"]+)\"")     # , "B" / and "B" / , and "B"
 BARE_DOC = re.compile(r"(?<![\w./-])([A-Z][A-Z0-9_-]*\.md)\b")      # README.md, NOTES-38.md
 DESIGN = re.compile(r"\bDESIGN(?:\.md)?,?\s+sections?\s+\d+(?:\.\d+)*")

@@ -46,7 +46,7 @@ The figures are in `docs/results.md` and [the models](models.md); see docs/no-su
 and [gone](no-such-page.md).
 As docs/decisions.md, "{heading}" and "No such heading" say,
 and docs/decisions.md "Not a
-heading either".
+heading either"; docs/results.md ("Nor this") and docs/log/speed.md, "Nor that in the log".
 
 ```
 xvoe train plato --data run/latents-train.h5 --out RUN --seed S   # placeholders parse
@@ -70,6 +70,8 @@ Flags in prose: --particles, --times and pytest's --durations are taken; --no-re
         ("docs/planted.md:4", "no-such-page.md"),
         ("docs/planted.md:5", 'docs/decisions.md, "No such heading"'),
         ("docs/planted.md:6", 'docs/decisions.md, "Not a heading either"'),
+        ("docs/planted.md:7", 'docs/results.md, "Nor this"'),
+        ("docs/planted.md:7", 'docs/log/speed.md, "Nor that in the log"'),
         ("docs/planted.md:11", "xvoe train --stage plato --out run"),
         ("docs/planted.md:12", "xvoe metrics a.csv --out report --rounds many"),
         ("docs/planted.md:15", "python benchmarks/steps.py --no-such-flag"),
