@@ -12,8 +12,8 @@ from pathlib import Path
 import pytest
 
 import xvoe
-from xvoe.apps.cli import build_parser, main
 from xvoe.apps.pipeline import MODELS, PipelineConfig
+from xvoe.cli import build_parser, main
 from xvoe.training.checkpoints import SHIPPED
 from xvoe.training.config import DEFAULT_RECIPE, RECIPE_NAMES
 from xvoe.training.recipes import RECIPES
@@ -33,7 +33,7 @@ def test_version(capsys):
 
 
 def test_help_leaves_torch_out(tmp_path):
-    code = ("import sys\nfrom xvoe.apps.cli import main\n"
+    code = ("import sys\nfrom xvoe.cli import main\n"
             "for argv in (['--help'], ['score', '--help'], ['train', 'xpl', '--help'], ['pipeline', '--help']):\n"
             "    try:\n        main(argv)\n    except SystemExit:\n        pass\n"
             f"print(*[m for m in {HEAVY!r} if m in sys.modules])")

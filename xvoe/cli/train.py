@@ -9,12 +9,13 @@ from pathlib import Path
 
 import xvoe
 
-from ...domains import POSITIVE
-from ...errors import XvoeError
-from ...outputs import claim_directory
-from ...training.config import DEFAULT_RECIPE, TrainConfig
-from ...training.stages import PERCEPTION, STAGES, Stage
-from .arguments import Parser, Writes, add_device, field, flag, late, latent_stages, output_of, positive, recipe_names
+from ..domains import POSITIVE
+from ..errors import XvoeError
+from ..outputs import claim_directory
+from ..processes import interrupts_held
+from ..training.config import DEFAULT_RECIPE, TrainConfig
+from ..training.stages import PERCEPTION, STAGES, Stage
+from .arguments import Parser, Writes, add_device, field, flag, latent_stages, output_of, positive, recipe_names
 
 __all__ = ["add_encode", "add_train"]
 
@@ -77,7 +78,8 @@ def _add_stage(parser: argparse.ArgumentParser, entry: Stage) -> None:
 
 def _train_overrides(args: argparse.Namespace, stage: str) -> tuple[dict, dict]:
     """The TrainConfig fields the flags and `--set` change (None: keep the recipe's), and the model's."""
-    check_focus = late("check_focus")
+    with interrupts_held():     # imported here, not for --help: a Ctrl-C inside torch's import aborts the process
+        from ..training.data import check_focus
     train, model = xvoe.stage_settings(stage, args.set)
     flags = {"steps": args.steps, "max_minutes": args.minutes, "batch_size": args.batch_size, "seed": args.seed,
              "max_videos": args.max_videos, "lr": args.lr, "focus_group": getattr(args, "focus_group", None),
@@ -136,7 +138,9 @@ def add_encode(verbs) -> None:
 
 def _default_cache(args: argparse.Namespace) -> Path:
     """The latent cache `encode` writes without --cache (beside a test split, in the run for a training one)."""
-    return late("encoded_cache")(args.data, args.out, args.model, args.device)
+    with interrupts_held():     # imported here, not for --help: a Ctrl-C inside torch's import aborts the process
+        from ..training.xpl import encoded_cache
+    return encoded_cache(args.data, args.out, args.model, args.device)
 
 
 def _run_encode(args: argparse.Namespace) -> None:

@@ -8,8 +8,8 @@ from pathlib import Path
 
 import xvoe
 
-from ...domains import DISPLAY_SIZE, NON_NEGATIVE, PICTURE_SIZE
-from ...errors import XvoeError
+from ..domains import DISPLAY_SIZE, NON_NEGATIVE, PICTURE_SIZE
+from ..errors import XvoeError
 from .arguments import Writes, default_workers, flag, generate_field, output_of, positive, shard
 
 __all__ = ["add_generate", "add_import", "add_list", "add_show", "format_videos"]
