@@ -76,3 +76,9 @@ def test_the_help_offers_the_models_the_verbs_take():
                       _help_of(verbs()["score"], "model"))
     assert named[1].split(", ") == [f"{name}.pt" for name in SHIPPED]
     assert xvoe.load_model(named[2]).name == named[2]
+
+
+def test_the_help_lists_the_scenarios_of_the_registry():
+    # written out in the help, as the registry loads pymunk, which --help leaves out
+    listed = _help_of(verbs()["list"], "scenario")
+    assert listed.replace(" or ", ", ").split(", ") == list(xvoe.SCENARIOS)

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import argparse
 import re
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -26,7 +26,7 @@ from ..training.config import DEFAULT_RECIPE, RECIPE_NAMES
 from ..training.stages import RANDOM, SCORED, STAGES
 
 __all__ = ["Parser", "Writes", "add_device", "argument", "check_paths", "default_workers", "field", "flag",
-           "generate_field", "latent_stages", "output_of", "positive", "recipe_names", "scored_by_surprise",
+           "generate_field", "latent_stages", "listed", "output_of", "positive", "recipe_names", "scored_by_surprise",
            "scored_checkpoints", "shard"]
 
 class Parser(argparse.ArgumentParser):
@@ -117,17 +117,21 @@ def scored_checkpoints() -> str:
     return ", ".join(STAGES[name].checkpoint for name in SCORED)
 
 
+def listed(names: Iterable[str], last: str = "and") -> str:
+    """Names for a --help line or a message: a, b and c (or a, b or c)."""
+    *others, final = names
+    return f"{', '.join(others)} {last} {final}" if others else final
+
+
 def latent_stages() -> str:
     """The stages that train on the perception's latent cache, for a --help line: a, b and c."""
-    names = [name for name, entry in STAGES.items() if entry.reads_latents]
-    return f"{', '.join(names[:-1])} and {names[-1]}"
+    return listed(name for name, entry in STAGES.items() if entry.reads_latents)
 
 
 def scored_by_surprise() -> str:
     """The shipped models scored through `surprise(videos)` as a model of your own is (the harness
     checks them, within the time limit): those outside the XPL family, and chance."""
-    names = [name for name in SCORED if not STAGES[name].variant]
-    return " or ".join([", ".join(names), RANDOM]) if names else RANDOM
+    return listed([*(name for name in SCORED if not STAGES[name].variant), RANDOM], "or")
 
 
 # --- the paths a command names: no output may be one of its inputs --------------------------

@@ -113,6 +113,8 @@ def add_list(verbs) -> None:
                                            "and the notebooks take), scenario, setting, pair, member and whether "
                                            "it is possible; the filters given narrow the list.")
     listing.add_argument("file", help="a test split (HDF5)")
+    # the scenario registry's names, written out: the registry loads pymunk, which --help leaves out
+    # (tests/test_conventions.py keeps them in step)
     listing.add_argument("--scenario", help="collision, blocking, permanence or continuity")
     listing.add_argument("--setting", help="S1, S2 or S3")
     listing.add_argument("--member", type=flag(int, NON_NEGATIVE, "member"), help="0 (expected) or 1")
