@@ -29,6 +29,7 @@ __all__ = ["Parser", "Writes", "add_device", "argument", "check_paths", "default
            "generate_field", "latent_stages", "listed", "output_of", "positive", "recipe_names", "scored_by_surprise",
            "scored_checkpoints", "shard"]
 
+
 class Parser(argparse.ArgumentParser):
     """argparse, but a bad argument gives one line (and exit code 2), not the whole usage."""
 
