@@ -16,7 +16,7 @@ import subprocess
 import sys
 import time
 
-from xvoe.apps.cli import build_parser
+from xvoe.cli import build_parser
 
 BASELINE = ["-c", "pass"]
 

@@ -18,13 +18,14 @@ import time
 from xvoe.apps.rows import ROW_COLUMNS, explanation_rows
 from xvoe.errors import XvoeError
 from xvoe.evaluation.explain import DRAW_THRESHOLD
+from xvoe.training.stages import XPL
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--data", required=True, help="the scored test split")
     parser.add_argument("--scores", required=True, help="its score file, of --surprise nll or both")
-    parser.add_argument("--model", default="xpl", help="the model that scored it (default xpl)")
+    parser.add_argument("--model", default=XPL, help=f"the model that scored it (default {XPL})")
     args = parser.parse_args()
     start = time.perf_counter()
     try:

@@ -38,6 +38,7 @@ from xvoe import allocator
 from xvoe.evaluation.operations import count_operations
 from xvoe.models.devices import resolve_device
 from xvoe.outputs import claim_directory
+from xvoe.training.stages import PERCEPTION, PHYDNET, PROPOSAL, XPL
 
 RECIPE = "paper"
 
@@ -69,13 +70,13 @@ def stages(device: torch.device, out: Path, args: argparse.Namespace) -> None:
                          out / "test.h5", workers=args.workers, progress=False, overwrite=True)
     run, cache = out / "run", out / "run" / "latents-train.h5"
     common = dict(steps=args.steps, progress=False, overwrite=True, device=str(device))
-    work = {"perception": lambda: xvoe.train_perception(train, run, recipe_name=RECIPE, **common),
+    work = {PERCEPTION: lambda: xvoe.train_perception(train, run, recipe_name=RECIPE, **common),
             "encode": lambda: xvoe.encode_split(run, train, cache, overwrite=True, progress=False,
                                                 device=device),
             **{stage: (lambda stage=stage: xvoe.train_xpl(cache, run, stage=stage, recipe_name=RECIPE, **common))
                for stage, entry in xvoe.STAGES.items() if entry.reads == "latents"},
-            "proposal": lambda: xvoe.train_proposal(run, **common),
-            "phydnet": lambda: xvoe.train_phydnet(train, run, recipe_name=RECIPE, **common)}
+            PROPOSAL: lambda: xvoe.train_proposal(run, **common),
+            PHYDNET: lambda: xvoe.train_phydnet(train, run, recipe_name=RECIPE, **common)}
     for model in (name for name, entry in xvoe.STAGES.items() if entry.scored):
         surprise = "both" if xvoe.STAGES[model].nll else "mse"
         work[f"score {model} ({surprise})"] = lambda model=model, surprise=surprise: xvoe.score(
@@ -92,10 +93,10 @@ def step_rates(device: torch.device, args: argparse.Namespace) -> None:
     chosen = xvoe.recipe(RECIPE)
     where = str(device)
     builders = {
-        "perception": lambda rng: (steps.perception_step(chosen.perception, args.frames, rng, where), args.frames),
-        "xpl": lambda rng: (steps.xpl_step(chosen.xpl, args.step_videos, rng, where), args.step_videos),
-        "phydnet": lambda rng: (steps.phydnet_step(chosen.phydnet, args.phydnet_videos, rng, where),
-                                args.phydnet_videos),
+        PERCEPTION: lambda rng: (steps.perception_step(chosen.perception, args.frames, rng, where), args.frames),
+        XPL: lambda rng: (steps.xpl_step(chosen.xpl, args.step_videos, rng, where), args.step_videos),
+        PHYDNET: lambda rng: (steps.phydnet_step(chosen.phydnet, args.phydnet_videos, rng, where),
+                              args.phydnet_videos),
         "score": lambda rng: (steps.score_step(chosen.perception, chosen.xpl, args.score_videos, rng, where),
                               args.score_videos),
         "nll": lambda rng: (steps.nll_step(chosen.perception, chosen.xpl, chosen.nll, rng, where), 1)}

@@ -43,11 +43,11 @@ from xvoe.inference.score import nll_config, reference_nll
 from xvoe.inference.surprise import nll_surprise
 from xvoe.models.nll import InferenceConfig
 from xvoe.scenes import store
+from xvoe.scenes.scenarios import SCENARIOS, TEST_SETTINGS
 from xvoe.training.data import check_size
 
-SETTINGS = [(scenario, setting) for setting in ("S1", "S3")
-            for scenario in ("collision", "blocking", "permanence", "continuity")
-            if (scenario, setting) != ("permanence", "S3")] + [("blocking", "S2")]
+SETTINGS = [(scenario, setting) for setting in ("S1", "S3") for scenario in SCENARIOS
+            if (scenario, setting) in TEST_SETTINGS] + [("blocking", "S2")]
 BATCH = 16
 
 

@@ -32,6 +32,7 @@ from xvoe.evaluation.surprise import draw_scene
 from xvoe.inference.score import nll_config, xpl_nll
 from xvoe.models.nll import InferenceConfig
 from xvoe.training.data import check_size
+from xvoe.training.stages import XPL
 
 ROOT = Path(__file__).resolve().parent.parent
 BATCH = 16
@@ -78,7 +79,7 @@ def timed(estimate, scorer, batch: dict, scene, config: InferenceConfig, seed: i
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--model", default="xpl", help="a shipped model's name, a run directory or checkpoint")
+    parser.add_argument("--model", default=XPL, help="a shipped model's name, a run directory or checkpoint")
     parser.add_argument("--data", required=True, help="a test split at the model's resolution")
     parser.add_argument("--before", required=True, help="the git commit whose inference/ to compare with")
     parser.add_argument("--videos", type=int, default=48, help="the first N videos of the split (default 48)")

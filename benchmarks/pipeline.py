@@ -23,10 +23,10 @@ from dataclasses import replace
 from pathlib import Path
 
 import xvoe
-from xvoe.apps.pipeline import stage_times
+from xvoe.apps.pipeline import scored_reference, stage_times
 from xvoe.evaluation import scorecard
 from xvoe.training.config import TrainConfig
-from xvoe.training.stages import DEFAULT_MODELS, MODELS
+from xvoe.training.stages import BASELINE, DEFAULT_MODELS, MODELS, XPL
 
 FRESH_SEED = 12345
 
@@ -73,9 +73,9 @@ def accuracy_lines(found: dict[str, dict]) -> list[scorecard.Line]:
     and XPL's S3 lead over the baselines."""
     lines = [replace(line, name=f"{model} {line.name}") for model, scores in found.items()
              for line in scorecard.score_lines(scores, scorecard.role_of(model))]
-    if "xpl" in found:
-        baselines = {m: scores for m, scores in found.items() if scorecard.role_of(m) == "baseline"}
-        lines += scorecard.lead_lines(found["xpl"], baselines)
+    if XPL in found:
+        baselines = {m: scores for m, scores in found.items() if scorecard.role_of(m) == BASELINE}
+        lines += scorecard.lead_lines(found[XPL], baselines)
     return lines
 
 
@@ -125,10 +125,9 @@ def main() -> None:
     found = {}
     for model in models:
         out = run_dir / "scores" / f"fresh-{fresh.stem}-{model}.csv"
-        reference = "random" if model == "random" else str(run_dir / f"{model}.pt")
         start = time.monotonic()
-        scores = xvoe.read_scores(xvoe.score(reference, fresh, out, overwrite=True,
-                                        progress=False))
+        scores = xvoe.read_scores(xvoe.score(scored_reference(run_dir, model), fresh, out, overwrite=True,
+                                             progress=False))
         print(f"{model}: scored {len(scores['index'])} videos of {fresh} in {time.monotonic() - start:.0f} s")
         found[model] = scores
     for line in accuracy_lines(found):

@@ -22,10 +22,7 @@ import torch
 import xvoe
 from xvoe.evaluation.disagreements import VERDICTS
 from xvoe.evaluation.explanation_quality import hidden_explanations, pick
-
-ORDER = [("collision", "S1"), ("collision", "S2"), ("collision", "S3"), ("blocking", "S1"), ("blocking", "S2"),
-         ("blocking", "S3"), ("permanence", "S1"), ("permanence", "S2"), ("continuity", "S1"),
-         ("continuity", "S2"), ("continuity", "S3")]
+from xvoe.training.stages import XPL
 
 
 def scored(model: str, data: str, out: Path, surprise: str) -> dict:
@@ -41,7 +38,7 @@ def main() -> None:
     parser.add_argument("--runs", required=True, help="comma-separated run directories, one per training seed")
     parser.add_argument("--data", required=True, help="a report split (a seed nothing was chosen on)")
     parser.add_argument("--out", required=True, help="where the scores go")
-    parser.add_argument("--shipped", default="xpl", help="the shipped model to show beside ('' for none)")
+    parser.add_argument("--shipped", default=XPL, help="the shipped model to show beside ('' for none)")
     parser.add_argument("--surprise", default="mse", choices=("mse", "both"))
     parser.add_argument("--hidden-pairs", type=int, default=100, help="blocking S2 videos for hidden_iou (0: none)")
     parser.add_argument("--column", default="score", choices=VERDICTS,
@@ -70,16 +67,16 @@ def main() -> None:
         print(f"| {label} | {np.mean(values):.1f} [{min(values):.1f}, {max(values):.1f}] | {cells}{tail} |")
 
     shipped_rows = rows.get(args.shipped) if args.shipped else None
-    for scenario, setting in ORDER:
+    for scenario, setting in xvoe.TEST_SETTINGS:
         key = ("comparative", scenario, setting)
         line(f"{scenario} {setting}", [rows[r][key] for r in runs], shipped_rows[key] if shipped_rows else None)
     def gap(found: dict, scenario: str) -> float:
         return found[("comparative", scenario, "S3")] - found[("comparative", scenario, "S2")]
 
-    for scenario in ("collision", "blocking", "continuity"):
+    for scenario in (s for s in xvoe.SCENARIOS if {(s, "S2"), (s, "S3")} <= set(xvoe.TEST_SETTINGS)):
         line(f"{scenario} S3 - S2 gap", [gap(rows[r], scenario) for r in runs],
              gap(shipped_rows, scenario) if shipped_rows else None)
-    for scenario in ("collision", "blocking", "permanence", "continuity"):
+    for scenario in xvoe.SCENARIOS:
         key = ("holistic", scenario, "")
         line(f"{scenario} holistic AUC (x100)", [rows[r][key] for r in runs],
              shipped_rows[key] if shipped_rows else None)

@@ -61,12 +61,14 @@ from xvoe.models.nll import InferenceConfig
 from xvoe.models.perception import ComponentVAE, normalise
 from xvoe.models.phydnet import PhyDNet, PhyDNetObjective
 from xvoe.models.xpl import XPL
+from xvoe.training import stages as registry  # the stage names (XPL here is the network)
 from xvoe.training.data import perception_batch, visible_threshold
 from xvoe.training.latent_batches import LatentBatch
 from xvoe.training.latents import encode_frames
 from xvoe.training.recipes import recipe
 
-UNIT = {"perception": "frame", "xpl": "video", "score": "video", "nll": "video", "phydnet": "video"}
+UNIT = {registry.PERCEPTION: "frame", registry.XPL: "video", "score": "video", "nll": "video",
+        registry.PHYDNET: "video"}
 SLOTS, FRAMES = 8, 15
 
 
@@ -300,7 +302,7 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--recipe", default="paper")
     parser.add_argument("--decoder-channels", type=int, default=0, help="override the recipe's")
-    parser.add_argument("--stages", default="perception,xpl,score")
+    parser.add_argument("--stages", default=f"{registry.PERCEPTION},{registry.XPL},score")
     parser.add_argument("--frames", type=int, default=4, help="frames per perception step")
     parser.add_argument("--videos", type=int, default=8, help="videos per XPL step")
     parser.add_argument("--score-videos", type=int, default=2, help="videos per scoring pass")
@@ -316,13 +318,14 @@ def main() -> None:
     perception = chosen.perception
     if args.decoder_channels:
         perception = replace(perception, decoder_channels=args.decoder_channels)
-    builders = {"perception": lambda rng: (perception_step(perception, args.frames, rng), args.frames),
-                "xpl": lambda rng: (xpl_step(chosen.xpl, args.videos, rng), args.videos),
+    builders = {registry.PERCEPTION: lambda rng: (perception_step(perception, args.frames, rng), args.frames),
+                registry.XPL: lambda rng: (xpl_step(chosen.xpl, args.videos, rng), args.videos),
                 "score": lambda rng: (score_step(perception, chosen.xpl, args.score_videos, rng), args.score_videos),
                 "nll": lambda rng: (nll_step(perception, chosen.xpl, chosen.nll, rng), 1),
                 "nll-least": lambda rng: (nll_step(perception, chosen.xpl, nll_least(chosen.nll), rng), 1),
                 "nll-most": lambda rng: (nll_step(perception, chosen.xpl, nll_most(chosen.nll), rng), 1),
-                "phydnet": lambda rng: (phydnet_step(chosen.phydnet, args.phydnet_videos, rng), args.phydnet_videos),
+                registry.PHYDNET: lambda rng: (phydnet_step(chosen.phydnet, args.phydnet_videos, rng),
+                                               args.phydnet_videos),
                 "phydnet-widened": lambda rng: (phydnet_step(chosen.final_phydnet(), args.phydnet_videos, rng),
                                                 args.phydnet_videos)}
     stages = args.stages.split(",")

@@ -246,7 +246,7 @@ def parse_error(parser: argparse.ArgumentParser, arguments: list[str], inline: b
 def xvoe_parser(lenient: bool = False) -> argparse.ArgumentParser:
     """The `xvoe` command's parser; `lenient`: with no required flags, so that a mention in prose
     such as `xvoe train --stage plato` is refused for --stage, not for leaving out --out."""
-    from xvoe.apps import cli
+    from xvoe import cli
 
     parser = cli.build_parser()
     if lenient:

@@ -51,7 +51,7 @@ def test_import_leaves_the_allocator_alone_and_a_tuned_parent_is_followed():
 
 @GLIBC
 def test_the_command_line_tunes():
-    code = ("import os; from xvoe.apps.cli import main; from xvoe import allocator; "
+    code = ("import os; from xvoe.cli import main; from xvoe import allocator; "
             "main(['metrics', 'missing.csv', '--out', 'report']); print(allocator.tuned(), os.environ['XVOE_MALLOC'])")
     clean = {k: v for k, v in os.environ.items() if k != allocator._ENV}
     out = subprocess.run([sys.executable, "-c", code], env=clean, capture_output=True, text=True, check=True)

@@ -26,7 +26,7 @@ from hypothesis import HealthCheck, given
 from hypothesis import settings as hypothesis_settings
 from hypothesis import strategies as st
 
-from xvoe.apps.cli import main
+from xvoe.cli import main
 from xvoe.errors import XvoeError
 from xvoe.evaluation.score_tables import read_scores, score_problem
 from xvoe.models.config import _domain_of, field_type, override, parse_field

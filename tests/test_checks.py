@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 import xvoe
-from xvoe.apps.cli import main
+from xvoe.cli import main
 
 matplotlib.use("Agg")
 EXAMPLES = Path(__file__).resolve().parent.parent / "xvoe" / "examples"

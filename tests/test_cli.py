@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 import xvoe
-from xvoe.apps.cli import main
+from xvoe.cli import main
 
 
 def run_cli(*args):

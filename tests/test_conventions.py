@@ -12,8 +12,8 @@ from pathlib import Path
 import pytest
 
 import xvoe
-from xvoe.apps.cli import build_parser, main
 from xvoe.apps.pipeline import MODELS, PipelineConfig
+from xvoe.cli import build_parser, main
 from xvoe.training.checkpoints import SHIPPED
 from xvoe.training.config import DEFAULT_RECIPE, RECIPE_NAMES
 from xvoe.training.recipes import RECIPES
@@ -33,7 +33,7 @@ def test_version(capsys):
 
 
 def test_help_leaves_torch_out(tmp_path):
-    code = ("import sys\nfrom xvoe.apps.cli import main\n"
+    code = ("import sys\nfrom xvoe.cli import main\n"
             "for argv in (['--help'], ['score', '--help'], ['train', 'xpl', '--help'], ['pipeline', '--help']):\n"
             "    try:\n        main(argv)\n    except SystemExit:\n        pass\n"
             f"print(*[m for m in {HEAVY!r} if m in sys.modules])")
@@ -76,3 +76,9 @@ def test_the_help_offers_the_models_the_verbs_take():
                       _help_of(verbs()["score"], "model"))
     assert named[1].split(", ") == [f"{name}.pt" for name in SHIPPED]
     assert xvoe.load_model(named[2]).name == named[2]
+
+
+def test_the_help_lists_the_scenarios_of_the_registry():
+    # written out in the help, as the registry loads pymunk, which --help leaves out
+    listed = _help_of(verbs()["list"], "scenario")
+    assert listed.replace(" or ", ", ").split(", ") == list(xvoe.SCENARIOS)

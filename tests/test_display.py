@@ -7,9 +7,9 @@ import pytest
 from PIL import Image
 
 import xvoe
-from xvoe.apps.cli import main
 from xvoe.apps.explanation_figure import OUTLINE_COLORS, explanation_overlay, plot_explanation
 from xvoe.apps.frames import save_gif, sheet_rows
+from xvoe.cli import main
 from xvoe.errors import XvoeError
 from xvoe.evaluation.explain import Explanation
 from xvoe.scenes import custom, store

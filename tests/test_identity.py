@@ -13,7 +13,7 @@ import pytest
 import torch
 
 import xvoe
-from xvoe.apps.cli import main
+from xvoe.cli import main
 from xvoe.errors import XvoeError
 from xvoe.evaluation.score_headers import new_header
 from xvoe.fingerprints import _sampled_videos, arrays_hash, split_identity

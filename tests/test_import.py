@@ -11,7 +11,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from xvoe.apps.cli import main
+from xvoe.cli import main
 from xvoe.scenes import store
 from xvoe.scenes.released import _BLOCKS, _TEST_FILES, _downsample, _ids_of
 from xvoe.scenes.tfrecord import _masked_crc, parse_example, parse_tensor, records

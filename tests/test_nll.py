@@ -12,10 +12,10 @@ from pyro import poutine
 from pyro.util import check_model_guide_match
 
 import xvoe
-from xvoe.apps.cli import main
 from xvoe.apps.explanation_figure import plot_explanation
 from xvoe.apps.report import header_lines
 from xvoe.apps.zoo import available_models
+from xvoe.cli import main
 from xvoe.evaluation.score_tables import read_scores
 from xvoe.evaluation.scorer import encode_videos, load_model
 from xvoe.inference.decoder import FoldedDecoder

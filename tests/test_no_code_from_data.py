@@ -16,7 +16,7 @@ import pytest
 import torch
 
 import xvoe
-from xvoe.apps.cli import main
+from xvoe.cli import main
 from xvoe.training.checkpoints import WEIGHTS, load_checkpoint, shipped_path
 
 

@@ -8,9 +8,9 @@ import pytest
 import torch
 from conftest import interrupt_during
 
-from xvoe.apps.cli import main
 from xvoe.apps.comparisons import plot_predictions, predicted_frames
 from xvoe.apps.pipeline import PipelineConfig, run_pipeline
+from xvoe.cli import main
 from xvoe.errors import XvoeError
 from xvoe.evaluation.score_curves import SCORE_COLUMNS
 from xvoe.evaluation.scorer import load_model

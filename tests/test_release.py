@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 from test_import import example, serialize_tensor, write_tfrecord
 
-from xvoe.apps.cli import main
+from xvoe.cli import main
 from xvoe.scenes import store
 from xvoe.scenes.released import _TEST_FILES
 

@@ -11,7 +11,7 @@ import torch
 from conftest import randomise_dynamics_head
 
 import xvoe
-from xvoe.apps.cli import main
+from xvoe.cli import main
 from xvoe.evaluation import score_cache
 from xvoe.evaluation import scorer as scoring
 from xvoe.evaluation.score_tables import read_scores

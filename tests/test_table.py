@@ -8,7 +8,7 @@ from pathlib import Path
 
 import pytest
 
-from xvoe.apps.cli import main
+from xvoe.cli import main
 
 # (scenario, setting, pair) -> scores of member 0 and member 1; member 1 is impossible in S1 and S3
 HAND = {

@@ -9,7 +9,7 @@ import torch
 from conftest import interrupt_during
 from torch import nn
 
-from xvoe.apps.cli import main
+from xvoe.cli import main
 from xvoe.errors import XvoeError
 from xvoe.models.config import from_dict, override
 from xvoe.models.perception import ComponentVAE, PerceptionConfig

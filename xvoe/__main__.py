@@ -1,4 +1,4 @@
-"""`python -m xvoe` (and the `xvoe` script): the command line, xvoe.apps.cli.main. A Ctrl-C
+"""`python -m xvoe` (and the `xvoe` script): the command line, xvoe.cli.main. A Ctrl-C
 while it starts (torch takes seconds to import), before any file is read or written, is one
 line and exit code 130, as one during the work is; one once the work is done changes nothing."""
 import os
@@ -12,7 +12,7 @@ def _interrupted_at_start(number: int, frame) -> None:
 
 
 signal.signal(signal.SIGINT, _interrupted_at_start)
-from .apps.cli import main  # noqa: E402 - after the handler, which covers the import
+from .cli import main  # noqa: E402 - after the handler, which covers the import
 from .processes import interrupts_kept  # noqa: E402
 
 interrupts_kept()

@@ -46,12 +46,11 @@ from ..training.perception import train_perception
 from ..training.phydnet import train_phydnet
 from ..training.proposal import train_proposal
 from ..training.recipes import DEFAULT_RECIPE, RECIPES, Recipe, recipe
-from ..training.stages import DEFAULT_MODELS, MODELS, PERCEPTION, STAGES, continued_by, resting_on
+from ..training.stages import CHANCE, DEFAULT_MODELS, MODELS, PERCEPTION, STAGES, XPL, continued_by, resting_on
 from ..training.xpl import TRAINED_ON_LATENTS, train_xpl
 from .explanation_figure import plot_explanation
 from .report import header_lines, report
-from .verbs import score as score_split
-from .verbs import with_display
+from .verbs import score, with_display
 
 __all__ = ["PipelineConfig", "Stages", "run_pipeline", "stage_times", "run_files", "scored_reference",
            "scored_steps", "stage_processes", "compare_models", "write_report"]
@@ -188,7 +187,7 @@ def run_files(run_dir: Path) -> tuple[Path, Path, Path]:
     return run_dir / "data" / "train.h5", run_dir / "data" / "test.h5", run_dir / "latents-train.h5"
 
 
-def _model_stages(config: PipelineConfig, model: str, stages: Stages, bars: bool, score: bool = True,
+def _model_stages(config: PipelineConfig, model: str, stages: Stages, bars: bool, scoring: bool = True,
                   processes: int = 1) -> None:
     """Train (with the proposal stage for xpl) and score one model, skipping what is done; the
     XPL, proposal and PLATO stages in up to `processes` one-thread processes (`stage_processes`)."""
@@ -213,9 +212,9 @@ def _model_stages(config: PipelineConfig, model: str, stages: Stages, bars: bool
                                  resume=checkpoint_path(run_dir, model).exists(), device=config.device,
                                  **phase)
         _train_phases(stages, model, train, phases, config.seed)
-    if not score:
+    if not scoring:
         return
-    stages.run(f"score-{model}", lambda: score_split(
+    stages.run(f"score-{model}", lambda: score(
         scored_reference(run_dir, model), str(test_data), str(run_dir / "scores" / f"{model}.csv"), overwrite=True,
         progress=bars, device=config.device),
         key=scored_steps(chosen, model))
@@ -261,7 +260,7 @@ def _lane(config: PipelineConfig, sizes: Recipe, model: str, threads: int) -> No
     RECIPES[config.recipe] = sizes
     os.environ["OMP_NUM_THREADS"] = str(threads)
     torch.set_num_threads(threads)
-    _model_stages(config, model, Stages(Path(config.out), config.progress), bars=False, score=False)
+    _model_stages(config, model, Stages(Path(config.out), config.progress), bars=False, scoring=False)
 
 
 def _remove(directory: Path, *patterns: str) -> None:
@@ -276,7 +275,7 @@ def _explanations(run_dir: Path, test_data: Path, models: tuple[str, ...], devic
     """The paper's Fig. 7/8 for the first pair of blocking S2 and collision S3, member 0."""
 
     _remove(run_dir / "report", "explanation-*.png")
-    xpl = next((m for m in models if role_of(m) == "xpl"), None)
+    xpl = next((m for m in models if role_of(m) == XPL), None)
     if xpl is None:
         return
     scorer = load_model(scored_reference(run_dir, xpl), device)
@@ -302,26 +301,26 @@ def compare_models(rows: list[dict]) -> list[str]:
     if len(models) < 2:
         return []
     roles = {model: role_of(model) for model in models}
-    xpl = next((m for m in models if roles[m] == "xpl"), None)
+    xpl = next((m for m in models if roles[m] == XPL), None)
     lines = ["## XPL against the other models", ""]
     for scenario in ("collision", "blocking"):
         ours = value(xpl, scenario, "S3")
         if ours is None:
             continue
-        for other in (m for m in models if roles[m] not in ("xpl", "chance")):
+        for other in (m for m in models if roles[m] not in (XPL, CHANCE)):
             theirs = value(other, scenario, "S3")
             if theirs is not None:
                 gap = 100 * (float(ours["value"]) - float(theirs["value"]))
                 verdict = "beats" if gap > 0 else "does not beat"
                 lines.append(f"- {scenario} S3 (explicative): XPL {100 * float(ours['value']):.1f}% {verdict} "
                              f"{other} {100 * float(theirs['value']):.1f}% ({gap:+.1f} points).")
-    for model in (m for m in models if roles[m] != "chance"):
+    for model in (m for m in models if roles[m] != CHANCE):
         worst = min((r for r in rows if r["metric"] == "comparative" and r["model"] == model
                      and r["setting"] == "S1"), key=lambda r: float(r["value"]), default=None)
         if worst is not None:
             lines.append(f"- {model}: lowest predictive (S1) accuracy {100 * float(worst['value']):.1f}% "
                          f"({worst['scenario']}).")
-    for model in (m for m in models if roles[m] == "chance"):
+    for model in (m for m in models if roles[m] == CHANCE):
         chance = [r for r in rows if r["metric"] == "comparative" and r["model"] == model]
         inside = sum(float(r["low"]) <= 0.5 <= float(r["high"]) for r in chance)
         lines.append(f"- {model}: 50% lies inside the 95% interval in {inside} of {len(chance)} settings.")

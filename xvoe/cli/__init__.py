@@ -1,10 +1,11 @@
 """The `xvoe` command: one verb per job. Each verb calls the same functions as the notebooks.
 
-Each verb's parser and what it runs sit together in xvoe/apps/commands/ (a module per group of
-verbs); here they are put in their order and run, each error, warning and interruption one
-line. Building the parser imports nothing of torch (nor of h5py or pymunk), so that `xvoe
---help` and `xvoe VERB --help` answer at once (benchmarks/cli_help.py); what a verb needs is
-imported when it runs, or when a value is parsed."""
+The command is a client of the public API, as a notebook is: it sits above `xvoe/__init__.py`,
+and nothing in the package imports it. Each verb's parser and what it runs sit together in a
+module of this package (one per group of verbs); here they are put in their order and run, each
+error, warning and interruption one line. Building the parser imports nothing of torch (nor of
+h5py or pymunk), so that `xvoe --help` and `xvoe VERB --help` answer at once
+(benchmarks/cli_help.py); what a verb needs is imported when it runs, or when a value is parsed."""
 from __future__ import annotations
 
 import argparse
@@ -16,11 +17,12 @@ import xvoe
 
 from ..allocator import tune as tune_allocator
 from ..errors import XvoeError
-from .commands.arguments import Parser, check_paths, late
-from .commands.runs import add_pipeline, add_ship
-from .commands.scoring import add_explain, add_metrics, add_score, add_verify
-from .commands.splits import add_generate, add_import, add_list, add_show
-from .commands.train import add_encode, add_train
+from ..processes import interrupts_held
+from .arguments import Parser, check_paths
+from .runs import add_pipeline, add_ship
+from .scoring import add_explain, add_metrics, add_score, add_verify
+from .splits import add_generate, add_import, add_list, add_show
+from .train import add_encode, add_train
 
 __all__ = ["build_parser", "main"]
 
@@ -45,11 +47,15 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     tune_allocator()        # before any large tensor: freed buffers stay in the heap (xvoe/allocator.py)
     if args.pins_kernels:      # before any kernel runs, so that a seed trains the same bytes anywhere
-        late("pin_kernels")()
+        with interrupts_held():     # imported here, not for --help: a Ctrl-C inside torch's import aborts the process
+            from ..training.distributed import pin_kernels
+        pin_kernels()
     previous = signal.signal(signal.SIGTERM, _interrupt)   # so that a kill cleans up as Ctrl-C does
     try:
         if hasattr(args, "device"):     # a device this machine lacks, before any work
-            late("resolve_device")(args.device)
+            with interrupts_held():
+                from ..models.devices import resolve_device
+            resolve_device(args.device)
         check_paths(args)
         with warnings.catch_warnings():     # a warning is one line, as an error is
             warnings.showwarning = lambda message, *_: print(f"xvoe {args.verb}: warning: {message}", file=sys.stderr)

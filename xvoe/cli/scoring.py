@@ -9,12 +9,11 @@ import sys
 
 import xvoe
 
-from ...domains import DISPLAY_SIZE, NON_NEGATIVE, PICTURE_SIZE, POSITIVE, SEED, TIME_LIMIT
-from ...errors import XvoeError
-from ...models.nll import InferenceConfig
-from ...outputs import claim_file, claim_scope
-from ...processes import interrupts_held
-from ...training.stages import RANDOM, SCORED, STAGES
+from ..domains import DISPLAY_SIZE, NON_NEGATIVE, PICTURE_SIZE, POSITIVE, SEED, TIME_LIMIT
+from ..errors import XvoeError
+from ..models.nll import InferenceConfig
+from ..outputs import claim_file, claim_scope
+from ..training.stages import RANDOM, SCORED, STAGES
 from .arguments import Writes, add_device, field, flag, positive, scored_by_surprise, scored_checkpoints, shard
 
 __all__ = ["add_explain", "add_metrics", "add_score", "add_verify"]
@@ -72,25 +71,20 @@ def add_score(verbs) -> None:
 
 
 def _run_score(args: argparse.Namespace) -> None:
-    with interrupts_held():     # imported here, not for --help: a Ctrl-C inside torch's import aborts the process
-        from ...evaluation.score_headers import score_header
-        from ...evaluation.shards import merge_scores
-        from ...inference.score import nll_defaults_note, nll_settings
-        from ..verbs import score
     if args.merge:
         if args.model or args.data or args.shard != (0, 1) or args.cache:
             raise XvoeError("--merge joins score files as they were written; "
                             "leave out --model, --data, --shard and --cache")
-        print(merge_scores(args.merge, args.out, overwrite=args.overwrite))
+        print(xvoe.merge_scores(args.merge, args.out, overwrite=args.overwrite))
         return
     if args.model is None or args.data is None:
         raise XvoeError("--model and --data are required (unless --merge joins the parts of a sharded run)")
-    table = score(args.model, args.data, args.out, surprise=args.surprise, particles=args.particles, seed=args.seed,
-                  nll_settings=nll_settings(args.nll_set), how=args.aggregate, shard=args.shard,
-                  videos_per_batch=args.batch, workers=args.workers, checks=not args.no_checks,
-                  overwrite=args.overwrite, progress=not args.quiet, device=args.device, cache=args.cache or True,
-                  time_limit=args.time_limit)
-    note = nll_defaults_note(score_header(table.path)) if args.surprise != "mse" else None
+    table = xvoe.score(args.model, args.data, args.out, surprise=args.surprise, particles=args.particles,
+                       seed=args.seed, nll_settings=xvoe.nll_settings(args.nll_set), how=args.aggregate,
+                       shard=args.shard, videos_per_batch=args.batch, workers=args.workers, checks=not args.no_checks,
+                       overwrite=args.overwrite, progress=not args.quiet, device=args.device,
+                       cache=args.cache or True, time_limit=args.time_limit)
+    note = xvoe.nll_defaults_note(xvoe.score_header(table.path)) if args.surprise != "mse" else None
     if note:
         print(f"xvoe score: warning: {note}", file=sys.stderr)
     print(table)
@@ -187,9 +181,7 @@ def add_verify(verbs) -> None:
 
 
 def _run_verify(args: argparse.Namespace) -> int:
-    with interrupts_held():     # imported here, not for --help: a Ctrl-C inside torch's import aborts the process
-        from ..verify import verify
-    found = verify(args.scores, rows=args.rows, data=args.data, seed=args.seed, model=args.model)
+    found = xvoe.verify(args.scores, rows=args.rows, data=args.data, seed=args.seed, model=args.model)
     if not (args.quiet and found.matches):     # quiet: the verdict alone, unless a row is named in it
         print("\n".join(found.lines))
     print("every row matches its curves and labels, and every row scored again matches the file" if found.matches

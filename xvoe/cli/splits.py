@@ -8,8 +8,8 @@ from pathlib import Path
 
 import xvoe
 
-from ...domains import DISPLAY_SIZE, NON_NEGATIVE, PICTURE_SIZE
-from ...errors import XvoeError
+from ..domains import DISPLAY_SIZE, NON_NEGATIVE, PICTURE_SIZE
+from ..errors import XvoeError
 from .arguments import Writes, default_workers, flag, generate_field, output_of, positive, shard
 
 __all__ = ["add_generate", "add_import", "add_list", "add_show", "format_videos"]
@@ -113,6 +113,8 @@ def add_list(verbs) -> None:
                                            "and the notebooks take), scenario, setting, pair, member and whether "
                                            "it is possible; the filters given narrow the list.")
     listing.add_argument("file", help="a test split (HDF5)")
+    # the scenario registry's names, written out: the registry loads pymunk, which --help leaves out
+    # (tests/test_conventions.py keeps them in step)
     listing.add_argument("--scenario", help="collision, blocking, permanence or continuity")
     listing.add_argument("--setting", help="S1, S2 or S3")
     listing.add_argument("--member", type=flag(int, NON_NEGATIVE, "member"), help="0 (expected) or 1")

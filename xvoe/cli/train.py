@@ -9,12 +9,13 @@ from pathlib import Path
 
 import xvoe
 
-from ...domains import POSITIVE
-from ...errors import XvoeError
-from ...outputs import claim_directory
-from ...training.config import DEFAULT_RECIPE, TrainConfig
-from ...training.stages import PERCEPTION, STAGES, Stage
-from .arguments import Parser, Writes, add_device, field, flag, late, latent_stages, output_of, positive, recipe_names
+from ..domains import POSITIVE
+from ..errors import XvoeError
+from ..outputs import claim_directory
+from ..processes import interrupts_held
+from ..training.config import DEFAULT_RECIPE, TrainConfig
+from ..training.stages import PERCEPTION, PHYDNET, STAGES, XPL, Stage
+from .arguments import Parser, Writes, add_device, field, flag, latent_stages, listed, output_of, positive, recipe_names
 
 __all__ = ["add_encode", "add_train"]
 
@@ -32,7 +33,7 @@ def add_train(verbs) -> None:
 def _add_stage(parser: argparse.ArgumentParser, entry: Stage) -> None:
     """The flags of `xvoe train STAGE`: what the stage reads, and the run settings it may change."""
     stage = entry.name
-    if entry.reads == "xpl":
+    if entry.reads == XPL:
         parser.add_argument("--data", help=f"the latent cache (default: the one the run's {entry.reads} stage used)")
     elif entry.reads == "latents":
         parser.add_argument("--data", help="the latent cache, or a training split to encode into one first")
@@ -40,7 +41,7 @@ def _add_stage(parser: argparse.ArgumentParser, entry: Stage) -> None:
     else:
         parser.add_argument("--data", help="the training split file (HDF5)")
     parser.add_argument("--out", required=True, help="the run directory")
-    if entry.reads != "xpl":
+    if entry.reads != XPL:
         parser.add_argument("--recipe", default=DEFAULT_RECIPE,
                             help=f"the recipe whose sizes and settings start the run: {recipe_names()}")
     parser.add_argument("--steps", type=field(TrainConfig, "steps"), help="training steps (default: the recipe's)")
@@ -77,7 +78,8 @@ def _add_stage(parser: argparse.ArgumentParser, entry: Stage) -> None:
 
 def _train_overrides(args: argparse.Namespace, stage: str) -> tuple[dict, dict]:
     """The TrainConfig fields the flags and `--set` change (None: keep the recipe's), and the model's."""
-    check_focus = late("check_focus")
+    with interrupts_held():     # imported here, not for --help: a Ctrl-C inside torch's import aborts the process
+        from ..training.data import check_focus
     train, model = xvoe.stage_settings(stage, args.set)
     flags = {"steps": args.steps, "max_minutes": args.minutes, "batch_size": args.batch_size, "seed": args.seed,
              "max_videos": args.max_videos, "lr": args.lr, "focus_group": getattr(args, "focus_group", None),
@@ -99,16 +101,16 @@ def _run_train(args: argparse.Namespace) -> None:
     train, model = _train_overrides(args, stage)
     common = {"resume": args.resume, "overwrite": args.overwrite, "progress": not args.quiet, "device": args.device}
     reads = xvoe.STAGES[stage].reads
-    if reads != "xpl" and args.data is None and not args.resume:
-        raise XvoeError("--data is required to start a run (the training split, or for xpl and plato its latent "
-                        "cache)")
-    if reads == "xpl":
+    if reads != XPL and args.data is None and not args.resume:
+        on_latents = listed(name for name, entry in STAGES.items() if entry.reads == "latents")
+        raise XvoeError(f"--data is required to start a run (the training split, or for {on_latents} its latent cache)")
+    if reads == XPL:
         print(xvoe.train_proposal(args.out, args.data, model_overrides=model, **common, **train))
         return
     common |= {"recipe_name": args.recipe, "model_overrides": model}
     if stage == PERCEPTION:
         print(xvoe.train_perception(args.data, args.out, **common, **train))
-    elif stage == "phydnet":
+    elif stage == PHYDNET:
         print(xvoe.train_phydnet(args.data, args.out, **common, **train))
     else:
         cache = None
@@ -124,7 +126,8 @@ def add_encode(verbs) -> None:
                               description="Encode every frame of a split into a latent cache (HDF5), which the "
                                           f"{latent_stages()} stages train on.")
     encode.add_argument("--data", required=True, help="the split file to encode")
-    encode.add_argument("--out", required=True, help="the run directory (its perception.pt unless --model)")
+    encode.add_argument("--out", required=True,
+                        help=f"the run directory (its {STAGES[PERCEPTION].checkpoint} unless --model)")
     encode.add_argument("--model", help="a perception run or checkpoint (default: --out)")
     encode.add_argument("--cache", help="the latent cache to write (default: OUT/latents-DATA.h5; of a test split, "
                                         "beside it, DATA.latents-PERCEPTION.h5, where xvoe score reads it)")
@@ -136,7 +139,9 @@ def add_encode(verbs) -> None:
 
 def _default_cache(args: argparse.Namespace) -> Path:
     """The latent cache `encode` writes without --cache (beside a test split, in the run for a training one)."""
-    return late("encoded_cache")(args.data, args.out, args.model, args.device)
+    with interrupts_held():     # imported here, not for --help: a Ctrl-C inside torch's import aborts the process
+        from ..training.xpl import encoded_cache
+    return encoded_cache(args.data, args.out, args.model, args.device)
 
 
 def _run_encode(args: argparse.Namespace) -> None:

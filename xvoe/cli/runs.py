@@ -7,9 +7,9 @@ import argparse
 
 import xvoe
 
-from ...domains import NON_NEGATIVE, SEED, Domain
-from ...training.config import DEFAULT_RECIPE
-from ...training.stages import DEFAULT_MODELS, MODELS, SCORED
+from ..domains import NON_NEGATIVE, SEED, Domain
+from ..training.config import DEFAULT_RECIPE
+from ..training.stages import DEFAULT_MODELS, MODELS, SCORED
 from .arguments import add_device, default_workers, flag, latent_stages, positive, recipe_names
 
 __all__ = ["add_pipeline", "add_ship"]

@@ -3,43 +3,31 @@ value in one line before any work, the name lists its help takes from the regist
 check of the paths a command reads and writes.
 
 Nothing here imports torch (nor h5py or pymunk): `xvoe --help` builds every verb's parser. What
-a verb needs of the heavier layers loads when it runs, or when a value is parsed (`late`)."""
+a verb needs of the heavier layers is imported inside the function that runs it, or that parses
+a value."""
 from __future__ import annotations
 
 import argparse
-import importlib
 import re
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import xvoe
 
-from ...domains import DEVICES, Domain, check_number
-from ...errors import XvoeError
-from ...models.config import parse_field, parse_value
-from ...outputs import refuse_overlap
-from ...processes import interrupts_held
-from ...resources import cores
-from ...training.config import DEFAULT_RECIPE, RECIPE_NAMES
-from ...training.stages import RANDOM, SCORED, STAGES
+from ..domains import DEVICES, Domain, check_number
+from ..errors import XvoeError
+from ..models.config import parse_field, parse_value
+from ..outputs import refuse_overlap
+from ..processes import interrupts_held
+from ..resources import cores
+from ..training.config import DEFAULT_RECIPE, RECIPE_NAMES
+from ..training.stages import RANDOM, SCORED, STAGES
 
 __all__ = ["Parser", "Writes", "add_device", "argument", "check_paths", "default_workers", "field", "flag",
-           "generate_field", "late", "latent_stages", "output_of", "positive", "recipe_names", "scored_by_surprise",
+           "generate_field", "latent_stages", "listed", "output_of", "positive", "recipe_names", "scored_by_surprise",
            "scored_checkpoints", "shard"]
-
-# what the verbs need of the layers that import torch, loaded when a verb runs or a value is
-# parsed: building the parser imports none of them, so that --help answers at once
-_LATE = {"parse_device": "xvoe.models.devices", "resolve_device": "xvoe.models.devices",
-         "check_focus": "xvoe.training.data", "pin_kernels": "xvoe.training.distributed",
-         "encoded_cache": "xvoe.training.xpl"}
-
-
-def late(name: str) -> Callable[..., Any]:
-    """The function `name` of `_LATE`, its module imported now (not when the parser is built)."""
-    with interrupts_held():     # a Ctrl-C inside torch's extension modules' import aborts the process
-        return getattr(importlib.import_module(_LATE[name]), name)
 
 
 class Parser(argparse.ArgumentParser):
@@ -102,7 +90,9 @@ def generate_field(name: str) -> Callable[[str], Any]:
 
 
 def _device(text: str) -> str:
-    return str(late("parse_device")(text))
+    with interrupts_held():     # imported here, not for --help: a Ctrl-C inside torch's import aborts the process
+        from ..models.devices import parse_device
+    return str(parse_device(text))
 
 
 def add_device(parser: argparse.ArgumentParser, what: str) -> None:
@@ -128,17 +118,21 @@ def scored_checkpoints() -> str:
     return ", ".join(STAGES[name].checkpoint for name in SCORED)
 
 
+def listed(names: Iterable[str], last: str = "and") -> str:
+    """Names for a --help line or a message: a, b and c (or a, b or c)."""
+    *others, final = names
+    return f"{', '.join(others)} {last} {final}" if others else final
+
+
 def latent_stages() -> str:
     """The stages that train on the perception's latent cache, for a --help line: a, b and c."""
-    names = [name for name, entry in STAGES.items() if entry.reads_latents]
-    return f"{', '.join(names[:-1])} and {names[-1]}"
+    return listed(name for name, entry in STAGES.items() if entry.reads_latents)
 
 
 def scored_by_surprise() -> str:
     """The shipped models scored through `surprise(videos)` as a model of your own is (the harness
     checks them, within the time limit): those outside the XPL family, and chance."""
-    names = [name for name in SCORED if not STAGES[name].variant]
-    return " or ".join([", ".join(names), RANDOM]) if names else RANDOM
+    return listed([*(name for name in SCORED if not STAGES[name].variant), RANDOM], "or")
 
 
 # --- the paths a command names: no output may be one of its inputs --------------------------
