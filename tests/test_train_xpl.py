@@ -156,6 +156,21 @@ def test_batches_do_not_depend_on_the_process_count(cache):
         LatentBatches(str(cache), batch_size=8, shards=2, rank=0, world=4, seed=3)
 
 
+def test_batches_refuse_a_test_splits_cache_and_a_batch_past_memory_before_reading_it(cache, tmp_path):
+    """For every stage on the latent cache (the proposal stage's too): impossible events are no
+    training data, and a batch the machine cannot hold is named before the cache is loaded."""
+    import h5py
+
+    tested = tmp_path / "tested.h5"
+    tested.write_bytes(cache.read_bytes())
+    with h5py.File(tested, "a") as file:
+        file.attrs["source_split"] = "test"
+    with pytest.raises(XvoeError, match="encoded from a test split; training on impossible events is refused"):
+        LatentBatches(str(tested), batch_size=8, shards=1)
+    with pytest.raises(XvoeError, match=f"--batch-size {10**15} needs"):
+        LatentBatches(str(cache), batch_size=10**15, shards=1)
+
+
 def test_errors(cache, tmp_path):
     with pytest.raises(XvoeError, match="stage"):
         train_xpl(cache, tmp_path, stage="phydnet", progress=False)
