@@ -111,6 +111,17 @@ def test_plato_and_the_no_residual_ablation(cache, tmp_path):
     assert model.config.use_reasoning and not model.config.dynamics.residual
 
 
+def test_a_fresh_network_takes_its_shape_from_the_cache_its_variant_from_the_stage_the_rest_from_overrides(
+        cache, tmp_path):
+    """`--set stop_target_gradient=false` reaches the network; an override of what the data or the
+    stage decide does not build a network that could not train on them."""
+    overrides = {"stop_target_gradient": False, "use_reasoning": True, "dynamics.latent_dim": 3}
+    train_xpl(cache, tmp_path, stage="plato", progress=False, model_overrides=overrides, **{**TINY, "steps": 1})
+    config = load_xpl(tmp_path, stage="plato")[0].config
+    assert not config.stop_target_gradient
+    assert not config.use_reasoning and config.dynamics.latent_dim == D
+
+
 def test_a_recipe_can_train_plato_longer_than_xpl(cache, tmp_path, monkeypatch):
     """Recipe.plato_train, where set, is the plato stage's training; the other stages keep xpl_train."""
     from dataclasses import replace
