@@ -5,6 +5,7 @@ import torch
 
 from xvoe.apps.zoo import KEPT
 from xvoe.errors import XvoeError
+from xvoe.models.config import to_dict
 from xvoe.models.dynamics import DynamicsConfig
 from xvoe.models.nll import InferenceConfig
 from xvoe.models.reasoning import ReasoningConfig
@@ -23,7 +24,7 @@ from xvoe.training.latent_batches import (
 from xvoe.training.latents import _Latents, _write_latents
 from xvoe.training.proposal import ProposalNetworks, train_proposal
 from xvoe.training.recipes import RECIPES
-from xvoe.training.xpl import load_xpl, nll_settings_of, train_xpl
+from xvoe.training.xpl import load_xpl, model_nll, nll_settings_of, train_xpl
 
 N, T, K, D = 32, 8, 4, 6
 TINY = {"steps": 100, "batch_size": 32, "lr": 3e-3, "warmup_steps": 1, "log_every": 5}
@@ -156,6 +157,19 @@ def test_the_xpl_checkpoint_stores_its_recipes_nll_settings_as_plain_data(cache,
     assert nll_settings_of(torch.load(path, weights_only=True)["config"]) == settings
     plato = train_xpl(cache, tmp_path, stage="plato", progress=False, **{**TINY, "steps": 2})
     assert nll_settings_of(torch.load(plato, weights_only=True)["config"]) is None
+
+
+def test_a_models_nll_settings_are_its_checkpoints_else_its_recipes_else_the_defaults(monkeypatch):
+    from dataclasses import replace
+
+    import xvoe.training.xpl as stage
+
+    stored = InferenceConfig(pixel_sigma=0.7)
+    chosen = replace(RECIPES["paper"], nll=InferenceConfig(motion_sigma=0.3))
+    monkeypatch.setattr(stage, "recipe", lambda name: chosen)
+    assert model_nll({"recipe": "paper", "nll": to_dict(stored)}) == stored
+    assert model_nll({"recipe": "paper"}) == chosen.nll
+    assert model_nll({"recipe": "a recipe of another xvoe"}) == InferenceConfig()
 
 
 def test_batches_do_not_depend_on_the_process_count(cache):
