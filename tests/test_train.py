@@ -302,6 +302,12 @@ def test_the_airborne_share_of_a_perception_batch(falling_file, tmp_path):
         fit(job, TrainConfig(steps=1, focus_group="permanence", focus_share=0.5), tmp_path, progress=False)
 
 
+def test_a_training_config_out_of_its_domains_is_refused_where_it_is_built():
+    """In Python as from the command line, before a stage reads data."""
+    with pytest.raises(XvoeError, match="lr must be a finite number > 0, not -1"):
+        TrainConfig(lr=-1)
+
+
 def test_bad_input_in_training_processes_reads_as_it_does_in_one(tmp_path):
     """A stage started by `on_cores` in two processes stops with the stage's own message."""
     from xvoe.training.launch import on_cores

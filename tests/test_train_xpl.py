@@ -5,6 +5,7 @@ import torch
 
 from xvoe.apps.zoo import KEPT
 from xvoe.errors import XvoeError
+from xvoe.models.config import to_dict
 from xvoe.models.dynamics import DynamicsConfig
 from xvoe.models.nll import InferenceConfig
 from xvoe.models.reasoning import ReasoningConfig
@@ -23,7 +24,7 @@ from xvoe.training.latent_batches import (
 from xvoe.training.latents import _Latents, _write_latents
 from xvoe.training.proposal import ProposalNetworks, train_proposal
 from xvoe.training.recipes import RECIPES
-from xvoe.training.xpl import load_xpl, nll_settings_of, train_xpl
+from xvoe.training.xpl import load_xpl, model_nll, nll_settings_of, train_xpl
 
 N, T, K, D = 32, 8, 4, 6
 TINY = {"steps": 100, "batch_size": 32, "lr": 3e-3, "warmup_steps": 1, "log_every": 5}
@@ -111,6 +112,17 @@ def test_plato_and_the_no_residual_ablation(cache, tmp_path):
     assert model.config.use_reasoning and not model.config.dynamics.residual
 
 
+def test_a_fresh_network_takes_its_shape_from_the_cache_its_variant_from_the_stage_the_rest_from_overrides(
+        cache, tmp_path):
+    """`--set stop_target_gradient=false` reaches the network; an override of what the data or the
+    stage decide does not build a network that could not train on them."""
+    overrides = {"stop_target_gradient": False, "use_reasoning": True, "dynamics.latent_dim": 3}
+    train_xpl(cache, tmp_path, stage="plato", progress=False, model_overrides=overrides, **{**TINY, "steps": 1})
+    config = load_xpl(tmp_path, stage="plato")[0].config
+    assert not config.stop_target_gradient
+    assert not config.use_reasoning and config.dynamics.latent_dim == D
+
+
 def test_a_recipe_can_train_plato_longer_than_xpl(cache, tmp_path, monkeypatch):
     """Recipe.plato_train, where set, is the plato stage's training; the other stages keep xpl_train."""
     from dataclasses import replace
@@ -147,6 +159,19 @@ def test_the_xpl_checkpoint_stores_its_recipes_nll_settings_as_plain_data(cache,
     assert nll_settings_of(torch.load(plato, weights_only=True)["config"]) is None
 
 
+def test_a_models_nll_settings_are_its_checkpoints_else_its_recipes_else_the_defaults(monkeypatch):
+    from dataclasses import replace
+
+    import xvoe.training.xpl as stage
+
+    stored = InferenceConfig(pixel_sigma=0.7)
+    chosen = replace(RECIPES["paper"], nll=InferenceConfig(motion_sigma=0.3))
+    monkeypatch.setattr(stage, "recipe", lambda name: chosen)
+    assert model_nll({"recipe": "paper", "nll": to_dict(stored)}) == stored
+    assert model_nll({"recipe": "paper"}) == chosen.nll
+    assert model_nll({"recipe": "a recipe of another xvoe"}) == InferenceConfig()
+
+
 def test_batches_do_not_depend_on_the_process_count(cache):
     one = LatentBatches(str(cache), batch_size=8, shards=2, seed=3).batch(7)
     halves = [LatentBatches(str(cache), batch_size=8, shards=2, rank=r, world=2, seed=3).batch(7) for r in (0, 1)]
@@ -154,6 +179,21 @@ def test_batches_do_not_depend_on_the_process_count(cache):
     assert torch.equal(one.order, torch.cat([h.order for h in halves]))
     with pytest.raises(XvoeError, match="multiple of the 4 processes: train in 1, 2 processes, or change"):
         LatentBatches(str(cache), batch_size=8, shards=2, rank=0, world=4, seed=3)
+
+
+def test_batches_refuse_a_test_splits_cache_and_a_batch_past_memory_before_reading_it(cache, tmp_path):
+    """For every stage on the latent cache (the proposal stage's too): impossible events are no
+    training data, and a batch the machine cannot hold is named before the cache is loaded."""
+    import h5py
+
+    tested = tmp_path / "tested.h5"
+    tested.write_bytes(cache.read_bytes())
+    with h5py.File(tested, "a") as file:
+        file.attrs["source_split"] = "test"
+    with pytest.raises(XvoeError, match="encoded from a test split; training on impossible events is refused"):
+        LatentBatches(str(tested), batch_size=8, shards=1)
+    with pytest.raises(XvoeError, match=f"--batch-size {10**15} needs"):
+        LatentBatches(str(cache), batch_size=10**15, shards=1)
 
 
 def test_errors(cache, tmp_path):

@@ -61,9 +61,6 @@ def _add_stage(parser: argparse.ArgumentParser, entry: Stage) -> None:
                                                   "permanence,continuity)")
         parser.add_argument("--focus-share", type=field(TrainConfig, "focus_share"),
                             help="the share of each batch from --focus-group")
-    if entry.reads == "latents":
-        parser.add_argument("--no-stop-gradient", action="store_true",
-                            help="let the dynamics loss reach Transformer 1 through the target too")
     parser.add_argument("--set", action="append", default=[], metavar="FIELD=VALUE",
                         help="change any field of a fresh run's TrainConfig or model config (repeatable; "
                              "train.FIELD or model.FIELD where both have it; model.dynamics.hidden=256 "
@@ -117,8 +114,7 @@ def _run_train(args: argparse.Namespace) -> None:
         if args.data:
             cache = xvoe.latent_cache_for(args.data, args.out, args.perception, progress=not args.quiet,
                                           device=args.device)
-        print(xvoe.train_xpl(cache, args.out, stage=stage, stop_gradient=not args.no_stop_gradient, **common,
-                             **train))
+        print(xvoe.train_xpl(cache, args.out, stage=stage, **common, **train))
 
 
 def add_encode(verbs) -> None:

@@ -15,13 +15,14 @@ import numpy as np
 
 from ..errors import XvoeError
 from ..scenes import store
-from ..scenes.scenarios import SCENARIOS
-from .metrics import IDEAL_COMPARATIVE
+from ..scenes.scenarios import SCENARIOS, TEST_SETTINGS
 
 __all__ = ["REQUIRED", "SCORE_NAMES", "ScoreTable", "model_name", "model_name_problem", "read_columns",
            "read_scores", "score_problem", "scores_digest"]
 
 REQUIRED = ("index", "scenario", "setting", "pair", "member", "possible")
+# the settings a row may name: the test scenarios' (S1, S2, S3), a custom scenario's rows too
+_SETTINGS = tuple(sorted({setting for _, setting in TEST_SETTINGS}))
 SCORE_NAMES = ("score", "paper_score", "s_img", "s_dyn", "s_rec", "excess", "nll", "ess", "p_hidden", "p_two",
                "nll_excess")
 
@@ -196,9 +197,9 @@ def score_problem(scores: dict[str, np.ndarray]) -> str | None:
     unknown = sorted(set(scores["scenario"]) - set(SCENARIOS) - {"custom"})
     if unknown:
         return f"unknown scenario {unknown[0]!r} (the scenarios are {', '.join(SCENARIOS)}, and custom)"
-    unknown = sorted(set(scores["setting"]) - set(IDEAL_COMPARATIVE))
+    unknown = sorted(set(scores["setting"]) - set(_SETTINGS))
     if unknown:
-        return f"unknown setting {unknown[0]!r} (the settings are S1, S2, S3)"
+        return f"unknown setting {unknown[0]!r} (the settings are {', '.join(_SETTINGS)})"
     members = scores["member"]
     if members.dtype.kind != "f" or not set(np.unique(members)) <= {0.0, 1.0}:
         return "member must be 0 or 1"

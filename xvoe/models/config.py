@@ -50,15 +50,14 @@ def to_dict(config: Any) -> dict:
     return asdict(config)
 
 
-# Fields removed after checkpoints stored them, each with the value every recipe held (their
-# records: docs/log/decisions-2026-11.md). A stored config with that value loads without it.
+# Fields removed after the shipped checkpoints (xvoe/weights) stored them, each with the value every
+# recipe held (their records: docs/log/decisions-2026-11.md). A stored config with that value loads
+# without it; a field that no shipped checkpoint holds is no longer known at all.
 _RETIRED: dict[str, dict[str, Any]] = {
     "PerceptionConfig": {"where_latents": False, "where_scale": 0.5, "amodal": False, "cut_share": 0.0},
     "XPLConfig": {"wall_refill": 0.0, "proposal_sees_seen": False, "latent_weights": (), "weigh_by_picture": False,
                   "fill_from_neighbours": False, "line_between_only": False},
     "PhyDNetConfig": {"lstm_chrono_frames": 0},
-    "InferenceConfig": {"smc_moves": 0, "smc_max_levels": 40, "smc_first": 0, "trajectory_proposal": False,
-                        "trajectory_scale_floor": 1.0, "guide_follows_dynamics": True},
 }
 
 

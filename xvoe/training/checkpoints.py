@@ -19,7 +19,7 @@ from ..models.config import from_dict
 from ..models.devices import on_cpu
 from ..outputs import atomic_paths
 from .config import TrainConfig
-from .stages import SCORED, STAGES
+from .stages import PERCEPTION, SCORED, STAGES
 
 __all__ = ["CHECKPOINT_FORMAT", "WEIGHTS", "SHIPPED", "save_checkpoint", "load_checkpoint", "recorded_input",
            "first_not_finite", "load_weights", "resolve_run", "shipped_path"]
@@ -155,7 +155,7 @@ def load_weights(module: torch.nn.Module, state: dict, path: str | os.PathLike, 
     module.load_state_dict(found, strict=strict)
 
 
-def resolve_run(model: str | os.PathLike, stage: str = "perception") -> Path:
+def resolve_run(model: str | os.PathLike, stage: str = PERCEPTION) -> Path:
     """A checkpoint from a file, a run directory holding STAGE.pt, a run name under runs/, or
     the name of a shipped model (`SHIPPED`)."""
     path = Path(model)
@@ -170,7 +170,7 @@ def resolve_run(model: str | os.PathLike, stage: str = "perception") -> Path:
 
 def shipped_path(name: str, stage: str | None = None) -> Path | None:
     """The shipped checkpoint of model `name` for `stage` (the model's own by default;
-    "perception" for the perception module XPL-family models share), or None."""
+    PERCEPTION for the perception module XPL-family models share), or None."""
     if name not in SHIPPED:
         return None
     path = WEIGHTS / f"{stage or name}.pt"

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from ..domains import COUNT, NON_NEGATIVE, POSITIVE, SEED, SHARE, Domain, within
+from ..domains import COUNT, NON_NEGATIVE, POSITIVE, SEED, SHARE, Domain, check_config, within
 
 __all__ = ["RECIPE_NAMES", "DEFAULT_RECIPE", "TrainConfig"]
 
@@ -51,3 +51,6 @@ class TrainConfig:
     # the PhyDNet stage alone: at the start of this phase its ConvLSTM gates widen to this size,
     # the trained taps in the centre (0 = as they are)
     lstm_kernel: int = within(0, NON_NEGATIVE)
+
+    def __post_init__(self) -> None:
+        check_config(self)      # one built in Python is refused as one built from the command line is

@@ -16,6 +16,7 @@ from torch import Tensor
 
 from ..errors import XvoeError
 from ..models.perception import BLANK, PerceptionBatch, normalise
+from ..resources import check_memory
 from ..scenes import store
 from ..scenes.released import SOURCE_NAME
 from ..scenes.scenarios import TRAINING_GROUPS
@@ -121,9 +122,11 @@ def process_counts(shards: int) -> list[int]:
     return [count for count in range(1, shards + 1) if shards % count == 0]
 
 
-def owned_shards(path: str, videos: int, *, batch_size: int, shards: int, rank: int, world: int,
+def owned_shards(path: str, videos: int, *, batch_size: int, item_bytes: int, shards: int, rank: int, world: int,
                  max_videos: int = 0) -> Ownership:
-    """Cut `videos` into `shards` slices and give process `rank` of `world` its contiguous run."""
+    """Cut `videos` into `shards` slices and give process `rank` of `world` its contiguous run;
+    refused before any data is read where a batch of `batch_size` items of `item_bytes` each (as
+    the model reads them: a float copy, at the least) is past the machine's free memory."""
     if shards % world:
         fits = ", ".join(map(str, process_counts(shards)))
         raise XvoeError(f"data_shards {shards} is not a multiple of the {world} processes: train in "
@@ -131,6 +134,7 @@ def owned_shards(path: str, videos: int, *, batch_size: int, shards: int, rank: 
                         f"with --set data_shards=N")
     if batch_size % shards:
         raise XvoeError(f"batch_size {batch_size} is not a multiple of data_shards {shards}")
+    check_memory(item_bytes * batch_size, f"--batch-size {batch_size}")
     videos = min(videos, max_videos) if max_videos else videos
     if videos < shards:
         raise XvoeError(f"{path} holds {videos} videos, fewer than the {shards} data shards")
@@ -260,8 +264,9 @@ class ShardedFrames:
             check_size(file, image_size)
             videos = file["rgbd"].shape[0]
             self.slots = int(file["states"].shape[2])
-        owned = owned_shards(path, videos, batch_size=batch_size, shards=shards, rank=rank, world=world,
-                             max_videos=max_videos)
+        # a frame as the model reads it: RGBD floats
+        owned = owned_shards(path, videos, batch_size=batch_size, item_bytes=4 * 4 * image_size ** 2, shards=shards,
+                             rank=rank, world=world, max_videos=max_videos)
         self.shards, self.bounds, self.per_shard = owned.shards, owned.bounds, owned.per_shard
         self.data = _load_slice(path, owned.start, owned.stop)
         self.latent_dim, self.seed = latent_dim, seed

@@ -55,8 +55,12 @@ class LatentBatches:
                  max_videos: int = 0, seed: int = 0, object_share: float = 0.5, walls: bool = False,
                  outside: bool = False, focus_group: str = "", focus_share: float = 0.0):
         with open_latents(path) as file:
-            owned = owned_shards(path, file["mean"].shape[0], batch_size=batch_size, shards=shards, rank=rank,
-                                 world=world, max_videos=max_videos)
+            if file.attrs.get("source_split") == "test":
+                raise XvoeError(f"{path} was encoded from a test split; training on impossible events is refused")
+            count, frames, slots, dim = file["mean"].shape
+            # a video as the model reads it: float32 means (T, K, D) and visibility (T, K)
+            owned = owned_shards(path, count, batch_size=batch_size, item_bytes=frames * slots * (4 * dim + 1),
+                                 shards=shards, rank=rank, world=world, max_videos=max_videos)
             self.mean = torch.from_numpy(file["mean"][owned.start:owned.stop])            # (N, T, K, D)
             self.visible = torch.from_numpy(file["visible"][owned.start:owned.stop])      # (N, T, K) bool
             source = file.attrs.get("source")       # the split file it was encoded from
@@ -72,9 +76,9 @@ class LatentBatches:
         self.slots = self.mean.shape[2]
 
     @property
-    def item_bytes(self) -> int:
-        """Bytes of one video's latents and visibility in a batch."""
-        return int(self.mean[:1].nbytes + self.visible[:1].nbytes)
+    def shape(self) -> tuple[int, int, int]:
+        """A video's (T, K, D): frames, slots and latent size, which an XPL trained on them is fitted to."""
+        return tuple(self.mean.shape[1:])
 
     def batch(self, step: int) -> LatentBatch:
         video, order, hidden, refill = self.draw(step)

@@ -44,6 +44,7 @@ from ..scenes.writer import atomic_file
 from .data import check_size, masked_inputs, visible_threshold
 from .perception import load_perception
 from .recipes import recipe_of
+from .stages import PERCEPTION
 
 __all__ = ["LATENT_CHUNK", "open_latents", "encode_frames", "encode_means", "encode_split", "encode_with",
            "encoder_key", "split_cache", "check_cache"]
@@ -196,7 +197,7 @@ def encode_with(model: ComponentVAE, data: str | os.PathLike, out: str | os.Path
                 bar.update(stop - start)
         present = file["states"][..., present_column] > 0.5
         threshold = visible_threshold(size)
-        config = {"recipe": recipe_name, "perception": to_dict(model.config), "visible_threshold": threshold,
+        config = {"recipe": recipe_name, PERCEPTION: to_dict(model.config), "visible_threshold": threshold,
                   "data": store.config_of(file)}
         attrs = {**origin, "source": str(Path(data).resolve()), "source_split": str(file.attrs["split"]),
                  "config": json.dumps(config, sort_keys=True),

@@ -30,16 +30,15 @@ import torch
 import torch.distributed as dist
 from torch import Tensor, nn
 
-from ..domains import check_config
 from ..errors import XvoeError
 from ..models.config import to_dict
 from ..models.devices import mixed_precision
 from ..outputs import claim_directory, claim_file, claim_scope
 from ..progress import progress_bar
-from ..resources import check_memory
 from .checkpoints import CHECKPOINT_FORMAT, first_not_finite, load_checkpoint, load_weights, save_checkpoint
 from .config import TrainConfig
 from .distributed import Dist, StopRequests
+from .stages import PERCEPTION, PHYDNET
 
 __all__ = ["Job", "checkpoint_path", "fit", "learning_rate"]
 
@@ -54,7 +53,6 @@ class Job:
     config: dict                                  # the stage's model config, stored in the checkpoint
     items: Callable[[Any], int] = len             # images (or videos) in a local batch, for throughput
     meta: dict = field(default_factory=dict)      # e.g. the data file, stored in the checkpoint
-    item_bytes: int = 0                           # bytes of one item of a batch as the model reads it (0: unknown)
 
 
 def learning_rate(config: TrainConfig, step: int) -> float:
@@ -165,7 +163,7 @@ class _Meter:
 
 
 # the stages whose batches are not videos drawn by group, and what they draw instead
-_UNFOCUSED = {"perception": "single frames"}
+_UNFOCUSED = {PERCEPTION: "single frames"}
 
 
 @claim_scope()
@@ -234,13 +232,11 @@ def _step(wrapped: nn.Module, optimiser: torch.optim.Optimizer, batch: Any, devi
 
 
 def _check_job(job: Job, config: TrainConfig) -> None:
-    """Refuse, before any step, a config the stage cannot train or a batch past the machine's memory."""
-    check_config(config)        # a config built in Python, not through override, is checked too
-    # a batch's float copy for the model, at the least: a size past the machine is named before any step
-    check_memory(job.item_bytes * config.batch_size, f"--batch-size {config.batch_size}")
-    if config.airborne_share and job.stage != "perception":
+    """Refuse, before any step, a setting of the config that the stage has not (a config checks
+    its own domains, and a batch source the memory its batches need)."""
+    if config.airborne_share and job.stage != PERCEPTION:
         raise XvoeError(f"airborne_share picks the perception stage's frames; the {job.stage} stage has none")
-    if config.lstm_kernel and job.stage != "phydnet":
+    if config.lstm_kernel and job.stage != PHYDNET:
         raise XvoeError(f"lstm_kernel widens PhyDNet's ConvLSTM gates; the {job.stage} stage has none")
     if (config.focus_group or config.focus_share) and job.stage in _UNFOCUSED:
         raise XvoeError(f"focus_group and focus_share pick videos of a group; the {job.stage} stage draws "

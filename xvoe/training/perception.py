@@ -16,6 +16,7 @@ from .data import ShardedFrames
 from .distributed import setup_distributed, start_process
 from .loop import Job, checkpoint_path, fit
 from .recipes import DEFAULT_RECIPE, recipe, recipe_of
+from .stages import PERCEPTION
 
 __all__ = ["load_perception", "train_perception"]
 
@@ -23,8 +24,8 @@ __all__ = ["load_perception", "train_perception"]
 def load_perception(model: str | os.PathLike, device: str | torch.device = "cpu"):
     """The trained ComponentVAE of a checkpoint (in eval mode) and the checkpoint's contents."""
     path = resolve_run(model)
-    state = load_checkpoint(path, "perception", device)
-    vae = ComponentVAE(from_dict(PerceptionConfig, state["config"]["perception"]))
+    state = load_checkpoint(path, PERCEPTION, device)
+    vae = ComponentVAE(from_dict(PerceptionConfig, state["config"][PERCEPTION]))
     load_weights(vae, state, path)
     state["path"] = str(path)
     return vae.to(device).eval(), state
@@ -32,10 +33,10 @@ def load_perception(model: str | os.PathLike, device: str | torch.device = "cpu"
 
 def _perception_configs(recipe_name: str, run_dir: Path, resume: bool, **train_overrides: Any):
     """Model and training configs: the checkpoint's when resuming, else the recipe's, with overrides."""
-    ckpt = checkpoint_path(run_dir, "perception")
+    ckpt = checkpoint_path(run_dir, PERCEPTION)
     if resume and ckpt.exists():
-        state = load_checkpoint(ckpt, "perception")
-        model_config = from_dict(PerceptionConfig, state["config"]["perception"])
+        state = load_checkpoint(ckpt, PERCEPTION)
+        model_config = from_dict(PerceptionConfig, state["config"][PERCEPTION])
         train_config, recipe_name = from_dict(TrainConfig, state["train"]), recipe_of(state["config"])
     else:
         chosen = recipe(recipe_name)
@@ -52,12 +53,12 @@ def train_perception(data: str | os.PathLike | None, run_dir: str | os.PathLike,
     place = setup_distributed(device)
     run_dir = Path(run_dir)
     if data is None:
-        if not (resume and checkpoint_path(run_dir, "perception").exists()):
+        if not (resume and checkpoint_path(run_dir, PERCEPTION).exists()):
             raise XvoeError("--data is required to start a run (the training split file)")
-        ckpt = checkpoint_path(run_dir, "perception")
+        ckpt = checkpoint_path(run_dir, PERCEPTION)
         data = recorded_input(load_checkpoint(ckpt), ckpt, "data")
     recipe_name, model_config, config = _perception_configs(recipe_name, run_dir, resume, **train_overrides)
-    if resume and checkpoint_path(run_dir, "perception").exists():
+    if resume and checkpoint_path(run_dir, PERCEPTION).exists():
         model_config = override_resumed(model_config, model_overrides, what="perception run")
     else:
         model_config = override(model_config, **(model_overrides or {}))
@@ -67,7 +68,6 @@ def train_perception(data: str | os.PathLike | None, run_dir: str | os.PathLike,
                            batch_size=config.batch_size, shards=config.data_shards, rank=place.rank,
                            world=place.world, max_videos=config.max_videos, seed=config.seed,
                            airborne_share=config.airborne_share)
-    job = Job("perception", model, frames.batch, {"recipe": recipe_name, "perception": to_dict(model_config)},
-              items=lambda batch: batch.images, meta={"data": str(Path(data).resolve())},
-              item_bytes=4 * 4 * model_config.image_size ** 2)
+    job = Job(PERCEPTION, model, frames.batch, {"recipe": recipe_name, PERCEPTION: to_dict(model_config)},
+              items=lambda batch: batch.images, meta={"data": str(Path(data).resolve())})
     return fit(job, config, run_dir, place=place, resume=resume, overwrite=overwrite, progress=progress)

@@ -7,6 +7,7 @@ same batches as one uninterrupted process.
 """
 from __future__ import annotations
 
+import math
 import os
 from dataclasses import replace
 from pathlib import Path
@@ -26,10 +27,10 @@ from .data import check_size, focus_on, owned_shards
 from .distributed import Dist, setup_distributed, start_process
 from .loop import Job, checkpoint_path, fit
 from .recipes import DEFAULT_RECIPE, recipe, recipe_of
+from .stages import PHYDNET
 
 __all__ = ["train_phydnet", "load_phydnet"]
 
-_STAGE = "phydnet"
 _LOSS_FIELDS = ("change_weight", "moment_weight")   # PhyDNetConfig fields a resumed run may change
 
 
@@ -45,8 +46,9 @@ class _VideoBatches:
                  max_videos: int = 0, seed: int = 0, focus_group: str = "", focus_share: float = 0.0):
         with store.open_dataset(path, split="train") as file:
             check_size(file, image_size, "PhyDNet")
-            owned = owned_shards(path, file["rgbd"].shape[0], batch_size=batch_size, shards=shards, rank=rank,
-                                 world=world, max_videos=max_videos)
+            count, *video = file["rgbd"].shape        # a video as the model reads it: (T, H, W, 4) floats
+            owned = owned_shards(path, count, batch_size=batch_size, item_bytes=4 * math.prod(video), shards=shards,
+                                 rank=rank, world=world, max_videos=max_videos)
             self.rgbd = torch.from_numpy(store.read_frames(file, "rgbd", owned.start, owned.stop))
         self.focus = focus_on(path, owned, focus_group, focus_share)
         self.shards, self.bounds, self.per_shard = owned.shards, owned.bounds, owned.per_shard
@@ -62,10 +64,10 @@ class _VideoBatches:
 def _phydnet_configs(recipe_name: str, run_dir: Path, resume: bool, data: str | os.PathLike | None
                     ) -> tuple[str, PhyDNetConfig, TrainConfig, str]:
     """Model and training configs and the data file: the checkpoint's when resuming, else the recipe's."""
-    ckpt = checkpoint_path(run_dir, _STAGE)
+    ckpt = checkpoint_path(run_dir, PHYDNET)
     if resume and ckpt.exists():
-        state = load_checkpoint(ckpt, _STAGE)
-        model_config = from_dict(PhyDNetConfig, state["config"]["phydnet"])
+        state = load_checkpoint(ckpt, PHYDNET)
+        model_config = from_dict(PhyDNetConfig, state["config"][PHYDNET])
         train_config, recipe_name = from_dict(TrainConfig, state["train"]), recipe_of(state["config"])
         return recipe_name, model_config, train_config, str(data or recorded_input(state, ckpt, "data"))
     if data is None:
@@ -81,7 +83,7 @@ def train_phydnet(data: str | os.PathLike | None, run_dir: str | os.PathLike, *,
     place = setup_distributed(device)
     run_dir = Path(run_dir)
     recipe_name, model_config, config, data = _phydnet_configs(recipe_name, run_dir, resume, data)
-    ckpt = checkpoint_path(run_dir, _STAGE)
+    ckpt = checkpoint_path(run_dir, PHYDNET)
     resuming = resume and ckpt.exists()
     if resuming:
         model_config = override_resumed(model_config, model_overrides, _LOSS_FIELDS, "PhyDNet")
@@ -99,9 +101,8 @@ def train_phydnet(data: str | os.PathLike | None, run_dir: str | os.PathLike, *,
                            shards=config.data_shards, rank=place.rank, world=place.world,
                            max_videos=config.max_videos, seed=config.seed, focus_group=config.focus_group,
                            focus_share=config.focus_share)
-    job = Job(_STAGE, PhyDNetObjective(PhyDNet(model_config)), batches.batch,
-              {"recipe": recipe_name, "phydnet": to_dict(model_config)}, meta={"data": str(Path(data).resolve())},
-              item_bytes=4 * batches.rgbd[:1].numel())
+    job = Job(PHYDNET, PhyDNetObjective(PhyDNet(model_config)), batches.batch,
+              {"recipe": recipe_name, PHYDNET: to_dict(model_config)}, meta={"data": str(Path(data).resolve())})
     return fit(job, config, run_dir, place=place, resume=resume, overwrite=overwrite, progress=progress)
 
 
@@ -110,8 +111,8 @@ def _widen_checkpoint(path: Path, kernel: int, place: Dist) -> None:
     (`widen_lstm_kernel`: the same predictions to begin with) and Adam afresh, its step, RNG
     states and loss log kept, so that the resumed phase trains the wider gates."""
     if place.main:
-        state = load_checkpoint(path, _STAGE)
-        narrow = from_dict(PhyDNetConfig, state["config"]["phydnet"])
+        state = load_checkpoint(path, PHYDNET)
+        narrow = from_dict(PhyDNetConfig, state["config"][PHYDNET])
         widened = {}
         for key in ("model", "trained"):        # "trained" beside "model" when the run averages its weights
             if key in state:
@@ -121,7 +122,7 @@ def _widen_checkpoint(path: Path, kernel: int, place: Dist) -> None:
                 widened[key] = wider.state_dict()
         if "optimizer" in state:     # an un-stepped Adam over the same parameters, in the same order
             widened["optimizer"] = torch.optim.Adam(wider.parameters()).state_dict()
-        config = {**state["config"], "phydnet": to_dict(wider.net.config)}
+        config = {**state["config"], PHYDNET: to_dict(wider.net.config)}
         save_checkpoint(path, {**state, **widened, "config": config})
     if place.world > 1:
         torch.distributed.barrier()
@@ -129,9 +130,9 @@ def _widen_checkpoint(path: Path, kernel: int, place: Dist) -> None:
 
 def load_phydnet(model: str | os.PathLike, device: str | torch.device = "cpu") -> tuple[PhyDNet, dict]:
     """A trained PhyDNet (in eval mode) from a checkpoint or run directory, and the checkpoint's contents."""
-    path = resolve_run(model, _STAGE)
-    state = load_checkpoint(path, _STAGE, device)
-    objective = PhyDNetObjective(PhyDNet(from_dict(PhyDNetConfig, state["config"]["phydnet"])))
+    path = resolve_run(model, PHYDNET)
+    state = load_checkpoint(path, PHYDNET, device)
+    objective = PhyDNetObjective(PhyDNet(from_dict(PhyDNetConfig, state["config"][PHYDNET])))
     load_weights(objective, state, path)
     state["path"] = str(path)
     return objective.net.to(device).eval(), state

@@ -18,6 +18,8 @@ from .distributed import setup_distributed, start_process
 from .latent_batches import ProposalBatch, ProposalBatches
 from .loop import Job, checkpoint_path, fit
 from .recipes import recipe, recipe_of
+from .stages import PROPOSAL
+from .stages import XPL as XPL_STAGE  # beside the network XPL
 from .xpl import fingerprint, run_xpl
 
 __all__ = ["ProposalNetworks", "train_proposal"]
@@ -66,12 +68,12 @@ def train_proposal(run_dir: str | os.PathLike, latents: str | os.PathLike | None
     run_dir = Path(run_dir)
     place = setup_distributed(device)
     xpl_path, xpl, xpl_state = run_xpl(run_dir, "the xpl stage", proposal=False)
-    ckpt = checkpoint_path(run_dir, "proposal")
+    ckpt = checkpoint_path(run_dir, PROPOSAL)
     recipe_name = recipe_of(xpl_state["config"])
     if resume and ckpt.exists():
-        state = load_checkpoint(ckpt, "proposal")
+        state = load_checkpoint(ckpt, PROPOSAL)
         config = from_dict(TrainConfig, state["train"])
-        xpl.config = from_dict(XPLConfig, state["config"]["xpl"])
+        xpl.config = from_dict(XPLConfig, state["config"][XPL_STAGE])
     else:
         config = recipe(recipe_name).proposal_train
     xpl.config = override_resumed(xpl.config, model_overrides, what="proposal run")
@@ -80,9 +82,8 @@ def train_proposal(run_dir: str | os.PathLike, latents: str | os.PathLike | None
     batches = ProposalBatches(str(latents), batch_size=config.batch_size, shards=config.data_shards, rank=place.rank,
                               world=place.world, max_videos=config.max_videos, seed=config.seed,
                               focus_group=config.focus_group, focus_share=config.focus_share)
-    meta = {"latents": str(Path(latents).resolve()), "xpl": str(xpl_path.resolve()),
+    meta = {"latents": str(Path(latents).resolve()), XPL_STAGE: str(xpl_path.resolve()),
             "xpl_fingerprint": fingerprint(xpl_state["model"])}
     networks = ProposalNetworks(xpl.to(place.device), batches.empty)
-    job = Job("proposal", networks, batches.batch, {"recipe": recipe_name, "xpl": to_dict(xpl.config)}, meta=meta,
-              item_bytes=batches.item_bytes)
+    job = Job(PROPOSAL, networks, batches.batch, {"recipe": recipe_name, XPL_STAGE: to_dict(xpl.config)}, meta=meta)
     return fit(job, config, run_dir, place=place, resume=resume, overwrite=overwrite, progress=progress)

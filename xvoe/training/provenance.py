@@ -9,12 +9,11 @@ checkpoint.
 from __future__ import annotations
 
 from ..models.config import from_dict, to_dict
-from ..models.nll import InferenceConfig
 from ..models.xpl import XPLConfig
 from .config import TrainConfig
 from .recipes import recipe, recipe_of
-from .stages import stage
-from .xpl import nll_settings_of, stage_config
+from .stages import PERCEPTION, PHYDNET, XPL, stage
+from .xpl import model_nll, stage_config
 
 __all__ = ["RUN_FIELDS", "expected_configs", "recipe_differences"]
 
@@ -25,14 +24,14 @@ def expected_configs(state: dict) -> tuple[dict, dict]:
     """The stored config and training config the checkpoint's recipe gives its stage."""
     entry, config = stage(state["stage"]), state["config"]
     chosen = recipe(recipe_of(config))
-    if entry.config_key == "perception":
-        model = {"perception": to_dict(chosen.perception)}
-    elif entry.config_key == "phydnet":
-        model = {"phydnet": to_dict(chosen.final_phydnet())}
+    if entry.config_key == PERCEPTION:
+        model = {PERCEPTION: to_dict(chosen.perception)}
+    elif entry.config_key == PHYDNET:
+        model = {PHYDNET: to_dict(chosen.final_phydnet())}
     else:
-        stored = from_dict(XPLConfig, config["xpl"])
+        stored = from_dict(XPLConfig, config[XPL])
         shape = (stored.reasoning.frames, stored.reasoning.slots, stored.reasoning.latent_dim)
-        model = {"xpl": to_dict(stage_config(chosen.xpl, entry.name, True, shape))}
+        model = {XPL: to_dict(stage_config(chosen.xpl, entry.name, shape))}
         if entry.nll:
             model["nll"] = to_dict(chosen.nll)
     model["recipe"] = chosen.name
@@ -49,7 +48,7 @@ def recipe_differences(state: dict) -> list[str]:
     entry = stage(state["stage"])
     stored[entry.config_key] = to_dict(from_dict(entry.config, config[entry.config_key]))
     if entry.nll:
-        stored["nll"] = to_dict(nll_settings_of(config) or InferenceConfig())     # as a score reads it
+        stored["nll"] = to_dict(model_nll(config))
     lines = _differences(stored, model, "") + _differences(to_dict(from_dict(TrainConfig, state["train"])), train,
                                                           "train.")
     if "step" in state and state["step"] != train["steps"]:     # a run stopped, or still going, inside its last phase

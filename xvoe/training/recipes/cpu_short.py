@@ -13,6 +13,7 @@ from ...models.perception import PerceptionConfig
 from ...models.phydnet import PhyDNetConfig
 from ...models.xpl import XPLConfig
 from ..config import TrainConfig
+from ..stages import PHYDNET, PLATO
 from .recipe import Recipe
 
 __all__ = ["RECIPE"]     # read by name: xvoe.training.recipes
@@ -22,11 +23,11 @@ __all__ = ["RECIPE"]     # read by name: xvoe.training.recipes
 # the sums: a stage of two one-thread processes, or one process of two threads (docs/decisions.md,
 # "One seed, one set of weights")
 SHARDS = 2
-PLATO = TrainConfig(steps=60_000, batch_size=32, warmup_steps=100, decay_steps=15_000, data_shards=SHARDS,
+PLATO_TRAIN = TrainConfig(steps=60_000, batch_size=32, warmup_steps=100, decay_steps=15_000, data_shards=SHARDS,
                     threads=1)
-PHYDNET = TrainConfig(steps=9_000, batch_size=8, lr=2e-3, warmup_steps=100, decay_steps=2_500, data_shards=1,
+PHYDNET_TRAIN = TrainConfig(steps=9_000, batch_size=8, lr=2e-3, warmup_steps=100, decay_steps=2_500, data_shards=1,
                       threads=2)
-LATER = replace(PHYDNET, decay_steps=10_000)      # the later phases' rates halve every 10,000 steps
+LATER = replace(PHYDNET_TRAIN, decay_steps=10_000)      # the later phases' rates halve every 10,000 steps
 
 
 # the NLL surprise's settings, chosen on the validation split for this recipe's models (docs/decisions.md,
@@ -44,7 +45,7 @@ NLL = InferenceConfig(
 
 
 def _phydnet_phase(steps: int, lr: float, focus: str, share: float, **changes) -> tuple[str, TrainConfig]:
-    return "phydnet", replace(LATER, steps=steps, lr=lr, focus_group=focus, focus_share=share, **changes)
+    return PHYDNET, replace(LATER, steps=steps, lr=lr, focus_group=focus, focus_share=share, **changes)
 
 
 RECIPE = Recipe(
@@ -64,15 +65,15 @@ RECIPE = Recipe(
     proposal_train=TrainConfig(steps=4_000, batch_size=32, warmup_steps=100, decay_steps=1_500,
                                average_decay=0.999, focus_group="blocking", focus_share=0.5, data_shards=SHARDS,
                                threads=1),
-    plato_train=PLATO,
+    plato_train=PLATO_TRAIN,
     # changing pixels weigh more in the training loss; 3x3 gates, widened to 5x5 in a later phase
     # (docs/decisions.md, "PhyDNet's network and loss")
     phydnet=PhyDNetConfig(change_weight=20.0, lstm_kernel=3),
-    phydnet_train=PHYDNET,
+    phydnet_train=PHYDNET_TRAIN,
     # the scenarios each baseline was weakest in, a share of every batch (docs/decisions.md,
     # "The baselines' later phases")
     phases=(
-        ("plato", replace(PLATO, steps=75_000, focus_group="continuity", focus_share=0.5)),
+        (PLATO, replace(PLATO_TRAIN, steps=75_000, focus_group="continuity", focus_share=0.5)),
         _phydnet_phase(10_000, 5.6e-4, "permanence", 0.5),
         _phydnet_phase(13_000, 1.1e-3, "permanence", 0.75),
         _phydnet_phase(15_000, 5.5e-4, "permanence", 0.5),

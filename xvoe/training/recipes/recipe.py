@@ -17,7 +17,7 @@ from ...models.perception import PerceptionConfig
 from ...models.phydnet import PhyDNetConfig
 from ...models.xpl import XPLConfig
 from ..config import TrainConfig
-from ..stages import STAGES, stage
+from ..stages import PHYDNET, STAGES, stage
 
 __all__ = ["Recipe", "stage_settings"]
 
@@ -56,7 +56,7 @@ class Recipe:
 
     def final_phydnet(self) -> PhyDNetConfig:
         """The PhyDNet a finished run holds: the recipe's, its gates as wide as a phase widened them."""
-        kernels = [train.lstm_kernel for train in (self.phydnet_train, *self.phases_of("phydnet")) if train.lstm_kernel]
+        kernels = [train.lstm_kernel for train in (self.phydnet_train, *self.phases_of(PHYDNET)) if train.lstm_kernel]
         return replace(self.phydnet, lstm_kernel=kernels[-1]) if kernels else self.phydnet
 
     def final_training(self, stage: str) -> TrainConfig:
