@@ -215,8 +215,8 @@ def _read_split(source: str | None, latents: str, start: int, stop: int, walls: 
     found = places = None
     missing = source is None or not Path(source).is_file()
     if walls and missing:
-        warnings.warn(f"the split file {source} the cache {latents} was encoded from is missing: "
-                      "training goes on as if its videos had no walls", stacklevel=2)
+        gone = "records no split file" if source is None else f"was encoded from {source}, which is missing"
+        warnings.warn(f"the cache {latents} {gone}: training goes on as if its videos had no walls", stacklevel=2)
     if outside:
         _present(source, latents, "outside_refill")
     if (walls or outside) and not missing:
