@@ -277,7 +277,8 @@ def explain(model: str | Scorer | SurpriseModel, data: str | Path, index: int, *
     """What the model believes is behind the wall in video `index`: Transformer 2's proposal
     (surprise "mse"; with explanation "better", the default verdict's, only where it explains the
     video better than nothing hidden; "proposal", always, as the paper) or the Pyro model's
-    posterior (surprise "nll", from `particles` importance samples drawn from `seed`; None: the
+    posterior (surprise "nll", by the model's NLL method (sequential Monte Carlo over frames
+    unless its settings say "importance") with `particles` particles drawn from `seed`; None: the
     model's setting). With the video's scene at `display_size` for `plot_explanation` to draw
     the explanation onto (None: the model's frames alone); the model reads its own frames.
     device: where a model given by name runs. chunk: the video's latent cache chunk already

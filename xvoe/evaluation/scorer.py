@@ -35,7 +35,8 @@ from ..training.perception import load_perception
 from ..training.phydnet import load_phydnet
 from ..training.provenance import recipe_differences
 from ..training.recipes import recipe_of
-from ..training.stages import RANDOM
+from ..training.stages import PERCEPTION, PHYDNET, RANDOM
+from ..training.stages import XPL as XPL_STAGE
 from ..training.xpl import load_xpl, nll_settings_of
 from .surprise import DrawnScene, draw_scene, every_explanation
 from .user_models import SurpriseModel, Videos, checked_model, load_surprise_model, read_videos
@@ -67,7 +68,7 @@ class RandomAgent:
 class PhyDNetSurprise:
     """The PhyDNet baseline as a surprise model: its one-step prediction error per frame."""
 
-    name = "phydnet"
+    name = PHYDNET
     curve, curve_label = "s_dyn", MSE_LABEL
 
     def __init__(self, net: PhyDNet):
@@ -163,11 +164,11 @@ def load_model(model: str, device: str | torch.device = "cpu") -> Scorer:
     elif path.name in SHIPPED and (path.parent / f"{path.name}.pt").is_file():
         run_dir, stage = path.parent, path.name
     else:
-        run_dir, stage = path, "xpl"
+        run_dir, stage = path, XPL_STAGE
     if stage not in SHIPPED:
         raise XvoeError(f"{model} is not a model to score with: give a run directory, one of "
                         f"{', '.join(s + '.pt' for s in SHIPPED)}, or {RANDOM!r}")
-    if stage == "phydnet":
+    if stage == PHYDNET:
         net, state = load_phydnet(run_dir / "phydnet.pt", device)
         return Scorer(stage, None, None, phydnet=net, custom=PhyDNetSurprise(net), source=_absolute_reference(model),
                       settings=checkpoint_settings({stage: state}))
@@ -175,7 +176,7 @@ def load_model(model: str, device: str | torch.device = "cpu") -> Scorer:
     xpl, state = load_xpl(run_dir, stage, device)
     return Scorer(stage, vae, xpl, nll=nll_settings_of(state["config"]) if xpl.config.use_reasoning else None,
                   source=_absolute_reference(model),
-                  settings=checkpoint_settings({"perception": perception, stage: state}))
+                  settings=checkpoint_settings({PERCEPTION: perception, stage: state}))
 
 
 def checkpoint_settings(states: dict[str, dict]) -> dict[str, dict]:
