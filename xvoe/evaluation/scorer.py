@@ -38,11 +38,19 @@ from ..training.recipes import recipe_of
 from ..training.stages import PERCEPTION, PHYDNET, RANDOM
 from ..training.stages import XPL as XPL_STAGE
 from ..training.xpl import load_xpl, nll_settings_of
-from .surprise import DrawnScene, draw_scene, every_explanation
-from .user_models import SurpriseModel, Videos, checked_model, load_surprise_model, read_videos
+from .surprise import DrawnScene, every_explanation
+from .user_models import (
+    SurpriseModel,
+    Videos,
+    checked_model,
+    checked_surprise,
+    curve_of,
+    load_surprise_model,
+    read_videos,
+)
 
 __all__ = ["MSE_CURVES", "MSE_LABEL", "EncodedChunk", "PhyDNetSurprise", "RandomAgent", "Scorer", "as_scorer",
-           "checkpoint_settings", "encode", "encode_chunk",
+           "checkpoint_settings", "custom_curves", "encode", "encode_chunk",
            "encode_video", "encode_videos", "load_model", "mse_curves", "names_code", "open_test_split",
            "own_surprise"]
 
@@ -227,6 +235,21 @@ def own_surprise(scorer: Scorer) -> bool:
     return scorer.custom is not None and scorer.phydnet is None
 
 
+def custom_curves(scorer: Scorer, file, start: int, stop: int) -> dict[str, np.ndarray]:
+    """The per-frame curves (B, T) by name of videos [start, stop) of an open test split under a
+    model answering `surprise(videos)`, its term checked (`checked_surprise`): a model of your own
+    or the random agent keeps it under its own name (`curve_of`); PhyDNet's prediction error is
+    s_dyn, beside an s_img of zeros, as the MSE's terms are."""
+    own = own_surprise(scorer)
+    name = curve_of(scorer.custom)[0]
+    videos = read_videos(file, start, stop)
+    surprise = checked_surprise(scorer.custom, videos, scorer.time_limit)
+    if own:
+        return {name: surprise}
+    zeros = np.zeros_like(surprise)
+    return {"s_img": zeros, "s_dyn": surprise, "paper_s_img": zeros, "paper_s_dyn": surprise}
+
+
 @contextmanager
 def open_test_split(scorer: Scorer, data: str | os.PathLike) -> Iterator[h5py.File]:
     """A test split open for reading, refused in one line unless the scorer reads its frames' size."""
@@ -302,8 +325,7 @@ def mse_curves(scorer: Scorer, batch: dict[str, Tensor]) -> tuple[dict[str, Tens
     and the scene drawn, for the NLL to read rather than draw again."""
     videos = (batch["mean"], batch["visible"], batch["background"], batch["occluder"])
     with mixed_precision(scorer.device):
-        scene = draw_scene(scorer.vae, scorer.xpl, *videos)
-        found = every_explanation(scorer.vae, scorer.xpl, batch["frames"], *videos, scene)
+        found, scene = every_explanation(scorer.vae, scorer.xpl, batch["frames"], *videos)
     default, paper = found["better"], found["proposal"]
     curves = {"s_img": default.s_img, "s_dyn": default.s_dyn, "s_rec": default.s_rec,
               "paper_s_img": paper.s_img, "paper_s_dyn": paper.s_dyn}
