@@ -73,7 +73,6 @@ def check_particles(particles: int) -> None:
     check_memory(particles * _PARTICLE_BYTES, f"--particles {particles:,}")
 
 
-
 @torch.no_grad()
 def nll_surprise(vae: ComponentVAE, xpl: XPL, frames: Tensor, mean: Tensor, visible: Tensor, background: Tensor,
                  occluder: Tensor, config: InferenceConfig, method: str | None = None,
