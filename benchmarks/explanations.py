@@ -39,8 +39,8 @@ def per_video(scorer, data: str, rows: range, batch: int, progress: bool) -> tup
     with xvoe.open_dataset(data, split="test") as file:
         for start in tqdm(range(rows.start, rows.stop, batch), desc="score", unit="batch", disable=not progress):
             video = encode_videos(scorer, file, start, min(rows.stop, start + batch))
-            scored = every_explanation(scorer.vae, scorer.xpl, video["frames"], video["mean"], video["visible"],
-                                       video["background"], video["occluder"])
+            scored, _ = every_explanation(scorer.vae, scorer.xpl, video["frames"], video["mean"], video["visible"],
+                                          video["background"], video["occluder"])
             for name, surprise in scored.items():
                 terms = (surprise.s_img + surprise.s_dyn, surprise.s_img, surprise.s_dyn, surprise.s_rec,
                          excess(surprise.s_img, surprise.s_dyn, surprise.s_rec))

@@ -1,7 +1,8 @@
-"""What the Pyro model believes is behind the wall: the importance-weighted hidden object,
-with the posterior probability that it exists and the effective sample size of the weights,
-and, where a seen object went out of sight and came back, the two identical objects that may
-explain it, with their probability."""
+"""What the Pyro model believes is behind the wall: the hidden object its posterior weights
+(the sequential Monte Carlo's final particles over frames, or importance samples where the
+model's NLL settings say "importance"), with the posterior probability that it exists and the
+effective sample size of the weights, and, where a seen object went out of sight and came
+back, the two identical objects that may explain it, with their probability."""
 from __future__ import annotations
 
 from dataclasses import dataclass, field, replace
@@ -10,7 +11,14 @@ import numpy as np
 import torch
 
 from xvoe.errors import XvoeError
-from xvoe.evaluation.explain import DRAW_THRESHOLD, Explanation, _pictures, _read_video, look_alike, masked
+from xvoe.evaluation.explain import (
+    DRAW_THRESHOLD,
+    Explanation,
+    look_alike,
+    masked,
+    read_video_to_explain,
+    scene_pictures,
+)
 from xvoe.evaluation.scorer import EncodedChunk, Scorer
 from xvoe.models.perception import to_uint8
 
@@ -25,9 +33,9 @@ __all__ = ["NLLExplanation", "explain_nll", "nll_explanation", "two_object_pictu
 class NLLExplanation(Explanation):
     p_hidden: float = 0.0       # posterior probability that a hidden object exists
     p_two: float = 0.0          # posterior probability that a seen object is two identical ones
-    ess: float = 0.0            # effective sample size of the importance weights
+    ess: float = 0.0            # effective sample size of the final weights
     nll: float = 0.0            # the video's surprise, -log p(video), nats
-    particles: int = 0          # importance samples drawn (a pilot's, where a pilot sufficed)
+    particles: int = 0          # particles drawn (a pilot's, where a pilot sufficed)
     holding: int = 0            # of them, those that held a hidden object
     holding_ess: float = 0.0    # the effective sample size among those
     # the heaviest distinct hypotheses of what is hidden, each decoded alone: (label, frames)
@@ -108,7 +116,7 @@ def explain_nll(scorer: Scorer, data: str, index: int, particles: int | None = N
         raise XvoeError(f"the NLL explanation needs an XPL model with reasoning; {scorer.name} has none")
     config = scorer.nll or InferenceConfig()
     check_particles(particles or config.particles)
-    video, rgbd, title = _read_video(scorer, data, index, chunk)
+    video, rgbd, title = read_video_to_explain(scorer, data, index, chunk)
     return nll_explanation(scorer.vae, scorer.xpl, video, particles or config.particles, title, rgbd, seed,
                            hypotheses, config)
 
@@ -117,7 +125,7 @@ def explain_nll(scorer: Scorer, data: str, index: int, particles: int | None = N
 def nll_explanation(vae, xpl, video: dict, particles: int, title: str = "", observed: np.ndarray | None = None,
                     seed: int = 0, hypotheses: int = 3, config: InferenceConfig | None = None) -> NLLExplanation:
     """The explanation posterior of one encoded video (`encode_video`, a batch of one): the
-    importance-weighted mean of the particles that hold a hidden object, decoded frame by
+    weighted mean of the final particles that hold a hidden object, decoded frame by
     frame. The mean, not the best particle: where one particle takes all the weight (a broad
     proposal) the two are the same, and where many share it the mean does not hang on one
     lucky draw; the ESS among them, in the row's label, tells which case it is. Below it, the
@@ -141,10 +149,10 @@ def nll_explanation(vae, xpl, video: dict, particles: int, title: str = "", obse
         latents[0, :, slot], present[0, slot] = posterior.mean, True
         return latents, present
 
-    empty, alone = _pictures(vae, refined, occupied, video, -1)
+    empty, alone = scene_pictures(vae, refined, occupied, video, -1)
     behind = empty
     if slot >= 0:
-        behind, alone = _pictures(vae, *with_hidden(refined, occupied), video, slot)
+        behind, alone = scene_pictures(vae, *with_hidden(refined, occupied), video, slot)
     two = two_object_pictures(vae, refined, video, result.identity, with_hidden if slot >= 0 else None)
     observed = to_uint8(video["frames"][0]).numpy() if observed is None else observed
     heading = f"{title}\n" if title else ""
@@ -193,8 +201,8 @@ def two_object_pictures(vae, refined: torch.Tensor, video: dict, identity, with_
     first_only[0, identity.slot] = False
 
     def draw(latents: torch.Tensor, present: torch.Tensor, first_only: torch.Tensor) -> np.ndarray:
-        both, _ = _pictures(vae, latents, present, video, -1)
-        before, _ = _pictures(vae, latents, first_only, video, -1)
+        both, _ = scene_pictures(vae, latents, present, video, -1)
+        before, _ = scene_pictures(vae, latents, first_only, video, -1)
         both[:identity.seen_again] = before[:identity.seen_again]
         return both
 

@@ -16,7 +16,7 @@ from xvoe.evaluation.surprise import DrawnScene
 from xvoe.models.config import field_type, parse_field, split_assignment, to_dict
 
 from .model import InferenceConfig, pixel_log_normaliser
-from .surprise import NLLSurprise, check_particles, nll_surprise
+from .surprise import NLLSurprise, check_particles, drawn_surprise
 
 __all__ = ["NLLRun", "nll_batch", "nll_config", "nll_defaults_note", "nll_excess", "nll_run", "nll_settings",
            "nll_sources", "reference_nll", "under_prior_two", "xpl_nll"]
@@ -73,14 +73,13 @@ def under_prior_two(scores: dict[str, np.ndarray], used: float, prior: float) ->
     return {**scores, "nll": -log_new, "p_two": p_new, "nll_excess": scores["nll_excess"] - log_new - scores["nll"]}
 
 
-def xpl_nll(scorer: Scorer, batch: dict[str, Tensor], config: InferenceConfig, seed: int = 0,
-            drawn: DrawnScene | None = None) -> list[NLLSurprise]:
+def xpl_nll(scorer: Scorer, batch: dict[str, Tensor], config: InferenceConfig, seed: int,
+            drawn: DrawnScene) -> list[NLLSurprise]:
     """The NLL surprise of each encoded video (`encode_videos`) under the Pyro hidden-object model,
     each from its own generator seeded `seed`, so that a video's score does not hang on the others';
-    `drawn`: the batch as the MSE score drew it (`xvoe.evaluation.surprise.draw_scene`), if it has."""
-    return [nll_surprise(scorer.vae, scorer.xpl, batch["frames"][i], batch["mean"][i], batch["visible"][i],
-                         batch["background"][i], batch["occluder"][i], config, seed=seed,
-                         drawn=None if drawn is None else drawn.video(i))
+    `drawn`: the batch as the MSE score drew it (`xvoe.evaluation.surprise.draw_scene`)."""
+    return [drawn_surprise(scorer.vae, scorer.xpl, batch["frames"][i], batch["visible"][i], batch["occluder"][i],
+                           drawn.video(i), config, seed=seed)
             for i in range(len(batch["mean"]))]
 
 
@@ -138,7 +137,7 @@ def nll_run(scorer: Scorer, particles: int | None = None, seed: int = 0,
 
 
 def nll_batch(scorer: Scorer, batch: dict[str, Tensor], run: NLLRun,
-              drawn: DrawnScene | None = None) -> tuple[dict[str, np.ndarray], dict[str, np.ndarray]]:
+              drawn: DrawnScene) -> tuple[dict[str, np.ndarray], dict[str, np.ndarray]]:
     """The NLL's columns of encoded videos (`encode_videos`), (B,) each: nll, -log p(video) under
     the Pyro model, its ess, p_hidden and p_two; and its curve nll (B, T), -log p(x_t | x_<t)
     (the SMC's; importance sampling keeps none). `drawn`: the batch as the MSE score drew it."""

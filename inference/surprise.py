@@ -5,7 +5,6 @@ hidden object exists. Every estimate comes from a seed (or a torch.Generator): t
 gives the same bytes, whatever was drawn before."""
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 
 import torch
@@ -19,14 +18,15 @@ from xvoe.models.xpl import XPL
 from xvoe.resources import check_memory
 
 from .evidence import Evidence, importance_evidence, smc_evidence
+from .guide import hidden_proposal
 from .hypotheses import Hypotheses, top_hypotheses
 from .identity import Identity, identity_gap, two_objects
-from .model import InferenceConfig, Proposal, drawing_cost
+from .model import InferenceConfig
 from .smc import effective_sample_size
 from .xpl_scene import XPLScene
 
-__all__ = ["NLLSurprise", "Seed", "check_particles", "nll_surprise", "HiddenPosterior", "hidden_posterior",
-           "Surprise", "explain_surprise"]
+__all__ = ["NLLSurprise", "Seed", "check_particles", "nll_surprise", "drawn_surprise", "HiddenPosterior",
+           "hidden_posterior", "Surprise", "explain_surprise"]
 
 
 @dataclass
@@ -63,7 +63,6 @@ def _generator_from(seed: Seed) -> torch.Generator:
     return torch.Generator().manual_seed(0 if seed is None else int(seed))
 
 
-_BRANCH_SAMPLES = 8     # particles each value of `exists` expects at the least
 # memory a particle takes through a video's NLL, at the least: the shipped model's run on a
 # 32 px test video held 1.0 GB more at 8,192 particles than at 256
 _PARTICLE_BYTES = 100_000
@@ -74,64 +73,64 @@ def check_particles(particles: int) -> None:
     check_memory(particles * _PARTICLE_BYTES, f"--particles {particles:,}")
 
 
-
-def _defensive(p_exists: Tensor, particles: int) -> Tensor:
-    """The guide's existence probability, kept off 0 and 1 so that each branch expects at
-    least BRANCH_SAMPLES particles. Every particle without a hidden object has the same,
-    exactly computed weight, and the two branches' likelihoods differ by thousands of nats: a
-    run that draws no particle of one branch misses it whole (with a 0.98 clamp and 64
-    particles, one run in four did), and its NLL and p_hidden swing with the seed."""
-    floor = min(0.5, _BRANCH_SAMPLES / particles)
-    return p_exists.clamp(floor, 1.0 - floor)
-
-
 @torch.no_grad()
 def nll_surprise(vae: ComponentVAE, xpl: XPL, frames: Tensor, mean: Tensor, visible: Tensor, background: Tensor,
                  occluder: Tensor, config: InferenceConfig, method: str | None = None,
                  seed: Seed = 0, drawn: DrawnScene | None = None) -> NLLSurprise:
     """One video: frames (T, 4, H, W) in [-1, 1]; mean (T, K, D); visible (T, K) bool;
-    background (T, D) latents; occluder (K,) bool. The guide proposes the hidden object's
-    trajectory from Transformer 2's mean (moved out of sight, `_refine_out_of_sight`) and scale,
-    and (importance sampling) its existence from XPL's amortised existence probability.
+    background (T, D) latents; occluder (K,) bool. `drawn_surprise` of the video as XPL draws
+    it: `drawn`, the MSE score's drawing of it (`xvoe.evaluation.surprise.draw_scene`, a batch of
+    one), or drawn here without the proposed slot where it is None."""
+    if drawn is None:
+        drawn = draw_scene(vae, xpl, mean[None], visible[None], background[None], occluder[None], proposed=False)
+    return drawn_surprise(vae, xpl, frames, visible, occluder, drawn, config, method, seed)
+
+
+@torch.no_grad()
+def drawn_surprise(vae: ComponentVAE, xpl: XPL, frames: Tensor, visible: Tensor, occluder: Tensor,
+                   drawn: DrawnScene, config: InferenceConfig, method: str | None = None,
+                   seed: Seed = 0) -> NLLSurprise:
+    """The NLL surprise of one video of frames (T, 4, H, W) in [-1, 1], visible (T, K) and
+    occluder (K,) bool, that XPL has drawn (`drawn`, a batch of one: its refined latents,
+    Transformer 2's proposal and the pictures): its scene for the Pyro model
+    (`_hidden_object_scene`), the guide's proposal of a hidden object (`hidden_proposal`), and
+    the evidence (`smc_evidence`, or `importance_evidence`).
 
     method: "smc" or "importance" (None: config.method). seed: an int or a torch.Generator;
-    the global random state is neither read nor changed. drawn: this video's scene as the MSE
-    score drew it (`_hidden_object_scene`)."""
+    the global random state is neither read nor changed."""
     method = config.method if method is None else method
     if method not in ("smc", "importance"):
         raise ValueError(f"method must be smc or importance, not {method!r}")
     generator = _generator_from(seed)
-    scene, loc, spread, free = _hidden_object_scene(vae, xpl, mean, visible, background, occluder, config, drawn)
-    hidden = scene.hidden
-    p_exists = torch.sigmoid(xpl.existence_logit(loc[None], spread[None]))[0] if free else mean.new_zeros(())
-    if free and config.refine_steps:
-        loc = _refine_out_of_sight(scene, loc, frames, config)
-    proposal = Proposal(_defensive(p_exists, config.particles) if free else p_exists, loc, spread)
+    hidden, free = _hidden_slot(drawn, visible)
+    scene = _hidden_object_scene(vae, xpl, visible, occluder, hidden, config, drawn)
+    proposal = hidden_proposal(scene, xpl, drawn.proposal[0, :, hidden], drawn.scale[0, :, hidden], frames, config,
+                               free)
+    slot = hidden if free else -1
     if method == "smc":
         found = smc_evidence(scene, frames, config, proposal, generator, free)
-        return NLLSurprise(found.nll, found.ess, found.p_hidden, hidden if free else -1, found,
-                           found.ess if free else 0.0, "smc", scene.identity)
+        return NLLSurprise(found.nll, found.ess, found.p_hidden, slot, found, found.ess if free else 0.0, "smc",
+                           scene.identity)
     found = importance_evidence(scene, frames, config, proposal, generator)
     held = found.holding()
     holding = float(effective_sample_size(held[1])) if held is not None else 0.0
-    return NLLSurprise(found.nll, found.ess, found.p_hidden, hidden if free else -1, found, holding, "importance",
-                       scene.identity)
+    return NLLSurprise(found.nll, found.ess, found.p_hidden, slot, found, holding, "importance", scene.identity)
 
 
-def _hidden_object_scene(vae: ComponentVAE, xpl: XPL, mean: Tensor, visible: Tensor, background: Tensor,
-                        occluder: Tensor, config: InferenceConfig,
-                        drawn: DrawnScene | None = None) -> tuple[XPLScene, Tensor, Tensor, bool]:
-    """One video's scene for the Pyro model (arguments as `nll_surprise`'s), with the
-    two-object explanation as its second version where a seen object goes out of sight and comes
-    back (and config.prior_two > 0); Transformer 2's mean and scale (T, D) for the hidden slot
-    (the one it explained, else the first never-seen one), and whether any slot is free for a
-    hidden object. drawn: the video's refined latents, proposal and pictures as the MSE score
-    drew them (`xvoe.evaluation.surprise.draw_scene`, a batch of one), drawn here where absent;
-    the second version decodes only the two slots it changes."""
-    if drawn is None:
-        drawn = draw_scene(vae, xpl, mean[None], visible[None], background[None], occluder[None], proposed=False)
+def _hidden_slot(drawn: DrawnScene, visible: Tensor) -> tuple[int, bool]:
+    """The slot a hidden object would take: the one Transformer 2 explained, else the first
+    never-seen one; and whether any slot is free for it."""
     unseen = never_seen(visible[None])[0]
     hidden = int(drawn.slot[0]) if drawn.slot[0] >= 0 else int(unseen.float().argmax())
+    return hidden, bool(unseen.any())
+
+
+def _hidden_object_scene(vae: ComponentVAE, xpl: XPL, visible: Tensor, occluder: Tensor, hidden: int,
+                         config: InferenceConfig, drawn: DrawnScene) -> XPLScene:
+    """One video's scene for the Pyro model (arguments as `drawn_surprise`'s), its free slot
+    `hidden`: what was seen, as the MSE score drew it (the proposed slot left blank), and the
+    two-object explanation as its second version where a seen object goes out of sight and comes
+    back (and config.prior_two > 0), which decodes only the two slots it changes."""
     identity = identity_gap(visible, occluder, hidden) if config.prior_two > 0 else None
     latents, seen, layers = drawn.refined, visible[None], drawn.seen_layers(vae.blank()[0])
     if identity is not None:
@@ -141,69 +140,8 @@ def _hidden_object_scene(vae: ComponentVAE, xpl: XPL, mean: Tensor, visible: Ten
         two_layers = redraw_slots(vae, layers, two[None], changed[None], two_seen[None], occluder[None])
         latents, seen = torch.stack([drawn.refined[0], two]), torch.stack([visible, two_seen])
         layers = torch.cat([layers, two_layers])
-    scene = XPLScene(vae, xpl, latents, drawn.background[0], seen, occluder, hidden, identity, layers)
-    loc, spread = drawn.proposal[0, :, hidden], drawn.scale[0, :, hidden].clamp_min(xpl.config.reasoning.min_scale)
-    return scene, loc, spread, bool(unseen.any())
-
-
-def _refine_out_of_sight(scene: XPLScene, loc: Tensor, frames: Tensor, config: InferenceConfig) -> Tensor:
-    """Transformer 2's mean trajectory (T, D), moved by a few gradient steps that take its
-    pictures out of sight where they spoil the frames. Transformer 2 learned the latents of
-    objects that were partly seen, and its mean for a never-seen one can show where no wall
-    covers it (the scene keeps it behind the walls, `XPLScene.render`); every particle drawn
-    around it then pays hundreds of nats. The steps descend only the pixels' extra cost over the
-    scene without the object (clipped at zero), so they hide the object and never reward it for
-    patching what the seen slots reconstruct badly; frames where it costs under
-    `refine_tolerance` nats are left as they are. A deterministic function of the video: the
-    guide stays a proper proposal."""
-    without = (scene.empty() - frames).square()
-    every = torch.arange(len(loc), device=loc.device)
-
-    def extra_cost(latents: Tensor, chosen: Tensor) -> Tensor:
-        """Nats (F,) the hidden object's pictures and its drawing (`drawing_cost`) add in the
-        frames `chosen`. The drawing's shortfall counts too: without it, fading to a blank was the
-        steepest way out of sight, and a cube behind the wall came out of the steps a ghost."""
-        drawing = scene.draw_frames(latents, chosen)
-        extra = (drawing.frames - frames[chosen]).square() - without[chosen]
-        pixels = extra.clamp_min(0.0).sum(dim=(1, 2, 3)) / (2 * config.pixel_sigma ** 2)
-        return pixels + drawing_cost(config, drawing)
-
-    chosen = every[extra_cost(loc, every) > config.refine_tolerance]
-    if len(chosen) == 0:
-        return loc
-    moved = loc[chosen].clone()
-    adam = _AdamSteps(config.refine_rate)
-    for _ in range(config.refine_steps):
-        with torch.enable_grad():
-            latents = moved.requires_grad_(True)
-            cost = extra_cost(latents, chosen)
-            if float(cost.detach().max()) <= config.refine_tolerance:
-                break
-            gradient, = torch.autograd.grad(cost.sum(), latents)    # not the networks' weights
-        moved = adam.step(moved.detach(), gradient)
-    refined = loc.clone()
-    refined[chosen] = moved.detach()
-    return refined
-
-
-class _AdamSteps:
-    """Adam's update (torch.optim.Adam's defaults) of one tensor. Written out because the first
-    torch.optim optimiser of a process imports torch._dynamo, which the first NLL score or
-    explanation of a notebook would wait for, for five small steps (measured in
-    docs/log/decisions-2026-11.md, "The NLL's pilot stays at 16 particles")."""
-
-    def __init__(self, rate: float, betas: tuple[float, float] = (0.9, 0.999), eps: float = 1e-8):
-        self.rate, self.betas, self.eps = rate, betas, eps
-        self.count, self.first, self.second = 0, None, None
-
-    def step(self, value: Tensor, gradient: Tensor) -> Tensor:
-        (b1, b2), self.count = self.betas, self.count + 1
-        if self.first is None:
-            self.first, self.second = torch.zeros_like(value), torch.zeros_like(value)
-        self.first = b1 * self.first + (1 - b1) * gradient
-        self.second = b2 * self.second + (1 - b2) * gradient.square()
-        denominator = (self.second.sqrt() / math.sqrt(1 - b2 ** self.count)) + self.eps
-        return value - (self.rate / (1 - b1 ** self.count)) * self.first / denominator
+    return XPLScene(vae, xpl, latents, drawn.background[0], seen, occluder, hidden, layers, drawn.walls[0, :, 0],
+                    identity)
 
 
 @dataclass

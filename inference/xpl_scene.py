@@ -17,7 +17,7 @@ from torch import Tensor, nn
 
 from xvoe.models.dynamics import DynamicsState
 from xvoe.models.perception import ComponentVAE
-from xvoe.models.slots import nearest_wall, push_behind, scene_layers
+from xvoe.models.slots import push_behind
 from xvoe.models.xpl import XPL
 
 from .decoder import FoldedDecoder
@@ -29,30 +29,27 @@ __all__ = ["XPLScene"]
 
 class XPLScene(nn.Module):
     def __init__(self, vae: ComponentVAE, xpl: XPL, refined: Tensor, background: Tensor, visible: Tensor,
-                 occluder: Tensor, hidden: int, identity: Identity | None = None, layers: Tensor | None = None):
+                 occluder: Tensor, hidden: int, layers: Tensor, walls: Tensor, identity: Identity | None = None):
         """refined: (V, T, K, D) latents of each of the scene's V explanations of what was seen
         (one object, or two identical ones: `inference.identity`), a particle's `version` picking
         one; background: (T, 4, H, W) decoded background; visible: (V, T, K) what each says the
         encoder saw; occluder: (K,) the walls, whose motion is no evidence; hidden: the slot a
-        hidden object would take (a never-seen one); identity: which seen object the second
-        version makes two, None where there is none. As in the MSE score
-        (xvoe.models.slots.scene_layers), a wall is drawn only where it was seen, and an object not
-        seen in a frame stands behind the walls there: the seen objects' fills, and the hidden
-        object in every frame. layers: those pictures (V, T, K, 4, H, W), `scene_layers` of
-        `refined`, where they are drawn already (the MSE score's: inference.surprise._hidden_object_scene)."""
+        hidden object would take (a never-seen one); layers: the slot pictures (V, T, K, 4, H, W)
+        of `refined` as the MSE score draws them (`xvoe.models.slots.scene_layers`: a wall drawn
+        only where it was seen, and an object not seen in a frame behind the walls there: the
+        seen objects' fills, and the hidden object in every frame), the free slot blank; walls:
+        the nearest wall's depth (T, 1, H, W) in them, the same in every version (`nearest_wall`);
+        identity: which seen object the second version makes two, None where there is none."""
         super().__init__()
         self.vae, self.xpl, self.hidden, self.identity = vae, xpl, hidden, identity
         self.decode = FoldedDecoder(vae)      # the hidden slot's pictures, drawn for every particle
         self.versions, self.frames, self.slots, self.dim = refined.shape
         self.register_buffer("refined", refined)
         self.register_buffer("background", background)
+        self.register_buffer("layers", layers)
+        self.register_buffer("walls", walls)
         occupied = visible.any(1)
         wall_slots = occluder.expand(self.versions, -1)
-        with torch.no_grad():   # (V, T, K, 4, H, W); the free slot, never seen, stays blank
-            layers = scene_layers(vae, refined, occupied, visible, wall_slots)[0] if layers is None else layers
-            self.register_buffer("layers", layers)
-            # (T, 1, H, W): the walls are the same in every version
-            self.register_buffer("walls", nearest_wall(layers[:1], occluder[None])[0, :, 0])
         self.register_buffer("moving", occupied.any(0) & ~occluder)
         self.register_buffer("occluder", occluder[None])      # (1, K)
         self.register_buffer("visible", visible)

@@ -20,22 +20,16 @@ from xvoe.evaluation.score_tables import read_scores
 from xvoe.evaluation.scorer import encode_videos, load_model
 from xvoe.inference.decoder import FoldedDecoder
 from xvoe.inference.explain import nll_explanation
+from xvoe.inference.guide import _BRANCH_SAMPLES, _AdamSteps, _defensive, _refine_out_of_sight
 from xvoe.inference.model import Drawing, HiddenObjectModel, InferenceConfig, Proposal, drawing_cost
 from xvoe.inference.score import reference_nll
-from xvoe.inference.surprise import (
-    _BRANCH_SAMPLES,
-    _AdamSteps,
-    _defensive,
-    _refine_out_of_sight,
-    hidden_posterior,
-    nll_surprise,
-)
+from xvoe.inference.surprise import hidden_posterior, nll_surprise
 from xvoe.inference.xpl_scene import XPLScene
 from xvoe.models.config import to_dict
 from xvoe.models.dynamics import DynamicsConfig
 from xvoe.models.perception import ComponentVAE, PerceptionConfig
 from xvoe.models.reasoning import ReasoningConfig
-from xvoe.models.slots import push_behind
+from xvoe.models.slots import push_behind, scene_layers
 from xvoe.models.xpl import XPL, XPLConfig
 from xvoe.scenes import store
 from xvoe.scenes.generate import GenerateConfig, generate
@@ -339,7 +333,7 @@ def test_the_scene_steps_the_dynamics_frame_by_frame_as_a_full_run_does():
     _, mean, visible, background, _ = video()
     with torch.no_grad():
         no_walls = torch.zeros(K, dtype=torch.bool)
-        scene = XPLScene(vae, xpl, mean[None], vae.decode(background), visible[None], no_walls, 3)
+        scene = scene_of(vae, xpl, mean[None], vae.decode(background), visible[None], no_walls, 3)
         trajectory, alive = torch.randn(6, T, D), torch.tensor([True, False, True, True, False, True])
         scenes = mean.expand(6, T, K, D).clone()
         scenes[alive, :, 3] = trajectory[alive]
@@ -357,13 +351,20 @@ def test_the_scene_composites_a_hidden_picture_as_the_full_softmax_does():
     _, mean, visible, background, _ = video()
     with torch.no_grad():
         no_walls = torch.zeros(K, dtype=torch.bool)
-        scene = XPLScene(vae, xpl, mean[None], vae.decode(background), visible[None], no_walls, 3)
+        scene = scene_of(vae, xpl, mean[None], vae.decode(background), visible[None], no_walls, 3)
         pictures = vae.decode(torch.randn(2 * T, D)).reshape(2, T, 4, 16, 16)
         layers = scene.layers.expand(2, *scene.layers.shape[1:]).clone()
         layers[:, :, 3] = pictures
         frames, version = torch.arange(T).repeat(2), torch.zeros(2 * T, dtype=torch.long)
         drawn = scene._composite_hidden(pictures.reshape(2 * T, 4, 16, 16), frames, version)[0]
         torch.testing.assert_close(drawn.reshape(2, T, 4, 16, 16), scene._composite(layers), atol=1e-5, rtol=1e-4)
+
+
+def scene_of(vae, xpl, refined, background, visible, occluder, hidden, identity=None):
+    """The `XPLScene` of latents (V, T, K, D) with the pictures their `scene_layers` draw, as the
+    MSE score draws a video's."""
+    layers, walls = scene_layers(vae, refined, visible.any(1), visible, occluder.expand(len(refined), -1))
+    return XPLScene(vae, xpl, refined, background, visible, occluder, hidden, layers, walls[0, :, 0], identity)
 
 
 def draw_all(scene, trajectory):
@@ -385,7 +386,7 @@ def tiny_scene():
     vae, xpl = tiny_models()
     frames, mean, visible, background, occluder = video()
     with torch.no_grad():
-        scene = XPLScene(vae, xpl, mean[None], vae.decode(background), visible[None], occluder, 3)
+        scene = scene_of(vae, xpl, mean[None], vae.decode(background), visible[None], occluder, 3)
     return scene, frames
 
 
@@ -416,7 +417,7 @@ def test_the_seen_objects_motion_is_observed_only_where_the_encoder_saw_them():
     config = InferenceConfig()
     trajectory = torch.randn(1, T, D)
     with torch.no_grad():
-        scene = XPLScene(vae, xpl, mean[None], vae.decode(background), visible[None], occluder, 3)
+        scene = scene_of(vae, xpl, mean[None], vae.decode(background), visible[None], occluder, 3)
         values = {"exists": torch.ones(1)} | {f"z_{t}": trajectory[:, t] for t in range(T)}
         trace = poutine.trace(poutine.condition(HiddenObjectModel(scene, config).model, data=values)).get_trace(frames)
         trace.compute_log_prob()

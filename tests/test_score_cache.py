@@ -16,7 +16,7 @@ from xvoe.evaluation import score_cache
 from xvoe.evaluation import scorer as scoring
 from xvoe.evaluation.score_tables import read_scores
 from xvoe.inference.model import InferenceConfig
-from xvoe.inference.score import xpl_nll
+from xvoe.inference.surprise import nll_surprise
 from xvoe.models.dynamics import DynamicsConfig
 from xvoe.models.perception import ComponentVAE, PerceptionConfig
 from xvoe.models.reasoning import ReasoningConfig
@@ -97,7 +97,9 @@ def test_the_nll_beside_the_mse_score_is_the_nll_of_each_video_drawn_on_its_own(
                    for start in range(0, len(file["rgbd"]), 16)]     # as `xvoe score` encodes them
     table = xvoe.score(scorer, tiny_split, tmp_path / "both.csv", surprise="both", particles=4, cache=False,
                        progress=False)
-    alone = [found for batch in batches for found in xpl_nll(scorer, batch, InferenceConfig(particles=4))]
+    video = ("frames", "mean", "visible", "background", "occluder")
+    alone = [nll_surprise(scorer.vae, scorer.xpl, *(batch[name][i] for name in video), InferenceConfig(particles=4))
+             for batch in batches for i in range(len(batch["mean"]))]
     # what is reused is tried: a proposed hidden object, and a second version of two identical objects
     assert any(found.hidden_slot >= 0 for found in alone) and any(found.identity is not None for found in alone)
     scores = read_scores(table)

@@ -9,7 +9,7 @@ import pytest
 import torch
 from pyro import poutine
 from pyro.util import check_model_guide_match
-from test_nll import D, T, tiny_models, video
+from test_nll import D, T, scene_of, tiny_models, video
 
 from xvoe.errors import XvoeError
 from xvoe.evaluation.surprise import draw_scene
@@ -18,8 +18,7 @@ from xvoe.inference.identity import Identity, identity_gap, two_objects
 from xvoe.inference.model import HiddenObjectModel, InferenceConfig, Proposal
 from xvoe.inference.model_steps import empty_branch
 from xvoe.inference.score import under_prior_two
-from xvoe.inference.surprise import _hidden_object_scene, nll_surprise
-from xvoe.inference.xpl_scene import XPLScene
+from xvoe.inference.surprise import _hidden_object_scene, _hidden_slot, nll_surprise
 from xvoe.models.slots import _WALL_PIXEL
 
 
@@ -64,12 +63,19 @@ def two_object_video():
     return frames, mean, visible, background, occluder
 
 
+def nll_scene(vae, xpl, mean, visible, background, occluder, config, drawn=None):
+    """The NLL's scene of one video, from `drawn`, its batch's drawing, or drawn alone as
+    `nll_surprise` draws it."""
+    if drawn is None:
+        drawn = draw_scene(vae, xpl, mean[None], visible[None], background[None], occluder[None], proposed=False)
+    return _hidden_object_scene(vae, xpl, visible, occluder, _hidden_slot(drawn, visible)[0], config, drawn)
+
+
 def tiny_two_scene(prior_two=0.3):
     vae, xpl = tiny_models()
     frames, mean, visible, background, occluder = two_object_video()
     with torch.no_grad():
-        scene, _, _, _ = _hidden_object_scene(vae, xpl, mean, visible, background, occluder,
-                                             InferenceConfig(prior_two=prior_two))
+        scene = nll_scene(vae, xpl, mean, visible, background, occluder, InferenceConfig(prior_two=prior_two))
     return scene, frames
 
 
@@ -85,7 +91,7 @@ def test_the_scene_has_a_two_object_version_where_a_seen_object_comes_back():
 def test_the_scene_drawn_in_a_batch_is_the_scene_drawn_for_the_video_alone():
     """The NLL's scene of a video read from its batch as the MSE score drew it (`draw_scene`):
     the seen slots' pictures with the proposed one left out, and the two-object version with
-    only its two slots decoded again, are the pictures `XPLScene` draws of its latents itself
+    only its two slots decoded again, are the pictures `scene_layers` draws of its latents
     (within the decoder's rounding in a batch of another size)."""
     vae, xpl = tiny_models()
     videos = two_object_video()[1:], video()[1:]      # mean, visible, background, occluder of two videos
@@ -94,16 +100,19 @@ def test_the_scene_drawn_in_a_batch_is_the_scene_drawn_for_the_video_alone():
         vae.decoder.out.weight.normal_(0, 0.5)         # pictures at the walls' depth: the unseen stand behind them
         vae.decoder.out.bias.copy_(torch.tensor([0.0, 0.0, 0.0, -0.5]))
         drawn = draw_scene(vae, xpl, *(torch.stack(parts) for parts in zip(*videos)))
-        scene, loc, spread, free = _hidden_object_scene(vae, xpl, *videos[0], config, drawn.video(0))
-        alone = XPLScene(vae, xpl, scene.refined, scene.background, scene.visible, videos[0][3], scene.hidden,
+        scene = nll_scene(vae, xpl, *videos[0], config, drawn.video(0))
+        alone = scene_of(vae, xpl, scene.refined, scene.background, scene.visible, videos[0][3], scene.hidden,
                          scene.identity)
-        _, own_loc, own_spread, _ = _hidden_object_scene(vae, xpl, *videos[0], config)
-    assert scene.versions == 2 and int(drawn.slot[0]) == scene.hidden != scene.identity.second and free
+        own = draw_scene(vae, xpl, *(part[None] for part in videos[0]), proposed=False)
+    hidden = scene.hidden
+    assert scene.versions == 2 and int(drawn.slot[0]) == hidden != scene.identity.second
     assert (alone.walls < _WALL_PIXEL).any()
     torch.testing.assert_close(scene.layers, alone.layers, rtol=0, atol=1e-6)
     torch.testing.assert_close(scene.walls, alone.walls, rtol=0, atol=1e-6)
     torch.testing.assert_close(scene.empty_frame(2), alone.empty_frame(2), rtol=0, atol=1e-6)
-    torch.testing.assert_close((loc, spread), (own_loc, own_spread), rtol=0, atol=1e-6)
+    # the proposal the guide starts from: Transformer 2's, the same in the batch as alone
+    torch.testing.assert_close((drawn.proposal[0, :, hidden], drawn.scale[0, :, hidden]),
+                               (own.proposal[0, :, hidden], own.scale[0, :, hidden]), rtol=0, atol=1e-6)
 
 
 def test_the_model_and_guide_match_with_the_identity_site():

@@ -15,7 +15,7 @@ from ..errors import XvoeError
 from ..evaluation.explain import DRAW_THRESHOLD
 from ..evaluation.score_headers import check_same_split, check_scored_by, score_header
 from ..evaluation.score_tables import read_scores
-from ..evaluation.scorer import Scorer, as_scorer
+from ..evaluation.scorer import Scorer, as_scorer, encode_chunk
 from ..fingerprints import split_identity
 from ..models.config import from_dict
 from ..models.nll import InferenceConfig
@@ -78,9 +78,13 @@ def explanation_rows(model: str | Scorer, data: str | Path, scores: str | Path, 
     scorer, seed = nll_scorer(model, data, scores)
     table = read_scores(scores)
     chosen = [int(i) for i in table["index"]] if indices is None else indices
-    found = []
-    for index in progress_bar(chosen, desc="explain", unit="video", disable=not progress):
-        figure = plot_explanation(explain(scorer, data, index, surprise="nll", seed=seed, display_size=display_size))
-        found.append(read_rows(figure, index, table))
-        plt.close(figure)
+    found, chunk = [], None
+    with store.open_dataset(data) as file:
+        for index in progress_bar(chosen, desc="explain", unit="video", disable=not progress):
+            if chunk is None or not chunk.holds(index):     # each chunk of the latent cache encoded once
+                chunk = encode_chunk(scorer, file, index)
+            figure = plot_explanation(explain(scorer, data, index, surprise="nll", seed=seed,
+                                              display_size=display_size, chunk=chunk))
+            found.append(read_rows(figure, index, table))
+            plt.close(figure)
     return found

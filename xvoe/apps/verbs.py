@@ -40,6 +40,7 @@ from ..evaluation.scorer import (
     EncodedChunk,
     Scorer,
     as_scorer,
+    custom_curves,
     encode_videos,
     mse_curves,
     open_test_split,
@@ -47,7 +48,7 @@ from ..evaluation.scorer import (
 )
 from ..evaluation.shards import merge_scores, shard_rows
 from ..evaluation.surprise import EXPLANATIONS
-from ..evaluation.user_models import SurpriseModel, check_model, checked_surprise, curve_of, read_videos
+from ..evaluation.user_models import SurpriseModel, check_model, curve_of
 from ..fingerprints import split_identity
 from ..models.devices import resolve_device
 from ..outputs import claim_file, claim_scope, parts_folder, writing
@@ -180,16 +181,12 @@ def score_batch(scorer: Scorer, file: h5py.File, start: int, stop: int, nll: NLL
                 latents: h5py.File | None = None) -> tuple[dict[str, np.ndarray], dict[str, np.ndarray]]:
     """Videos [start, stop) of an open test split scored by every surprise definition asked for:
     their per-frame curves (B, T) and per-video values (B,), by name. A model answering
-    `surprise(videos)` gives one term, checked (xvoe.evaluation.user_models); XPL and PLATO give
+    `surprise(videos)` gives one term, checked (`custom_curves`); XPL and PLATO give
     the MSE's terms (xvoe.evaluation.scorer, `mse_curves`), and with `nll` the NLL's columns and
     curve (xvoe.inference.score, `nll_batch`), from one encoding of the batch and one drawing of
     its scene. `latents`: the split's open latent cache, read instead of encoding."""
     if scorer.custom is not None:
-        surprise = checked_surprise(scorer.custom, read_videos(file, start, stop), scorer.time_limit)
-        if own_surprise(scorer):
-            return {curve_of(scorer.custom)[0]: surprise}, {}
-        zeros = np.zeros_like(surprise)     # PhyDNet: its prediction error is s_dyn, beside an s_img of zeros
-        return {"s_img": zeros, "s_dyn": surprise, "paper_s_img": zeros, "paper_s_dyn": surprise}, {}
+        return custom_curves(scorer, file, start, stop), {}
     batch = encode_videos(scorer, file, start, stop, latents)      # once, for every definition
     found, scene = mse_curves(scorer, batch)
     curves = {name: curve.cpu().numpy().astype(np.float64) for name, curve in found.items()}
@@ -277,7 +274,8 @@ def explain(model: str | Scorer | SurpriseModel, data: str | Path, index: int, *
     """What the model believes is behind the wall in video `index`: Transformer 2's proposal
     (surprise "mse"; with explanation "better", the default verdict's, only where it explains the
     video better than nothing hidden; "proposal", always, as the paper) or the Pyro model's
-    posterior (surprise "nll", from `particles` importance samples drawn from `seed`; None: the
+    posterior (surprise "nll", by the model's NLL method (sequential Monte Carlo over frames
+    unless its settings say "importance") with `particles` particles drawn from `seed`; None: the
     model's setting). With the video's scene at `display_size` for `plot_explanation` to draw
     the explanation onto (None: the model's frames alone); the model reads its own frames.
     device: where a model given by name runs. chunk: the video's latent cache chunk already

@@ -24,8 +24,8 @@ from .scorer import EncodedChunk, Scorer, encode_video
 from .surprise import explained_latents, mse_surprise
 from .user_models import read_videos, run_model
 
-__all__ = ["DRAW_THRESHOLD", "Explanation", "DrawnExplanation", "explain_drawn", "explain", "drawn_pixels",
-           "masked", "look_alike", "decoded_mask", "iou"]
+__all__ = ["DRAW_THRESHOLD", "Explanation", "DrawnExplanation", "explain_drawn", "explain", "read_video_to_explain",
+           "scene_pictures", "drawn_pixels", "masked", "look_alike", "decoded_mask", "iou"]
 
 # A hypothesis of the NLL's posterior below this probability is not drawn as the model's belief:
 # no outline, no rows of it, one line of text instead; above it, its outline's opacity is its p.
@@ -106,7 +106,7 @@ def explain_drawn(scorer: Scorer, data: str, index: int) -> DrawnExplanation:
     return DrawnExplanation(videos.rgbd[0], drawn[0], drawn[0], -1, title)
 
 
-def _read_video(scorer: Scorer, data: str, index: int,
+def read_video_to_explain(scorer: Scorer, data: str, index: int,
                 chunk: EncodedChunk | None = None) -> tuple[dict, np.ndarray, str]:
     """Video `index` of a split file, encoded for the scorer as its score encodes it, so that an
     explanation is of the score's own latents (read from `chunk` where it holds the video); its
@@ -121,7 +121,7 @@ def _read_video(scorer: Scorer, data: str, index: int,
         return video, frames, describe(file, index)
 
 
-def _pictures(vae, refined: torch.Tensor, occupied: torch.Tensor, video: dict,
+def scene_pictures(vae, refined: torch.Tensor, occupied: torch.Tensor, video: dict,
               slot: int) -> tuple[np.ndarray, np.ndarray]:
     """The scene behind the wall (occluder left out) and slot `slot` alone (-1: the blank), uint8."""
     layers = decode_slots(vae, refined, occupied)
@@ -138,13 +138,13 @@ def _pictures(vae, refined: torch.Tensor, occupied: torch.Tensor, video: dict,
 def explain(scorer: Scorer, data: str, index: int, chunk: EncodedChunk | None = None) -> Explanation:
     """What the MSE score's explanation puts behind the wall in video `index`; `chunk`: its
     videos already encoded (`encode_chunk`), where the caller explains several of them."""
-    video, rgbd, title = _read_video(scorer, data, index, chunk)
+    video, rgbd, title = read_video_to_explain(scorer, data, index, chunk)
     kept = None     # the explanation the MSE score rests on: with "better", nothing hidden where that fits better
     if scorer.explanation != "proposal":
         kept = mse_surprise(scorer.vae, scorer.xpl, video["frames"], video["mean"], video["visible"],
                             video["background"], video["occluder"], scorer.explanation).explained_slot >= 0
     refined, slot, occupied = explained_latents(scorer.xpl, video["mean"], video["visible"], video["occluder"], kept)
-    behind, alone = _pictures(scorer.vae, refined, occupied, video, int(slot[0]))
+    behind, alone = scene_pictures(scorer.vae, refined, occupied, video, int(slot[0]))
     return Explanation(rgbd, behind, alone, int(slot[0]), title)
 
 

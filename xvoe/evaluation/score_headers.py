@@ -19,6 +19,7 @@ import numpy as np
 from ..errors import XvoeError
 from ..fingerprints import arrays_hash, describe_split, file_hash
 from ..models.config import to_dict
+from ..training.stages import PERCEPTION, PHYDNET
 from .score_tables import scores_digest
 from .scorer import Scorer
 
@@ -43,7 +44,7 @@ def model_identity(scorer: Scorer) -> dict:
         return found | {"seed": scorer.custom.seed}
     if scorer.custom is not None and scorer.phydnet is None:
         return found | _module_identity(scorer)
-    modules = {"perception": scorer.vae, "dynamics": scorer.xpl, "phydnet": scorer.phydnet}
+    modules = {PERCEPTION: scorer.vae, "dynamics": scorer.xpl, PHYDNET: scorer.phydnet}
     arrays = {f"{part}.{name}": tensor.detach().cpu().numpy() for part, module in modules.items() if module is not None
               for name, tensor in module.state_dict().items()}
     configs = {part: to_dict(module.config) for part, module in modules.items() if module is not None}

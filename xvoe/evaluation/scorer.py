@@ -35,13 +35,22 @@ from ..training.perception import load_perception
 from ..training.phydnet import load_phydnet
 from ..training.provenance import recipe_differences
 from ..training.recipes import recipe_of
-from ..training.stages import RANDOM
+from ..training.stages import PERCEPTION, PHYDNET, RANDOM
+from ..training.stages import XPL as XPL_STAGE
 from ..training.xpl import load_xpl, nll_settings_of
-from .surprise import DrawnScene, draw_scene, every_explanation
-from .user_models import SurpriseModel, Videos, checked_model, load_surprise_model, read_videos
+from .surprise import DrawnScene, every_explanation
+from .user_models import (
+    SurpriseModel,
+    Videos,
+    checked_model,
+    checked_surprise,
+    curve_of,
+    load_surprise_model,
+    read_videos,
+)
 
 __all__ = ["MSE_CURVES", "MSE_LABEL", "EncodedChunk", "PhyDNetSurprise", "RandomAgent", "Scorer", "as_scorer",
-           "checkpoint_settings", "encode", "encode_chunk",
+           "checkpoint_settings", "custom_curves", "encode", "encode_chunk",
            "encode_video", "encode_videos", "load_model", "mse_curves", "names_code", "open_test_split",
            "own_surprise"]
 
@@ -67,7 +76,7 @@ class RandomAgent:
 class PhyDNetSurprise:
     """The PhyDNet baseline as a surprise model: its one-step prediction error per frame."""
 
-    name = "phydnet"
+    name = PHYDNET
     curve, curve_label = "s_dyn", MSE_LABEL
 
     def __init__(self, net: PhyDNet):
@@ -163,11 +172,11 @@ def load_model(model: str, device: str | torch.device = "cpu") -> Scorer:
     elif path.name in SHIPPED and (path.parent / f"{path.name}.pt").is_file():
         run_dir, stage = path.parent, path.name
     else:
-        run_dir, stage = path, "xpl"
+        run_dir, stage = path, XPL_STAGE
     if stage not in SHIPPED:
         raise XvoeError(f"{model} is not a model to score with: give a run directory, one of "
                         f"{', '.join(s + '.pt' for s in SHIPPED)}, or {RANDOM!r}")
-    if stage == "phydnet":
+    if stage == PHYDNET:
         net, state = load_phydnet(run_dir / "phydnet.pt", device)
         return Scorer(stage, None, None, phydnet=net, custom=PhyDNetSurprise(net), source=_absolute_reference(model),
                       settings=checkpoint_settings({stage: state}))
@@ -175,7 +184,7 @@ def load_model(model: str, device: str | torch.device = "cpu") -> Scorer:
     xpl, state = load_xpl(run_dir, stage, device)
     return Scorer(stage, vae, xpl, nll=nll_settings_of(state["config"]) if xpl.config.use_reasoning else None,
                   source=_absolute_reference(model),
-                  settings=checkpoint_settings({"perception": perception, stage: state}))
+                  settings=checkpoint_settings({PERCEPTION: perception, stage: state}))
 
 
 def checkpoint_settings(states: dict[str, dict]) -> dict[str, dict]:
@@ -224,6 +233,21 @@ def own_surprise(scorer: Scorer) -> bool:
     whose score file holds the score column alone: PhyDNet's is its prediction error, kept in
     s_dyn beside an s_img of zeros as the MSE's terms are."""
     return scorer.custom is not None and scorer.phydnet is None
+
+
+def custom_curves(scorer: Scorer, file, start: int, stop: int) -> dict[str, np.ndarray]:
+    """The per-frame curves (B, T) by name of videos [start, stop) of an open test split under a
+    model answering `surprise(videos)`, its term checked (`checked_surprise`): a model of your own
+    or the random agent keeps it under its own name (`curve_of`); PhyDNet's prediction error is
+    s_dyn, beside an s_img of zeros, as the MSE's terms are."""
+    own = own_surprise(scorer)
+    name = curve_of(scorer.custom)[0]
+    videos = read_videos(file, start, stop)
+    surprise = checked_surprise(scorer.custom, videos, scorer.time_limit)
+    if own:
+        return {name: surprise}
+    zeros = np.zeros_like(surprise)
+    return {"s_img": zeros, "s_dyn": surprise, "paper_s_img": zeros, "paper_s_dyn": surprise}
 
 
 @contextmanager
@@ -301,8 +325,7 @@ def mse_curves(scorer: Scorer, batch: dict[str, Tensor]) -> tuple[dict[str, Tens
     and the scene drawn, for the NLL to read rather than draw again."""
     videos = (batch["mean"], batch["visible"], batch["background"], batch["occluder"])
     with mixed_precision(scorer.device):
-        scene = draw_scene(scorer.vae, scorer.xpl, *videos)
-        found = every_explanation(scorer.vae, scorer.xpl, batch["frames"], *videos, scene)
+        found, scene = every_explanation(scorer.vae, scorer.xpl, batch["frames"], *videos)
     default, paper = found["better"], found["proposal"]
     curves = {"s_img": default.s_img, "s_dyn": default.s_dyn, "s_rec": default.s_rec,
               "paper_s_img": paper.s_img, "paper_s_dyn": paper.s_dyn}

@@ -109,6 +109,7 @@ def draw_scene(vae: ComponentVAE, xpl: XPL, mean: Tensor, visible: Tensor, backg
                occluder: Tensor, proposed: bool = True) -> DrawnScene:
     """Refine, propose and decode a batch (arguments as `mse_surprise`'s): the background and
     the seen slots, and the proposed slot unless `proposed` is False (the NLL's own drawing)."""
+    background_pictures = _decode_background(vae, background)
     refined = xpl.refine(mean, visible, occluder)
     if xpl.config.use_reasoning:
         proposal, scale, slot = xpl.explain(refined, visible)
@@ -117,7 +118,7 @@ def draw_scene(vae: ComponentVAE, xpl: XPL, mean: Tensor, visible: Tensor, backg
         proposal, scale, slot = refined, torch.zeros_like(refined), none
     drawn = _occupied_slots(visible, slot) if proposed else visible.any(dim=1)
     layers, walls = scene_layers(vae, proposal, drawn, visible, occluder)
-    return DrawnScene(refined, proposal, scale, slot, _decode_background(vae, background), layers, walls)
+    return DrawnScene(refined, proposal, scale, slot, background_pictures, layers, walls)
 
 
 def _occupied_slots(visible: Tensor, slot: Tensor) -> Tensor:
@@ -136,21 +137,23 @@ def mse_surprise(vae: ComponentVAE, xpl: XPL, frames: Tensor, mean: Tensor, visi
     (the better of it and no hidden object)."""
     if explanation not in EXPLANATIONS:
         raise ValueError(f"explanation must be one of {', '.join(EXPLANATIONS)}, not {explanation!r}")
-    return _explanations(vae, xpl, frames, mean, visible, background, occluder, explanation == "better")[explanation]
+    scene = draw_scene(vae, xpl, mean, visible, background, occluder)
+    return _explanations(vae, xpl, frames, visible, occluder, scene, explanation == "better")[explanation]
 
 
 @torch.no_grad()
 def every_explanation(vae: ComponentVAE, xpl: XPL, frames: Tensor, mean: Tensor, visible: Tensor,
-                      background: Tensor, occluder: Tensor, scene: DrawnScene | None = None) -> dict[str, Surprise]:
-    """`mse_surprise` under each of EXPLANATIONS, from one set of decodes. `scene`: the batch
-    drawn already (`draw_scene` of these arguments), to hand it on to the NLL."""
-    return _explanations(vae, xpl, frames, mean, visible, background, occluder, True, scene)
+                      background: Tensor, occluder: Tensor) -> tuple[dict[str, Surprise], DrawnScene]:
+    """`mse_surprise` under each of EXPLANATIONS, from one drawing of the batch (`draw_scene`),
+    and that drawing, for the NLL to read rather than draw again."""
+    scene = draw_scene(vae, xpl, mean, visible, background, occluder)
+    return _explanations(vae, xpl, frames, visible, occluder, scene, True), scene
 
 
-def _explanations(vae: ComponentVAE, xpl: XPL, frames: Tensor, mean: Tensor, visible: Tensor, background: Tensor,
-                  occluder: Tensor, better: bool, scene: DrawnScene | None = None) -> dict[str, Surprise]:
-    if scene is None:
-        scene = draw_scene(vae, xpl, mean, visible, background, occluder)
+def _explanations(vae: ComponentVAE, xpl: XPL, frames: Tensor, visible: Tensor, occluder: Tensor, scene: DrawnScene,
+                  better: bool) -> dict[str, Surprise]:
+    """The surprise under Transformer 2's proposal of the batch `scene` draws, and with `better`
+    under the better of it and nothing hidden too, by explanation."""
     slot, occupied = scene.slot, _occupied_slots(visible, scene.slot)
     proposed = Surprise(*_terms(vae, xpl, frames, scene.background, scene.proposal, scene.layers, scene.walls,
                                 occupied, visible, occluder), slot)
@@ -195,11 +198,11 @@ def _decode_background(vae: ComponentVAE, background: Tensor) -> Tensor:
 def _terms(vae: ComponentVAE, xpl: XPL, frames: Tensor, background_pictures: Tensor, refined: Tensor, layers: Tensor,
            walls: Tensor, occupied: Tensor, visible: Tensor, occluder: Tensor) -> tuple[Tensor, Tensor, Tensor]:
     """s_img, s_dyn and s_rec (B, T) of refined latents whose `scene_layers` are decoded already."""
+    seen, expected = dynamics_composites(vae, xpl, refined, layers, walls, occupied, visible, occluder,
+                                         background_pictures)
     s_img = (frames - composite(vae, background_pictures, layers, occupied)).pow(2).flatten(2).sum(2)
     seen_layers = torch.where(visible[..., None, None, None], layers, vae.blank()[0])
     s_rec = (frames - composite(vae, background_pictures, seen_layers, occupied)).pow(2).flatten(2).sum(2)
-    seen, expected = dynamics_composites(vae, xpl, refined, layers, walls, occupied, visible, occluder,
-                                         background_pictures)
     s_dyn = torch.zeros_like(s_img)
     s_dyn[:, 1:] = (seen - expected).pow(2).flatten(2).sum(2)
     return s_img, s_dyn, s_rec
