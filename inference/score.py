@@ -83,24 +83,28 @@ def xpl_nll(scorer: Scorer, batch: dict[str, Tensor], config: InferenceConfig, s
             for i in range(len(batch["mean"]))]
 
 
-def nll_sources(stored: InferenceConfig | None, overridden: set[str]) -> dict[str, str]:
+_FALLBACKS = {"recipe": "its recipe's", "defaults": "InferenceConfig's defaults"}
+
+
+def nll_sources(origin: str, overridden: set[str]) -> dict[str, str]:
     """Where each NLL setting came from, for a score file's header: "command line" for those
-    overridden (`--particles`, `--nll-set`, or `score`'s particles and nll_settings), else
-    "checkpoint" where the model stores its settings, else "defaults"."""
-    fallback = "checkpoint" if stored is not None else "defaults"
-    return {f.name: "command line" if f.name in overridden else fallback for f in fields(InferenceConfig)}
+    overridden (`--particles`, `--nll-set`, or `score`'s particles and nll_settings), else the
+    model's `origin`: "checkpoint" where it stores its settings, else "recipe" or "defaults"."""
+    return {f.name: "command line" if f.name in overridden else origin for f in fields(InferenceConfig)}
 
 
 def nll_defaults_note(header: dict) -> str | None:
-    """One line saying which NLL settings a score file's model took from InferenceConfig's
-    defaults because its checkpoint stores none (one made before they were stored), or None:
-    what `xvoe score` prints after such a run; from Python the header's `nll_source` says it."""
+    """One line saying which NLL settings a score file's model took from its recipe (or, with no
+    recipe this xvoe knows, InferenceConfig's defaults) because its checkpoint stores none (one
+    made before they were stored), or None: what `xvoe score` prints after such a run; from
+    Python the header's `nll_source` says it."""
     sources = header.get("nll_source") or {}
-    if "defaults" not in sources.values():      # a run that sets every field (xvoe verify) takes none
+    fallback = next((where for where in _FALLBACKS if where in sources.values()), None)
+    if fallback is None:        # a run that sets every field (xvoe verify) takes none
         return None
     given = sorted(name for name, where in sources.items() if where == "command line")
     given_text = f", {' and '.join(given)} from the command line" if given else ""
-    return (f"{header['model']} stores no NLL settings; scored with InferenceConfig's defaults{given_text}: "
+    return (f"{header['model']} stores no NLL settings; scored with {_FALLBACKS[fallback]}{given_text}: "
             + " ".join(f"{name}={_typed(value)}" for name, value in header["nll"].items()))
 
 
@@ -125,15 +129,15 @@ class NLLRun:
 
 def nll_run(scorer: Scorer, particles: int | None = None, seed: int = 0,
             settings: dict[str, Any] | None = None) -> NLLRun:
-    """The model's own NLL settings (its checkpoint's; where it stores none, InferenceConfig's
-    defaults, which the header records and `nll_defaults_note` words), each changed where this
+    """The model's own NLL settings (its checkpoint's; where it stores none, its recipe's, which
+    the header records and `nll_defaults_note` words), each changed where this
     run overrides it (`particles`, `settings`); a one-line error for a model without reasoning."""
     if scorer.xpl is None or not scorer.xpl.config.use_reasoning:
         raise XvoeError(f"the NLL surprise needs an XPL model with reasoning; {scorer.name} has none")
     config = nll_config(scorer.nll or InferenceConfig(), particles, settings)
     check_particles(config.particles)
     overridden = set(settings or ()) | ({"particles"} if particles is not None else set())
-    return NLLRun(config, nll_sources(scorer.nll, overridden), seed)
+    return NLLRun(config, nll_sources(scorer.nll_origin, overridden), seed)
 
 
 def nll_batch(scorer: Scorer, batch: dict[str, Tensor], run: NLLRun,

@@ -262,25 +262,40 @@ def test_a_score_takes_the_checkpoints_nll_settings_and_the_command_line_wins(st
     assert "  - from the command line: particles, smc_pilot" in header_lines(header)     # as a report shows it
 
 
-def test_a_checkpoint_without_nll_settings_is_scored_with_the_defaults_in_one_line(stored_settings, tmp_path,
+def test_a_checkpoint_without_nll_settings_is_scored_with_its_recipes_in_one_line(stored_settings, tmp_path,
                                                                                    capsys):
-    """The shipped xpl.pt stores no NLL settings: `xvoe score` says in one line which it used."""
+    """The shipped xpl.pt stores no NLL settings: it is scored with its recipe's, and `xvoe score`
+    says in one line which it used."""
     _, data = stored_settings
     out = tmp_path / "s.csv"
     assert main(["score", "--model", "xpl", "--data", str(data), "--surprise", "nll", "--particles", "4",
                  "--batch", "2", "--shard", "0/11", "--out", str(out), "--quiet"]) == 0
     lines = capsys.readouterr().err.strip().splitlines()
     assert len(lines) == 1 and lines[0].startswith("xvoe score: warning: xpl stores no NLL settings; scored with "
-                                                   "InferenceConfig's defaults, particles from the command line: ")
+                                                   "its recipe's, particles from the command line: ")
     assert {"pixel_sigma=0.5", "particles=4", "smc_proposal_widening=3.0,10.0"} <= set(lines[0].split())
     source = xvoe.score_header(out)["nll_source"]
-    assert source.pop("particles") == "command line" and set(source.values()) == {"defaults"}
+    assert source.pop("particles") == "command line" and set(source.values()) == {"recipe"}
     assert main(["verify", str(out), "--rows", "1"]) == 0      # it scores with the file's settings, every one given
     assert "NLL settings" not in capsys.readouterr().err
     with warnings.catch_warnings():     # a checkpoint that stores them is scored without a word
         warnings.simplefilter("error")
         xvoe.score(str(stored_settings[0]), str(data), str(tmp_path / "t.csv"), surprise="nll", particles=4,
                    videos_per_batch=2, shard=(0, 11), progress=False)
+
+
+def test_the_note_names_where_unstored_settings_came_from():
+    """A recipe this xvoe does not know leaves InferenceConfig's defaults; settings stored, or all
+    given on the command line, need no note."""
+    settings = {"particles": 4, "pixel_sigma": 0.5}
+    header = {"model": "xpl", "nll": settings, "nll_source": {"particles": "command line", "pixel_sigma": "defaults"}}
+    assert xvoe.nll_defaults_note(header) == ("xpl stores no NLL settings; scored with InferenceConfig's defaults, "
+                                              "particles from the command line: particles=4 pixel_sigma=0.5")
+    header["nll_source"]["pixel_sigma"] = "recipe"
+    assert "scored with its recipe's, particles" in xvoe.nll_defaults_note(header)
+    for where in ("checkpoint", "command line"):
+        header["nll_source"]["pixel_sigma"] = where
+        assert xvoe.nll_defaults_note(header) is None
 
 
 @pytest.mark.parametrize("changes", [{}, {"decoder_extra_convs": 1, "broadcast_size": 4}])

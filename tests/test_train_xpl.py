@@ -24,7 +24,7 @@ from xvoe.training.latent_batches import (
 from xvoe.training.latents import _Latents, _write_latents
 from xvoe.training.proposal import ProposalNetworks, train_proposal
 from xvoe.training.recipes import RECIPES
-from xvoe.training.xpl import load_xpl, model_nll, nll_settings_of, train_xpl
+from xvoe.training.xpl import load_xpl, model_nll, nll_origin, nll_settings_of, train_xpl
 
 N, T, K, D = 32, 8, 4, 6
 TINY = {"steps": 100, "batch_size": 32, "lr": 3e-3, "warmup_steps": 1, "log_every": 5}
@@ -170,6 +170,9 @@ def test_a_models_nll_settings_are_its_checkpoints_else_its_recipes_else_the_def
     assert model_nll({"recipe": "paper", "nll": to_dict(stored)}) == stored
     assert model_nll({"recipe": "paper"}) == chosen.nll
     assert model_nll({"recipe": "a recipe of another xvoe"}) == InferenceConfig()
+    assert [nll_origin(config) for config in ({"recipe": "paper", "nll": to_dict(stored)}, {"recipe": "paper"},
+                                              {"recipe": "a recipe of another xvoe"})] == ["checkpoint", "recipe",
+                                                                                           "defaults"]
 
 
 def test_batches_do_not_depend_on_the_process_count(cache):

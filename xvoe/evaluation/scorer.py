@@ -37,7 +37,7 @@ from ..training.provenance import recipe_differences
 from ..training.recipes import recipe_of
 from ..training.stages import PERCEPTION, PHYDNET, RANDOM
 from ..training.stages import XPL as XPL_STAGE
-from ..training.xpl import load_xpl, nll_settings_of
+from ..training.xpl import load_xpl, model_nll, nll_origin
 from .surprise import DrawnScene, every_explanation
 from .user_models import (
     SurpriseModel,
@@ -103,9 +103,11 @@ class Scorer:
     # the MSE score's explanation (xvoe.evaluation.surprise): "better", the better of Transformer 2's
     # proposal and nothing hidden (the default verdict), or "proposal", always Transformer 2's (the paper's)
     explanation: str = "better"
-    # the NLL surprise's settings its checkpoint stores (its recipe's; XPL with reasoning only). None:
-    # it stores none, and the NLL takes InferenceConfig's defaults and says so
+    # the NLL surprise's settings (XPL with reasoning only): those its checkpoint stores, else its
+    # recipe's, else InferenceConfig's defaults; `nll_origin` says which, and the NLL says so where
+    # not the checkpoint's. None: a model made in memory, scored with the defaults
     nll: InferenceConfig | None = None
+    nll_origin: str = "defaults"
     # what `load_model` was given (a shipped name, an absolute path, package.module:name), for
     # `xvoe verify` to load the model again; None for a model made in memory
     source: str | None = None
@@ -182,8 +184,9 @@ def load_model(model: str, device: str | torch.device = "cpu") -> Scorer:
                       settings=checkpoint_settings({stage: state}))
     vae, perception = load_perception(run_dir, device)
     xpl, state = load_xpl(run_dir, stage, device)
-    return Scorer(stage, vae, xpl, nll=nll_settings_of(state["config"]) if xpl.config.use_reasoning else None,
-                  source=_absolute_reference(model),
+    config, reasoning = state["config"], xpl.config.use_reasoning
+    return Scorer(stage, vae, xpl, nll=model_nll(config) if reasoning else None,
+                  nll_origin=nll_origin(config) if reasoning else "defaults", source=_absolute_reference(model),
                   settings=checkpoint_settings({PERCEPTION: perception, stage: state}))
 
 

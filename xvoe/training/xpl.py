@@ -35,7 +35,7 @@ from .stages import PROPOSAL, STAGES
 from .stages import XPL as XPL_STAGE  # beside the network XPL
 
 __all__ = ["TRAINED_ON_LATENTS", "encoded_cache", "fingerprint", "latent_cache_for", "load_xpl", "model_nll",
-           "nll_settings_of", "run_xpl", "stage_config", "train_xpl"]
+           "nll_origin", "nll_settings_of", "run_xpl", "stage_config", "train_xpl"]
 
 # the stages this module trains from the latent cache alone (the proposal stage builds on xpl.pt)
 TRAINED_ON_LATENTS = tuple(name for name, entry in STAGES.items() if entry.variant and entry.reads == "latents")
@@ -112,11 +112,19 @@ def nll_settings_of(config: dict) -> InferenceConfig | None:
 
 def model_nll(config: dict) -> InferenceConfig:
     """The NLL settings of the model an xpl checkpoint's `config` holds: those it stores; where it
-    stores none, its recipe's; where this xvoe has not its recipe, InferenceConfig's defaults."""
+    stores none, its recipe's; where this xvoe has not its recipe, InferenceConfig's defaults
+    (`nll_origin` says which)."""
     stored, name = nll_settings_of(config), recipe_of(config)
     if stored is not None:
         return stored
     return recipe(name).nll if name in RECIPES else InferenceConfig()
+
+
+def nll_origin(config: dict) -> str:
+    """Where `model_nll` takes an xpl checkpoint's NLL settings from: "checkpoint", "recipe" or "defaults"."""
+    if nll_settings_of(config) is not None:
+        return "checkpoint"
+    return "recipe" if recipe_of(config) in RECIPES else "defaults"
 
 
 def latent_cache_for(data: str | os.PathLike, run_dir: str | os.PathLike, perception: str | None = None,

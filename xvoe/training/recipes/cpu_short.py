@@ -31,8 +31,8 @@ LATER = replace(PHYDNET_TRAIN, decay_steps=10_000)      # the later phases' rate
 
 
 # the NLL surprise's settings, chosen on the validation split for this recipe's models (docs/decisions.md,
-# "The NLL's settings"); the xpl stage stores them in its checkpoint. InferenceConfig's defaults are
-# the same, so that a checkpoint made before they were stored is scored as its recipe says
+# "The NLL's settings"); the xpl stage stores them in its checkpoint, and a checkpoint made before
+# they were stored is scored with them (xvoe.training.xpl, `model_nll`)
 NLL = InferenceConfig(
     prior_hidden=0.5, prior_two=0.1,
     pixel_sigma=0.5, motion_sigma=0.2, transition_sigma=0.1,
