@@ -23,7 +23,7 @@ from tqdm.auto import tqdm
 import xvoe
 from xvoe.evaluation.metrics import excess
 from xvoe.evaluation.scorer import encode_videos
-from xvoe.evaluation.surprise import EXPLANATIONS, every_explanation
+from xvoe.evaluation.surprise import BETTER, EXPLANATIONS, PROPOSED, every_explanation
 from xvoe.scenes import store
 
 LABELS = ("scenario", "setting", "pair", "member", "possible")
@@ -45,7 +45,7 @@ def per_video(scorer, data: str, rows: range, batch: int, progress: bool) -> tup
                 terms = (surprise.s_img + surprise.s_dyn, surprise.s_img, surprise.s_dyn, surprise.s_rec,
                          excess(surprise.s_img, surprise.s_dyn, surprise.s_rec))
                 sums[name].append(torch.stack([t.sum(1) for t in terms], 1).double().numpy())
-            dropped.append(((scored["proposal"].explained_slot >= 0) & (scored["better"].explained_slot < 0)).numpy())
+            dropped.append(((scored[PROPOSED].explained_slot >= 0) & (scored[BETTER].explained_slot < 0)).numpy())
     return {name: np.concatenate(parts) for name, parts in sums.items()}, np.concatenate(dropped)
 
 
@@ -103,7 +103,7 @@ def main() -> None:
                       for r in xvoe.metric_rows(scores, name, ("score", "excess")) if r["metric"] != "relative"}
     print(f"{args.model} on {args.data}: comparative and holistic (x100, 95% interval)")
     print(f"{'metric':<12}{'column':<8}{'scenario':<12}{'setting':<8}" + "".join(f"{n:>22}" for n in EXPLANATIONS))
-    for key in rows["proposal"]:
+    for key in rows[PROPOSED]:
         cells = "".join(f"{100 * rows[n][key]['value']:>8.1f} [{100 * rows[n][key]['low']:5.1f}, "
                         f"{100 * rows[n][key]['high']:5.1f}]" for n in EXPLANATIONS)
         print(f"{key[0]:<12}{key[1]:<8}{key[2]:<12}{key[3]:<8}{cells}")

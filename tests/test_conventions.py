@@ -14,6 +14,7 @@ import pytest
 import xvoe
 from xvoe.apps.pipeline import MODELS, PipelineConfig
 from xvoe.cli import build_parser, main
+from xvoe.evaluation.surprise import EXPLANATIONS
 from xvoe.training.checkpoints import SHIPPED
 from xvoe.training.config import DEFAULT_RECIPE, RECIPE_NAMES
 from xvoe.training.recipes import RECIPES
@@ -76,6 +77,12 @@ def test_the_help_offers_the_models_the_verbs_take():
                       _help_of(verbs()["score"], "model"))
     assert named[1].split(", ") == [f"{name}.pt" for name in SHIPPED]
     assert xvoe.load_model(named[2]).name == named[2]
+
+
+def test_the_explain_verb_offers_the_mse_explanations():
+    # written out in the parser, as their module imports torch, which --help leaves out
+    choices = next(a.choices for a in verbs()["explain"]._actions if a.dest == "explanation")
+    assert sorted(choices) == sorted(EXPLANATIONS)
 
 
 def test_the_help_lists_the_scenarios_of_the_registry():

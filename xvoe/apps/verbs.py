@@ -47,7 +47,7 @@ from ..evaluation.scorer import (
     own_surprise,
 )
 from ..evaluation.shards import merge_scores, shard_rows
-from ..evaluation.surprise import EXPLANATIONS
+from ..evaluation.surprise import BETTER, EXPLANATIONS
 from ..evaluation.user_models import SurpriseModel, check_model, curve_of
 from ..fingerprints import split_identity
 from ..models.devices import resolve_device
@@ -268,7 +268,7 @@ def _worker_threads(threads: int, parent: int) -> None:
 
 
 def explain(model: str | Scorer | SurpriseModel, data: str | Path, index: int, *, surprise: str = "mse",
-            particles: int | None = None, seed: int = 0, explanation: str = "better",
+            particles: int | None = None, seed: int = 0, explanation: str = BETTER,
             display_size: int | None = DISPLAY_SIZE, device: str = "cpu",
             chunk: EncodedChunk | None = None) -> Explanation:
     """What the model believes is behind the wall in video `index`: Transformer 2's proposal

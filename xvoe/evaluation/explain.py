@@ -21,7 +21,7 @@ from ..scenes import store
 from ..scenes.videos import check_index, describe
 from ..training.data import check_size
 from .scorer import EncodedChunk, Scorer, encode_video
-from .surprise import explained_latents, mse_surprise
+from .surprise import PROPOSED, explained_latents, mse_surprise
 from .user_models import read_videos, run_model
 
 __all__ = ["DRAW_THRESHOLD", "Explanation", "DrawnExplanation", "explain_drawn", "explain", "read_video_to_explain",
@@ -140,7 +140,7 @@ def explain(scorer: Scorer, data: str, index: int, chunk: EncodedChunk | None = 
     videos already encoded (`encode_chunk`), where the caller explains several of them."""
     video, rgbd, title = read_video_to_explain(scorer, data, index, chunk)
     kept = None     # the explanation the MSE score rests on: with "better", nothing hidden where that fits better
-    if scorer.explanation != "proposal":
+    if scorer.explanation != PROPOSED:
         kept = mse_surprise(scorer.vae, scorer.xpl, video["frames"], video["mean"], video["visible"],
                             video["background"], video["occluder"], scorer.explanation).explained_slot >= 0
     refined, slot, occupied = explained_latents(scorer.xpl, video["mean"], video["visible"], video["occluder"], kept)

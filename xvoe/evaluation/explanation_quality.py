@@ -24,7 +24,7 @@ from ..scenes.scenarios import SCENARIOS
 from ..scenes.videos import silhouette
 from .explain import decoded_mask, iou
 from .scorer import Scorer, encode_videos
-from .surprise import mse_surprise
+from .surprise import BETTER, mse_surprise
 
 __all__ = ["pick", "expected_videos", "ground_truth", "hidden_explanations", "hidden_fills", "perception_iou",
            "mae_iou", "dynamics_error", "principal_spread"]
@@ -93,7 +93,7 @@ def hidden_explanations(scorer: Scorer, file: h5py.File, videos: list[int]) -> d
         refined = scorer.xpl.refine(video["mean"], video["visible"], video["occluder"])
         explained, _, slot = scorer.xpl.explain(refined, video["visible"])
         kept.append(bool(mse_surprise(scorer.vae, scorer.xpl, video["frames"], video["mean"], video["visible"],
-                                      video["background"], video["occluder"], "better").explained_slot[0] >= 0))
+                                      video["background"], video["occluder"], BETTER).explained_slot[0] >= 0))
         if slot[0] < 0:
             scores.append(0.0)
             continue

@@ -22,6 +22,7 @@ from ..models.config import to_dict
 from ..training.stages import PERCEPTION, PHYDNET
 from .score_tables import scores_digest
 from .scorer import Scorer
+from .surprise import BETTER, PROPOSED
 
 __all__ = ["UncheckedScores", "check_curves_of", "check_same_split", "check_scored_by", "curves_arrays",
            "header_of", "model_identity", "new_header", "package_version", "score_header", "scored_split",
@@ -70,7 +71,7 @@ def surprise_definitions(scorer: Scorer, how: str) -> dict:
     if scorer.custom is not None:
         kept = " (in s_dyn)" if scorer.phydnet is not None else ""
         return {"own": f"the model's per-frame surprise{kept}, {how} over frames"}
-    return {"mse": {"score": "better", "paper_score": "proposal", "aggregate": how}}
+    return {"mse": {"score": BETTER, "paper_score": PROPOSED, "aggregate": how}}
 
 
 def new_header(scorer: Scorer, split: dict, data: str | Path, score_column: str, how: str,

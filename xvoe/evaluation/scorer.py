@@ -38,7 +38,7 @@ from ..training.recipes import recipe_of
 from ..training.stages import PERCEPTION, PHYDNET, RANDOM
 from ..training.stages import XPL as XPL_STAGE
 from ..training.xpl import load_xpl, model_nll, nll_origin
-from .surprise import DrawnScene, every_explanation
+from .surprise import BETTER, PROPOSED, DrawnScene, every_explanation
 from .user_models import (
     SurpriseModel,
     Videos,
@@ -102,7 +102,7 @@ class Scorer:
     custom: SurpriseModel | None = None
     # the MSE score's explanation (xvoe.evaluation.surprise): "better", the better of Transformer 2's
     # proposal and nothing hidden (the default verdict), or "proposal", always Transformer 2's (the paper's)
-    explanation: str = "better"
+    explanation: str = BETTER
     # the NLL surprise's settings (XPL with reasoning only): those its checkpoint stores, else its
     # recipe's, else InferenceConfig's defaults; `nll_origin` says which, and the NLL says so where
     # not the checkpoint's. None: a model made in memory, scored with the defaults
@@ -126,7 +126,7 @@ class Scorer:
         if self.custom is not None:
             return self.custom.surprise(videos)
         curves, _ = mse_curves(self, encode(self, videos))
-        prefix = "" if self.explanation == "better" else "paper_"
+        prefix = "" if self.explanation == BETTER else "paper_"
         return curves[f"{prefix}s_img"] + curves[f"{prefix}s_dyn"]
 
     @property
@@ -329,7 +329,7 @@ def mse_curves(scorer: Scorer, batch: dict[str, Tensor]) -> tuple[dict[str, Tens
     videos = (batch["mean"], batch["visible"], batch["background"], batch["occluder"])
     with mixed_precision(scorer.device):
         found, scene = every_explanation(scorer.vae, scorer.xpl, batch["frames"], *videos)
-    default, paper = found["better"], found["proposal"]
+    default, paper = found[BETTER], found[PROPOSED]
     curves = {"s_img": default.s_img, "s_dyn": default.s_dyn, "s_rec": default.s_rec,
               "paper_s_img": paper.s_img, "paper_s_dyn": paper.s_dyn}
     return {name: curve.float() for name, curve in curves.items()}, scene.full_precision()

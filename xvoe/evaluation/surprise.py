@@ -34,10 +34,12 @@ from ..models.slots import behind_walls, composite, decode_slots, scene_layers
 from ..models.xpl import XPL
 from .metrics import excess
 
-__all__ = ["EXPLANATIONS", "Surprise", "explained_latents", "DrawnScene", "draw_scene", "mse_surprise",
-           "every_explanation", "dynamics_composites", "aggregate"]
+__all__ = ["PROPOSED", "BETTER", "EXPLANATIONS", "Surprise", "explained_latents", "DrawnScene", "draw_scene",
+           "mse_surprise", "every_explanation", "dynamics_composites", "aggregate"]
 
-EXPLANATIONS = ("proposal", "better")
+# the MSE score's explanations: Transformer 2's proposal always (the paper's), or the better of it and nothing hidden
+PROPOSED, BETTER = "proposal", "better"
+EXPLANATIONS = (PROPOSED, BETTER)
 
 
 @dataclass
@@ -130,7 +132,7 @@ def _occupied_slots(visible: Tensor, slot: Tensor) -> Tensor:
 
 @torch.no_grad()
 def mse_surprise(vae: ComponentVAE, xpl: XPL, frames: Tensor, mean: Tensor, visible: Tensor,
-                 background: Tensor, occluder: Tensor, explanation: str = "proposal") -> Surprise:
+                 background: Tensor, occluder: Tensor, explanation: str = PROPOSED) -> Surprise:
     """frames: (B, T, 4, H, W) in [-1, 1]; mean: (B, T, K, D) posterior means; visible:
     (B, T, K) bool; background: (B, T, D) the background component's means; occluder: (B, K)
     bool, the wall slots. `explanation`: "proposal" (Transformer 2's, the paper's) or "better"
@@ -138,7 +140,7 @@ def mse_surprise(vae: ComponentVAE, xpl: XPL, frames: Tensor, mean: Tensor, visi
     if explanation not in EXPLANATIONS:
         raise ValueError(f"explanation must be one of {', '.join(EXPLANATIONS)}, not {explanation!r}")
     scene = draw_scene(vae, xpl, mean, visible, background, occluder)
-    return _explanations(vae, xpl, frames, visible, occluder, scene, explanation == "better")[explanation]
+    return _explanations(vae, xpl, frames, visible, occluder, scene, explanation == BETTER)[explanation]
 
 
 @torch.no_grad()
@@ -158,14 +160,14 @@ def _explanations(vae: ComponentVAE, xpl: XPL, frames: Tensor, visible: Tensor, 
     proposed = Surprise(*_terms(vae, xpl, frames, scene.background, scene.proposal, scene.layers, scene.walls,
                                 occupied, visible, occluder), slot)
     if not better:
-        return {"proposal": proposed}
+        return {PROPOSED: proposed}
     if not (slot >= 0).any():       # nothing proposed: one explanation
-        return {"proposal": proposed, "better": proposed}
+        return {PROPOSED: proposed, BETTER: proposed}
     # the same scene with the proposed slot empty: the other slots' pictures are the same, so only
     # the dynamics' prediction is decoded again
     empty = Surprise(*_terms(vae, xpl, frames, scene.background, scene.refined, scene.seen_layers(vae.blank()[0]),
                              scene.walls, visible.any(dim=1), visible, occluder), torch.full_like(slot, -1))
-    return {"proposal": proposed, "better": _better_explanation(empty, proposed)}
+    return {PROPOSED: proposed, BETTER: _better_explanation(empty, proposed)}
 
 
 def _better_explanation(first: Surprise, second: Surprise) -> Surprise:
