@@ -19,6 +19,7 @@ from ..models.config import from_dict
 from ..models.devices import on_cpu
 from ..outputs import atomic_paths
 from .config import TrainConfig
+from .recipes.recipe import NETWORKS
 from .stages import PERCEPTION, SCORED, STAGES
 
 __all__ = ["CHECKPOINT_FORMAT", "WEIGHTS", "SHIPPED", "save_checkpoint", "load_checkpoint", "recorded_input",
@@ -100,7 +101,7 @@ def _contents_problem(state: dict) -> str | None:
         return f"config is a {type(state.get('config')).__name__}, not a dict"
     if entry.config_key not in state["config"]:
         return f"config has no {entry.config_key}"
-    stored = [(f"config.{entry.config_key}", entry.config, state["config"][entry.config_key])]
+    stored = [(f"config.{entry.config_key}", NETWORKS[entry.config_key], state["config"][entry.config_key])]
     stored += [("train", TrainConfig, state["train"])] if "train" in state else []
     for key, cls, value in stored:
         try:

@@ -11,7 +11,7 @@ from __future__ import annotations
 from ..models.config import from_dict, to_dict
 from ..models.xpl import XPLConfig
 from .config import TrainConfig
-from .recipes import recipe, recipe_of
+from .recipes import NETWORKS, recipe, recipe_of
 from .stages import PERCEPTION, PHYDNET, XPL, stage
 from .xpl import model_nll, stage_config
 
@@ -46,7 +46,7 @@ def recipe_differences(state: dict) -> list[str]:
     config = state["config"]
     stored = {"recipe": recipe_of(config)}      # read as the loaders read it: a field added since takes its default
     entry = stage(state["stage"])
-    stored[entry.config_key] = to_dict(from_dict(entry.config, config[entry.config_key]))
+    stored[entry.config_key] = to_dict(from_dict(NETWORKS[entry.config_key], config[entry.config_key]))
     if entry.nll:
         stored["nll"] = to_dict(model_nll(config))
     lines = _differences(stored, model, "") + _differences(to_dict(from_dict(TrainConfig, state["train"])), train,

@@ -8,7 +8,6 @@ drawn, not trained, and is a model of its own kind here.
 """
 from __future__ import annotations
 
-import importlib
 from dataclasses import dataclass
 
 from ..errors import XvoeError
@@ -22,10 +21,10 @@ __all__ = ["Stage", "PERCEPTION", "XPL", "PROPOSAL", "PLATO", "XPL_NORESIDUAL", 
 class Stage:
     name: str                   # the checkpoint is NAME.pt, its losses NAME.csv
     help: str
-    # the network config its checkpoint stores, "module:class", loaded on use: the networks'
-    # modules import torch, and the command line reads this table to build its --help
-    config_home: str
-    config_key: str             # where: checkpoint["config"][config_key]
+    # where its checkpoint stores its network's config: checkpoint["config"][config_key], a config
+    # class of xvoe.training.recipes.recipe's NETWORKS (not imported here: the networks' modules
+    # import torch, and the command line reads this table to build its --help)
+    config_key: str
     # what it trains on: "pixels" (a training split), "latents" (the perception's latent cache of
     # one) or XPL (the run's xpl.pt, on that cache)
     reads: str
@@ -43,11 +42,6 @@ class Stage:
     @property
     def scored(self) -> bool:
         return bool(self.role)
-
-    @property
-    def config(self) -> type:
-        module, _, name = self.config_home.partition(":")
-        return getattr(importlib.import_module(module), name)
 
     @property
     def checkpoint(self) -> str:
@@ -69,21 +63,19 @@ RANDOM = "random"
 # (50% inside the interval), or reported without goals
 BASELINE, CHANCE, REPORTED = "baseline", "chance", "reported"
 ROLES = (XPL, BASELINE, CHANCE, REPORTED)
-_PERCEPTION, _XPL, _PHYDNET = ("xvoe.models.perception:PerceptionConfig", "xvoe.models.xpl:XPLConfig",
-                               "xvoe.models.phydnet:PhyDNetConfig")
 STAGES: dict[str, Stage] = {stage.name: stage for stage in (
-    Stage(PERCEPTION, "the Component VAE, on a training split's frames", _PERCEPTION, PERCEPTION,
+    Stage(PERCEPTION, "the Component VAE, on a training split's frames", PERCEPTION,
           "pixels", "perception_train"),
     Stage(XPL, "Transformer 1 and the dynamics (Transformer 2 too where the recipe trains it jointly), on the "
           "latent cache (a split is encoded first)",
-          _XPL, XPL, "latents", "xpl_train", role=XPL, lane=3, nll=True, variant=XPL),
+          XPL, "latents", "xpl_train", role=XPL, lane=3, nll=True, variant=XPL),
     Stage(PROPOSAL, "Transformer 2 and the existence head further, on hidden objects (after xpl)",
-          _XPL, XPL, XPL, "proposal_train", variant=XPL),
-    Stage(PLATO, "the PLATO baseline: the dynamics alone, on the latent cache", _XPL, XPL, "latents",
+          XPL, XPL, "proposal_train", variant=XPL),
+    Stage(PLATO, "the PLATO baseline: the dynamics alone, on the latent cache", XPL, "latents",
           "plato_train", role=BASELINE, lane=1, variant=PLATO, residual=False),
     Stage(XPL_NORESIDUAL, "XPL without the dynamics' residual (the paper's ablation), on the latent cache",
-          _XPL, XPL, "latents", "xpl_train", role=REPORTED, lane=2, variant=XPL, residual=False),
-    Stage(PHYDNET, "the PhyDNet baseline, on a training split's pixels", _PHYDNET, PHYDNET, "pixels",
+          XPL, "latents", "xpl_train", role=REPORTED, lane=2, variant=XPL, residual=False),
+    Stage(PHYDNET, "the PhyDNet baseline, on a training split's pixels", PHYDNET, "pixels",
           "phydnet_train", role=BASELINE, lane=0),
 )}
 SCORED = tuple(name for name, stage in STAGES.items() if stage.scored)     # the models a checkpoint can be

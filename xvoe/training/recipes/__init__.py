@@ -9,7 +9,7 @@ from __future__ import annotations
 from ...errors import XvoeError
 from ..config import DEFAULT_RECIPE
 from . import cpu_short, paper
-from .recipe import Recipe, stage_settings
+from .recipe import NETWORKS, Recipe, stage_settings
 
 RECIPES: dict[str, Recipe] = {r.name: r for r in (cpu_short.RECIPE, paper.RECIPE)}     # named in ..config too
 
@@ -26,4 +26,4 @@ def recipe_of(config: dict) -> str:
     return config["recipe"]
 
 
-__all__ = ["DEFAULT_RECIPE", "RECIPES", "Recipe", "recipe", "recipe_of", "stage_settings"]
+__all__ = ["DEFAULT_RECIPE", "NETWORKS", "RECIPES", "Recipe", "recipe", "recipe_of", "stage_settings"]

@@ -17,9 +17,12 @@ from ...models.perception import PerceptionConfig
 from ...models.phydnet import PhyDNetConfig
 from ...models.xpl import XPLConfig
 from ..config import TrainConfig
-from ..stages import PHYDNET, STAGES, stage
+from ..stages import PERCEPTION, PHYDNET, STAGES, XPL, stage
 
-__all__ = ["Recipe", "stage_settings"]
+__all__ = ["NETWORKS", "Recipe", "stage_settings"]
+
+# the network config each stage's checkpoint stores, by its config_key (xvoe.training.stages)
+NETWORKS: dict[str, type] = {PERCEPTION: PerceptionConfig, XPL: XPLConfig, PHYDNET: PhyDNetConfig}
 
 
 @dataclass(frozen=True)
@@ -69,7 +72,7 @@ def stage_settings(stage: str, assignments: list[str]) -> tuple[dict, dict]:
     A field is looked up in TrainConfig, then in the model's config; `train.` or `model.`
     before it picks one, and a dotted name reaches a nested config (`model.dynamics.hidden`)."""
     train, model = {}, {}
-    owners = {"train": TrainConfig, "model": STAGES[stage].config}
+    owners = {"train": TrainConfig, "model": NETWORKS[STAGES[stage].config_key]}
     for text in assignments:
         name, value = split_assignment(text, "--set")
         where, _, rest = name.partition(".")
