@@ -134,16 +134,15 @@ def hidden_run(model: HiddenObjectModel, frames: Tensor, config: InferenceConfig
     """The SMC of the branch with a hidden object under one explanation of what was seen. A
     pilot of fewer particles is kept where it trails `known` (the exact branches' log p(x, no
     object) summed) by more than smc_pilot_margin nats: the branch then changes log p(x) by
-    less than exp(-margin). Where the guide is sure of a hidden object there is no pilot, and
-    the run holds `_sure_particles` particles."""
+    less than exp(-margin)."""
     steps = ModelSteps(model, frames, proposal, widenings_of(config), {"exists": 1.0, "two": float(version)})
     sure = proposal is not None and float(proposal.p_exists) > config.smc_pilot_skip_exists
     for size in () if sure else _pilot_sizes(config):
         pilot = run_smc(steps, size, threshold=config.resample_threshold, generator=generator, device=frames.device)
         if known - float(pilot.log_evidence[0]) > config.smc_pilot_margin:
             return pilot
-    return run_smc(steps, _sure_particles(config) if sure else config.particles,
-                   threshold=config.resample_threshold, generator=generator, device=frames.device)
+    return run_smc(steps, config.particles, threshold=config.resample_threshold, generator=generator,
+                   device=frames.device)
 
 
 @torch.no_grad()
@@ -173,9 +172,3 @@ def _pilot_sizes(config: InferenceConfig) -> tuple[int, ...]:
     if list(sizes) != sorted(sizes):
         raise ValueError(f"smc_pilot's runs go smallest first, not {sizes}")
     return tuple(size for size in sizes if 0 < size < config.particles)
-
-
-def _sure_particles(config: InferenceConfig) -> int:
-    """The particles of the run where the guide is sure of a hidden object: config.sure_particles
-    (0: config.particles)."""
-    return config.sure_particles or config.particles

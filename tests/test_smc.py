@@ -261,19 +261,6 @@ def test_no_pilot_where_the_existence_head_is_sure_of_an_object():
     assert smc_evidence(far, blank, always, sure, torch.Generator().manual_seed(0)).particles == 8
 
 
-def test_more_particles_only_where_the_existence_head_is_sure_and_the_same_draws_elsewhere():
-    frames = simulated_frames()
-    doubtful, sure = (Proposal(torch.tensor(p), M_0.expand(T, -1), torch.full((T, D), 0.6)) for p in (0.3, 0.9))
-    today, more = config(particles=16, smc_pilot=8), config(particles=16, smc_pilot=8, sure_particles=48)
-    assert smc_evidence(linear_scene(), frames, more, sure, torch.Generator().manual_seed(0)).particles == 48
-    assert smc_evidence(linear_scene(), frames, today, sure, torch.Generator().manual_seed(0)).particles == 16
-    before, after = (smc_evidence(linear_scene(), frames, settings, doubtful, torch.Generator().manual_seed(0))
-                     for settings in (today, more))
-    assert after.particles == before.particles == 16
-    assert after.log_evidence == before.log_evidence and torch.equal(after.trajectories, before.trajectories)
-    assert torch.equal(after.log_weights, before.log_weights) and torch.equal(after.frame_nll, before.frame_nll)
-
-
 def test_pilots_must_come_smallest_first():
     with pytest.raises(ValueError, match="smallest first"):
         smc_evidence(linear_scene(), simulated_frames(), config(particles=64, smc_pilot=(16, 4)), None,

@@ -67,11 +67,6 @@ class InferenceConfig:
     # video's NLL then swings by hundreds of nats between seeds (docs/decisions.md, "The
     # NLL's settings")
     smc_pilot_skip_exists: float = within(0.5, SHARE)
-    # particles of the run with a hidden object where the guide's existence probability is above
-    # smc_pilot_skip_exists (0: `particles`): those are the never-seen-object videos, where two
-    # seeds disagree most, so the extra effort goes there and nowhere else (docs/decisions.md,
-    # "The NLL's settings")
-    sure_particles: int = within(0, NON_NEGATIVE)
     # proposal_widening for the SMC (None: the same); several: an equal-weight mixture of the
     # proposals with each. The SMC reweights every frame, so a pull towards Transformer 2's
     # marginals costs weight variance at each step: the wide component keeps the particles near
