@@ -114,10 +114,10 @@ def model_nll(config: dict) -> InferenceConfig:
     """The NLL settings of the model an xpl checkpoint's `config` holds: those it stores; where it
     stores none, its recipe's; where this xvoe has not its recipe, InferenceConfig's defaults
     (`nll_origin` says which)."""
-    stored, name = nll_settings_of(config), recipe_of(config)
-    if stored is not None:
-        return stored
-    return recipe(name).nll if name in RECIPES else InferenceConfig()
+    origin = nll_origin(config)
+    if origin == "checkpoint":
+        return nll_settings_of(config)
+    return recipe(recipe_of(config)).nll if origin == "recipe" else InferenceConfig()
 
 
 def nll_origin(config: dict) -> str:
