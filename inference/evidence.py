@@ -25,7 +25,7 @@ from .model import HiddenObjectModel, InferenceConfig, Proposal, Scene
 from .model_steps import ModelSteps, empty_branch, seeded
 from .smc import SMCRun, run_smc
 
-__all__ = ["Evidence", "hidden_run", "importance_evidence", "smc_evidence", "widenings_of"]
+__all__ = ["Evidence", "hidden_runs", "importance_evidence", "smc_evidence", "widenings_of"]
 
 @dataclass
 class Evidence:
@@ -107,8 +107,7 @@ def smc_evidence(scene: Scene, frames: Tensor, config: InferenceConfig, proposal
         empty = [empty_branch(model, frames, version).cumsum(0) for version in versions]
         empty_end = [float(branch[-1]) for branch in empty]
         known = _log_sum(empty_end)
-        runs = [hidden_run(model, frames, config, proposal, version, known, generator) for version in versions] \
-            if free else []
+        runs = hidden_runs(model, frames, config, proposal, known, generator) if free else []
     hidden_end = [float(run.log_evidence[0]) for run in runs]
     total = _log_sum(empty_end + hidden_end)
     p_two = math.exp(_log_sum(empty_end[1:] + hidden_end[1:]) - total) if scene.versions > 1 else 0.0
@@ -129,20 +128,27 @@ def smc_evidence(scene: Scene, frames: Tensor, config: InferenceConfig, proposal
                     log_weights, frame_nll=frame_nll, p_two=p_two, version=version)
 
 
-def hidden_run(model: HiddenObjectModel, frames: Tensor, config: InferenceConfig, proposal: Proposal | None,
-               version: int, known: float, generator: torch.Generator | None) -> SMCRun:
-    """The SMC of the branch with a hidden object under one explanation of what was seen. A
-    pilot of fewer particles is kept where it trails `known` (the exact branches' log p(x, no
-    object) summed) by more than smc_pilot_margin nats: the branch then changes log p(x) by
-    less than exp(-margin)."""
-    steps = ModelSteps(model, frames, proposal, widenings_of(config), {"exists": 1.0, "two": float(version)})
+def hidden_runs(model: HiddenObjectModel, frames: Tensor, config: InferenceConfig, proposal: Proposal | None,
+                known: float, generator: torch.Generator | None) -> list[SMCRun]:
+    """The SMC of the branch with a hidden object under each explanation of what was seen (one
+    run each, in order), the explanations stepped as one batch. A pilot of fewer particles is
+    kept where it trails `known` (the exact branches' log p(x, no object) summed) by more than
+    smc_pilot_margin nats: the branch then changes log p(x) by less than exp(-margin)."""
     sure = proposal is not None and float(proposal.p_exists) > config.smc_pilot_skip_exists
-    for size in () if sure else _pilot_sizes(config):
-        pilot = run_smc(steps, size, threshold=config.resample_threshold, generator=generator, device=frames.device)
-        if known - float(pilot.log_evidence[0]) > config.smc_pilot_margin:
-            return pilot
-    return run_smc(steps, config.particles, threshold=config.resample_threshold, generator=generator,
-                   device=frames.device)
+    found: dict[int, SMCRun] = {}
+    for size in (*(() if sure else _pilot_sizes(config)), config.particles):
+        versions = [version for version in range(model.scene.versions) if version not in found]
+        steps = ModelSteps(model, frames, proposal, widenings_of(config),
+                           {"exists": 1.0, "two": torch.tensor(versions, dtype=torch.float32)})
+        run = run_smc(steps, size, runs=len(versions), threshold=config.resample_threshold, generator=generator,
+                      device=frames.device)
+        for row, version in enumerate(versions):
+            one = run.one(row, steps)
+            if size == config.particles or known - float(one.log_evidence[0]) > config.smc_pilot_margin:
+                found[version] = one
+        if len(found) == model.scene.versions:
+            break
+    return [found[version] for version in range(model.scene.versions)]
 
 
 @torch.no_grad()

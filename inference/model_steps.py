@@ -23,10 +23,11 @@ class ModelSteps:
     a trace of the guide's step, and their log-weights the model's step replayed on them (log p
     less log q of every site, summed per particle in float64); the first frame runs `init` too.
     `fixed` holds the first frame's discrete sites (`exists`, `two`) the SMC sums out by running
-    each value; a site it leaves out the guide proposes (importance sampling)."""
+    each value: one value for every particle, or one per run (R,), the runs stepped as one batch;
+    a site it leaves out the guide proposes (importance sampling)."""
 
     def __init__(self, model: HiddenObjectModel, frames: Tensor, proposal: Proposal | None,
-                 widenings: tuple[float, ...], fixed: dict[str, float] | None = None):
+                 widenings: tuple[float, ...], fixed: dict[str, float | Tensor] | None = None):
         self.model, self.observed, self.proposal, self.widenings = model, frames, proposal, widenings
         self.frames, self.fixed = model.frames, fixed or {}
 
@@ -50,8 +51,7 @@ class ModelSteps:
                 self.model.step(state, t, self.observed[t])
 
         if self.fixed and t == 0:     # the only frame with discrete sites
-            fixed = {name: torch.full((n,), float(value), device=self.observed.device)
-                     for name, value in self.fixed.items()}
+            fixed = {name: _per_particle(value, n, self.observed.device) for name, value in self.fixed.items()}
             guide, model = poutine.condition(guide, data=fixed), poutine.condition(model, data=fixed)
         guide_trace = poutine.trace(guide).get_trace()
         model_trace = poutine.trace(poutine.replay(model, trace=guide_trace)).get_trace()
@@ -60,7 +60,16 @@ class ModelSteps:
     def select(self, state: State, index: Tensor) -> State:
         chosen = {name: value[index] if isinstance(value, Tensor) else value for name, value in state.items()}
         chosen["memory"] = self.model.scene.select(state["memory"], index)
+        chosen["particles"] = len(index)
         return chosen
+
+
+def _per_particle(value: float | Tensor, particles: int, device: torch.device) -> Tensor:
+    """A fixed site's value for each of the particles (n,): one for all, or one per run (R,)
+    repeated for that run's n / R particles (`run_smc` lays runs out one after another)."""
+    if isinstance(value, Tensor):
+        return value.to(device, torch.float32).repeat_interleave(particles // len(value))
+    return torch.full((particles,), float(value), device=device)
 
 
 def site_log_probs(trace: poutine.Trace, particles: int, sampled_only: bool = False) -> Tensor:

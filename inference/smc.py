@@ -78,6 +78,16 @@ class SMCRun:
     def final_ess(self) -> Tensor:
         return self.ess[:, -1]
 
+    def one(self, run: int, model: SequentialModel) -> SMCRun:
+        """Run `run` of a batch alone, a batch of one: its rows, and its particles of the final
+        state (`model.select`: runs lie one after another)."""
+        particles = self.log_weights.shape[1]
+        rows = slice(run, run + 1)
+        state = model.select(self.state, torch.arange(run * particles, (run + 1) * particles,
+                                                      device=self.log_weights.device))
+        return SMCRun(self.log_evidence[rows], self.log_weights[rows], state, self.ess[rows], self.resampled[rows],
+                      self.origin[rows], self.frame_log_evidence[rows])
+
     @property
     def lineages(self) -> Tensor:
         """(R,) distinct first-frame ancestors among the final particles."""

@@ -51,6 +51,10 @@ class XPLScene(nn.Module):
         occupied = visible.any(1)
         wall_slots = occluder.expand(self.versions, -1)
         self.register_buffer("moving", occupied.any(0) & ~occluder)
+        # the slots whose next latent is read (the hidden one and the seen moving ones): the dynamics step only them
+        stepped = self.moving.clone()
+        stepped[hidden] = True
+        self.register_buffer("stepped", stepped.nonzero()[:, 0])
         self.register_buffer("occluder", occluder[None])      # (1, K)
         self.register_buffer("visible", visible)
         self.register_buffer("first_sighting", visible & (visible.cumsum(dim=1) == 1))
@@ -76,7 +80,8 @@ class XPLScene(nn.Module):
         if alive.any():
             scene = self.refined[version[alive], t]
             scene[:, self.hidden] = latents[alive]
-            prediction[alive], memory = self.xpl.dynamics.step(scene, memory, self.inert())
+            stepped, memory = self.xpl.dynamics.step(scene, memory, self.inert(), self.stepped)
+            prediction[alive.nonzero(), self.stepped] = stepped
         return Step(prediction[:, self.hidden], memory, prediction[:, self.moving])
 
     def seen_motion(self, t: int) -> tuple[Tensor, Tensor, Tensor]:
@@ -86,12 +91,13 @@ class XPLScene(nn.Module):
         return tuple(part[:, t][:, self.moving] for part in (self.refined, self.visible, self.first_sighting))
 
     def select(self, memory: DynamicsState | None, index: Tensor) -> DynamicsState | None:
-        """The dynamics' memory of the particles `index`: its tensors hold one row per slot."""
+        """The dynamics' memory of the particles `index`: its tensors hold one row per stepped slot."""
         if memory is None:
             return None
+        rows = len(self.stepped)
 
         def pick(tensor: Tensor) -> Tensor:
-            return tensor.reshape(-1, self.slots, *tensor.shape[1:])[index].reshape(-1, *tensor.shape[1:])
+            return tensor.reshape(-1, rows, *tensor.shape[1:])[index].reshape(-1, *tensor.shape[1:])
 
         return type(memory)(*(pick(part) for part in memory))
 

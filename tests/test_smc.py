@@ -249,6 +249,18 @@ def test_the_pilot_skips_the_full_run_only_where_the_object_cannot_matter():
     assert smc_evidence(linear_scene(), frames, staged, None, torch.Generator().manual_seed(0)).particles == 64
 
 
+def test_each_explanation_keeps_its_pilot_or_takes_the_full_run_on_its_own():
+    """The explanations' runs go as one batch, each deciding alone: one whose object branch
+    cannot matter keeps its pilot while the other takes its full run."""
+    frames = simulated_frames()
+    far_off = BACKGROUND + 6.0          # the second explanation draws nothing like these frames
+    scene = _LinearGaussianScene(T, M_0, S_0, A, H, torch.stack([BACKGROUND, far_off]))
+    found = smc_evidence(scene, frames, config(particles=64, smc_pilot=8, prior_two=0.4), None,
+                         torch.Generator().manual_seed(0))
+    assert found.version.tolist() == [0] * 64 + [1] * 8 and found.particles == 64
+    assert found.p_two < 1e-10
+
+
 def test_no_pilot_where_the_existence_head_is_sure_of_an_object():
     blank = BACKGROUND.expand(T, -1) + 0.01   # a pilot would dismiss the object branch here
     far = _LinearGaussianScene(T, M_0 + 20.0, 0.1, A, H, BACKGROUND)

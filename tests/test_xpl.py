@@ -309,6 +309,22 @@ def test_the_dynamics_step_by_step_matches_the_whole_sequence(residual):
     torch.testing.assert_close(torch.stack(steps, dim=1), whole, atol=1e-5, rtol=1e-5)
 
 
+def test_the_dynamics_step_for_some_slots_is_the_whole_steps_rows():
+    """Stepping only the slots whose prediction is read gives their rows of the full step, frame
+    after frame, every slot still acting on them."""
+    torch.manual_seed(0)
+    dynamics = InteractionLSTM(DynamicsConfig(latent_dim=5, hidden=16, lstm=12, buffer_heads=2))
+    randomise_dynamics_head(dynamics)
+    z, receivers, inert = torch.randn(3, 6, 4, 5), torch.tensor([0, 2]), torch.tensor([[False, True, False, False]])
+    full = some = None
+    for t in range(z.shape[1]):
+        whole, full = dynamics.step(z[:, t], full, inert)
+        chosen, some = dynamics.step(z[:, t], some, inert, receivers)
+        torch.testing.assert_close(chosen, whole[:, receivers], atol=1e-6, rtol=1e-6)
+    assert some.hidden.shape == (3 * 2, 12)
+    torch.testing.assert_close(some.hidden, full.hidden.reshape(3, 4, 12)[:, receivers].reshape(6, 12))
+
+
 def test_outside_entries_join_the_refill_loss_as_the_cached_latent():
     """Hidden entries of seen objects marked outside the picture are rebuilt towards the cache's
     latent there, with the refill spans; visible or never-seen entries marked outside are not."""

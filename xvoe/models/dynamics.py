@@ -32,8 +32,8 @@ class DynamicsConfig:
 class DynamicsState(NamedTuple):
     """What `InteractionLSTM.step` carries from frame to frame."""
 
-    buffer: Tensor      # (B * K, t, H) every slot's object states so far
-    hidden: Tensor      # (B * K, L) the slot-wise LSTM's state
+    buffer: Tensor      # (B * R, t, H) every stepped slot's object states so far
+    hidden: Tensor      # (B * R, L) the slot-wise LSTM's state
     cell: Tensor
 
 
@@ -96,26 +96,35 @@ class InteractionLSTM(nn.Module):
             return torch.lstm(inputs, (start, start), [cell.weight_ih, cell.weight_hh, cell.bias_ih, cell.bias_hh],
                               True, 1, 0.0, self.training, False, True)[0]
 
-    def step(self, z: Tensor, state: DynamicsState | None = None,
-             inert: Tensor | None = None) -> tuple[Tensor, DynamicsState]:
+    def step(self, z: Tensor, state: DynamicsState | None = None, inert: Tensor | None = None,
+             receivers: Tensor | None = None) -> tuple[Tensor, DynamicsState]:
         """One frame at a time: z (B, K, D) is frame t, state what frames < t left. Returns
         the prediction of frame t+1, as `forward` makes it, and the state to carry on; a
-        sequential caller (the NLL's particles) pays for each frame once, not once per prefix."""
+        sequential caller (the NLL's particles) pays for each frame once, not once per prefix.
+
+        receivers: the slots (R,) whose prediction is wanted (None: all K), each still moved by
+        every slot: a slot's buffer and LSTM feed only its own prediction, so the others' are
+        not computed, and the prediction (B, R, D) and the state hold those R slots alone."""
         batch, slots, _ = z.shape
         current = self.object(z)                                            # (B, K, H)
-        own = current.reshape(batch * slots, 1, -1)
+        own_slots = current if receivers is None else current[:, receivers]
+        chosen = own_slots.shape[1]                                         # R
+        own = own_slots.reshape(batch * chosen, 1, -1)
         buffer = own if state is None else torch.cat([state.buffer, own], dim=1)
         memory, _ = self.buffer(own, buffer, buffer, need_weights=False)
-        pairs = torch.relu(self.receiver(current).unsqueeze(2) + self.sender(current).unsqueeze(1))
-        effect = (self.interaction(pairs) * _senders(slots, inert, z)[..., None]).sum(dim=2)
-        inputs = torch.cat([current, memory.reshape(batch, slots, -1), effect], dim=-1).reshape(batch * slots, -1)
+        pairs = torch.relu(self.receiver(own_slots).unsqueeze(2) + self.sender(current).unsqueeze(1))
+        senders = _senders(slots, inert, z)
+        senders = senders if receivers is None else senders[:, receivers]  # (1 or B, R, K)
+        effect = (self.interaction(pairs) * senders[..., None]).sum(dim=2)
+        inputs = torch.cat([own_slots, memory.reshape(batch, chosen, -1), effect], dim=-1).reshape(batch * chosen, -1)
         if state is None:
-            hidden = cell = z.new_zeros(batch * slots, self.config.lstm)
+            hidden = cell = z.new_zeros(batch * chosen, self.config.lstm)
         else:
             hidden, cell = state.hidden, state.cell
         hidden, cell = self.cell(inputs, (hidden, cell))
-        change = self.out(hidden).reshape(batch, slots, -1)
-        return (z + change if self.config.residual else change), DynamicsState(buffer, hidden, cell)
+        change = self.out(hidden).reshape(batch, chosen, -1)
+        start = z if receivers is None else z[:, receivers]
+        return (start + change if self.config.residual else change), DynamicsState(buffer, hidden, cell)
 
     def rollout(self, z: Tensor, start: int, steps: int) -> Tensor:
         """Predict `steps` frames after frame `start - 1` feeding predictions back in (no teacher)."""
