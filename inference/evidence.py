@@ -22,7 +22,7 @@ import torch
 from torch import Tensor
 
 from .model import HiddenObjectModel, InferenceConfig, Proposal, Scene
-from .model_steps import ModelSteps, empty_branch, seeded
+from .model_steps import ModelSteps, empty_branches, seeded
 from .smc import SMCRun, run_smc
 
 __all__ = ["Evidence", "hidden_runs", "importance_evidence", "smc_evidence", "widenings_of"]
@@ -104,7 +104,7 @@ def smc_evidence(scene: Scene, frames: Tensor, config: InferenceConfig, proposal
     model = HiddenObjectModel(scene, config)
     device, versions = frames.device, range(scene.versions)
     with seeded(generator, device):
-        empty = [empty_branch(model, frames, version).cumsum(0) for version in versions]
+        empty = list(empty_branches(model, frames).cumsum(1))
         empty_end = [float(branch[-1]) for branch in empty]
         known = _log_sum(empty_end)
         runs = hidden_runs(model, frames, config, proposal, known, generator) if free else []
@@ -139,7 +139,7 @@ def hidden_runs(model: HiddenObjectModel, frames: Tensor, config: InferenceConfi
     for size in (*(() if sure else _pilot_sizes(config)), config.particles):
         versions = [version for version in range(model.scene.versions) if version not in found]
         steps = ModelSteps(model, frames, proposal, widenings_of(config),
-                           {"exists": 1.0, "two": torch.tensor(versions, dtype=torch.float32)})
+                           {"exists": 1.0, "two": torch.tensor(versions, dtype=torch.float64)})
         run = run_smc(steps, size, runs=len(versions), threshold=config.resample_threshold, generator=generator,
                       device=frames.device)
         for row, version in enumerate(versions):

@@ -1,7 +1,7 @@
 """The hidden-object model taken frame by frame through Pyro's trace and replay, for `run_smc`.
 
 Frame t's draws come from the guide's step, their log-weights from the model's step replayed on
-them; the branch without a hidden object is traced once, exactly (`empty_branch`).
+them; the branch without a hidden object is traced once, exactly (`empty_branches`).
 """
 from __future__ import annotations
 
@@ -15,7 +15,7 @@ from torch import Tensor
 
 from .model import HiddenObjectModel, Proposal, State
 
-__all__ = ["ModelSteps", "empty_branch", "seeded", "site_log_probs"]
+__all__ = ["ModelSteps", "empty_branches", "seeded", "site_log_probs"]
 
 
 class ModelSteps:
@@ -66,10 +66,11 @@ class ModelSteps:
 
 def _per_particle(value: float | Tensor, particles: int, device: torch.device) -> Tensor:
     """A fixed site's value for each of the particles (n,): one for all, or one per run (R,)
-    repeated for that run's n / R particles (`run_smc` lays runs out one after another)."""
+    repeated for that run's n / R particles (`run_smc` lays runs out one after another); float64,
+    as the priors' logits are, so that their log-densities keep their digits."""
     if isinstance(value, Tensor):
-        return value.to(device, torch.float32).repeat_interleave(particles // len(value))
-    return torch.full((particles,), float(value), device=device)
+        return value.to(device, torch.float64).repeat_interleave(particles // len(value))
+    return torch.full((particles,), float(value), dtype=torch.float64, device=device)
 
 
 def site_log_probs(trace: poutine.Trace, particles: int, sampled_only: bool = False) -> Tensor:
@@ -88,19 +89,20 @@ def site_log_probs(trace: poutine.Trace, particles: int, sampled_only: bool = Fa
     return total
 
 
-def empty_branch(model: HiddenObjectModel, frames: Tensor, version: int = 0) -> Tensor:
-    """log p(x, no hidden object, version) frame by frame (T,) float64, exact: the whole-video
-    model traced once with `exists` fixed to 0, `two` to the version, and one particle, every
-    latent masked. Frame t holds the terms its step adds (x_t and motion_{t+1}; `exists` and
-    `two` at frame 0), as the SMC's weights do."""
-    absent = {"exists": torch.zeros(1, device=frames.device), "two": torch.full((1,), float(version),
-                                                                                device=frames.device)}
-    trace = poutine.trace(poutine.condition(model.model, data=absent)).get_trace(frames)
+def empty_branches(model: HiddenObjectModel, frames: Tensor) -> Tensor:
+    """log p(x, no hidden object, v) frame by frame (V, T) float64 for each explanation v of what
+    was seen, exact: the whole-video model traced once with one particle per explanation,
+    `exists` fixed to 0 and `two` to v, every latent masked. Frame t holds the terms its step
+    adds (x_t and motion_{t+1}; `exists` and `two` at frame 0), as the SMC's weights do."""
+    versions = model.scene.versions
+    absent = {"exists": torch.zeros(versions, dtype=torch.float64, device=frames.device),
+              "two": torch.arange(versions, dtype=torch.float64, device=frames.device)}
+    trace = poutine.trace(poutine.condition(model.model, data=absent)).get_trace(frames, particles=versions)
     trace.compute_log_prob()
-    per_frame = torch.zeros(model.frames, dtype=torch.float64, device=frames.device)
+    per_frame = torch.zeros(versions, model.frames, dtype=torch.float64, device=frames.device)
     for name, node in trace.nodes.items():
         if node["type"] == "sample" and name != "particles":
-            per_frame[_site_frame(name)] += node["log_prob"].to(torch.float64).sum()
+            per_frame[:, _site_frame(name)] += node["log_prob"].to(torch.float64)
     return per_frame
 
 

@@ -236,6 +236,17 @@ def test_without_a_free_slot_the_estimate_is_the_empty_branch_and_exact():
     assert found.p_hidden == 0.0 and found.trajectories is None and top_hypotheses(found) is None
 
 
+def test_without_a_free_slot_two_explanations_are_summed_exactly():
+    other, p_two = BACKGROUND + torch.tensor([0.5, -0.4, 0.3], dtype=F64), 0.4
+    scene = _LinearGaussianScene(T, M_0, S_0, A, H, torch.stack([BACKGROUND, other]))
+    frames = simulated_frames()
+    found = smc_evidence(scene, frames, config(prior_two=p_two), None, torch.Generator().manual_seed(0), free=False)
+    each = [math.log(prior * (1 - P)) + float(torch.distributions.Normal(background, SIGMA).log_prob(frames).sum())
+            for prior, background in ((1 - p_two, BACKGROUND), (p_two, other))]
+    assert found.log_evidence == pytest.approx(float(torch.logsumexp(torch.tensor(each, dtype=F64), 0)), abs=1e-9)
+    assert found.p_two == pytest.approx(1 / (1 + math.exp(each[0] - each[1])), abs=1e-12)
+
+
 def test_the_pilot_skips_the_full_run_only_where_the_object_cannot_matter():
     frames = simulated_frames()
     with_object = smc_evidence(linear_scene(), frames, config(particles=64), None, torch.Generator().manual_seed(0))
