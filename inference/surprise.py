@@ -21,12 +21,12 @@ from .evidence import Evidence, importance_evidence, smc_evidence
 from .guide import hidden_proposal
 from .hypotheses import Hypotheses, top_hypotheses
 from .identity import Identity, identity_gap, two_objects
-from .model import InferenceConfig
+from .model import InferenceConfig, Proposal
 from .smc import effective_sample_size
 from .xpl_scene import XPLScene
 
-__all__ = ["NLLSurprise", "Seed", "check_particles", "nll_surprise", "drawn_surprise", "HiddenPosterior",
-           "hidden_posterior", "Surprise", "explain_surprise"]
+__all__ = ["NLLSurprise", "Seed", "check_particles", "nll_surprise", "drawn_surprise", "scene_and_proposal",
+           "HiddenPosterior", "hidden_posterior", "Surprise", "explain_surprise"]
 
 
 @dataclass
@@ -92,9 +92,9 @@ def drawn_surprise(vae: ComponentVAE, xpl: XPL, frames: Tensor, visible: Tensor,
                    seed: Seed = 0) -> NLLSurprise:
     """The NLL surprise of one video of frames (T, 4, H, W) in [-1, 1], visible (T, K) and
     occluder (K,) bool, that XPL has drawn (`drawn`, a batch of one: its refined latents,
-    Transformer 2's proposal and the pictures): its scene for the Pyro model
-    (`_hidden_object_scene`), the guide's proposal of a hidden object (`hidden_proposal`), and
-    the evidence (`smc_evidence`, or `importance_evidence`).
+    Transformer 2's proposal and the pictures): its scene for the Pyro model and the guide's
+    proposal of a hidden object (`scene_and_proposal`), then the evidence (`smc_evidence`, or
+    `importance_evidence`).
 
     method: "smc" or "importance" (None: config.method). seed: an int or a torch.Generator;
     the global random state is neither read nor changed."""
@@ -102,11 +102,8 @@ def drawn_surprise(vae: ComponentVAE, xpl: XPL, frames: Tensor, visible: Tensor,
     if method not in ("smc", "importance"):
         raise ValueError(f"method must be smc or importance, not {method!r}")
     generator = _generator_from(seed)
-    hidden, free = _hidden_slot(drawn, visible)
-    scene = _hidden_object_scene(vae, xpl, visible, occluder, hidden, config, drawn)
-    proposal = hidden_proposal(scene, xpl, drawn.proposal[0, :, hidden], drawn.scale[0, :, hidden], frames, config,
-                               free)
-    slot = hidden if free else -1
+    scene, proposal, free = scene_and_proposal(vae, xpl, frames, visible, occluder, drawn, config)
+    slot = scene.hidden if free else -1
     if method == "smc":
         found = smc_evidence(scene, frames, config, proposal, generator, free)
         return NLLSurprise(found.nll, found.ess, found.p_hidden, slot, found, found.ess if free else 0.0, "smc",
@@ -115,6 +112,17 @@ def drawn_surprise(vae: ComponentVAE, xpl: XPL, frames: Tensor, visible: Tensor,
     held = found.holding()
     holding = float(effective_sample_size(held[1])) if held is not None else 0.0
     return NLLSurprise(found.nll, found.ess, found.p_hidden, slot, found, holding, "importance", scene.identity)
+
+
+def scene_and_proposal(vae: ComponentVAE, xpl: XPL, frames: Tensor, visible: Tensor, occluder: Tensor,
+                       drawn: DrawnScene, config: InferenceConfig) -> tuple[XPLScene, Proposal, bool]:
+    """What the estimators of one video start from (arguments as `drawn_surprise`'s): its scene for
+    the Pyro model, the guide's proposal of a hidden object, and whether a slot is free for one."""
+    hidden, free = _hidden_slot(drawn, visible)
+    scene = _hidden_object_scene(vae, xpl, visible, occluder, hidden, config, drawn)
+    proposal = hidden_proposal(scene, xpl, drawn.proposal[0, :, hidden], drawn.scale[0, :, hidden], frames, config,
+                               free)
+    return scene, proposal, free
 
 
 def _hidden_slot(drawn: DrawnScene, visible: Tensor) -> tuple[int, bool]:
