@@ -187,6 +187,19 @@ class HiddenObjectModel(nn.Module):
                 self.step(state, t, frames[t])
         return state["exists"]
 
+    def log_joint(self, frames: Tensor, trajectories: Tensor, version: int = 0) -> Tensor:
+        """log p(x, exists=1, two=version, z=trajectory) (N,) float64 of each of N trajectories
+        (N, T, D): `model` traced with N particles, every latent given, differentiable in the
+        trajectories (the pixels, the drawing's cost, the transitions through the dynamics, the
+        seen objects' motion). A function of the video and the trajectories alone: nothing is drawn."""
+        count = len(trajectories)
+        given = {"exists": trajectories.new_ones(count), "two": trajectories.new_full((count,), float(version))}
+        given |= {f"z_{t}": trajectories[:, t] for t in range(self.frames)}
+        trace = poutine.trace(poutine.condition(self.model, data=given)).get_trace(frames, None, count)
+        trace.compute_log_prob()
+        return sum(node["log_prob"].to(torch.float64).expand(count) for name, node in trace.nodes.items()
+                   if node["type"] == "sample" and name != "particles")
+
     def frame_log_likelihood(self, t: int, latents: Tensor, alive: Tensor, version: Tensor, frame: Tensor) -> Tensor:
         """log N(frame t | rendered frame, pixel_sigma^2) of each particle (N,), less the cost of
         its hidden object's drawing (`drawing_cost`), in float64. The particles without a hidden
