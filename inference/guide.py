@@ -112,6 +112,7 @@ def toward_mode(model: HiddenObjectModel, frames: Tensor, proposal: Proposal, co
     return Proposal(proposal.p_exists, best, scale)
 
 
+@torch.no_grad()
 def _shift_scale(model: HiddenObjectModel, frames: Tensor, mean: Tensor, shift: float) -> Tensor:
     """Each latent dimension's scale (D,) under the log joint around `mean` (T, D) when the whole
     trajectory moves along it (a still cube's place moves every frame's latent alike):

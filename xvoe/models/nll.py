@@ -79,7 +79,7 @@ class InferenceConfig:
     # frame, where the hidden cube stops what is seen, and on whether particles already hold the
     # cube in the few directions that frame pins down; with the scale alone, or the mean alone, the
     # two-seed spread stays (docs/log/nll-smc.md, "The proposal moved to the log joint's mode")
-    mode_steps: int = within(0, NON_NEGATIVE)
+    mode_steps: int = within(10, NON_NEGATIVE)
     mode_rate: float = within(0.05, NON_NEGATIVE)          # their Adam learning rate
     # the shift (latent units) of the whole trajectory along each latent dimension at which the log
     # joint's curvature is measured, by second differences, after the steps (0: the scale kept)
