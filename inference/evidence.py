@@ -134,7 +134,9 @@ def hidden_runs(model: HiddenObjectModel, frames: Tensor, config: InferenceConfi
     """The SMC of the branch with a hidden object under each explanation of what was seen (one
     run each, in order), the explanations stepped as one batch. A pilot of fewer particles is
     kept where it trails `known` (the exact branches' log p(x, no object) summed) by more than
-    smc_pilot_margin nats: the branch then changes log p(x) by less than exp(-margin)."""
+    smc_pilot_margin nats: the branch then changes log p(x) by less than exp(-margin). Where the
+    existence head is sure of an object there is no pilot, and the proposal is first moved to the
+    model's log joint (`toward_mode`, where config.mode_steps)."""
     sure = proposal is not None and float(proposal.p_exists) > config.smc_pilot_skip_exists
     if sure and config.mode_steps:
         proposal = toward_mode(model, frames, proposal, config)

@@ -24,7 +24,9 @@ probability, `two` from its prior, and each z_t from Transformer 2's per-frame G
 with the dynamics' step: the product of the two Gaussians, as if the former were a measurement of z_t
 (the locally optimal proposal of a Kalman filter), its scale widened, since it says where the
 object is on the whole, not anew each frame, and a proposal narrower than the posterior misses
-part of the evidence. The trajectory sites are masked by `exists` in both model and guide, so a
+part of the evidence (where the existence head is sure of an object, the mean first climbs this
+model's own log joint and the scale narrows to its curvature: `inference.guide.toward_mode`). The
+trajectory sites are masked by `exists` in both model and guide, so a
 particle without a hidden object is weighted by p(no object) p(x | no object) / q(no object)
 alone: an exact trans-dimensional importance sampler. Sequential Monte Carlo and importance
 sampling (`inference.model_steps`) both run these methods through Pyro's trace and replay; no density
