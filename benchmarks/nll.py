@@ -29,6 +29,7 @@ from __future__ import annotations
 import argparse
 import csv
 import time
+from collections.abc import Callable
 
 import numpy as np
 import torch
@@ -115,23 +116,33 @@ def share(values: np.ndarray) -> float:
     return float(values.mean()) if len(values) else float("nan")
 
 
-def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+def arguments(description: str) -> argparse.ArgumentParser:
+    """The options every NLL benchmark takes: the model, the split, the rows' CSV and --nll-set."""
+    parser = argparse.ArgumentParser(description=description)
     parser.add_argument("--model", required=True, help="a shipped model's name (xpl), a run directory or checkpoint")
     parser.add_argument("--data", required=True, help="a test split at the model's resolution")
+    parser.add_argument("--rows", help="also write each video's figures to this CSV")
+    parser.add_argument("--nll-set", action="append", default=[], metavar="FIELD=VALUE",
+                        help="change a field of the NLL's settings (inference.InferenceConfig), as xvoe score's")
+    return parser
+
+
+def run_or_exit(run: Callable[[argparse.Namespace], None], args: argparse.Namespace, name: str) -> None:
+    """`run(args)`, a project error its one line on stderr and exit 2."""
+    try:
+        run(args)
+    except xvoe.XvoeError as error:
+        raise SystemExit(f"{name}: error: {error}") from None
+
+
+def main() -> None:
+    parser = arguments(__doc__.splitlines()[0])
     parser.add_argument("--particles", type=int, help="particles per video (default: the model's NLL settings)")
     parser.add_argument("--pairs", type=int, default=1_000_000, help="pairs per setting (default: all)")
     parser.add_argument("--threads", type=int, default=2, help="torch threads (default 2)")
     parser.add_argument("--seeds", default="0,1", help="comma-separated seeds; each video is scored with each "
                                                         "(default 0,1: repeatability)")
-    parser.add_argument("--rows", help="also write each video's figures to this CSV")
-    parser.add_argument("--nll-set", action="append", default=[], metavar="FIELD=VALUE",
-                        help="change a field of the NLL's settings (inference.InferenceConfig), as xvoe score's")
-    args = parser.parse_args()
-    try:
-        run(args)
-    except xvoe.XvoeError as error:
-        raise SystemExit(f"nll.py: error: {error}") from None
+    run_or_exit(run, parser.parse_args(), "nll.py")
 
 
 def run(args: argparse.Namespace) -> None:

@@ -21,6 +21,7 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
+from .guide import toward_mode
 from .model import HiddenObjectModel, InferenceConfig, Proposal, Scene
 from .model_steps import ModelSteps, empty_branches, seeded
 from .smc import SMCRun, run_smc
@@ -133,8 +134,12 @@ def hidden_runs(model: HiddenObjectModel, frames: Tensor, config: InferenceConfi
     """The SMC of the branch with a hidden object under each explanation of what was seen (one
     run each, in order), the explanations stepped as one batch. A pilot of fewer particles is
     kept where it trails `known` (the exact branches' log p(x, no object) summed) by more than
-    smc_pilot_margin nats: the branch then changes log p(x) by less than exp(-margin)."""
+    smc_pilot_margin nats: the branch then changes log p(x) by less than exp(-margin). Where the
+    existence head is sure of an object there is no pilot, and the proposal is first moved to the
+    model's log joint (`toward_mode`, where config.mode_steps)."""
     sure = proposal is not None and float(proposal.p_exists) > config.smc_pilot_skip_exists
+    if sure and config.mode_steps:
+        proposal = toward_mode(model, frames, proposal, config)
     found: dict[int, SMCRun] = {}
     for size in (*(() if sure else _pilot_sizes(config)), config.particles):
         versions = [version for version in range(model.scene.versions) if version not in found]

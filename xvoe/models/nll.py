@@ -60,7 +60,7 @@ class InferenceConfig:
     # first); where the branch with a hidden object then trails the one without by more than
     # smc_pilot_margin nats, it changes log p(x) by less than exp(-margin) and the larger runs
     # are skipped (most videos show every object)
-    smc_pilot: int | tuple[int, ...] = within(16, NON_NEGATIVE)
+    smc_pilot: int | tuple[int, ...] = within(4, NON_NEGATIVE)
     smc_pilot_margin: float = within(30.0, NON_NEGATIVE)
     # no pilot where the guide's existence probability is above this (1.0: pilots everywhere):
     # a small pilot can miss a hidden object that XPL's existence head is sure of, and the
@@ -72,3 +72,15 @@ class InferenceConfig:
     # marginals costs weight variance at each step: the wide component keeps the particles near
     # the dynamics, the narrow one finds the hypotheses that the marginals point at
     smc_proposal_widening: float | tuple[float, ...] | None = within((3.0, 10.0), POSITIVE)
+    # Adam steps (0: none, the proposal as Transformer 2 gives it) that move the proposal's mean
+    # trajectory up the model's own log joint log p(x, object, z), only where the existence head is
+    # sure of an object (above smc_pilot_skip_exists: the never-seen-cube videos), then narrow its
+    # scale to the log joint's curvature where that is sharper. There the estimate turns on one
+    # frame, where the hidden cube stops what is seen, and on whether particles already hold the
+    # cube in the few directions that frame pins down; with the scale alone, or the mean alone, the
+    # two-seed spread stays (docs/log/nll-smc.md, "The proposal moved to the log joint's mode")
+    mode_steps: int = within(10, NON_NEGATIVE)
+    mode_rate: float = within(0.05, NON_NEGATIVE)          # their Adam learning rate
+    # the shift (latent units) of the whole trajectory along each latent dimension at which the log
+    # joint's curvature is measured, by second differences, after the steps (0: the scale kept)
+    mode_shift: float = within(0.1, NON_NEGATIVE)
