@@ -262,12 +262,15 @@ def xvoe_parser(lenient: bool = False) -> argparse.ArgumentParser:
 
 @cache
 def benchmark_flags(script: Path) -> frozenset[str]:
-    """The flags a benchmark script's argparse takes: the string arguments of its add_argument calls."""
+    """The flags a benchmark script's argparse takes: the string arguments of its add_argument calls,
+    and of those in the sibling benchmark scripts it imports from (a parser built by another)."""
     flags = {"-h", "--help"}
     for node in ast.walk(ast.parse(script.read_text())):
         if isinstance(node, ast.Call) and isinstance(node.func, ast.Attribute) and node.func.attr == "add_argument":
             flags |= {arg.value for arg in node.args
                       if isinstance(arg, ast.Constant) and str(arg.value).startswith("-")}
+        elif isinstance(node, ast.ImportFrom) and node.module and (script.parent / f"{node.module}.py").exists():
+            flags |= benchmark_flags(script.parent / f"{node.module}.py")
     return frozenset(flags)
 
 
