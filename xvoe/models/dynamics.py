@@ -106,15 +106,15 @@ class InteractionLSTM(nn.Module):
         every slot: a slot's buffer and LSTM feed only its own prediction, so the others' are
         not computed, and the prediction (B, R, D) and the state hold those R slots alone."""
         batch, slots, _ = z.shape
+        receivers = slice(None) if receivers is None else receivers
         current = self.object(z)                                            # (B, K, H)
-        own_slots = current if receivers is None else current[:, receivers]
-        chosen = own_slots.shape[1]                                         # R
+        own_slots = current[:, receivers]                                   # (B, R, H)
+        chosen = own_slots.shape[1]
         own = own_slots.reshape(batch * chosen, 1, -1)
         buffer = own if state is None else torch.cat([state.buffer, own], dim=1)
         memory, _ = self.buffer(own, buffer, buffer, need_weights=False)
         pairs = torch.relu(self.receiver(own_slots).unsqueeze(2) + self.sender(current).unsqueeze(1))
-        senders = _senders(slots, inert, z)
-        senders = senders if receivers is None else senders[:, receivers]  # (1 or B, R, K)
+        senders = _senders(slots, inert, z)[:, receivers]                   # (1 or B, R, K)
         effect = (self.interaction(pairs) * senders[..., None]).sum(dim=2)
         inputs = torch.cat([own_slots, memory.reshape(batch, chosen, -1), effect], dim=-1).reshape(batch * chosen, -1)
         if state is None:
@@ -123,8 +123,7 @@ class InteractionLSTM(nn.Module):
             hidden, cell = state.hidden, state.cell
         hidden, cell = self.cell(inputs, (hidden, cell))
         change = self.out(hidden).reshape(batch, chosen, -1)
-        start = z if receivers is None else z[:, receivers]
-        return (start + change if self.config.residual else change), DynamicsState(buffer, hidden, cell)
+        return (z[:, receivers] + change if self.config.residual else change), DynamicsState(buffer, hidden, cell)
 
     def rollout(self, z: Tensor, start: int, steps: int) -> Tensor:
         """Predict `steps` frames after frame `start - 1` feeding predictions back in (no teacher)."""
