@@ -197,10 +197,15 @@ class HiddenObjectModel(nn.Module):
         count = len(trajectories)
         given = {"exists": trajectories.new_ones(count), "two": trajectories.new_full((count,), float(version))}
         given |= {f"z_{t}": trajectories[:, t] for t in range(self.frames)}
-        trace = poutine.trace(poutine.condition(self.model, data=given)).get_trace(frames, None, count)
+        return sum(log_prob.to(torch.float64).expand(count) for _, log_prob in self.site_terms(frames, given, count))
+
+    def site_terms(self, frames: Tensor, given: dict[str, Tensor], particles: int) -> list[tuple[str, Tensor]]:
+        """Each sample site's name and log-density (particles,) of `model` traced over `frames`
+        with the sites in `given` fixed: the one trace behind the exact branches and the log joint."""
+        trace = poutine.trace(poutine.condition(self.model, data=given)).get_trace(frames, None, particles)
         trace.compute_log_prob()
-        return sum(node["log_prob"].to(torch.float64).expand(count) for name, node in trace.nodes.items()
-                   if node["type"] == "sample" and name != "particles")
+        return [(name, node["log_prob"]) for name, node in trace.nodes.items()
+                if node["type"] == "sample" and name != "particles"]
 
     def frame_log_likelihood(self, t: int, latents: Tensor, alive: Tensor, version: Tensor, frame: Tensor) -> Tensor:
         """log N(frame t | rendered frame, pixel_sigma^2) of each particle (N,), less the cost of

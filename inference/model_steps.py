@@ -97,12 +97,9 @@ def empty_branches(model: HiddenObjectModel, frames: Tensor) -> Tensor:
     versions = model.scene.versions
     absent = {"exists": torch.zeros(versions, dtype=torch.float64, device=frames.device),
               "two": torch.arange(versions, dtype=torch.float64, device=frames.device)}
-    trace = poutine.trace(poutine.condition(model.model, data=absent)).get_trace(frames, particles=versions)
-    trace.compute_log_prob()
     per_frame = torch.zeros(versions, model.frames, dtype=torch.float64, device=frames.device)
-    for name, node in trace.nodes.items():
-        if node["type"] == "sample" and name != "particles":
-            per_frame[:, _site_frame(name)] += node["log_prob"].to(torch.float64)
+    for name, log_prob in model.site_terms(frames, absent, versions):
+        per_frame[:, _site_frame(name)] += log_prob.to(torch.float64)
     return per_frame
 
 
