@@ -5,8 +5,9 @@ each pilot size: what decides how small the SMC's pilot may be.
 
 For every video of the split with a slot free for a hidden object and an existence probability
 at most `smc_pilot_skip_exists` (the videos that take a pilot), each explanation of what was seen
-is run by SMC at every size; its trail is log p(x, no object) summed over the explanations (exact)
-less the run's log p^(x, object, explanation). A pilot of size n stops an explanation where its
+is run by SMC at every size (a pilot from Transformer 2's mean, the full run from that mean moved
+out of sight, as `hidden_runs` runs them); its trail is log p(x, no object) summed over the
+explanations (exact) less the run's log p^(x, object, explanation). A pilot of size n stops an explanation where its
 trail exceeds `smc_pilot_margin`; the NLL then moves by less than exp(-margin). Printed: each
 size's trail percentiles, and how many explanations a pilot of each size stops that the full
 run would not (those whose full-run trail is within the margin).
@@ -24,6 +25,7 @@ import xvoe
 from xvoe.evaluation.scorer import encode_videos
 from xvoe.evaluation.surprise import draw_scene
 from xvoe.inference.evidence import widenings_of
+from xvoe.inference.guide import out_of_sight
 from xvoe.inference.model import HiddenObjectModel
 from xvoe.inference.model_steps import ModelSteps, empty_branches, seeded
 from xvoe.inference.score import nll_config
@@ -40,17 +42,18 @@ def trails(scorer, batch: dict, drawn, index: int, config: InferenceConfig, size
            seed: int) -> np.ndarray | None:
     """(sizes, V) trails of one video's explanations, or None where it takes no pilot."""
     frames, visible, occluder = (batch[name][index] for name in ("frames", "visible", "occluder"))
-    scene, proposal, free = scene_and_proposal(scorer.vae, scorer.xpl, frames, visible, occluder, drawn.video(index),
-                                               config)
+    scene, proposal, free = scene_and_proposal(scorer.vae, scorer.xpl, visible, occluder, drawn.video(index), config)
     if not free or float(proposal.p_exists) > config.smc_pilot_skip_exists:
         return None
+    full = out_of_sight(scene, proposal, frames, config)
     model, generator = HiddenObjectModel(scene, config), torch.Generator().manual_seed(seed)
     versions = torch.arange(scene.versions, dtype=torch.float64)
     with seeded(generator):
         known = float(torch.logsumexp(empty_branches(model, frames).sum(1), 0))
         found = []
         for size in sizes:
-            steps = ModelSteps(model, frames, proposal, widenings_of(config), {"exists": 1.0, "two": versions})
+            drawn_from = full if size == sizes[-1] else proposal     # as `hidden_runs` draws
+            steps = ModelSteps(model, frames, drawn_from, widenings_of(config), {"exists": 1.0, "two": versions})
             run = run_smc(steps, size, runs=scene.versions, threshold=config.resample_threshold, generator=generator)
             found.append(known - run.log_evidence.numpy())
     return np.stack(found)

@@ -16,6 +16,7 @@ frame, and the differences of their mixture are each frame's surprise, -log p^(x
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import torch
@@ -97,18 +98,20 @@ def _log_sum(values: list[float]) -> float:
 
 @torch.no_grad()
 def smc_evidence(scene: Scene, frames: Tensor, config: InferenceConfig, proposal: Proposal | None,
-                 generator: torch.Generator | None = None, free: bool = True) -> Evidence:
+                 generator: torch.Generator | None = None, free: bool = True,
+                 refine: Callable[[Proposal], Proposal] | None = None) -> Evidence:
     """One video's evidence, summed over the scene's explanations of what was seen (its
     versions): each run once without a hidden object (one particle: every latent is masked, so
     it is exact) and by SMC over `config.particles` particles with one. `free` False: no slot is
-    left for a hidden object, and the evidence is that of the branches without one."""
+    left for a hidden object, and the evidence is that of the branches without one. `refine`:
+    what the full run's proposal is made from the pilot's (`hidden_runs`)."""
     model = HiddenObjectModel(scene, config)
     device, versions = frames.device, range(scene.versions)
     with seeded(generator, device):
         empty = list(empty_branches(model, frames).cumsum(1))
         empty_end = [float(branch[-1]) for branch in empty]
         known = _log_sum(empty_end)
-        runs = hidden_runs(model, frames, config, proposal, known, generator) if free else []
+        runs = hidden_runs(model, frames, config, proposal, known, generator, refine) if free else []
     hidden_end = [float(run.log_evidence[0]) for run in runs]
     total = _log_sum(empty_end + hidden_end)
     p_two = math.exp(_log_sum(empty_end[1:] + hidden_end[1:]) - total) if scene.versions > 1 else 0.0
@@ -130,18 +133,22 @@ def smc_evidence(scene: Scene, frames: Tensor, config: InferenceConfig, proposal
 
 
 def hidden_runs(model: HiddenObjectModel, frames: Tensor, config: InferenceConfig, proposal: Proposal | None,
-                known: float, generator: torch.Generator | None) -> list[SMCRun]:
+                known: float, generator: torch.Generator | None,
+                refine: Callable[[Proposal], Proposal] | None = None) -> list[SMCRun]:
     """The SMC of the branch with a hidden object under each explanation of what was seen (one
     run each, in order), the explanations stepped as one batch. A pilot of fewer particles is
     kept where it trails `known` (the exact branches' log p(x, no object) summed) by more than
     smc_pilot_margin nats: the branch then changes log p(x) by less than exp(-margin). Where the
-    existence head is sure of an object there is no pilot, and the proposal is first moved to the
-    model's log joint (`toward_mode`, where config.mode_steps)."""
+    existence head is sure of an object there is no pilot. The full run's proposal is the pilot's
+    moved by `refine` (the XPL scene's mean out of sight, `inference.guide.out_of_sight`), then,
+    where the head is sure, up the model's log joint (`toward_mode`, where config.mode_steps):
+    work that most videos, which end at the pilot, never need."""
     sure = proposal is not None and float(proposal.p_exists) > config.smc_pilot_skip_exists
-    if sure and config.mode_steps:
-        proposal = toward_mode(model, frames, proposal, config)
     found: dict[int, SMCRun] = {}
     for size in (*(() if sure else _pilot_sizes(config)), config.particles):
+        if size == config.particles and proposal is not None:
+            proposal = refine(proposal) if refine is not None else proposal
+            proposal = toward_mode(model, frames, proposal, config) if sure and config.mode_steps else proposal
         versions = [version for version in range(model.scene.versions) if version not in found]
         steps = ModelSteps(model, frames, proposal, widenings_of(config),
                            {"exists": 1.0, "two": torch.tensor(versions, dtype=torch.float64)})

@@ -6,6 +6,7 @@ gives the same bytes, whatever was drawn before."""
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import partial
 
 import torch
 from torch import Tensor
@@ -18,15 +19,15 @@ from xvoe.models.xpl import XPL
 from xvoe.resources import check_memory
 
 from .evidence import Evidence, importance_evidence, smc_evidence
-from .guide import hidden_proposal
+from .guide import hidden_proposal, out_of_sight
 from .hypotheses import Hypotheses, top_hypotheses
 from .identity import Identity, identity_gap, two_objects
 from .model import InferenceConfig, Proposal
 from .smc import effective_sample_size
 from .xpl_scene import XPLScene
 
-__all__ = ["NLLSurprise", "Seed", "check_particles", "nll_surprise", "drawn_surprise", "scene_and_proposal",
-           "HiddenPosterior", "hidden_posterior", "Surprise", "explain_surprise"]
+__all__ = ["NLLSurprise", "Seed", "check_particles", "nll_surprise", "drawn_surprise",
+           "scene_and_proposal", "HiddenPosterior", "hidden_posterior", "Surprise", "explain_surprise"]
 
 
 @dataclass
@@ -102,26 +103,27 @@ def drawn_surprise(vae: ComponentVAE, xpl: XPL, frames: Tensor, visible: Tensor,
     if method not in ("smc", "importance"):
         raise ValueError(f"method must be smc or importance, not {method!r}")
     generator = _generator_from(seed)
-    scene, proposal, free = scene_and_proposal(vae, xpl, frames, visible, occluder, drawn, config)
+    scene, proposal, free = scene_and_proposal(vae, xpl, visible, occluder, drawn, config)
     slot = scene.hidden if free else -1
+    refine = partial(out_of_sight, scene, frames=frames, config=config)
     if method == "smc":
-        found = smc_evidence(scene, frames, config, proposal, generator, free)
+        found = smc_evidence(scene, frames, config, proposal, generator, free, refine)
         return NLLSurprise(found.nll, found.ess, found.p_hidden, slot, found, found.ess if free else 0.0, "smc",
                            scene.identity)
-    found = importance_evidence(scene, frames, config, proposal, generator)
+    found = importance_evidence(scene, frames, config, refine(proposal) if free else proposal, generator)
     held = found.holding()
     holding = float(effective_sample_size(held[1])) if held is not None else 0.0
     return NLLSurprise(found.nll, found.ess, found.p_hidden, slot, found, holding, "importance", scene.identity)
 
 
-def scene_and_proposal(vae: ComponentVAE, xpl: XPL, frames: Tensor, visible: Tensor, occluder: Tensor,
-                       drawn: DrawnScene, config: InferenceConfig) -> tuple[XPLScene, Proposal, bool]:
+def scene_and_proposal(vae: ComponentVAE, xpl: XPL, visible: Tensor, occluder: Tensor, drawn: DrawnScene,
+                       config: InferenceConfig) -> tuple[XPLScene, Proposal, bool]:
     """What the estimators of one video start from (arguments as `drawn_surprise`'s): its scene for
-    the Pyro model, the guide's proposal of a hidden object, and whether a slot is free for one."""
+    the Pyro model, the guide's proposal of a hidden object as a pilot draws from it (the full run
+    moves it out of sight first: `inference.guide.out_of_sight`), and whether a slot is free for one."""
     hidden, free = _hidden_slot(drawn, visible)
     scene = _hidden_object_scene(vae, xpl, visible, occluder, hidden, config, drawn)
-    proposal = hidden_proposal(scene, xpl, drawn.proposal[0, :, hidden], drawn.scale[0, :, hidden], frames, config,
-                               free)
+    proposal = hidden_proposal(xpl, drawn.proposal[0, :, hidden], drawn.scale[0, :, hidden], config, free)
     return scene, proposal, free
 
 

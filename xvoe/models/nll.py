@@ -42,7 +42,7 @@ class InferenceConfig:
     # validation split, not the dynamics' measured error (docs/decisions.md, "The NLL's settings")
     motion_sigma: float = within(0.2, POSITIVE)
     particles: int = within(64, COUNT)
-    # gradient steps on the proposal's mean (guide._refine_out_of_sight)
+    # gradient steps on the proposal's mean before the full run (guide.out_of_sight; a pilot goes without)
     refine_steps: int = within(5, NON_NEGATIVE)
     refine_rate: float = within(0.1, NON_NEGATIVE)        # their Adam learning rate
     # nats a frame of the proposal's mean may cost before it is moved
