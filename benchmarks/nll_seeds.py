@@ -1,6 +1,7 @@
 """The NLL's spread between seeds on chosen videos of a test split: each video scored with every
 seed under the model's NLL settings (changed by --nll-set), its NLL per seed, their spread
-(max - min) and the CPU seconds a run takes.
+(max - min), the CPU seconds a run takes, and on how many videos each seed gives the highest NLL
+(about as many for each where each video's draws are its own).
 
     python benchmarks/nll_seeds.py --model xpl --data test.h5 [--videos hidden | 160,162,...]
                                    [--seeds 0,1,2,3] [--threads 1] [--nll-set FIELD=VALUE ...] [--rows rows.csv]
@@ -78,6 +79,10 @@ def run(args: argparse.Namespace) -> None:
     spread = np.array([row["spread"] for row in rows])
     mean_nll = float(np.mean([row["mean_nll"] for row in rows]))
     cpu = float(np.mean([row["cpu_seconds"] for row in rows]))
+    # where every video draws from one stream per seed, one seed is the worst on most videos at once
+    worst = np.bincount([int(np.argmax([row[f"nll_{seed}"] for seed in seeds])) for row in rows], minlength=len(seeds))
+    print("videos on which each seed gives the highest NLL: " + ", ".join(f"seed {seed} {count}"
+                                                                         for seed, count in zip(seeds, worst)))
     print(f"{config}")
     print(f"videos={len(rows)} spread_median={np.median(spread):.2f} spread_max={spread.max():.2f} "
           f"mean_nll={mean_nll:.2f} cpu_per_run={cpu:.3f}")

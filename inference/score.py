@@ -76,8 +76,9 @@ def under_prior_two(scores: dict[str, np.ndarray], used: float, prior: float) ->
 def xpl_nll(scorer: Scorer, batch: dict[str, Tensor], config: InferenceConfig, seed: int,
             drawn: DrawnScene) -> list[NLLSurprise]:
     """The NLL surprise of each encoded video (`encode_videos`) under the Pyro hidden-object model,
-    each from its own generator seeded `seed`, so that a video's score does not hang on the others';
-    `drawn`: the batch as the MSE score drew it (`xvoe.evaluation.surprise.draw_scene`)."""
+    each from a generator of its own seeded from `seed` and its pixels (`video_seed`), so that a
+    video's score hangs neither on the others' nor on where it sits in the split; `drawn`: the
+    batch as the MSE score drew it (`xvoe.evaluation.surprise.draw_scene`)."""
     return [drawn_surprise(scorer.vae, scorer.xpl, batch["frames"][i], batch["visible"][i], batch["occluder"][i],
                            drawn.video(i), config, seed=seed)
             for i in range(len(batch["mean"]))]

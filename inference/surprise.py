@@ -5,6 +5,7 @@ hidden object exists. Every estimate comes from a seed (or a torch.Generator): t
 gives the same bytes, whatever was drawn before."""
 from __future__ import annotations
 
+import hashlib
 from dataclasses import dataclass
 from functools import partial
 
@@ -26,7 +27,7 @@ from .model import InferenceConfig, Proposal
 from .smc import effective_sample_size
 from .xpl_scene import XPLScene
 
-__all__ = ["NLLSurprise", "Seed", "check_particles", "nll_surprise", "drawn_surprise",
+__all__ = ["NLLSurprise", "Seed", "video_seed", "check_particles", "nll_surprise", "drawn_surprise",
            "scene_and_proposal", "HiddenPosterior", "hidden_posterior", "Surprise", "explain_surprise"]
 
 
@@ -55,13 +56,23 @@ class NLLSurprise:
 Seed = int | torch.Generator | None
 
 
-def _generator_from(seed: Seed) -> torch.Generator:
-    """A generator of its own for a seed (None: 0); a generator is used as it is. On the CPU
-    whatever the device: the resampling's uniforms are drawn there and moved, and Pyro's global
-    state (the CPU's, or the CUDA device's) is seeded from it."""
+def video_seed(seed: int | None, frames: Tensor) -> int:
+    """The seed of one video's draws under a score's `seed` (None: 0): a hash of the two, so that
+    each video draws from a stream of its own, whatever else is scored with it and wherever it
+    sits in a split. One seed for every video made one stream good or bad for all similar scenes
+    at once: their errors were correlated, and a metric's interval over videos too narrow."""
+    digest = hashlib.sha256(str(0 if seed is None else int(seed)).encode())
+    digest.update(frames.detach().to("cpu", torch.float32).contiguous().numpy().tobytes())
+    return int.from_bytes(digest.digest()[:8], "little") >> 1      # manual_seed takes 63 bits
+
+
+def _generator_from(seed: Seed, frames: Tensor) -> torch.Generator:
+    """A generator of its own for a seed and a video of `frames` (`video_seed`); a generator is
+    used as it is. On the CPU whatever the device: the resampling's uniforms are drawn there and
+    moved, and Pyro's global state (the CPU's, or the CUDA device's) is seeded from it."""
     if isinstance(seed, torch.Generator):
         return seed
-    return torch.Generator().manual_seed(0 if seed is None else int(seed))
+    return torch.Generator().manual_seed(video_seed(seed, frames))
 
 
 # memory a particle takes through a video's NLL, at the least: the shipped model's run on a
@@ -97,12 +108,13 @@ def drawn_surprise(vae: ComponentVAE, xpl: XPL, frames: Tensor, visible: Tensor,
     proposal of a hidden object (`scene_and_proposal`), then the evidence (`smc_evidence`, or
     `importance_evidence`).
 
-    method: "smc" or "importance" (None: config.method). seed: an int or a torch.Generator;
-    the global random state is neither read nor changed."""
+    method: "smc" or "importance" (None: config.method). seed: an int, mixed with the video's
+    pixels (`video_seed`), or a torch.Generator, used as it is; the global random state is
+    neither read nor changed."""
     method = config.method if method is None else method
     if method not in ("smc", "importance"):
         raise ValueError(f"method must be smc or importance, not {method!r}")
-    generator = _generator_from(seed)
+    generator = _generator_from(seed, frames)
     scene, proposal, free = scene_and_proposal(vae, xpl, visible, occluder, drawn, config)
     slot = scene.hidden if free else -1
     refine = partial(out_of_sight, scene, frames=frames, config=config)

@@ -379,9 +379,22 @@ def tiny_video():
     return tiny_models(), video()
 
 
+def test_each_video_draws_from_a_stream_of_its_own():
+    """One score seed, two videos: two streams (one seed for all correlated the videos' errors);
+    the same video and seed: the same stream, from a copy of the frames too."""
+    from xvoe.inference.surprise import video_seed
+    frames = torch.rand(3, 4, 8, 8)
+    other = frames.clone()
+    other[1, 2, 3, 4] += 0.5
+    assert video_seed(7, frames) == video_seed(7, frames.clone()) == video_seed(7, frames.double())
+    assert len({video_seed(7, frames), video_seed(7, other), video_seed(8, frames), video_seed(None, frames)}) == 4
+    assert video_seed(None, frames) == video_seed(0, frames)
+    assert 0 <= video_seed(7, frames) < 2 ** 63
+
+
 @pytest.mark.parametrize("method", ["smc", "importance"])
 def test_nll_surprise_is_reproducible_from_a_seed_and_leaves_the_global_state_alone(method):
-    from xvoe.inference.surprise import nll_surprise
+    from xvoe.inference.surprise import nll_surprise, video_seed
 
     (vae, xpl), args = tiny_video()
     # no exposure penalty: the tiny decoder draws every picture at about the background's depth, so a
@@ -390,13 +403,14 @@ def test_nll_surprise_is_reproducible_from_a_seed_and_leaves_the_global_state_al
     first = nll_surprise(vae, xpl, *args, settings, method=method, seed=7)
     torch.manual_seed(123)                      # what was drawn before must not matter
     second = nll_surprise(vae, xpl, *args, settings, method=method, seed=7)
-    third = nll_surprise(vae, xpl, *args, settings, method=method, seed=torch.Generator().manual_seed(7))
+    third = nll_surprise(vae, xpl, *args, settings, method=method,
+                         seed=torch.Generator().manual_seed(video_seed(7, args[0])))
     before = torch.get_rng_state()
     other = nll_surprise(vae, xpl, *args, settings, method=method, seed=8)
     assert torch.equal(torch.get_rng_state(), before)
     assert first.nll == second.nll and first.method == method
     assert first.nll != other.nll
-    assert method == "importance" or third.nll == first.nll      # an int seed is a fresh generator of it
+    assert method == "importance" or third.nll == first.nll      # an int seed: a fresh generator of the video's
     assert 1.0 <= first.holding_ess <= 16 + 1e-9 and 0.0 <= first.p_hidden <= 1.0
 
 

@@ -81,8 +81,8 @@ def score(model: str | Scorer | SurpriseModel, data: str | Path, out: str | Path
     `merge_scores` to join (xvoe score --shard / --merge). model: a name (`xpl`, `random`, ...), a run
     directory, a checkpoint, a loaded `Scorer`, or an object of your own with a `name` and a
     `surprise(videos)` method (`xvoe.SurpriseModel`; its other attributes optional). seed: the
-    NLL's random draws (each video's from a generator of its own), so that a score file can be
-    reproduced and its spread measured.
+    NLL's random draws (each video's from a generator of its own, seeded from it and the video's
+    pixels), so that a score file can be reproduced and its spread measured.
     particles and nll_settings change the model's own NLL settings (its recipe's,
     xvoe.models.nll.InferenceConfig: pixel sigma, exposure penalty, pilot...), e.g.
     {"pixel_sigma": 1.0}, to see how each moves the verdicts.
