@@ -284,6 +284,29 @@ def test_no_pilot_where_the_existence_head_is_sure_of_an_object():
     assert smc_evidence(far, blank, always, sure, torch.Generator().manual_seed(0)).particles == 8
 
 
+def test_the_proposal_is_refined_only_for_a_full_run():
+    """A pilot draws from the proposal as it is; `refine` (the XPL scene's out-of-sight steps) is
+    paid once, by a video that goes on to its full run, which then draws from what it returns."""
+    blank = BACKGROUND.expand(T, -1) + 0.01
+    far = _LinearGaussianScene(T, M_0 + 20.0, 0.1, A, H, BACKGROUND)
+    doubtful = Proposal(torch.tensor(0.3), (M_0 + 20.0).expand(T, -1), torch.full((T, D), 0.6))
+    calls = []
+
+    def refine(proposal: Proposal) -> Proposal:
+        calls.append(proposal)
+        return Proposal(proposal.p_exists, M_0.expand(T, -1), proposal.scale)
+
+    gated = config(particles=64, smc_pilot=8)
+    assert smc_evidence(far, blank, gated, doubtful, torch.Generator().manual_seed(0), refine=refine).particles == 8
+    assert calls == []                              # ended at its pilot: nothing refined
+    found = smc_evidence(far, blank, config(particles=64, smc_pilot=0), doubtful, torch.Generator().manual_seed(0),
+                         refine=refine)
+    assert len(calls) == 1 and calls[0] is doubtful
+    unrefined = smc_evidence(far, blank, config(particles=64, smc_pilot=0), doubtful,
+                             torch.Generator().manual_seed(0))
+    assert found.log_evidence_hidden != unrefined.log_evidence_hidden    # the full run drew from the refined one
+
+
 def test_pilots_must_come_smallest_first():
     with pytest.raises(ValueError, match="smallest first"):
         smc_evidence(linear_scene(), simulated_frames(), config(particles=64, smc_pilot=(16, 4)), None,
