@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import os
 import shutil
-from concurrent.futures import ProcessPoolExecutor
+from concurrent.futures import ProcessPoolExecutor, as_completed
 from contextlib import nullcontext
 from dataclasses import replace
 from multiprocessing import get_context
@@ -227,29 +227,41 @@ def check_explanation(explanation: str) -> None:
         raise XvoeError(f"--explanation must be {' or '.join(EXPLANATIONS)}, not {explanation!r}")
 
 
+# parts a worker takes in turn: the settings of a split differ in cost (the NLL's full runs gather in
+# some), so halves by order left one worker idle for a sixth of the run
+PARTS_PER_WORKER = 4
+
+
 @claim_scope()
 def _score_in_workers(model: str | Scorer, scorer: Scorer, data: str | Path, out: str | Path, workers: int,
                       overwrite: bool, progress: bool, **settings) -> Path:
-    """`score` of `model` (loaded here as `scorer`) in `workers` spawned processes, shard I in
-    process I, merged into `out`. The first process draws its progress bar (the shards are of
-    one size); the split's latent cache is made here first, for all of them to read. The parts
-    are written in a folder beside `out` named by this process (`parts_folder`), which a later
-    run to `out` removes if this one was killed before it could."""
+    """`score` of `model` (loaded here as `scorer`) in `workers` spawned processes, the split cut
+    into up to PARTS_PER_WORKER parts a worker (whole batches), each handed to the next worker
+    free, merged into `out`; the progress bar here counts the videos of the parts done. The
+    split's latent cache is made here first, for all of them to read. The parts are written in a
+    folder beside `out` named by this process (`parts_folder`), which a later run to `out`
+    removes if this one was killed before it could."""
     out = claim_file(out, overwrite)      # refused before any work, as one run would be
     settings["cache"] = prepare_latents(scorer, data, settings["cache"], progress=progress) or False
+    with open_test_split(scorer, data) as file:
+        count = len(file["rgbd"])
+    batch = settings["videos_per_batch"]
+    shards = min(workers * PARTS_PER_WORKER, -(-count // batch))
     threads = max(1, cores() // workers)
     parts_dir = parts_folder(out)
     parts_dir.mkdir()
     try:
-        parts = [parts_dir / f"part{index}.csv" for index in range(workers)]
+        parts = [parts_dir / f"part{index}.csv" for index in range(shards)]
         with ProcessPoolExecutor(workers, mp_context=get_context("spawn"), initializer=_worker_threads,
                                  initargs=(threads, os.getpid())) as pool:
-            with interrupts_held():     # each submit starts a worker
-                running = [pool.submit(_score_part, out, model, data, part, shard=(index, workers),
-                                       progress=progress and index == 0, **settings)
-                           for index, part in enumerate(parts)]
-            for done in running:
-                done.result()
+            with interrupts_held():     # a submit may start a worker
+                running = {pool.submit(_score_part, out, model, data, part, shard=(index, shards), progress=False,
+                                       **settings): index for index, part in enumerate(parts)}
+            with progress_bar(total=count, desc=f"score {scorer.name}", unit="video", disable=not progress) as bar:
+                for done in as_completed(running):
+                    done.result()
+                    first, last = shard_rows(count, batch, (running[done], shards))
+                    bar.update(last - first)
         return merge_scores(parts, out, overwrite=overwrite)
     finally:
         shutil.rmtree(parts_dir, ignore_errors=True)
