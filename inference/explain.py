@@ -178,8 +178,9 @@ def nll_explanation(vae, xpl, video: dict, particles: int, title: str = "", obse
             if result.identity is not None:
                 heading += f" (drawn {particles} for each explanation: one object, two identical ones)"
             if options.disagree:
-                heading += (f"; the hypotheses' latents differ most at frames "
-                            f"{', '.join(map(str, options.disagree[:3]))}")
+                frames = options.disagree[:3]
+                heading += (f"; the hypotheses' latents differ most at frame{'s' if len(frames) > 1 else ''} "
+                            f"{', '.join(map(str, frames))}")
     return NLLExplanation(observed, behind, alone, result.hidden_slot, heading, result.p_hidden, result.p_two,
                           result.ess, result.nll, result.estimate.particles, *holding, drawn,
                           behind_empty=empty if slot >= 0 else None, **two)

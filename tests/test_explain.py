@@ -1,4 +1,6 @@
 """Explanation masks against ground-truth silhouettes, and the explanation figure against its numbers."""
+from dataclasses import replace
+
 import numpy as np
 import pytest
 
@@ -69,6 +71,26 @@ def _kinds(explanation) -> list[str]:
     assert len(figure.axes[0].get_yticklabels()) == len(kinds)
     plt.close(figure)
     return kinds
+
+
+def test_the_figure_at_the_models_size_keeps_its_labels_apart_and_its_title_on_the_figure():
+    """At 32x32 with no display, five-line row labels and a long title once ran into each other
+    and off the figure."""
+    import matplotlib.pyplot as plt
+
+    from xvoe.apps.explanation_figure import plot_explanation
+    explanation = replace(_nll(0.9, 0.0), title="blocking S3 pair 16 member 1 (impossible)\nESS 6.3 of the 128 "
+                          + "samples holding an object (drawn 64 for each explanation: one object, two identical "
+                          + "ones); the hypotheses' latents differ most at frames 14, 13, 12" * 2)
+    figure = plot_explanation(explanation)
+    figure.canvas.draw()
+    renderer = figure.canvas.get_renderer()
+    labels = sorted((label.get_window_extent(renderer) for label in figure.axes[0].get_yticklabels()),
+                    key=lambda box: box.y0)
+    assert len(labels) >= 4 and all(lower.y1 <= upper.y0 for lower, upper in zip(labels, labels[1:]))
+    title, page = figure.axes[0].title.get_window_extent(renderer), figure.bbox
+    assert page.x0 <= title.x0 and title.x1 <= page.x1
+    plt.close(figure)
 
 
 @pytest.mark.parametrize("p_hidden", [0.0, 0.9])

@@ -4,6 +4,8 @@ probability.
 """
 from __future__ import annotations
 
+import textwrap
+
 import matplotlib.pyplot as plt
 import numpy as np
 from PIL import Image
@@ -39,17 +41,38 @@ def plot_explanation(explanation: Explanation) -> plt.Figure:
         shown = [row for row in rows if explanation.display_resimulated or row[0] != "observed"]
         rows = [("scene", _scene_label(explanation, size, colour), scene),
                 *((kind, name, enlarge(video, size)) for kind, name, video in shown)]
-    frames = explanation.observed.shape[0]
-    title_lines = explanation.title.count("\n") + 1
-    cell = cell_inches(rows[0][2].shape[1])
-    fig, ax = plt.subplots(figsize=(max(4.0, frames * cell), len(rows) * cell + 0.3 + 0.25 * title_lines
-                                    + 0.25 * len(notes)))
-    draw_frame_rows(ax, [video for _, _, video in rows], [name for _, name, _ in rows], explanation.title)
+    cell = _row_inches(rows)
+    frames_width = explanation.observed.shape[0] * cell         # the labels take their own width beside it
+    width = max(4.0, frames_width + _label_inches(rows))
+    title = _fitted(explanation.title, frames_width, SHEET_FONT + 1)      # centred over the frames
+    notes = _fitted("\n".join(notes), frames_width, SHEET_FONT)
+    lines = title.count("\n") + 1 + (notes.count("\n") + 1 if notes else 0)
+    fig, ax = plt.subplots(figsize=(width, len(rows) * cell + 0.3 + 0.25 * lines))
+    draw_frame_rows(ax, [video for _, _, video in rows], [name for _, name, _ in rows], title)
     if notes:
-        ax.set_xlabel("\n".join(notes), fontsize=SHEET_FONT, labelpad=6)
+        ax.set_xlabel(notes, fontsize=SHEET_FONT, labelpad=6)
     fig.tight_layout()
     fig.drawn_rows = [(kind, name) for kind, name, _ in rows]     # what was drawn, for a reader to check
     return fig
+
+
+def _row_inches(rows: list[tuple[str, str, np.ndarray]]) -> float:
+    """Inches a row of frames takes: a frame's (`cell_inches`), or more where the tallest label
+    needs it, so that no label runs into the next row's (a line is 1.2 times the font's size)."""
+    lines = max(label.count("\n") + 1 for _, label, _ in rows)
+    return max(cell_inches(rows[0][2].shape[1]), lines * 1.2 * SHEET_FONT / 72 + 0.1)
+
+
+def _label_inches(rows: list[tuple[str, str, np.ndarray]]) -> float:
+    """Inches the widest row label takes beside the frames."""
+    return max(len(line) for _, label, _ in rows for line in label.split("\n")) * 0.6 * SHEET_FONT / 72 + 0.2
+
+
+def _fitted(text: str, width: float, points: float) -> str:
+    """`text` with each line wrapped to `width` inches at a font of `points` (a character is at
+    most 0.6 of the font's size wide), so that no line runs off the figure."""
+    characters = max(20, int(width * 72 / (0.6 * points)))
+    return "\n".join(textwrap.fill(line, characters) for line in text.split("\n")) if text else text
 
 
 # a hypothesis whose object stays this share of the frame's width from the mean's, in every frame,
