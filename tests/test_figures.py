@@ -64,7 +64,7 @@ def test_hypotheses_that_barely_differ_from_the_mean_are_named_so_under_the_figu
                                  hypotheses=[("hypothesis 1: 0.5", _object(frames, 11)),
                                              ("hypothesis 2: 0.3", _object(frames, 22))])
     figure = plot_explanation(explanation)
-    notes = figure.axes[0].get_xlabel()
+    notes = " ".join(figure.axes[0].get_xlabel().split())      # wrapped to the figure's width
     assert "hypothesis 1 barely differs from the mean" in notes and "within 1.0 pixels" in notes
     assert "hypothesis 2" not in notes
     assert [kind for kind, _ in figure.drawn_rows].count("hypothesis") == 2
