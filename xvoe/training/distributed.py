@@ -7,6 +7,7 @@ process waits in a gradient exchange the others have left.
 """
 from __future__ import annotations
 
+import atexit
 import os
 import random
 import signal
@@ -51,7 +52,15 @@ def setup_distributed(device: str | torch.device = "cpu") -> Dist:
         torch.cuda.set_device(chosen)
     if world > 1 and not dist.is_initialized():
         dist.init_process_group("nccl" if cuda else "gloo")
+        atexit.register(_leave_group)
     return Dist(rank, world, local_rank, chosen)
+
+
+def _leave_group() -> None:
+    """Left for the interpreter's own teardown, gloo's threads abort the process as it exits
+    ("terminate called without an active exception"), in about a third of torchrun launches."""
+    if dist.is_initialized():
+        dist.destroy_process_group()
 
 
 def _set_threads(config: TrainConfig, local_world: int) -> None:
