@@ -84,7 +84,8 @@ def score_range(scorer, file, start: int, stop: int, config: InferenceConfig,
             row["cpu_seconds"] = row.get("cpu_seconds", time.process_time() - cpu)
             if n == 0:
                 row |= {"nll": found.nll, "ess": found.ess, "holding_ess": found.holding_ess,
-                        "p_hidden": found.p_hidden, "particles": getattr(found.estimate, "particles", "")}
+                        "p_hidden": found.p_hidden, "particles": getattr(found.estimate, "particles", ""),
+                        "slot": found.hidden_slot}
             row[f"nll_{n}"] = found.nll
         rows.append(row)
     nll_done = time.perf_counter()
@@ -104,7 +105,8 @@ def label(rows: list[dict], file) -> dict[str, np.ndarray]:
              "setting": store.strings(file, "setting")[index]}
     for name in ("pair", "member", "possible"):
         table[name] = file[name][:][index]
-    for name in ("score", "nll", "ess", "holding_ess", "p_hidden", "truth", "nll_excess", "cpu_seconds", "particles"):
+    for name in ("score", "nll", "ess", "holding_ess", "p_hidden", "truth", "nll_excess", "cpu_seconds", "particles",
+                 "slot"):
         table[name] = np.array([r[name] for r in rows])
     seeds = sum(1 for name in rows[0] if name.startswith("nll_") and name[4:].isdigit())
     table["repeat"] = (np.abs(np.array([r["nll_1"] - r["nll_0"] for r in rows])) if seeds > 1
@@ -186,8 +188,10 @@ def report(table: dict[str, np.ndarray], args: argparse.Namespace, config: Infer
           f"{1 / cpu.mean():.2f} videos per CPU-second; on the videos with an object visible in no frame "
           f"{cpu[table['truth'] == 'hidden'].mean():.3f} s")
     hidden, seen = table["truth"] == "hidden", table["truth"] == "seen"
-    ended = table["particles"] < config.particles     # the kept run is the pilot's: the video ended there
-    for name, rows in (("ended at the pilot", ended), ("took the full run", ~ended)):
+    free = table["slot"] >= 0       # a video with no slot free for a hidden object runs no SMC of one
+    ended = free & (table["particles"] < config.particles)     # the kept run is the pilot's: the video ended there
+    for name, rows in (("ended at the pilot", ended), ("took the full run", free & ~ended),
+                       ("had no free slot", ~free)):
         if rows.any():
             print(f"  {int(rows.sum())} videos {name} ({int((rows & hidden).sum())} with an object visible in no "
                   f"frame): mean {cpu[rows].mean():.3f} s, {cpu[rows].sum() / cpu.sum():.0%} of the CPU time")

@@ -147,8 +147,7 @@ def hidden_runs(model: HiddenObjectModel, frames: Tensor, config: InferenceConfi
     found: dict[int, SMCRun] = {}
     for size in (*(() if sure else _pilot_sizes(config)), config.particles):
         if size == config.particles and proposal is not None:
-            proposal = refine(proposal) if refine is not None else proposal
-            proposal = toward_mode(model, frames, proposal, config) if sure and config.mode_steps else proposal
+            proposal = _full_proposal(model, frames, proposal, config, refine, sure)
         versions = [version for version in range(model.scene.versions) if version not in found]
         steps = ModelSteps(model, frames, proposal, widenings_of(config),
                            {"exists": 1.0, "two": torch.tensor(versions, dtype=torch.float64)})
@@ -161,6 +160,17 @@ def hidden_runs(model: HiddenObjectModel, frames: Tensor, config: InferenceConfi
         if len(found) == model.scene.versions:
             break
     return [found[version] for version in range(model.scene.versions)]
+
+
+def _full_proposal(model: HiddenObjectModel, frames: Tensor, proposal: Proposal, config: InferenceConfig,
+                   refine: Callable[[Proposal], Proposal] | None, sure: bool) -> Proposal:
+    """The full run's proposal: the pilot's moved by `refine`, then up the log joint where the
+    existence head is sure of an object."""
+    if refine is not None:
+        proposal = refine(proposal)
+    if sure and config.mode_steps:
+        proposal = toward_mode(model, frames, proposal, config)
+    return proposal
 
 
 @torch.no_grad()

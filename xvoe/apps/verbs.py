@@ -46,7 +46,7 @@ from ..evaluation.scorer import (
     open_test_split,
     own_surprise,
 )
-from ..evaluation.shards import merge_scores, shard_rows
+from ..evaluation.shards import batch_count, merge_scores, shard_rows
 from ..evaluation.surprise import BETTER, EXPLANATIONS
 from ..evaluation.user_models import SurpriseModel, check_model, curve_of
 from ..fingerprints import split_identity
@@ -246,7 +246,7 @@ def _score_in_workers(model: str | Scorer, scorer: Scorer, data: str | Path, out
     with open_test_split(scorer, data) as file:
         count = len(file["rgbd"])
     batch = settings["videos_per_batch"]
-    shards = min(workers * PARTS_PER_WORKER, -(-count // batch))
+    shards = min(workers * PARTS_PER_WORKER, batch_count(count, batch))
     threads = max(1, cores() // workers)
     parts_dir = parts_folder(out)
     parts_dir.mkdir()

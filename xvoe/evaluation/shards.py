@@ -13,7 +13,12 @@ from ..outputs import claim_file, claim_scope
 from .score_headers import check_curves_of, curves_arrays, header_of
 from .score_writer import write_score_files
 
-__all__ = ["merge_scores", "shard_rows"]
+__all__ = ["batch_count", "merge_scores", "shard_rows"]
+
+
+def batch_count(count: int, videos_per_batch: int) -> int:
+    """The batches of `count` videos: the most parts a split can be cut into."""
+    return -(-count // videos_per_batch)
 
 
 def shard_rows(count: int, videos_per_batch: int, shard: tuple[int, int]) -> tuple[int, int]:
@@ -22,7 +27,7 @@ def shard_rows(count: int, videos_per_batch: int, shard: tuple[int, int]) -> tup
     index, parts = shard
     if not 0 <= index < parts:
         raise XvoeError(f"--shard must be I/N with 0 <= I < N, not {index}/{parts}")
-    batches = -(-count // videos_per_batch)
+    batches = batch_count(count, videos_per_batch)
     if parts > batches:
         raise XvoeError(f"cannot cut {batches} batches of {videos_per_batch} videos into {parts} shards")
     first, last = index * batches // parts, (index + 1) * batches // parts
