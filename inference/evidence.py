@@ -22,10 +22,9 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-from .guide import toward_mode
 from .model import HiddenObjectModel, InferenceConfig, Proposal, Scene
 from .model_steps import ModelSteps, empty_branches, seeded
-from .smc import SMCRun, run_smc
+from .smc import SMCRun, pooled, run_smc
 
 __all__ = ["Evidence", "hidden_runs", "importance_evidence", "smc_evidence", "widenings_of"]
 
@@ -136,25 +135,28 @@ def hidden_runs(model: HiddenObjectModel, frames: Tensor, config: InferenceConfi
                 known: float, generator: torch.Generator | None,
                 refine: Callable[[Proposal], Proposal] | None = None) -> list[SMCRun]:
     """The SMC of the branch with a hidden object under each explanation of what was seen (one
-    run each, in order), the explanations stepped as one batch. A pilot of fewer particles is
-    kept where it trails `known` (the exact branches' log p(x, no object) summed) by more than
-    smc_pilot_margin nats: the branch then changes log p(x) by less than exp(-margin). Where the
-    existence head is sure of an object there is no pilot. The full run's proposal is the pilot's
-    moved by `refine` (the XPL scene's mean out of sight, `inference.guide.out_of_sight`), then,
-    where the head is sure, up the model's log joint (`toward_mode`, where config.mode_steps):
-    work that most videos, which end at the pilot, never need."""
-    sure = proposal is not None and float(proposal.p_exists) > config.smc_pilot_skip_exists
+    run each, in order, the explanations stepped as one batch). Where the existence head doubts
+    an object, pilots first (`_piloted_runs`); where it is sure, full runs pooled
+    (`_pooled_runs`). `known`: the exact branches' log p(x, no object), summed; `refine` moves
+    the proposal's mean out of sight before a full run (`inference.guide.out_of_sight`)."""
+    if proposal is not None and float(proposal.p_exists) > config.smc_pilot_skip_exists:
+        return _pooled_runs(model, frames, config, proposal, generator, refine)
+    return _piloted_runs(model, frames, config, proposal, known, generator, refine)
+
+
+def _piloted_runs(model: HiddenObjectModel, frames: Tensor, config: InferenceConfig, proposal: Proposal | None,
+                  known: float, generator: torch.Generator | None,
+                  refine: Callable[[Proposal], Proposal] | None) -> list[SMCRun]:
+    """Pilots of fewer particles around Transformer 2's mean as it is; an explanation whose pilot
+    trails `known` by more than smc_pilot_margin nats ends there (the branch changes log p(x) by
+    less than exp(-margin)), the others take the full run around the mean moved by `refine`:
+    work that most videos, which show every object, never need."""
     found: dict[int, SMCRun] = {}
-    for size in (*(() if sure else _pilot_sizes(config)), config.particles):
-        if size == config.particles and proposal is not None:
-            proposal = _full_proposal(model, frames, proposal, config, refine, sure)
+    for size in (*_pilot_sizes(config), config.particles):
+        if size == config.particles and proposal is not None and refine is not None:
+            proposal = refine(proposal)
         versions = [version for version in range(model.scene.versions) if version not in found]
-        steps = ModelSteps(model, frames, proposal, widenings_of(config),
-                           {"exists": 1.0, "two": torch.tensor(versions, dtype=torch.float64)})
-        run = run_smc(steps, size, runs=len(versions), threshold=config.resample_threshold, generator=generator,
-                      device=frames.device)
-        for row, version in enumerate(versions):
-            one = run.one(row, steps)
+        for version, one in zip(versions, _runs(model, frames, config, proposal, versions, size, generator)):
             if size == config.particles or known - float(one.log_evidence[0]) > config.smc_pilot_margin:
                 found[version] = one
         if len(found) == model.scene.versions:
@@ -162,15 +164,32 @@ def hidden_runs(model: HiddenObjectModel, frames: Tensor, config: InferenceConfi
     return [found[version] for version in range(model.scene.versions)]
 
 
-def _full_proposal(model: HiddenObjectModel, frames: Tensor, proposal: Proposal, config: InferenceConfig,
-                   refine: Callable[[Proposal], Proposal] | None, sure: bool) -> Proposal:
-    """The full run's proposal: the pilot's moved by `refine`, then up the log joint where the
-    existence head is sure of an object."""
-    if refine is not None:
-        proposal = refine(proposal)
-    if sure and config.mode_steps:
-        proposal = toward_mode(model, frames, proposal, config)
-    return proposal
+def _pooled_runs(model: HiddenObjectModel, frames: Tensor, config: InferenceConfig, proposal: Proposal,
+                 generator: torch.Generator | None, refine: Callable[[Proposal], Proposal] | None) -> list[SMCRun]:
+    """config.sure_runs full runs around the mean moved out of sight, each explanation's pooled
+    into one estimate (`pooled`: the mean of their evidence). A never-seen cube is narrow and a
+    run misses it now and then; the mean then loses log K nats where one run alone lost tens or
+    hundreds (docs/decisions.md, "The NLL's settings", row `sure_runs`)."""
+    versions = list(range(model.scene.versions))
+    proposal = refine(proposal) if refine is not None else proposal
+    made = [_runs(model, frames, config, proposal, versions, config.particles, generator)
+            for _ in range(config.sure_runs)]
+    return [pooled(list(runs), _trajectories) for runs in zip(*made)]
+
+
+def _runs(model: HiddenObjectModel, frames: Tensor, config: InferenceConfig, proposal: Proposal | None,
+          versions: list[int], particles: int, generator: torch.Generator | None) -> list[SMCRun]:
+    """One SMC run of `particles` for each explanation in `versions`, stepped as one batch."""
+    steps = ModelSteps(model, frames, proposal, widenings_of(config),
+                       {"exists": 1.0, "two": torch.tensor(versions, dtype=torch.float64)})
+    run = run_smc(steps, particles, runs=len(versions), threshold=config.resample_threshold, generator=generator,
+                  device=frames.device)
+    return [run.one(row, steps) for row in range(len(versions))]
+
+
+def _trajectories(states: list[dict]) -> dict[str, Tensor]:
+    """The final states of pooled runs as one: their particles' trajectories, all `smc_evidence` reads."""
+    return {"trajectory": torch.cat([state["trajectory"] for state in states])}
 
 
 @torch.no_grad()

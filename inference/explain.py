@@ -35,7 +35,7 @@ class NLLExplanation(Explanation):
     p_two: float = 0.0          # posterior probability that a seen object is two identical ones
     ess: float = 0.0            # effective sample size of the final weights
     nll: float = 0.0            # the video's surprise, -log p(video), nats
-    particles: int = 0          # particles drawn (a pilot's, where a pilot sufficed)
+    particles: int = 0          # particles drawn (a pilot's, where a pilot sufficed; two runs' where pooled)
     holding: int = 0            # of them, those that held a hidden object
     holding_ess: float = 0.0    # the effective sample size among those
     # the heaviest distinct hypotheses of what is hidden, each decoded alone: (label, frames)
@@ -159,7 +159,7 @@ def nll_explanation(vae, xpl, video: dict, particles: int, title: str = "", obse
     heading += f"NLL {result.nll:.0f} nats, p(hidden object) = {result.p_hidden:.2f}"
     if result.identity is not None:
         heading += f", p(two identical objects) = {result.p_two:.2f}"
-    if result.estimate.particles != particles:     # a pilot run sufficed (inference.evidence.hidden_runs): say so
+    if result.estimate.particles < particles:     # a pilot run sufficed (inference.evidence.hidden_runs): say so
         heading += f"\nfrom a pilot of {result.estimate.particles} particles, not the {particles:,} asked"
     holding = (posterior.holding, posterior.ess) if posterior is not None else (0, 0.0)
     drawn = []
@@ -176,7 +176,8 @@ def nll_explanation(vae, xpl, video: dict, particles: int, title: str = "", obse
             heading += f"\nESS {posterior.ess:.1f} of the {posterior.holding} samples holding an object"
             # the two explanations each draw their own particles: the samples are counted over both
             if result.identity is not None:
-                heading += f" (drawn {particles} for each explanation: one object, two identical ones)"
+                heading += (f" (drawn {result.estimate.particles} for each explanation: one object, two identical "
+                            "ones)")
             if options.disagree:
                 frames = options.disagree[:3]
                 heading += (f"; the hypotheses' latents differ most at frame{'s' if len(frames) > 1 else ''} "

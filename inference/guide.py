@@ -1,8 +1,7 @@
 """The guide's proposal for a video's hidden object (`hidden_proposal`): Transformer 2's mean
 trajectory for the free slot, its scale, and XPL's amortised probability that the object exists,
 kept off 0 and 1 so that both values of `exists` draw particles (`_defensive`); for the full run,
-the mean moved out of sight where it spoils the frames (`out_of_sight`) and, where that
-probability is sure of an object, up the model's own log joint (`toward_mode`)."""
+the mean moved out of sight where it spoils the frames (`out_of_sight`)."""
 from __future__ import annotations
 
 import math
@@ -12,10 +11,10 @@ from torch import Tensor
 
 from xvoe.models.xpl import XPL
 
-from .model import HiddenObjectModel, InferenceConfig, Proposal, drawing_cost
+from .model import InferenceConfig, Proposal, drawing_cost
 from .xpl_scene import XPLScene
 
-__all__ = ["hidden_proposal", "out_of_sight", "toward_mode"]
+__all__ = ["hidden_proposal", "out_of_sight"]
 
 _BRANCH_SAMPLES = 8     # particles each value of `exists` expects at the least
 
@@ -89,47 +88,6 @@ def _refine_out_of_sight(scene: XPLScene, loc: Tensor, frames: Tensor, config: I
     refined = loc.clone()
     refined[chosen] = moved.detach()
     return refined
-
-
-def toward_mode(model: HiddenObjectModel, frames: Tensor, proposal: Proposal, config: InferenceConfig) -> Proposal:
-    """The proposal with its mean trajectory (T, D) moved by `config.mode_steps` Adam steps up
-    the model's log joint log p(x, object, one object for each seen one, z = mean)
-    (`HiddenObjectModel.log_joint`), the best mean met kept, and its scale narrowed to the log
-    joint's curvature there where that is sharper (`_shift_scale`). Where a never-seen cube
-    stops the ball, one frame's likelihood is so narrow that the estimate turns on whether
-    particles already hold the cube there when it comes, in the one or two latent directions
-    that frame pins down (a scale of 0.03-0.05 where Transformer 2 gives 0.2, widened 3 and 10
-    times). The mean alone, or the scale alone, left the two-seed spread where it was.
-    Deterministic in the video: the guide stays a proper proposal, the same for every seed."""
-    adam = _AdamSteps(config.mode_rate)
-    mean, best, best_value = proposal.loc, proposal.loc, -math.inf
-    for step in range(config.mode_steps + 1):
-        with torch.enable_grad():
-            latents = mean.detach().requires_grad_(True)
-            value = model.log_joint(frames, latents[None])[0]
-            gradient, = torch.autograd.grad(value, latents)     # not the networks' weights
-        if float(value.detach()) > best_value:
-            best, best_value = mean.detach(), float(value.detach())
-        if step < config.mode_steps:
-            mean = adam.step(mean.detach(), -gradient)
-    scale = proposal.scale
-    if config.mode_shift:
-        scale = torch.minimum(scale, _shift_scale(model, frames, best, config.mode_shift))
-    return Proposal(proposal.p_exists, best, scale)
-
-
-@torch.no_grad()
-def _shift_scale(model: HiddenObjectModel, frames: Tensor, mean: Tensor, shift: float) -> Tensor:
-    """Each latent dimension's scale (D,) under the log joint around `mean` (T, D) when the whole
-    trajectory moves along it (a still cube's place moves every frame's latent alike):
-    1/sqrt of the log joint's curvature, from second differences at +-shift, the 2D + 1
-    trajectories traced as one batch (a flat or convex direction: no limit)."""
-    dims = mean.shape[1]
-    offsets = torch.cat([mean.new_zeros(1, dims), shift * torch.eye(dims, dtype=mean.dtype, device=mean.device),
-                         -shift * torch.eye(dims, dtype=mean.dtype, device=mean.device)])
-    values = model.log_joint(frames, mean[None] + offsets[:, None])
-    curvature = (2 * values[0] - values[1:dims + 1] - values[dims + 1:]) / shift ** 2
-    return torch.where(curvature > 0, curvature.clamp_min(1e-12).rsqrt(), math.inf).to(mean.dtype)
 
 
 class _AdamSteps:

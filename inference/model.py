@@ -24,8 +24,7 @@ probability, `two` from its prior, and each z_t from Transformer 2's per-frame G
 with the dynamics' step: the product of the two Gaussians, as if the former were a measurement of z_t
 (the locally optimal proposal of a Kalman filter), its scale widened, since it says where the
 object is on the whole, not anew each frame, and a proposal narrower than the posterior misses
-part of the evidence (where the existence head is sure of an object, the mean first climbs this
-model's own log joint and the scale narrows to its curvature: `inference.guide.toward_mode`). The
+part of the evidence. The
 trajectory sites are masked by `exists` in both model and guide, so a
 particle without a hidden object is weighted by p(no object) p(x | no object) / q(no object)
 alone: an exact trans-dimensional importance sampler. Sequential Monte Carlo and importance
@@ -189,19 +188,9 @@ class HiddenObjectModel(nn.Module):
                 self.step(state, t, frames[t])
         return state["exists"]
 
-    def log_joint(self, frames: Tensor, trajectories: Tensor, version: int = 0) -> Tensor:
-        """log p(x, exists=1, two=version, z=trajectory) (N,) float64 of each of N trajectories
-        (N, T, D): `model` traced with N particles, every latent given, differentiable in the
-        trajectories (the pixels, the drawing's cost, the transitions through the dynamics, the
-        seen objects' motion). A function of the video and the trajectories alone: nothing is drawn."""
-        count = len(trajectories)
-        given = {"exists": trajectories.new_ones(count), "two": trajectories.new_full((count,), float(version))}
-        given |= {f"z_{t}": trajectories[:, t] for t in range(self.frames)}
-        return sum(log_prob.to(torch.float64).expand(count) for _, log_prob in self.site_terms(frames, given, count))
-
     def site_terms(self, frames: Tensor, given: dict[str, Tensor], particles: int) -> list[tuple[str, Tensor]]:
         """Each sample site's name and log-density (particles,) of `model` traced over `frames`
-        with the sites in `given` fixed: the one trace behind the exact branches and the log joint."""
+        with the sites in `given` fixed: the trace behind the exact branches."""
         trace = poutine.trace(poutine.condition(self.model, data=given)).get_trace(frames, None, particles)
         trace.compute_log_prob()
         return [(name, node["log_prob"]) for name, node in trace.nodes.items()

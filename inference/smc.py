@@ -20,13 +20,14 @@ existence and explanation summed out, is `inference.evidence`.
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any, Protocol
 
 import torch
 from torch import Tensor
 
-__all__ = ["SMCRun", "SequentialModel", "effective_sample_size", "run_smc", "systematic_resample"]
+__all__ = ["SMCRun", "SequentialModel", "effective_sample_size", "pooled", "run_smc", "systematic_resample"]
 
 
 class SequentialModel(Protocol):
@@ -132,3 +133,26 @@ def run_smc(model: SequentialModel, particles: int, runs: int = 1, threshold: fl
     log_evidence += torch.logsumexp(log_weights, dim=1) - math.log(particles)
     return SMCRun(log_evidence, log_weights, state, torch.stack(ess, dim=1), torch.stack(resampled, dim=1), origin,
                   torch.stack(so_far, dim=1))
+
+
+def pooled(runs: list[SMCRun], join: Callable[[list[Any]], Any]) -> SMCRun:
+    """Independent runs of one target (batches of one, as `SMCRun.one` gives them) as one
+    estimate: the mean of their evidence after every frame, which is unbiased as each run's is,
+    so that a run that misses a narrow mode costs log K nats rather than the mode; and their
+    particles together, each run's weights scaled to its share of that mean. The ESS is the
+    pooled weights': 1 / sum_k (share_k^2 / ess_k). `join` makes one state of the runs' final
+    states, in order."""
+    if len(runs) == 1:
+        return runs[0]
+    count = math.log(len(runs))
+    frames = torch.cat([run.frame_log_evidence for run in runs])                        # (K, T)
+    shares = torch.softmax(frames, dim=0)
+    ess = 1.0 / (shares.square() / torch.cat([run.ess for run in runs])).sum(0, keepdim=True)
+    log_weights = torch.cat([torch.log_softmax(run.log_weights, dim=1) + run.log_evidence[:, None] for run in runs],
+                            dim=1)
+    offsets = torch.tensor([0] + [run.log_weights.shape[1] for run in runs[:-1]]).cumsum(0).tolist()
+    origin = torch.cat([run.origin + offset for run, offset in zip(runs, offsets)], dim=1)
+    resampled = torch.stack([run.resampled for run in runs]).any(dim=0)
+    return SMCRun(torch.logsumexp(torch.cat([run.log_evidence for run in runs]), 0, keepdim=True) - count,
+                  log_weights, join([run.state for run in runs]), ess, resampled, origin,
+                  torch.logsumexp(frames, dim=0, keepdim=True) - count)

@@ -11,7 +11,7 @@ from xvoe.inference.evidence import Evidence, smc_evidence, widenings_of
 from xvoe.inference.hypotheses import top_hypotheses
 from xvoe.inference.model import HiddenObjectModel, InferenceConfig, Proposal, _LinearGaussianScene
 from xvoe.inference.model_steps import ModelSteps
-from xvoe.inference.smc import run_smc, systematic_resample
+from xvoe.inference.smc import effective_sample_size, pooled, run_smc, systematic_resample
 
 pytestmark = pytest.mark.usefixtures("double_precision")
 
@@ -174,6 +174,30 @@ def test_the_evidence_after_every_frame_matches_the_kalman_filter():
     assert torch.equal(found.frame_log_evidence[:, -1], found.log_evidence)
 
 
+def test_pooled_runs_are_one_unbiased_estimate_with_every_particle_weighted_by_its_run():
+    """Runs pooled: their evidence the mean of theirs after every frame (so unbiased, over 2,000
+    pairs within three standard errors of the Kalman filter's), each run's particles weighted by
+    its share of that mean, the ESS that of the pooled weights."""
+    frames, runs = simulated_frames(), 2000
+    torch.manual_seed(0)
+    branch = object_branch(frames, rough_proposal())
+    first, second = (run_smc(branch, 8, runs=runs, generator=torch.Generator().manual_seed(seed)) for seed in (6, 7))
+    pairs = [pooled([first.one(r, branch), second.one(r, branch)], lambda states: states) for r in range(runs)]
+    evidence = torch.cat([pair.log_evidence for pair in pairs])
+    mean = torch.logaddexp(first.log_evidence, second.log_evidence) - math.log(2)
+    torch.testing.assert_close(evidence, mean, rtol=0, atol=1e-12)
+    exact = math.log(P) + kalman(frames)
+    ratio = torch.exp(evidence - exact)
+    assert abs(float(ratio.mean()) - 1) < 3 * float(ratio.std()) / math.sqrt(runs)
+    assert float(ratio.std()) < float(torch.exp(first.log_evidence - exact).std())     # and steadier than one
+    pair = pairs[0]
+    assert torch.equal(pair.frame_log_evidence[:, -1], pair.log_evidence) and pair.log_weights.shape == (1, 16)
+    shares = torch.softmax(pair.log_weights[0], 0).view(2, 8).sum(1)
+    torch.testing.assert_close(shares, torch.softmax(torch.stack([first.log_evidence[0], second.log_evidence[0]]), 0))
+    torch.testing.assert_close(pair.final_ess, effective_sample_size(pair.log_weights))
+    assert int(pair.lineages[0]) == len(first.origin[0].unique()) + len(second.origin[0].unique())
+
+
 def test_more_particles_narrow_the_estimate():
     frames, runs = simulated_frames(), 500
     torch.manual_seed(0)
@@ -279,7 +303,7 @@ def test_no_pilot_where_the_existence_head_is_sure_of_an_object():
                       for p in (0.3, 0.9))
     gated = config(particles=64, smc_pilot=8)
     assert smc_evidence(far, blank, gated, doubtful, torch.Generator().manual_seed(0)).particles == 8
-    assert smc_evidence(far, blank, gated, sure, torch.Generator().manual_seed(0)).particles == 64
+    assert smc_evidence(far, blank, gated, sure, torch.Generator().manual_seed(0)).particles == 2 * 64   # pooled
     always = config(particles=64, smc_pilot=8, smc_pilot_skip_exists=1.0)
     assert smc_evidence(far, blank, always, sure, torch.Generator().manual_seed(0)).particles == 8
 
@@ -305,6 +329,28 @@ def test_the_proposal_is_refined_only_for_a_full_run():
     unrefined = smc_evidence(far, blank, config(particles=64, smc_pilot=0), doubtful,
                              torch.Generator().manual_seed(0))
     assert found.log_evidence_hidden != unrefined.log_evidence_hidden    # the full run drew from the refined one
+
+
+def test_a_sure_video_pools_its_full_runs_and_a_doubtful_one_keeps_its_bytes():
+    """Where the existence head is sure of an object there is no pilot: sure_runs full runs around
+    the mean moved out of sight, pooled, the first of them the one run alone (the same draws, first
+    from the generator). A doubtful video's estimate does not depend on sure_runs."""
+    sure = Proposal(torch.tensor(0.9), torch.full((T, D), 0.5), torch.full((T, D), 0.6))
+    doubtful = Proposal(torch.tensor(0.3), sure.loc, sure.scale)
+    moved = Proposal(sure.p_exists, M_0.expand(T, -1), sure.scale)
+    frames = simulated_frames()
+
+    def estimate(proposal, runs):
+        return smc_evidence(linear_scene(), frames, config(particles=64, smc_pilot=8, sure_runs=runs), proposal,
+                            torch.Generator().manual_seed(0), refine=lambda given: moved)
+
+    pooled_three, alone = estimate(sure, 3), estimate(sure, 1)
+    assert pooled_three.particles == 3 * 64 and pooled_three.trajectories.shape == (3 * 64, T, D)
+    assert alone.particles == 64
+    torch.testing.assert_close(pooled_three.trajectories[:64], alone.trajectories, rtol=0, atol=0)
+    assert pooled_three.log_evidence_hidden != alone.log_evidence_hidden
+    once, thrice = estimate(doubtful, 1), estimate(doubtful, 3)
+    assert once.log_evidence == thrice.log_evidence and torch.equal(once.trajectories, thrice.trajectories)
 
 
 def test_pilots_must_come_smallest_first():
@@ -451,7 +497,7 @@ def test_explain_surprise_returns_the_heaviest_hypotheses_and_the_posterior_mean
     estimate = found.result.estimate
     expected = (estimate.weights[:, None, None] * estimate.trajectories.double()).sum(0)
     torch.testing.assert_close(posterior.mean.double(), expected, rtol=1e-5, atol=1e-5)
-    assert posterior.holding == 32
+    assert posterior.holding == estimate.particles == 2 * 32     # the head is sure here: two runs, pooled
     importance = explain_surprise(vae, xpl, *args, InferenceConfig(particles=32), method="importance", top=3)
     assert importance.method == "importance" and importance.hypotheses is not None
 
