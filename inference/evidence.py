@@ -2,7 +2,8 @@
 
 The SMC sums the existence of a hidden object and the explanation of the seen objects (one, or
 two identical ones) out exactly: without a hidden object, every latent is masked and one
-particle gives the exact branch; with one, N particles carry the trajectory (`run_smc`).
+particle gives the exact branch; with one, N particles carry the trajectory (`run_smc`), in
+runs pooled where the existence head is sure of an object (`pooled`).
 Importance sampling is the same run never resampled, the guide proposing existence and the
 explanation too.
 

@@ -9,6 +9,7 @@ moved into its evidence. Importance sampling is the same run never resampled (th
 
 The normaliser after each frame estimates p(x_<=t) the same way, so the evidence is kept
 frame by frame too (`SMCRun.frame_log_evidence`).
+Independent runs of one target pool into one estimate, the mean of their evidence (`pooled`).
 
 Pyro's `SMCFilter` is not used: it keeps float32 weights, renormalises them every step (the
 evidence is lost), and resamples from the global random state; here the weights are float64
