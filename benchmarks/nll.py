@@ -200,7 +200,8 @@ def report(table: dict[str, np.ndarray], args: argparse.Namespace, config: Infer
     if hidden.any():
         print(f"ESS among the particles that hold an object, on the {int(hidden.sum())} videos with an object "
               f"visible in no frame: median {holding_ess:.1f}, 10th percentile {np.percentile(holding, 10):.1f}, "
-              f"lowest {holding.min():.1f} of {config.particles} (goal: median >= 16)")
+              f"lowest {holding.min():.1f}, of {int(table['particles'][hidden].max())} particles (where the existence "
+              f"head is sure, runs pooled; goal: median >= 16)")
     p_hidden_hidden = share(table["p_hidden"][hidden] > 0.5)
     p_hidden_seen = share(table["p_hidden"][seen] < 0.5)
     print(f"p_hidden > 0.5 on {int((table['p_hidden'][hidden] > 0.5).sum())} of {int(hidden.sum())} videos with an "
