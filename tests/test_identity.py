@@ -15,8 +15,10 @@ import torch
 import xvoe
 from xvoe.cli import main
 from xvoe.errors import XvoeError
-from xvoe.evaluation.score_headers import new_header
+from xvoe.evaluation.score_headers import new_header, scored_nll
 from xvoe.fingerprints import _sampled_videos, arrays_hash, split_identity
+from xvoe.models.config import to_dict
+from xvoe.models.nll import InferenceConfig
 from xvoe.scenes import store
 from xvoe.training.checkpoints import shipped_path
 
@@ -213,6 +215,16 @@ def test_verify_rescores_the_nll_columns_with_the_settings_and_seed_the_file_rec
     found = capsys.readouterr().out
     assert "video 12: differs in nll" in found and found.count(": matches") == 21     # every other video
     assert "1 of 22 rows differ from what was written: row 13 (video 12): nll" in found    # its curve's sum
+
+
+def test_nll_settings_this_xvoe_no_longer_has_are_refused_in_one_line():
+    """A score file made with a setting measurement retired (the mode's steps) cannot have its NLL
+    run again as it was: verify and the explanation rows say so and ask for a rescore."""
+    recorded = to_dict(InferenceConfig(particles=8))
+    assert scored_nll("x.csv", {"nll": recorded}) == InferenceConfig(particles=8)
+    with pytest.raises(XvoeError, match=r"^x\.csv was scored with NLL settings this xvoe cannot run \(its NLL "
+                                        r"settings has no field\(s\) mode_steps .*\); rescore it$"):
+        scored_nll("x.csv", {"nll": recorded | {"mode_steps": 10}})
 
 
 def test_verify_names_an_edit_of_any_row_outside_the_rescored_sample(tmp_path):

@@ -13,12 +13,10 @@ import matplotlib.pyplot as plt
 
 from ..errors import XvoeError
 from ..evaluation.explain import DRAW_THRESHOLD
-from ..evaluation.score_headers import check_same_split, check_scored_by, score_header
+from ..evaluation.score_headers import check_same_split, check_scored_by, score_header, scored_nll
 from ..evaluation.score_tables import read_scores
 from ..evaluation.scorer import Scorer, as_scorer, encode_chunk
 from ..fingerprints import split_identity
-from ..models.config import from_dict
-from ..models.nll import InferenceConfig
 from ..progress import progress_bar
 from ..scenes import store
 from ..scenes.display import DISPLAY_SIZE
@@ -66,7 +64,7 @@ def nll_scorer(model: str | Scorer, data: str | Path, scores: str | Path) -> tup
     check_scored_by(scores, scorer, header)
     with store.open_dataset(data) as file:
         check_same_split(scores, split_identity(file), data, header)
-    return replace(scorer, nll=from_dict(InferenceConfig, header["nll"])), int(header["nll_seed"])
+    return replace(scorer, nll=scored_nll(scores, header)), int(header["nll_seed"])
 
 
 def explanation_rows(model: str | Scorer, data: str | Path, scores: str | Path, indices: list[int] | None = None,

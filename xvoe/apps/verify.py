@@ -20,12 +20,11 @@ from xvoe.inference.score import NLLRun, nll_run
 
 from ..errors import XvoeError
 from ..evaluation.score_curves import curve_columns
-from ..evaluation.score_headers import check_same_split, check_scored_by, curves_arrays, score_header
+from ..evaluation.score_headers import check_same_split, check_scored_by, curves_arrays, score_header, scored_nll
 from ..evaluation.score_tables import read_columns, scores_digest
 from ..evaluation.scorer import Scorer, load_model, names_code
 from ..fingerprints import split_identity
-from ..models.config import from_dict, to_dict
-from ..models.nll import InferenceConfig
+from ..models.config import to_dict
 from ..scenes import store
 from .verbs import score_batch, score_columns
 
@@ -87,7 +86,7 @@ def _verify_file(path: Path, rows: int, data: str | Path | None, seed: int, mode
     table = read_columns(path)
     scorer = load_model(source)
     check_scored_by(path, scorer, header)
-    nll = _nll_run(header, scorer)
+    nll = _nll_run(path, header, scorer)
     picked = np.sort(np.random.default_rng(seed).choice(len(table["index"]), min(rows, len(table["index"])),
                                                         replace=False))
     saved = curves_arrays(path.with_suffix(".curves.npz"))
@@ -181,12 +180,12 @@ def _stored_columns(saved: dict[str, np.ndarray], header: dict) -> dict[str, np.
     return found
 
 
-def _nll_run(header: dict, scorer: Scorer) -> NLLRun | None:
+def _nll_run(path: Path, header: dict, scorer: Scorer) -> NLLRun | None:
     """The NLL's settings and seed as the file was made with them (each checked as `--nll-set`
     would be), if it has the NLL's columns."""
     if "nll" not in header:
         return None
-    return nll_run(scorer, None, header["nll_seed"], to_dict(from_dict(InferenceConfig, header["nll"])))
+    return nll_run(scorer, None, header["nll_seed"], to_dict(scored_nll(path, header)))
 
 
 def _shown(value) -> str:

@@ -18,14 +18,15 @@ import numpy as np
 
 from ..errors import XvoeError
 from ..fingerprints import arrays_hash, describe_split, file_hash
-from ..models.config import to_dict
+from ..models.config import from_dict, to_dict
+from ..models.nll import InferenceConfig
 from ..training.stages import PERCEPTION, PHYDNET
 from .score_tables import scores_digest
 from .scorer import Scorer
 from .surprise import BETTER, PROPOSED
 
 __all__ = ["UncheckedScores", "check_curves_of", "check_same_split", "check_scored_by", "curves_arrays",
-           "header_of", "model_identity", "new_header", "package_version", "score_header", "scored_split",
+           "header_of", "model_identity", "new_header", "package_version", "score_header", "scored_nll", "scored_split",
            "surprise_definitions", "warn_unchecked"]
 
 
@@ -181,3 +182,13 @@ def check_scored_by(path: str | Path, scorer: Scorer, header: dict | None = None
 
 def _without_source(identity: dict) -> dict:
     return {key: value for key, value in identity.items() if key != "source"}
+
+
+def scored_nll(path: str | Path, header: dict) -> InferenceConfig:
+    """The NLL settings a score file was made with (its header's `nll`), to run the NLL again as
+    it was run; one line where this xvoe no longer has one of them (a setting measurement
+    retired), since its NLL cannot be made again."""
+    try:
+        return from_dict(InferenceConfig, header["nll"], "its NLL settings")
+    except XvoeError as error:
+        raise XvoeError(f"{path} was scored with NLL settings this xvoe cannot run ({error}); rescore it") from None
