@@ -23,6 +23,7 @@ from __future__ import annotations
 import math
 from collections.abc import Callable
 from dataclasses import dataclass
+from itertools import accumulate
 from typing import Any, Protocol
 
 import torch
@@ -145,15 +146,13 @@ def pooled(runs: list[SMCRun], join: Callable[[list[Any]], Any]) -> SMCRun:
     states, in order."""
     if len(runs) == 1:
         return runs[0]
-    count = math.log(len(runs))
     frames = torch.cat([run.frame_log_evidence for run in runs])                        # (K, T)
+    evidence = torch.logsumexp(frames, dim=0, keepdim=True) - math.log(len(runs))      # (1, T): the last, the video
     shares = torch.softmax(frames, dim=0)
     ess = 1.0 / (shares.square() / torch.cat([run.ess for run in runs])).sum(0, keepdim=True)
     log_weights = torch.cat([torch.log_softmax(run.log_weights, dim=1) + run.log_evidence[:, None] for run in runs],
                             dim=1)
-    offsets = torch.tensor([0] + [run.log_weights.shape[1] for run in runs[:-1]]).cumsum(0).tolist()
+    offsets = accumulate((run.log_weights.shape[1] for run in runs[:-1]), initial=0)
     origin = torch.cat([run.origin + offset for run, offset in zip(runs, offsets)], dim=1)
     resampled = torch.stack([run.resampled for run in runs]).any(dim=0)
-    return SMCRun(torch.logsumexp(torch.cat([run.log_evidence for run in runs]), 0, keepdim=True) - count,
-                  log_weights, join([run.state for run in runs]), ess, resampled, origin,
-                  torch.logsumexp(frames, dim=0, keepdim=True) - count)
+    return SMCRun(evidence[:, -1], log_weights, join([run.state for run in runs]), ess, resampled, origin, evidence)

@@ -31,7 +31,7 @@ from ..errors import XvoeError
 from ..evaluation.checks import check_spread
 from ..evaluation.explain import Explanation, explain_drawn
 from ..evaluation.explain import explain as explain_mse
-from ..evaluation.score_cache import latent_cache, prepare_latents
+from ..evaluation.score_cache import latent_cache
 from ..evaluation.score_curves import curve_columns
 from ..evaluation.score_headers import new_header
 from ..evaluation.score_tables import ScoreTable
@@ -242,9 +242,9 @@ def _score_in_workers(model: str | Scorer, scorer: Scorer, data: str | Path, out
     folder beside `out` named by this process (`parts_folder`), which a later run to `out`
     removes if this one was killed before it could."""
     out = claim_file(out, overwrite)      # refused before any work, as one run would be
-    settings["cache"] = prepare_latents(scorer, data, settings["cache"], progress=progress) or False
-    with open_test_split(scorer, data) as file:
+    with open_test_split(scorer, data) as file:      # checked, and its latent cache made, before any worker starts
         count = len(file["rgbd"])
+        settings["cache"] = latent_cache(scorer, data, settings["cache"], progress=progress) or False
     batch = settings["videos_per_batch"]
     shards = min(workers * PARTS_PER_WORKER, batch_count(count, batch))
     threads = max(1, cores() // workers)

@@ -12,9 +12,9 @@ from pathlib import Path
 from ..errors import XvoeError
 from ..outputs import claim_file, claim_scope
 from ..training.latents import check_cache, encode_with, encoder_key, split_cache
-from .scorer import Scorer, open_test_split
+from .scorer import Scorer
 
-__all__ = ["latent_cache", "prepare_latents"]
+__all__ = ["latent_cache"]
 
 
 @claim_scope()
@@ -56,11 +56,3 @@ def _usable_cache(path: Path, data: str | os.PathLike, perception: str, identity
             raise
         return False
     return True
-
-
-def prepare_latents(scorer: Scorer, data: str | os.PathLike, cache: str | os.PathLike | bool = True, *,
-                    progress: bool = False) -> Path | None:
-    """The test split's latent cache for a scorer (`latent_cache`), made now if missing: what the
-    processes of a run in parts read, made once before them."""
-    with open_test_split(scorer, data):
-        return latent_cache(scorer, data, cache, progress=progress)
