@@ -8,7 +8,7 @@
   and y of cubes and walls and x of balls: the kinds code height differently, so one probe for
   all of them mixes codes) and one for every visible object (reported). A ball's y has no goal:
   balls never leave the floor in the generator's splits (only falling cubes do), so it does not
-  vary and has no R^2 (docs/decisions.md, "The position probe per kind").
+  vary and has no R^2 (docs/decisions.md, "What the goals count").
 
 Held-out means frames the model was not trained on: a train-type split from another seed.
 Any split with states works (a test split too): nothing here trains.

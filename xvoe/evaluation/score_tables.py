@@ -89,8 +89,8 @@ def read_columns(path: Path, needed: tuple[str, ...] = ("index", "score"), hint:
 
 def _check_one_model(path: Path, names: np.ndarray) -> None:
     """One model's scores per file, under a usable name (`model_name_problem`): two names in one
-    file are refused rather than reported under the first (docs/decisions.md, "One model per
-    score file")."""
+    file are refused rather than reported under the first (docs/decisions.md, "Models of
+    your own")."""
     for number, name in enumerate(map(str, names), 1):
         problem = model_name_problem(name)
         if problem:

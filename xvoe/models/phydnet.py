@@ -42,7 +42,7 @@ class PhyDNetConfig:
     channels: int = within(4, COUNT)                               # RGBD
     # encoder: a stride-1 conv to the first width, then one stride-2 conv per further width;
     # the decoder mirrors it. The last width is the feature map the two branches work on: 16x16,
-    # as in the original at 64x64 (docs/decisions.md, "PhyDNet's network and loss")
+    # as in the original at 64x64 (docs/decisions.md, "The baselines' training")
     encoder_channels: tuple[int, ...] = within((16, 32), COUNT)
     phycell_kernel: int = within(7, COUNT)                         # k: k^2 derivative filters up to order k-1
     phycell_layers: int = within(1, COUNT)
@@ -50,7 +50,7 @@ class PhyDNetConfig:
     lstm_channels: tuple[int, ...] = within((32,), COUNT)          # ConvLSTM layers (the original: 128, 128, 64)
     # a ConvLSTM layer moves what it remembers by (kernel - 1) / 2 cells a frame: at 3, one cell
     # of the 16x16 map, slower than a cube falls behind a wall (~3 cells a frame); the original
-    # reaches 3 with its 3 stacked layers (docs/decisions.md, "PhyDNet's network and loss").
+    # reaches 3 with its 3 stacked layers (docs/decisions.md, "The baselines' training").
     # `widen_lstm_kernel` widens a trained network's gates
     lstm_kernel: int = within(3, COUNT)
     moment_weight: float = within(1.0, NON_NEGATIVE)                      # weight of the moment loss

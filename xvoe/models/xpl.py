@@ -57,7 +57,7 @@ class XPLConfig:
     refill_ignores_walls: bool = False
     # Transformer 2 and the existence head train in the joint stage too; off, in the proposal
     # stage alone, and the joint step costs a third less, since nothing else in it reads them
-    # (docs/decisions.md, "Transformer 2 out of the joint stage")
+    # (docs/decisions.md, "Training choices")
     joint_proposal: bool = True
 
 

@@ -178,8 +178,8 @@ def bridge_hidden(mean: Tensor, visible: Tensor) -> Tensor:
 
     Transformer 2 learns the hidden object in every frame from this. Transformer 1's fills
     would do for the seen frames only: they serve the dynamics, not the truth, and move a
-    cube behind a wall next to the ball it stops (docs/decisions.md, "Proposal targets bridge the
-    hidden spans");
+    cube behind a wall next to the ball it stops (docs/decisions.md, "Training
+    choices");
     scored on seen frames alone, Transformer 2 proposes nothing in the frames a wall covers.
     A static object is held exactly; one moving behind a wall is bridged at constant speed."""
     before, after = _seen_neighbours(visible)

@@ -25,7 +25,7 @@ from .xpl import fingerprint, run_xpl
 __all__ = ["ProposalNetworks", "train_proposal"]
 
 _PROPOSAL_BETA = 0.5   # the proposal stage's loss is the beta-NLL: with the plain NLL a hard latent's scale
-                       # grows and its mean stops learning (docs/decisions.md, "Proposal loss: beta-NLL")
+                       # grows and its mean stops learning (docs/decisions.md, "Training choices")
 
 
 class ProposalNetworks(nn.Module):

@@ -53,8 +53,8 @@ RECIPE = Recipe(
     nll=NLL,
     train_videos=10_000,
     perception=PerceptionConfig(),
-    # a quarter of each batch shows a ball or cube off the floor (docs/decisions.md, "Frames of
-    # objects in the air")
+    # a quarter of each batch shows a ball or cube off the floor (docs/decisions.md, "Training
+    # choices")
     perception_train=TrainConfig(steps=4_000, decay_steps=3_333, airborne_share=0.25, data_shards=1, threads=2),
     xpl=XPLConfig(inert_walls=True, stop_input_gradient=True, outside_refill=True, refill_ignores_walls=True,
                   joint_proposal=False),
@@ -67,11 +67,11 @@ RECIPE = Recipe(
                                threads=1),
     plato_train=PLATO_TRAIN,
     # changing pixels weigh more in the training loss; 3x3 gates, widened to 5x5 in a later phase
-    # (docs/decisions.md, "PhyDNet's network and loss")
+    # (docs/decisions.md, "The baselines' training")
     phydnet=PhyDNetConfig(change_weight=20.0, lstm_kernel=3),
     phydnet_train=PHYDNET_TRAIN,
     # the scenarios each baseline was weakest in, a share of every batch (docs/decisions.md,
-    # "The baselines' later phases")
+    # "The baselines' training")
     phases=(
         (PLATO, replace(PLATO_TRAIN, steps=75_000, focus_group="continuity", focus_share=0.5)),
         _phydnet_phase(10_000, 5.6e-4, "permanence", 0.5),
