@@ -141,7 +141,7 @@ def hidden_runs(model: HiddenObjectModel, frames: Tensor, config: InferenceConfi
     (`_pooled_runs`). `known`: the exact branches' log p(x, no object), summed; `refine` moves
     the proposal's mean out of sight before a full run (`inference.guide.out_of_sight`)."""
     if proposal is not None and float(proposal.p_exists) > config.smc_pilot_skip_exists:
-        return _pooled_runs(model, frames, config, proposal, known, generator, refine)
+        return _pooled_runs(model, frames, config, proposal, generator, refine)
     return _piloted_runs(model, frames, config, proposal, known, generator, refine)
 
 
@@ -165,22 +165,16 @@ def _piloted_runs(model: HiddenObjectModel, frames: Tensor, config: InferenceCon
     return [found[version] for version in range(model.scene.versions)]
 
 
-def _pooled_runs(model: HiddenObjectModel, frames: Tensor, config: InferenceConfig, proposal: Proposal, known: float,
+def _pooled_runs(model: HiddenObjectModel, frames: Tensor, config: InferenceConfig, proposal: Proposal,
                  generator: torch.Generator | None, refine: Callable[[Proposal], Proposal] | None) -> list[SMCRun]:
     """config.sure_runs full runs around the mean moved out of sight, each explanation's pooled
     into one estimate (`pooled`: the mean of their evidence). A never-seen cube is narrow and a
     run misses it now and then; the mean then loses log K nats where one run alone lost tens or
-    hundreds (docs/decisions.md, "The NLL's settings", row `sure_runs`). Where the branch with an
-    object trails `known` by more than config.sure_margin nats after the first run, as in a video
-    whose every object is seen that the head is wrongly sure of, the others are not run (row
-    `sure_margin`): a run that misses a never-seen cube trails by less."""
+    hundreds (docs/decisions.md, "The NLL's settings", row `sure_runs`)."""
     versions = list(range(model.scene.versions))
     proposal = refine(proposal) if refine is not None else proposal
-    made = [_runs(model, frames, config, proposal, versions, config.particles, generator)]
-    trail = known - _log_sum([float(run.log_evidence[0]) for run in made[0]])
-    if config.sure_margin is None or trail <= config.sure_margin:
-        made += [_runs(model, frames, config, proposal, versions, config.particles, generator)
-                 for _ in range(config.sure_runs - 1)]
+    made = [_runs(model, frames, config, proposal, versions, config.particles, generator)
+            for _ in range(config.sure_runs)]
     return [pooled(list(runs), _trajectories) for runs in zip(*made)]
 
 

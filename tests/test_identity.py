@@ -227,15 +227,6 @@ def test_nll_settings_this_xvoe_no_longer_has_are_refused_in_one_line():
         scored_nll("x.csv", {"nll": recorded | {"mode_steps": 10}})
 
 
-def test_an_nll_setting_added_since_a_score_file_was_made_is_read_as_it_ran_then():
-    """A header made before `sure_margin` existed ran every sure run: it is run again so, while a
-    header that records the setting keeps what it records."""
-    before = to_dict(InferenceConfig(particles=8))
-    del before["sure_margin"]
-    assert scored_nll("x.csv", {"nll": before}) == InferenceConfig(particles=8, sure_margin=None)
-    assert scored_nll("x.csv", {"nll": to_dict(InferenceConfig(particles=8))}).sure_margin == 45.0
-
-
 def test_verify_names_an_edit_of_any_row_outside_the_rescored_sample(tmp_path):
     """Every row is checked against the curves it was summed from, not only the rescored sample:
     each row's score edited in turn is named, as is an edited label or model name."""

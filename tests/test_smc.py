@@ -303,25 +303,9 @@ def test_no_pilot_where_the_existence_head_is_sure_of_an_object():
                       for p in (0.3, 0.9))
     gated = config(particles=64, smc_pilot=8)
     assert smc_evidence(far, blank, gated, doubtful, torch.Generator().manual_seed(0)).particles == 8
-    assert smc_evidence(far, blank, gated, sure, torch.Generator().manual_seed(0)).particles == 64   # no pilot of 8
+    assert smc_evidence(far, blank, gated, sure, torch.Generator().manual_seed(0)).particles == 2 * 64   # pooled
     always = config(particles=64, smc_pilot=8, smc_pilot_skip_exists=1.0)
     assert smc_evidence(far, blank, always, sure, torch.Generator().manual_seed(0)).particles == 8
-
-
-def test_a_sure_videos_first_run_ends_it_where_the_object_branch_trails_by_the_margin():
-    """Where the head is sure of an object that explains nothing (every object seen), the first
-    full run trails the branches without one by far more than sure_margin: the other runs are
-    skipped, and the estimate is that run's; with no margin they are run and pooled. The NLL is
-    the branches without an object's either way."""
-    blank = BACKGROUND.expand(T, -1) + 0.01
-    far = _LinearGaussianScene(T, M_0 + 20.0, 0.1, A, H, BACKGROUND)
-    sure = Proposal(torch.tensor(0.9), (M_0 + 20.0).expand(T, -1), torch.full((T, D), 0.6))
-    one, every = (smc_evidence(far, blank, config(particles=64, smc_pilot=8, sure_runs=3, sure_margin=margin), sure,
-                               torch.Generator().manual_seed(0)) for margin in (45.0, None))
-    assert one.log_evidence_empty - one.log_evidence_hidden > 45.0
-    assert one.particles == 64 and every.particles == 3 * 64
-    torch.testing.assert_close(one.trajectories, every.trajectories[:64], rtol=0, atol=0)    # the same first run
-    assert one.log_evidence == pytest.approx(every.log_evidence, abs=1e-12) == one.log_evidence_empty
 
 
 def test_the_proposal_is_refined_only_for_a_full_run():

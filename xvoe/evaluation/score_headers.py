@@ -184,16 +184,11 @@ def _without_source(identity: dict) -> dict:
     return {key: value for key, value in identity.items() if key != "source"}
 
 
-# NLL settings added since score files recorded theirs, each with the value that runs the NLL as
-# a file made before it was: a header without one was made without it
-_NLL_ADDED = {"sure_margin": None}
-
-
 def scored_nll(path: str | Path, header: dict) -> InferenceConfig:
-    """The NLL settings a score file was made with (its header's `nll`; a setting added since,
-    as it was before: `_NLL_ADDED`), to run the NLL again as it was run; one line where this xvoe
-    no longer has one of them (a setting measurement retired), since its NLL cannot be made again."""
+    """The NLL settings a score file was made with (its header's `nll`), to run the NLL again as
+    it was run; one line where this xvoe no longer has one of them (a setting measurement
+    retired), since its NLL cannot be made again."""
     try:
-        return from_dict(InferenceConfig, {**_NLL_ADDED, **header["nll"]}, "its NLL settings")
+        return from_dict(InferenceConfig, header["nll"], "its NLL settings")
     except XvoeError as error:
         raise XvoeError(f"{path} was scored with NLL settings this xvoe cannot run ({error}); rescore it") from None

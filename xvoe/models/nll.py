@@ -78,8 +78,3 @@ class InferenceConfig:
     # the mean then loses log K nats where a run alone lost tens or hundreds (docs/decisions.md,
     # "The NLL's settings")
     sure_runs: int = within(2, COUNT)
-    # where the branch with an object trails the ones without by more than this after the first
-    # sure run, the others are not run (None: always run): in a video whose every object is seen
-    # that the existence head is wrongly sure of it trails by more, where a run that misses a
-    # never-seen cube trails by less (docs/decisions.md, "The NLL's settings")
-    sure_margin: float | None = within(45.0, NON_NEGATIVE)
