@@ -67,7 +67,7 @@ class PipelineConfig:
     workers: int = 2
     progress: bool = True
     jobs: int = 1       # models trained side by side, each with cores/jobs threads (0: one per core); they hold
-                        # more memory together (docs/decisions.md, "Pipeline lanes")
+                        # more memory together (docs/decisions.md, "Processes and threads")
     train_processes: int = 0    # one-thread processes that train the XPL, proposal and PLATO stages together (0:
                                 # one per core; with --jobs above 1, each lane trains in one process); fewer
                                 # where a stage's data shards do not split among them (`stage_processes`)
@@ -144,8 +144,8 @@ def run_pipeline(config: PipelineConfig) -> Path:
     if on_device:       # lanes and one-thread processes share out CPU cores; one process drives a device
         processes = 1
     if any(model in TRAINED_ON_LATENTS for model in config.models):     # PhyDNet and the random agent need none
-        # one process with every core's thread: its convolutions use them (docs/decisions.md, "Training
-        # stages on every core")
+        # one process with every core's thread: its convolutions use them (docs/decisions.md, "Processes
+        # and threads")
         stages.run(PERCEPTION, lambda: train_perception(
             train_data, run_dir, recipe_name=config.recipe, progress=config.progress,
             resume=checkpoint_path(run_dir, PERCEPTION).exists(), seed=config.seed, device=config.device))

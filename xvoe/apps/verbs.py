@@ -88,8 +88,8 @@ def score(model: str | Scorer | SurpriseModel, data: str | Path, out: str | Path
     {"pixel_sigma": 1.0}, to see how each moves the verdicts.
     workers: processes that each score a shard with the cores shared out, then merged: the
     bytes of one run with as many threads as each worker has. On 2 cores the NLL's small
-    tensors keep two processes busier than two threads (docs/decisions.md, "Scoring in worker
-    processes").
+    tensors keep two processes busier than two threads (docs/decisions.md, "Processes and
+    threads").
     checks: a model answering `surprise(videos)` (a model of your own, PhyDNet, random) passes
     the harness of xvoe.evaluation.checks before its scores are written; False skips all but
     the finite check (docs/evaluate-your-model.md, "4. The checks"). device: where a model given

@@ -2,7 +2,7 @@
 
 On a small CPU, one-thread processes that share a batch through DistributedDataParallel
 train faster than one process with as many threads: the models' layers are too small to
-keep a second thread busy (docs/decisions.md, "Training stages on every core").
+keep a second thread busy (docs/decisions.md, "Processes and threads").
 """
 from __future__ import annotations
 

@@ -33,7 +33,7 @@ class Stage:
     # makes no model of its own (`xvoe score --model NAME` scores the others)
     role: str = ""
     # `xvoe pipeline --jobs` lanes start the lowest first: the longest training, so that the last lane does
-    # not start it late (docs/decisions.md, "Pipeline lanes")
+    # not start it late (docs/decisions.md, "Processes and threads")
     lane: int = 0
     nll: bool = False           # its checkpoint stores the recipe's NLL settings: the model the NLL surprise runs on
     variant: str = ""           # XPL-family stages: the network XPL is fitted to (XPL or PLATO)

@@ -19,7 +19,7 @@ from .recipe import Recipe
 __all__ = ["RECIPE"]     # read by name: xvoe.training.recipes
 
 # two fixed data shards: a stage's batches are then the same on one core, two or four
-# (docs/decisions.md, "Batches that do not depend on the cores"); and fixed threads, which split
+# (docs/decisions.md, "Processes and threads"); and fixed threads, which split
 # the sums: a stage of two one-thread processes, or one process of two threads (docs/decisions.md,
 # "One seed, one set of weights")
 SHARDS = 2
