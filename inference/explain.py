@@ -160,7 +160,7 @@ def nll_explanation(vae, xpl, video: dict, particles: int, title: str = "", obse
     if result.identity is not None:
         heading += f", p(two identical objects) = {result.p_two:.2f}"
     if result.estimate.particles < particles:     # a pilot run sufficed (inference.evidence.hidden_runs): say so
-        heading += f"\nfrom a pilot of {result.estimate.particles} particles, not the {particles:,} asked"
+        heading += f"\nfrom a pilot run: {result.estimate.particles} of the {particles:,} particles asked"
     holding = (posterior.holding, posterior.ess) if posterior is not None else (0, 0.0)
     drawn = []
     if posterior is not None and found.hypotheses is not None:

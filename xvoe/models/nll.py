@@ -60,7 +60,7 @@ class InferenceConfig:
     # first); where the branch with a hidden object then trails the one without by more than
     # smc_pilot_margin nats, it changes log p(x) by less than exp(-margin) and the larger runs
     # are skipped (most videos show every object)
-    smc_pilot: int | tuple[int, ...] = within(4, NON_NEGATIVE)
+    smc_pilot: int | tuple[int, ...] = within(1, NON_NEGATIVE)
     smc_pilot_margin: float = within(30.0, NON_NEGATIVE)
     # no pilot where the guide's existence probability is above this (1.0: pilots everywhere):
     # a small pilot can miss a hidden object that XPL's existence head is sure of, and the
