@@ -43,7 +43,7 @@ def trails(scorer, batch: dict, drawn, index: int, config: InferenceConfig, size
     """(sizes, V) trails of one video's explanations, or None where it takes no pilot."""
     frames, visible, occluder = (batch[name][index] for name in ("frames", "visible", "occluder"))
     scene, proposal, free = scene_and_proposal(scorer.vae, scorer.xpl, visible, occluder, drawn.video(index), config)
-    if not free or float(proposal.p_exists) > config.smc_pilot_skip_exists:
+    if not free or float(proposal.head) > config.smc_pilot_skip_exists:
         return None
     full = out_of_sight(scene, proposal, frames, config)
     model, generator = HiddenObjectModel(scene, config), torch.Generator().manual_seed(seed)

@@ -140,8 +140,8 @@ def hidden_runs(model: HiddenObjectModel, frames: Tensor, config: InferenceConfi
     an object, pilots first (`_piloted_runs`); where it is sure, full runs pooled
     (`_pooled_runs`). `known`: the exact branches' log p(x, no object), summed; `refine` moves
     the proposal's mean out of sight before a full run (`inference.guide.out_of_sight`)."""
-    if proposal is not None and float(proposal.p_exists) > config.smc_pilot_skip_exists:
-        return _pooled_runs(model, frames, config, proposal, generator, refine)
+    if proposal is not None and float(proposal.head) > config.smc_pilot_skip_exists:
+        return _pooled_runs(model, frames, config, proposal, known, generator, refine)
     return _piloted_runs(model, frames, config, proposal, known, generator, refine)
 
 
@@ -166,16 +166,27 @@ def _piloted_runs(model: HiddenObjectModel, frames: Tensor, config: InferenceCon
 
 
 def _pooled_runs(model: HiddenObjectModel, frames: Tensor, config: InferenceConfig, proposal: Proposal,
-                 generator: torch.Generator | None, refine: Callable[[Proposal], Proposal] | None) -> list[SMCRun]:
+                 known: float, generator: torch.Generator | None,
+                 refine: Callable[[Proposal], Proposal] | None) -> list[SMCRun]:
     """config.sure_runs full runs around the mean moved out of sight, each explanation's pooled
     into one estimate (`pooled`: the mean of their evidence). A never-seen cube is narrow and a
     run misses it now and then; the mean then loses log K nats where one run alone lost tens or
-    hundreds (docs/decisions.md, "The NLL's settings", row `sure_runs`)."""
+    hundreds (docs/decisions.md, "The NLL's settings", row `sure_runs`). Where the existence head
+    is sure but not above config.sure_runs_exists, mostly videos whose every object is seen, an
+    explanation whose first run trails `known` by more than smc_pilot_margin nats ends there, as
+    after a pilot (row `sure_runs_exists`)."""
     versions = list(range(model.scene.versions))
     proposal = refine(proposal) if refine is not None else proposal
-    made = [_runs(model, frames, config, proposal, versions, config.particles, generator)
-            for _ in range(config.sure_runs)]
-    return [pooled(list(runs), _trajectories) for runs in zip(*made)]
+    first = _runs(model, frames, config, proposal, versions, config.particles, generator)
+    made = {version: [run] for version, run in zip(versions, first)}
+    more = versions if float(proposal.head) > config.sure_runs_exists else [
+        version for version, run in zip(versions, first)
+        if known - float(run.log_evidence[0]) <= config.smc_pilot_margin]
+    for _ in range(config.sure_runs - 1):
+        if more:
+            for version, run in zip(more, _runs(model, frames, config, proposal, more, config.particles, generator)):
+                made[version].append(run)
+    return [pooled(made[version], _trajectories) for version in versions]
 
 
 def _runs(model: HiddenObjectModel, frames: Tensor, config: InferenceConfig, proposal: Proposal | None,

@@ -5,6 +5,7 @@ the mean moved out of sight where it spoils the frames (`out_of_sight`)."""
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 
 import torch
 from torch import Tensor
@@ -26,9 +27,9 @@ def hidden_proposal(xpl: XPL, loc: Tensor, scale: Tensor, config: InferenceConfi
     the full run's mean is first moved out of sight (`out_of_sight`)."""
     spread = scale.clamp_min(xpl.config.reasoning.min_scale)
     if not free:
-        return Proposal(loc.new_zeros(()), loc, spread)
+        return Proposal(loc.new_zeros(()), loc, spread, loc.new_zeros(()))
     p_exists = torch.sigmoid(xpl.existence_logit(loc[None], spread[None]))[0]
-    return Proposal(_defensive(p_exists, config.particles), loc, spread)
+    return Proposal(_defensive(p_exists, config.particles), loc, spread, p_exists)
 
 
 def out_of_sight(scene: XPLScene, proposal: Proposal, frames: Tensor, config: InferenceConfig) -> Proposal:
@@ -37,7 +38,7 @@ def out_of_sight(scene: XPLScene, proposal: Proposal, frames: Tensor, config: In
     surely without it (docs/decisions.md, "The NLL's settings", row `refine_steps`)."""
     if not config.refine_steps:
         return proposal
-    return Proposal(proposal.p_exists, _refine_out_of_sight(scene, proposal.loc, frames, config), proposal.scale)
+    return replace(proposal, loc=_refine_out_of_sight(scene, proposal.loc, frames, config))
 
 
 def _defensive(p_exists: Tensor, particles: int) -> Tensor:

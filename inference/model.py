@@ -123,9 +123,12 @@ def _pixel_log_density(expected: Tensor, observed: Tensor, sigma: float) -> Tens
 class Proposal:
     """The guide's parameters for one video."""
 
-    p_exists: Tensor                # scalar
+    p_exists: Tensor                # scalar, what the guide draws `exists` from
     loc: Tensor                     # (T, D)
     scale: Tensor                   # (T, D)
+    # scalar: XPL's existence head's own probability, before the guide keeps it off 0 and 1; what
+    # decides whether a pilot runs (`inference.evidence.hidden_runs`)
+    head: Tensor
 
 
 class HiddenObjectModel(nn.Module):

@@ -100,7 +100,7 @@ def test_importance_sampling_matches_the_kalman_evidence_and_the_posterior_of_ex
     frames = simulate_frames(2)
     mean, chol = trajectory_posterior(frames)
     marginal_sd = torch.sqrt((chol ** 2).sum(1)).reshape(T, D)
-    proposal = Proposal(torch.tensor(0.5), mean.reshape(T, D), 1.2 * marginal_sd)
+    proposal = Proposal(torch.tensor(0.5), mean.reshape(T, D), 1.2 * marginal_sd, torch.tensor(0.5))
     found = importance_evidence(linear_scene(), frames, settings(widening, particles=20_000), proposal,
                                 torch.Generator().manual_seed(3))
     weights = torch.exp(found.log_weights - found.log_weights.max())
@@ -115,7 +115,7 @@ def test_importance_sampling_matches_the_kalman_evidence_and_the_posterior_of_ex
 
 def test_the_models_guide_matches_the_model():
     frames, model = simulate_frames(2), linear_model()
-    proposal = Proposal(torch.tensor(0.5), torch.zeros(T, D), torch.ones(T, D))
+    proposal = Proposal(torch.tensor(0.5), torch.zeros(T, D), torch.ones(T, D), torch.tensor(0.5))
     pyro.set_rng_seed(0)
     guide_trace = poutine.trace(model.guide).get_trace(frames, proposal, particles=8)
     model_trace = poutine.trace(poutine.replay(model.model, trace=guide_trace)).get_trace(frames, proposal, 8)
@@ -130,7 +130,8 @@ def test_a_widened_proposal_becomes_the_models_own_prior():
     unwidened, they do."""
     frames = simulate_frames(2)
     mean, chol = trajectory_posterior(frames)
-    proposal = Proposal(torch.tensor(0.9), mean.reshape(T, D), 0.5 * torch.sqrt((chol ** 2).sum(1)).reshape(T, D))
+    proposal = Proposal(torch.tensor(0.9), mean.reshape(T, D), 0.5 * torch.sqrt((chol ** 2).sum(1)).reshape(T, D),
+                        torch.tensor(0.9))
     gaps = {}
     for widening in (1.0, 1e6):
         model = linear_model(widening=widening)

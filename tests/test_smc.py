@@ -138,7 +138,7 @@ def object_branch(frames, proposal=None):
 
 def rough_proposal():
     """A per-frame guess that is off: the guide's fused proposal must still be exact in expectation."""
-    return Proposal(torch.tensor(0.5), torch.full((T, D), 0.5), torch.full((T, D), 0.6))
+    return Proposal(torch.tensor(0.5), torch.full((T, D), 0.5), torch.full((T, D), 0.6), torch.tensor(0.5))
 
 
 @pytest.mark.parametrize("particles", [4, 16, 64])
@@ -297,15 +297,23 @@ def test_each_explanation_keeps_its_pilot_or_takes_the_full_run_on_its_own():
 
 
 def test_no_pilot_where_the_existence_head_is_sure_of_an_object():
+    """Where the head doubts an object, a pilot; where it is sure, no pilot: sure_runs full runs
+    pooled, but under sure_runs_exists a first run that trails by the pilot's margin ends the
+    video. The head's own probability decides, not the guide's, which _defensive keeps at most
+    1 - 8/64."""
     blank = BACKGROUND.expand(T, -1) + 0.01   # a pilot would dismiss the object branch here
     far = _LinearGaussianScene(T, M_0 + 20.0, 0.1, A, H, BACKGROUND)
-    doubtful, sure = (Proposal(torch.tensor(p), (M_0 + 20.0).expand(T, -1), torch.full((T, D), 0.6))
-                      for p in (0.3, 0.9))
-    gated = config(particles=64, smc_pilot=8)
-    assert smc_evidence(far, blank, gated, doubtful, torch.Generator().manual_seed(0)).particles == 8
-    assert smc_evidence(far, blank, gated, sure, torch.Generator().manual_seed(0)).particles == 2 * 64   # pooled
-    always = config(particles=64, smc_pilot=8, smc_pilot_skip_exists=1.0)
-    assert smc_evidence(far, blank, always, sure, torch.Generator().manual_seed(0)).particles == 8
+    guide = torch.tensor(0.875)
+    doubtful, sure, surest = (Proposal(min(guide, torch.tensor(p)), (M_0 + 20.0).expand(T, -1),
+                                       torch.full((T, D), 0.6), torch.tensor(p)) for p in (0.3, 0.9, 0.99))
+    gated = config(particles=64, smc_pilot=8, smc_pilot_skip_exists=0.5, sure_runs=2, sure_runs_exists=0.95)
+    for proposal, particles in ((doubtful, 8), (sure, 64), (surest, 2 * 64)):     # `sure`'s first run trails
+        assert smc_evidence(far, blank, gated, proposal, torch.Generator().manual_seed(0)).particles == particles
+    near = replace(sure, loc=M_0.expand(T, -1))       # an object explains these frames: the runs are pooled
+    assert smc_evidence(linear_scene(), simulated_frames(), gated, near,
+                        torch.Generator().manual_seed(0)).particles == 2 * 64
+    always = replace(gated, smc_pilot_skip_exists=1.0)
+    assert smc_evidence(far, blank, always, surest, torch.Generator().manual_seed(0)).particles == 8
 
 
 def test_the_proposal_is_refined_only_for_a_full_run():
@@ -313,12 +321,12 @@ def test_the_proposal_is_refined_only_for_a_full_run():
     paid once, by a video that goes on to its full run, which then draws from what it returns."""
     blank = BACKGROUND.expand(T, -1) + 0.01
     far = _LinearGaussianScene(T, M_0 + 20.0, 0.1, A, H, BACKGROUND)
-    doubtful = Proposal(torch.tensor(0.3), (M_0 + 20.0).expand(T, -1), torch.full((T, D), 0.6))
+    doubtful = Proposal(torch.tensor(0.3), (M_0 + 20.0).expand(T, -1), torch.full((T, D), 0.6), torch.tensor(0.3))
     calls = []
 
     def refine(proposal: Proposal) -> Proposal:
         calls.append(proposal)
-        return Proposal(proposal.p_exists, M_0.expand(T, -1), proposal.scale)
+        return replace(proposal, loc=M_0.expand(T, -1))
 
     gated = config(particles=64, smc_pilot=8)
     assert smc_evidence(far, blank, gated, doubtful, torch.Generator().manual_seed(0), refine=refine).particles == 8
@@ -335,9 +343,9 @@ def test_a_sure_video_pools_its_full_runs_and_a_doubtful_one_keeps_its_bytes():
     """Where the existence head is sure of an object there is no pilot: sure_runs full runs around
     the mean moved out of sight, pooled, the first of them the one run alone (the same draws, first
     from the generator). A doubtful video's estimate does not depend on sure_runs."""
-    sure = Proposal(torch.tensor(0.9), torch.full((T, D), 0.5), torch.full((T, D), 0.6))
-    doubtful = Proposal(torch.tensor(0.3), sure.loc, sure.scale)
-    moved = Proposal(sure.p_exists, M_0.expand(T, -1), sure.scale)
+    sure = Proposal(torch.tensor(0.875), torch.full((T, D), 0.5), torch.full((T, D), 0.6), torch.tensor(0.99))
+    doubtful = Proposal(torch.tensor(0.3), sure.loc, sure.scale, torch.tensor(0.3))
+    moved = replace(sure, loc=M_0.expand(T, -1))
     frames = simulated_frames()
 
     def estimate(proposal, runs):
@@ -410,7 +418,8 @@ def test_the_frame_by_frame_weights_are_the_whole_videos_model_over_guide(exists
     settings = InferenceConfig(pixel_sigma=0.3, motion_sigma=0.2, transition_sigma=0.1, exposure_penalty=1.5,
                                presence_penalty=1.5, object_area=0.9)
     model = HiddenObjectModel(scene, settings)
-    proposal = Proposal(torch.tensor(0.5), torch.randn(scene.frames, scene.dim), torch.ones(scene.frames, scene.dim))
+    proposal = Proposal(torch.tensor(0.5), torch.randn(scene.frames, scene.dim), torch.ones(scene.frames, scene.dim),
+                        torch.tensor(0.5))
     steps = ModelSteps(model, frames, proposal, (settings.proposal_widening,),
                        None if exists is None else {"exists": float(exists)})
     torch.manual_seed(0)
@@ -431,7 +440,8 @@ def test_the_frame_by_frame_weights_are_the_whole_videos_model_over_guide(exists
 
 def test_smc_runs_on_the_xpl_scene_and_resamples_the_dynamics_memory():
     scene, frames = tiny_xpl_scene()
-    proposal = Proposal(torch.tensor(0.5), torch.zeros(scene.frames, scene.dim), torch.ones(scene.frames, scene.dim))
+    proposal = Proposal(torch.tensor(0.5), torch.zeros(scene.frames, scene.dim), torch.ones(scene.frames, scene.dim),
+                        torch.tensor(0.5))
     settings = InferenceConfig(particles=16, smc_pilot=0)
     with torch.no_grad():
         found = smc_evidence(scene, frames, settings, proposal, torch.Generator().manual_seed(0))
@@ -487,7 +497,7 @@ def test_explain_surprise_returns_the_heaviest_hypotheses_and_the_posterior_mean
     from xvoe.inference.surprise import explain_surprise, hidden_posterior
 
     (vae, xpl), args = tiny_video()
-    found = explain_surprise(vae, xpl, *args, InferenceConfig(particles=32, smc_pilot=0), top=3)
+    found = explain_surprise(vae, xpl, *args, InferenceConfig(particles=32, smc_pilot=0, sure_runs_exists=0.5), top=3)
     hypotheses = found.hypotheses
     assert found.method == "smc" and found.hidden_slot == 3
     assert hypotheses.trajectories.shape[1:] == (args[1].shape[0], args[1].shape[2])
@@ -497,7 +507,7 @@ def test_explain_surprise_returns_the_heaviest_hypotheses_and_the_posterior_mean
     estimate = found.result.estimate
     expected = (estimate.weights[:, None, None] * estimate.trajectories.double()).sum(0)
     torch.testing.assert_close(posterior.mean.double(), expected, rtol=1e-5, atol=1e-5)
-    assert posterior.holding == estimate.particles == 2 * 32     # the head is sure here: two runs, pooled
+    assert posterior.holding == estimate.particles == 2 * 32     # the head is above 0.5 here: two runs, pooled
     importance = explain_surprise(vae, xpl, *args, InferenceConfig(particles=32), method="importance", top=3)
     assert importance.method == "importance" and importance.hypotheses is not None
 

@@ -118,7 +118,7 @@ def test_the_scene_drawn_in_a_batch_is_the_scene_drawn_for_the_video_alone():
 def test_the_model_and_guide_match_with_the_identity_site():
     scene, frames = tiny_two_scene()
     model = HiddenObjectModel(scene, InferenceConfig(prior_two=0.3))
-    proposal = Proposal(torch.tensor(0.5), torch.zeros(T, D), torch.ones(T, D))
+    proposal = Proposal(torch.tensor(0.5), torch.zeros(T, D), torch.ones(T, D), torch.tensor(0.5))
     with torch.no_grad():
         guide_trace = poutine.trace(model.guide).get_trace(frames, proposal, particles=16)
         model_trace = poutine.trace(poutine.replay(model.model, trace=guide_trace)).get_trace(frames, proposal, 16)

@@ -62,7 +62,7 @@ class InferenceConfig:
     # are skipped (most videos show every object)
     smc_pilot: int | tuple[int, ...] = within(1, NON_NEGATIVE)
     smc_pilot_margin: float = within(30.0, NON_NEGATIVE)
-    # no pilot where the guide's existence probability is above this (1.0: pilots everywhere):
+    # no pilot where XPL's existence head's probability is above this (1.0: pilots everywhere):
     # a small pilot can miss a hidden object that XPL's existence head is sure of, and the
     # video's NLL then swings by hundreds of nats between seeds (docs/decisions.md, "The
     # NLL's settings")
@@ -72,9 +72,14 @@ class InferenceConfig:
     # marginals costs weight variance at each step: the wide component keeps the particles near
     # the dynamics, the narrow one finds the hypotheses that the marginals point at
     smc_proposal_widening: float | tuple[float, ...] | None = within((3.0, 10.0), POSITIVE)
-    # full runs pooled where the existence head is sure of an object (above smc_pilot_skip_exists:
+    # full runs pooled where the existence head is surest of an object (above sure_runs_exists:
     # the never-seen-cube videos), each of `particles` around the mean moved out of sight: the
     # evidence is their mean. A never-seen cube is narrow and one run misses it now and then;
     # the mean then loses log K nats where a run alone lost tens or hundreds (docs/decisions.md,
     # "The NLL's settings")
     sure_runs: int = within(2, COUNT)
+    # where the head's probability lies between smc_pilot_skip_exists and this, the first full run
+    # ends an explanation that trails by more than smc_pilot_margin nats, as a pilot does: there
+    # the head is mostly wrong (videos whose every object is seen, where the run finds none), and
+    # a never-seen cube is rare (docs/decisions.md, "The NLL's settings")
+    sure_runs_exists: float = within(0.95, SHARE)

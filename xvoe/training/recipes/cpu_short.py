@@ -40,7 +40,7 @@ NLL = InferenceConfig(
     method="smc", particles=64, resample_threshold=0.5,
     smc_pilot=1, smc_pilot_margin=30.0, smc_pilot_skip_exists=0.5,
     proposal_widening=3.0, smc_proposal_widening=(3.0, 10.0),
-    refine_steps=5, refine_rate=0.1, refine_tolerance=1.0, sure_runs=2,
+    refine_steps=5, refine_rate=0.1, refine_tolerance=1.0, sure_runs=2, sure_runs_exists=0.95,
 )
 
 
