@@ -4,7 +4,8 @@ each pilot size: what decides how small the SMC's pilot may be.
     python benchmarks/nll_pilot.py --model xpl --data val.h5 [--sizes 4,8,16,64] [--seed 0] [--threads 1]
 
 For every video of the split with a slot free for a hidden object and an existence probability
-at most `smc_pilot_skip_exists` (the videos that take a pilot), each explanation of what was seen
+at most `smc_pilot_skip_exists` (the videos that take a pilot, and those under `smc_object_floor`,
+which take none on the strength of what this measures), each explanation of what was seen
 is run by SMC at every size (a pilot from Transformer 2's mean, the full run from that mean moved
 out of sight, as `hidden_runs` runs them); its trail is log p(x, no object) summed over the
 explanations (exact) less the run's log p^(x, object, explanation). A pilot of size n stops an explanation where its

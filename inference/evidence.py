@@ -103,8 +103,9 @@ def smc_evidence(scene: Scene, frames: Tensor, config: InferenceConfig, proposal
     """One video's evidence, summed over the scene's explanations of what was seen (its
     versions): each run once without a hidden object (one particle: every latent is masked, so
     it is exact) and by SMC over `config.particles` particles with one. `free` False: no slot is
-    left for a hidden object, and the evidence is that of the branches without one. `refine`:
-    what the full run's proposal is made from the pilot's (`hidden_runs`)."""
+    left for a hidden object, and the evidence is that of the branches without one, as where the
+    existence head all but rules one out (`hidden_runs`; then 0 particles). `refine`: what the
+    full run's proposal is made from the pilot's."""
     model = HiddenObjectModel(scene, config)
     device, versions = frames.device, range(scene.versions)
     with seeded(generator, device):
@@ -116,8 +117,8 @@ def smc_evidence(scene: Scene, frames: Tensor, config: InferenceConfig, proposal
     total = _log_sum(empty_end + hidden_end)
     p_two = math.exp(_log_sum(empty_end[1:] + hidden_end[1:]) - total) if scene.versions > 1 else 0.0
     frame_nll = _frame_surprise(empty + [run.frame_log_evidence[0] for run in runs])
-    if not free:
-        particles = config.particles
+    if not runs:        # no slot free for a hidden object, or no run made for one (`hidden_runs`)
+        particles = config.particles if not free else 0
         return Evidence(total, -math.inf, total, 0.0, float(particles), float(particles), 0, 0, particles,
                         None, None, frame_nll=frame_nll, p_two=p_two)
     hidden = _log_sum(hidden_end)
@@ -138,8 +139,12 @@ def hidden_runs(model: HiddenObjectModel, frames: Tensor, config: InferenceConfi
     """The SMC of the branch with a hidden object under each explanation of what was seen (one
     run each, in order, the explanations stepped as one batch). Where the existence head doubts
     an object, pilots first (`_piloted_runs`); where it is sure, full runs pooled
-    (`_pooled_runs`). `known`: the exact branches' log p(x, no object), summed; `refine` moves
+    (`_pooled_runs`); where it all but rules one out (under config.smc_object_floor), none: the
+    branch with an object counts as nothing, as after a pilot that trails by more than float64
+    keeps of log p(x). `known`: the exact branches' log p(x, no object), summed; `refine` moves
     the proposal's mean out of sight before a full run (`inference.guide.out_of_sight`)."""
+    if proposal is not None and float(proposal.head) < config.smc_object_floor:
+        return []
     if proposal is not None and float(proposal.head) > config.smc_pilot_skip_exists:
         return _pooled_runs(model, frames, config, proposal, known, generator, refine)
     return _piloted_runs(model, frames, config, proposal, known, generator, refine)

@@ -35,7 +35,7 @@ class NLLExplanation(Explanation):
     p_two: float = 0.0          # posterior probability that a seen object is two identical ones
     ess: float = 0.0            # effective sample size of the final weights
     nll: float = 0.0            # the video's surprise, -log p(video), nats
-    particles: int = 0          # particles drawn (a pilot's, where a pilot sufficed; two runs' where pooled)
+    particles: int = 0          # particles drawn (a pilot's where it sufficed, two runs' where pooled, 0: none)
     holding: int = 0            # of them, those that held a hidden object
     holding_ess: float = 0.0    # the effective sample size among those
     # the heaviest distinct hypotheses of what is hidden, each decoded alone: (label, frames)
@@ -159,7 +159,9 @@ def nll_explanation(vae, xpl, video: dict, particles: int, title: str = "", obse
     heading += f"NLL {result.nll:.0f} nats, p(hidden object) = {result.p_hidden:.2f}"
     if result.identity is not None:
         heading += f", p(two identical objects) = {result.p_two:.2f}"
-    if result.estimate.particles < particles:     # a pilot run sufficed (inference.evidence.hidden_runs): say so
+    if result.estimate.particles == 0:     # the existence head all but ruled one out (inference.evidence.hidden_runs)
+        heading += "\nno run with a hidden object: XPL's existence head all but rules one out"
+    elif result.estimate.particles < particles:     # a pilot run sufficed: say so
         heading += f"\nfrom a pilot run: {result.estimate.particles} of the {particles:,} particles asked"
     holding = (posterior.holding, posterior.ess) if posterior is not None else (0, 0.0)
     drawn = []

@@ -316,6 +316,22 @@ def test_no_pilot_where_the_existence_head_is_sure_of_an_object():
     assert smc_evidence(far, blank, always, surest, torch.Generator().manual_seed(0)).particles == 8
 
 
+def test_no_run_where_the_existence_head_all_but_rules_an_object_out():
+    """Under smc_object_floor no particle is drawn: the evidence is the exact branch without an
+    object, which is what a pilot that trails far behind leaves of it, to the bit."""
+    blank = BACKGROUND.expand(T, -1) + 0.01
+    far = _LinearGaussianScene(T, M_0 + 20.0, 0.1, A, H, BACKGROUND)
+    ruled_out = Proposal(torch.tensor(8 / 64), (M_0 + 20.0).expand(T, -1), torch.full((T, D), 0.6), torch.tensor(0.01))
+    floored = config(particles=64, smc_pilot=8, smc_object_floor=0.05)
+    none = smc_evidence(far, blank, floored, ruled_out, torch.Generator().manual_seed(0))
+    piloted = smc_evidence(far, blank, replace(floored, smc_object_floor=0.0), ruled_out,
+                           torch.Generator().manual_seed(0))
+    assert none.particles == 0 and none.p_hidden == 0.0 and none.trajectories is None
+    assert none.log_evidence == none.log_evidence_empty
+    assert piloted.particles == 8 and piloted.log_evidence_hidden < piloted.log_evidence_empty - 40
+    assert none.log_evidence == piloted.log_evidence
+
+
 def test_the_proposal_is_refined_only_for_a_full_run():
     """A pilot draws from the proposal as it is; `refine` (the XPL scene's out-of-sight steps) is
     paid once, by a video that goes on to its full run, which then draws from what it returns."""

@@ -67,6 +67,10 @@ class InferenceConfig:
     # video's NLL then swings by hundreds of nats between seeds (docs/decisions.md, "The
     # NLL's settings")
     smc_pilot_skip_exists: float = within(0.5, SHARE)
+    # no run with a hidden object at all where the head's probability is under this (0: a pilot
+    # everywhere): on the validation splits every such video's pilot trailed by 94 nats or more,
+    # and its NLL is the same to the bit without it (docs/decisions.md, "The NLL's settings")
+    smc_object_floor: float = within(0.05, SHARE)
     # proposal_widening for the SMC (None: the same); several: an equal-weight mixture of the
     # proposals with each. The SMC reweights every frame, so a pull towards Transformer 2's
     # marginals costs weight variance at each step: the wide component keeps the particles near

@@ -38,7 +38,7 @@ NLL = InferenceConfig(
     pixel_sigma=0.5, motion_sigma=0.2, transition_sigma=0.1,
     exposure_penalty=12.0, presence_penalty=12.0, object_area=0.008,
     method="smc", particles=64, resample_threshold=0.5,
-    smc_pilot=1, smc_pilot_margin=30.0, smc_pilot_skip_exists=0.5,
+    smc_pilot=1, smc_pilot_margin=30.0, smc_pilot_skip_exists=0.5, smc_object_floor=0.05,
     proposal_widening=3.0, smc_proposal_widening=(3.0, 10.0),
     refine_steps=5, refine_rate=0.1, refine_tolerance=1.0, sure_runs=2, sure_runs_exists=0.95,
 )
