@@ -127,7 +127,7 @@ class Proposal:
     loc: Tensor                     # (T, D)
     scale: Tensor                   # (T, D)
     # scalar: XPL's existence head's own probability, before the guide keeps it off 0 and 1; what
-    # decides whether a pilot runs (`inference.evidence.hidden_runs`)
+    # decides which runs are made (`inference.evidence.hidden_runs`)
     head: Tensor
 
 
