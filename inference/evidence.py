@@ -163,7 +163,7 @@ def _piloted_runs(model: HiddenObjectModel, frames: Tensor, config: InferenceCon
             proposal = refine(proposal)
         versions = [version for version in range(model.scene.versions) if version not in found]
         for version, one in zip(versions, _runs(model, frames, config, proposal, versions, size, generator)):
-            if size == config.particles or known - float(one.log_evidence[0]) > config.smc_pilot_margin:
+            if size == config.particles or _trails(one, known, config):
                 found[version] = one
         if len(found) == model.scene.versions:
             break
@@ -185,13 +185,17 @@ def _pooled_runs(model: HiddenObjectModel, frames: Tensor, config: InferenceConf
     first = _runs(model, frames, config, proposal, versions, config.particles, generator)
     made = {version: [run] for version, run in zip(versions, first)}
     more = versions if float(proposal.head) > config.sure_runs_exists else [
-        version for version, run in zip(versions, first)
-        if known - float(run.log_evidence[0]) <= config.smc_pilot_margin]
-    for _ in range(config.sure_runs - 1):
-        if more:
-            for version, run in zip(more, _runs(model, frames, config, proposal, more, config.particles, generator)):
-                made[version].append(run)
+        version for version, run in zip(versions, first) if not _trails(run, known, config)]
+    for _ in range(config.sure_runs - 1 if more else 0):
+        for version, run in zip(more, _runs(model, frames, config, proposal, more, config.particles, generator)):
+            made[version].append(run)
     return [pooled(made[version], _trajectories) for version in versions]
+
+
+def _trails(run: SMCRun, known: float, config: InferenceConfig) -> bool:
+    """Whether a run's branch with an object trails `known` (the branches without one) by more
+    than config.smc_pilot_margin nats: it then changes log p(x) by less than exp(-margin)."""
+    return known - float(run.log_evidence[0]) > config.smc_pilot_margin
 
 
 def _runs(model: HiddenObjectModel, frames: Tensor, config: InferenceConfig, proposal: Proposal | None,
